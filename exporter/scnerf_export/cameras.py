@@ -1,0 +1,102 @@
+"""Cameras in the canonical form (OpenCV axes, world-to-camera) and the rays the server sends.
+
+The centre of pixel (u, v) is at image coordinates (u, v). Ray and projection maths runs in
+float64 and is cast to float32 once, exactly as the Rust server does, so both feed the graphs
+bit-identical inputs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+@dataclass
+class Camera:
+    K: np.ndarray  # (3,3) intrinsics
+    w2c: np.ndarray  # (4,4) world-to-camera, OpenCV axes (x right, y down, z forward)
+    width: int
+    height: int
+
+    @property
+    def c2w(self) -> np.ndarray:
+        return np.linalg.inv(self.w2c)
+
+    @classmethod
+    def from_pose(cls, K, matrix, width: int, height: int, kind: str = "world_to_camera",
+                  axes: str = "opencv") -> "Camera":
+        """Build a canonical camera from any of the API's pose conventions."""
+        matrix = np.asarray(matrix, dtype=np.float64)
+        c2w = matrix if kind == "camera_to_world" else np.linalg.inv(matrix)
+        if axes == "opengl":
+            c2w = c2w @ OPENGL_TO_OPENCV
+        return cls(np.asarray(K, dtype=np.float64), np.linalg.inv(c2w), int(width), int(height))
+
+    def scaled(self, factor: float) -> "Camera":
+        """The camera of the image resized by ``factor`` (pixel centres stay at integers)."""
+        K = self.K.copy()
+        K[0, 0] *= factor
+        K[1, 1] *= factor
+        K[0, 2] = (K[0, 2] + 0.5) * factor - 0.5
+        K[1, 2] = (K[1, 2] + 0.5) * factor - 0.5
+        return Camera(K, self.w2c.copy(), round(self.width * factor), round(self.height * factor))
+
+
+def target_rays(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """Rays through every pixel centre, row-major: origins (HW,3), directions (HW,3) float32.
+
+    Directions are R_c2w [(u-cx)/fx, (v-cy)/fy, 1]: the sample parameter is the target z-depth.
+    """
+    K, c2w = camera.K, camera.c2w
+    v, u = np.meshgrid(np.arange(camera.height, dtype=np.float64),
+                       np.arange(camera.width, dtype=np.float64), indexing="ij")
+    cam_dirs = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], axis=-1)
+    directions = cam_dirs.reshape(-1, 3) @ c2w[:3, :3].T
+    origins = np.broadcast_to(c2w[:3, 3], directions.shape)
+    return origins.astype(np.float32), directions.astype(np.float32)
+
+
+def intrinsics_4x4(K: np.ndarray) -> np.ndarray:
+    m = np.eye(4)
+    m[:3, :3] = K
+    return m
+
+
+def feature_projections(cameras: list[Camera]) -> np.ndarray:
+    """(V,4,4) float32: diag(1/4,1/4,1,1) [[K,0],[0,1]] w2c, the cost volume's projections."""
+    quarter = np.diag([0.25, 0.25, 1.0, 1.0])
+    return np.stack([quarter @ intrinsics_4x4(c.K) @ c.w2c for c in cameras]).astype(np.float32)
+
+
+def stack_intrinsics(cameras: list[Camera]) -> np.ndarray:
+    return np.stack([c.K for c in cameras]).astype(np.float32)
+
+
+def stack_extrinsics(cameras: list[Camera]) -> np.ndarray:
+    return np.stack([c.w2c for c in cameras]).astype(np.float32)
+
+
+def depth_planes(near: float, far: float, count: int) -> np.ndarray:
+    steps = np.linspace(0.0, 1.0, count, dtype=np.float64)
+    return (near * (1.0 - steps) + far * steps).astype(np.float32)
+
+
+def look_at(eye, target, K: np.ndarray, width: int, height: int, up=(0.0, -1.0, 0.0)) -> Camera:
+    """An OpenCV camera at ``eye`` looking at ``target`` (y axis of the image points along -up)."""
+    eye, target, up = (np.asarray(a, dtype=np.float64) for a in (eye, target, up))
+    forward = target - eye
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, up)
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    w2c = np.eye(4)
+    w2c[:3, :3] = np.stack([right, down, forward])
+    w2c[:3, 3] = -w2c[:3, :3] @ eye
+    return Camera(np.asarray(K, dtype=np.float64), w2c, width, height)
+
+
+def pinhole(focal: float, width: int, height: int) -> np.ndarray:
+    return np.array([[focal, 0.0, (width - 1) / 2.0], [0.0, focal, (height - 1) / 2.0], [0.0, 0.0, 1.0]])

@@ -1,0 +1,116 @@
+"""`scnerf-export`: convert-mvsnerf, export, fixtures, eval, train."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from .checkpoint import CheckpointError
+
+
+def cmd_convert(args) -> None:
+    from .checkpoint import load_mvsnerf
+    from .export import export_bundle
+
+    model, provenance = load_mvsnerf(args.ckpt)
+    manifest = export_bundle(model, args.out, provenance)
+    print(f"wrote {args.out} ({manifest['model_id']})")
+
+
+def cmd_export(args) -> None:
+    from .checkpoint import load_checkpoint
+    from .export import export_bundle
+
+    model, provenance = load_checkpoint(args.checkpoint)
+    manifest = export_bundle(model, args.out, provenance)
+    print(f"wrote {args.out} ({manifest['model_id']})")
+
+
+def cmd_fixtures(args) -> None:
+    from .fixtures import write_fixtures
+
+    print(f"wrote {write_fixtures(args.out, variant=args.variant, seed=args.seed)}")
+
+
+def cmd_eval(args) -> None:
+    from .evaluate import evaluate, split_names, write_json
+
+    summary = evaluate(args.bundle, args.scene, args.format, split_names(args.sources), split_names(args.targets),
+                       args.scale, args.near, args.far, args.threads, args.chunk, args.save_renders)
+    if "lpips_unavailable" in summary:
+        print(f"LPIPS not computed: {summary['lpips_unavailable']}")
+    if args.json:
+        write_json(summary, args.json)
+        print(f"wrote {args.json}")
+
+
+def cmd_train(args) -> None:
+    from .train import train
+
+    last = train(args.variant, args.preset, args.out, resume=args.resume, steps=args.steps, seed=args.seed,
+                 cache_dir=args.cache, threads=args.threads)
+    print(f"checkpoint {last}")
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="scnerf-export", description=__doc__)
+    sub = p.add_subparsers(dest="command", required=True)
+
+    c = sub.add_parser("convert-mvsnerf", help="public MVSNeRF checkpoint -> mvsnerf bundle")
+    c.add_argument("--ckpt", required=True, type=Path)
+    c.add_argument("--out", required=True, type=Path)
+    c.set_defaults(func=cmd_convert)
+
+    e = sub.add_parser("export", help="checkpoint (project or MVSNeRF) -> bundle")
+    e.add_argument("--checkpoint", required=True, type=Path)
+    e.add_argument("--out", required=True, type=Path)
+    e.set_defaults(func=cmd_export)
+
+    f = sub.add_parser("fixtures", help="parity fixtures for the Rust tests (random small model)")
+    f.add_argument("--out", required=True, type=Path)
+    f.add_argument("--variant", default="scnerf")
+    f.add_argument("--seed", type=int, default=7)
+    f.set_defaults(func=cmd_fixtures)
+
+    v = sub.add_parser("eval", help="render target views of a scene through ONNX Runtime and score them")
+    v.add_argument("--bundle", required=True, type=Path)
+    v.add_argument("--scene", required=True, type=Path)
+    v.add_argument("--format", required=True, choices=["dtu", "blender", "llff", "nerfstudio", "colmap"])
+    v.add_argument("--sources", help="comma-separated view names (default: the scene's)")
+    v.add_argument("--targets", help="comma-separated view names (default: the scene's)")
+    v.add_argument("--scale", type=float, default=1.0, help="resize every view by this factor")
+    v.add_argument("--near", type=float)
+    v.add_argument("--far", type=float)
+    v.add_argument("--threads", type=int)
+    v.add_argument("--chunk", type=int, default=4096, help="rays per renderer call")
+    v.add_argument("--json", type=Path, help="write the results here")
+    v.add_argument("--save-renders", type=Path, help="write rendered PNGs here")
+    v.set_defaults(func=cmd_eval)
+
+    t = sub.add_parser("train", help="train on procedural scenes")
+    t.add_argument("--variant", required=True, choices=["mvsnerf", "scnerf", "scnerf-geometry", "scnerf-appearance"])
+    t.add_argument("--preset", required=True, choices=["cpu-small", "gpu"])
+    t.add_argument("--out", required=True, type=Path)
+    t.add_argument("--resume", action="store_true")
+    t.add_argument("--steps", type=int)
+    t.add_argument("--seed", type=int, default=0)
+    t.add_argument("--cache", type=Path, help="procedural scene cache (default OUT/cache)")
+    t.add_argument("--threads", type=int)
+    t.set_defaults(func=cmd_train)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    try:
+        args.func(args)
+    except (CheckpointError, FileNotFoundError, ValueError, KeyError) as exc:
+        message = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        print(f"scnerf-export {args.command}: error: {message}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,147 @@
+"""Parity fixtures for the Rust tests: a random-weight small bundle, requests and the PyTorch
+reference outputs (docs/bundle.md "Parity fixtures")."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image
+
+from . import cameras as cams
+from .cameras import Camera
+from .config import ModelConfig, small_config
+from .export import export_bundle
+from .model import SCNeRF
+from .render import encode_scene, render_view
+
+
+def smooth_pattern(rng: np.random.Generator, height: int, width: int) -> np.ndarray:
+    """A textured [0,1] image: a few random sinusoids per channel (bilinear sampling matters)."""
+    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
+    img = np.zeros((height, width, 3))
+    for c in range(3):
+        for _ in range(4):
+            fu, fv = rng.uniform(-0.25, 0.25, size=2)
+            img[..., c] += np.sin(fu * u + fv * v + rng.uniform(0, 2 * np.pi))
+    img = (img - img.min()) / (img.max() - img.min())
+    return img.astype(np.float32)
+
+
+def rig_cameras(height: int, width: int, radius: float = 3.0) -> tuple[list[Camera], Camera, float, float]:
+    """Three sources and a target around the origin, like a small DTU rig."""
+    K = cams.pinhole(1.2 * width, width, height)
+    eyes = [(0.0, 0.0, -radius), (0.5, 0.1, -radius), (-0.3, 0.4, -radius), (0.15, 0.2, -radius)]
+    all_cams = [cams.look_at(e, (0.0, 0.0, 0.0), K, width, height) for e in eyes]
+    return all_cams[:3], all_cams[3], radius - 1.0, radius + 1.0
+
+
+def synthetic_rig(cfg: ModelConfig, height: int, width: int, seed: int = 0) -> dict[str, torch.Tensor]:
+    """Tensors for tracing and validating the graphs."""
+    rng = np.random.default_rng(seed)
+    sources, target, near, far = rig_cameras(height, width)
+    images = np.stack([smooth_pattern(rng, height, width) for _ in sources]).transpose(0, 3, 1, 2)
+    origins, directions = cams.target_rays(target)
+    t = torch.from_numpy
+    return {
+        "images": t(np.ascontiguousarray(images)),
+        "projections": t(cams.feature_projections(sources)),
+        "depth_planes": t(cams.depth_planes(near, far, cfg.depth_planes)),
+        "intrinsics": t(cams.stack_intrinsics(sources)),
+        "extrinsics": t(cams.stack_extrinsics(sources)),
+        "near_far": torch.tensor([near, far], dtype=torch.float32),
+        "ray_origins": t(origins), "ray_directions": t(directions),
+    }
+
+
+def random_model(cfg: ModelConfig, seed: int) -> SCNeRF:
+    """Random weights whose renders are not degenerate: density biased so opacity is mid-range."""
+    torch.manual_seed(seed)
+    model = SCNeRF(cfg)
+    with torch.no_grad():
+        density_out = model.renderer.m2[-2]
+        density_out.bias.fill_(0.05)
+    return model.eval()
+
+
+def _camera_json(camera: Camera, style: str) -> dict:
+    """The API's camera object, in OpenCV/w2c or OpenGL/c2w form (both must reach one canonical form)."""
+    K = camera.K
+    if style == "opengl_c2w":
+        pose = {"matrix": (camera.c2w @ cams.OPENGL_TO_OPENCV).tolist(), "kind": "camera_to_world", "axes": "opengl"}
+    else:
+        pose = {"matrix": camera.w2c.tolist(), "kind": "world_to_camera", "axes": "opencv"}
+    return {"width": camera.width, "height": camera.height,
+            "intrinsics": {"fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2]}, "pose": pose}
+
+
+def _write_f32(path: Path, array) -> None:
+    np.ascontiguousarray(np.asarray(array, dtype="<f4")).tofile(path)
+
+
+def write_case(out: Path, model: SCNeRF, name: str, height: int, width: int, target_scale: float,
+               style: str, background: tuple[float, float, float], seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    sources, target, near, far = rig_cameras(height, width)
+    target = target.scaled(target_scale)
+    case = out / name
+    case.mkdir(parents=True, exist_ok=True)
+    images = []
+    for i in range(len(sources)):
+        rgba = (smooth_pattern(rng, height, width) * 255).round().astype(np.uint8)
+        Image.fromarray(rgba).save(case / f"source_{i}.png")
+        images.append(np.asarray(Image.open(case / f"source_{i}.png"), dtype=np.float32) / 255.0)
+    images = np.stack(images)
+    request = {
+        "sources": [{"camera": _camera_json(c, style)} for c in sources],
+        "target": _camera_json(target, style),
+        "near": near, "far": far, "background": list(background),
+        "outputs": ["rgb", "depth", "opacity"],
+    }
+    (case / "request.json").write_text(json.dumps(request, indent=2) + "\n")
+    # Decode the request the way the server does, so the fixture tests the conversions too.
+    parsed = [Camera.from_pose(_k(s["camera"]), s["camera"]["pose"]["matrix"], width, height,
+                               s["camera"]["pose"]["kind"], s["camera"]["pose"]["axes"]) for s in request["sources"]]
+    t = request["target"]
+    parsed_target = Camera.from_pose(_k(t), t["pose"]["matrix"], t["width"], t["height"],
+                                     t["pose"]["kind"], t["pose"]["axes"])
+    result = render_view(model, images, parsed, parsed_target, near, far, background, chunk=97)
+    with torch.no_grad():
+        scene = encode_scene(model, images, parsed, near, far, background)
+    _write_f32(case / "rgb.f32", result.rgb)
+    _write_f32(case / "depth.f32", result.depth)
+    _write_f32(case / "opacity.f32", result.opacity)
+    _write_f32(case / "features.f32", scene.features.numpy())
+    _write_f32(case / "volume.f32", scene.volume.numpy())
+    expected = {
+        "width": parsed_target.width, "height": parsed_target.height, "background": list(background),
+        "files": {"rgb": "rgb.f32", "depth": "depth.f32", "opacity": "opacity.f32",
+                  "features": "features.f32", "volume": "volume.f32"},
+        "shapes": {"rgb": [parsed_target.height, parsed_target.width, 3],
+                   "depth": [parsed_target.height, parsed_target.width],
+                   "opacity": [parsed_target.height, parsed_target.width],
+                   "features": list(scene.features.shape), "volume": list(scene.volume.shape)},
+        "tolerances": {"rgb_max_abs": 1e-3, "depth_max_rel": 1e-3, "opacity_max_abs": 1e-3,
+                       "features_max_abs": 1e-4, "volume_max_abs": 1e-4},
+        "stats": {"opacity_mean": float(result.opacity.mean()), "rgb_std": float(result.rgb.std())},
+    }
+    (case / "expected.json").write_text(json.dumps(expected, indent=2) + "\n")
+
+
+def _k(camera_json: dict) -> np.ndarray:
+    i = camera_json["intrinsics"]
+    return np.array([[i["fx"], 0, i["cx"]], [0, i["fy"], i["cy"]], [0, 0, 1]], dtype=np.float64)
+
+
+def write_fixtures(out_dir: str | Path, variant: str = "scnerf", seed: int = 7) -> Path:
+    out = Path(out_dir)
+    model = random_model(small_config(variant), seed)
+    export_bundle(model, out / "bundle", {"source_checkpoint": None, "source_kind": "random-weights",
+                                          "training": f"random weights, torch seed {seed} (test fixture only)"})
+    cases = out / "cases"
+    write_case(cases, model, "opencv_64x96", 64, 96, 1.0, "opencv_w2c", (0.0, 0.0, 0.0), seed + 1)
+    write_case(cases, model, "opengl_96x64_white", 96, 64, 0.75, "opengl_c2w", (1.0, 1.0, 1.0), seed + 2)
+    (out / "READY").write_text("fixtures complete\n")
+    return out

@@ -1,0 +1,513 @@
+"""SC-NeRF (and its MVSNeRF baseline) in PyTorch, following the paper's symbols.
+
+Data path: images -> G1 -> features F_i -> cost volume P -> G2 -> encoding volume V;
+per target ray: points x -> point features f = [s, colours, masks] -> M1 -> F_r -> M2 -> sigma
+-> rendered depth D -> geometry rectification (F_r -> F_c) -> appearance rectification
+(F_c -> F) -> M4 -> colour c -> compositing.
+
+Every function here is traced into the ONNX sub-graphs, so it avoids data-dependent Python
+control flow and ops without an ONNX equivalent (cumprod, linalg.inv).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from .config import ModelConfig
+
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+
+
+# ---------------------------------------------------------------------------------------------
+# Shared pieces
+# ---------------------------------------------------------------------------------------------
+
+
+class BatchStatNorm(nn.Module):
+    """Batch norm + leaky ReLU (the reference code's InPlaceABN).
+
+    With ``statistics == "batch"`` it normalises by the statistics of the current batch, which is
+    how the public checkpoint was evaluated (three source views for G1, one volume for G2).
+    The running statistics are kept so that a checkpoint maps onto the module without leftovers.
+    """
+
+    def __init__(self, channels: int, slope: float, eps: float, statistics: str):
+        super().__init__()
+        self.weight = nn.Parameter(torch.ones(channels))
+        self.bias = nn.Parameter(torch.zeros(channels))
+        self.register_buffer("running_mean", torch.zeros(channels))
+        self.register_buffer("running_var", torch.ones(channels))
+        self.register_buffer("num_batches_tracked", torch.tensor(0, dtype=torch.long))
+        self.slope = slope
+        self.eps = eps
+        self.statistics = statistics
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if self.statistics == "batch" and not torch.compiler.is_exporting():
+            # PyTorch's fused kernel: the same numbers, far less memory traffic when training.
+            x = F.batch_norm(x, None, None, self.weight, self.bias, training=True, eps=self.eps)
+            return F.leaky_relu(x, self.slope)
+        shape = (1, -1) + (1,) * (x.dim() - 2)
+        if self.statistics == "batch":
+            mean = _mean_over_batch_and_space(x)
+            var = _mean_over_batch_and_space((x - mean).square())
+        else:
+            mean, var = self.running_mean.view(shape), self.running_var.view(shape)
+        x = (x - mean) * torch.rsqrt(var + self.eps) * self.weight.view(shape) + self.bias.view(shape)
+        return F.leaky_relu(x, self.slope)
+
+
+def _mean_over_batch_and_space(x: torch.Tensor) -> torch.Tensor:
+    """Per-channel mean, one axis at a time: the same value as one big mean, but each partial sum
+    stays short, so float32 runtimes that sum naively (ONNX Runtime's ReduceMean) stay accurate
+    on volumes of millions of cells."""
+    for dim in range(x.dim() - 1, 1, -1):
+        x = x.mean(dim=dim, keepdim=True)
+    return x.mean(dim=0, keepdim=True)
+
+
+class ConvNormAct(nn.Module):
+    def __init__(self, conv: nn.Module, channels: int, cfg: ModelConfig):
+        super().__init__()
+        self.conv = conv
+        self.bn = BatchStatNorm(channels, cfg.activation_slope, cfg.norm_eps, cfg.norm_statistics)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.bn(self.conv(x))
+
+
+def frequency_encoding(x: torch.Tensor, freqs: int) -> torch.Tensor:
+    """E(x) = [x, sin(2^0 x), ..., sin(2^(L-1) x), cos(2^0 x), ..., cos(2^(L-1) x)].
+
+    The channel order is the reference code's (MVSNeRF models.py, Embedder.embed: all sines,
+    then all cosines, the coordinate varying fastest), not the original NeRF's interleaved
+    [sin, cos] per frequency: the public checkpoint's first trunk layer and skip layer read the
+    63 channels in this order, so any other order scrambles the trunk's input.
+    """
+    scaled = torch.cat([x * float(2**i) for i in range(freqs)], dim=-1)
+    return torch.cat([x, torch.sin(scaled), torch.cos(scaled)], dim=-1)
+
+
+def normalise_imagenet(images: torch.Tensor) -> torch.Tensor:
+    mean = images.new_tensor(IMAGENET_MEAN).view(1, 3, 1, 1)
+    std = images.new_tensor(IMAGENET_STD).view(1, 3, 1, 1)
+    return (images - mean) / std
+
+
+def affine_inverse(m: torch.Tensor) -> torch.Tensor:
+    """Inverse of 4x4 matrices [[A, b], [0, 1]] via the adjugate of A (ONNX has no Inverse op)."""
+    a = m[..., :3, :3]
+    r0, r1, r2 = a[..., 0, :], a[..., 1, :], a[..., 2, :]
+    cofactor_t = torch.stack(
+        [torch.linalg.cross(r1, r2), torch.linalg.cross(r2, r0), torch.linalg.cross(r0, r1)], dim=-1
+    )
+    det = (r0 * torch.linalg.cross(r1, r2)).sum(-1)
+    a_inv = cofactor_t / det[..., None, None]
+    b_inv = -(a_inv @ m[..., :3, 3:])
+    top = torch.cat([a_inv, b_inv], dim=-1)
+    bottom = torch.zeros_like(m[..., 3:, :])
+    bottom = torch.cat([bottom[..., :3], torch.ones_like(bottom[..., 3:])], dim=-1)
+    return torch.cat([top, bottom], dim=-2)
+
+
+# ---------------------------------------------------------------------------------------------
+# G1: image encoder
+# ---------------------------------------------------------------------------------------------
+
+
+class EncoderG1(nn.Module):
+    """G1: F_i = G1(I_i), (3,H,W) -> (C1,H/4,W/4); three Conv-BN-act stages, 1x1 output conv."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        c0, c1, c2 = cfg.encoder_channels
+
+        def block(cin: int, cout: int, k: int, stride: int) -> ConvNormAct:
+            conv = nn.Conv2d(cin, cout, k, stride=stride, padding=k // 2, bias=False)
+            return ConvNormAct(conv, cout, cfg)
+
+        self.conv0 = nn.Sequential(block(3, c0, 3, 1), block(c0, c0, 3, 1))
+        self.conv1 = nn.Sequential(block(c0, c1, 5, 2), block(c1, c1, 3, 1), block(c1, c1, 3, 1))
+        self.conv2 = nn.Sequential(block(c1, c2, 5, 2), block(c2, c2, 3, 1), block(c2, c2, 3, 1))
+        self.toplayer = nn.Conv2d(c2, cfg.feature_channels, 1)
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        """images: (V,3,H,W) in [0,1] -> features (V,C1,H/4,W/4)."""
+        x = normalise_imagenet(images)
+        return self.toplayer(self.conv2(self.conv1(self.conv0(x))))
+
+
+# ---------------------------------------------------------------------------------------------
+# Cost volume P and G2
+# ---------------------------------------------------------------------------------------------
+
+
+def plane_sweep_grid(
+    projections: torch.Tensor, depth_planes: torch.Tensor, h: int, w: int, pad: int
+) -> torch.Tensor:
+    """Sampling grids of the homographies H_i(z) for every source view (paper Eq. 2).
+
+    projections: (V,4,4) feature-resolution K[R|t]; view 0 is the reference.
+    Returns (V-1, D, Hp*Wp, 2) grids in grid_sample's [-1,1] coordinates (align_corners=True).
+    """
+    ref_inverse = affine_inverse(projections[0])
+    relative = projections[1:] @ ref_inverse  # source pixel*depth from reference pixel*depth
+    rot, trans = relative[:, :3, :3], relative[:, :3, 3:]
+    hp, wp = h + 2 * pad, w + 2 * pad
+    ys = torch.arange(hp, dtype=projections.dtype, device=projections.device) - pad
+    xs = torch.arange(wp, dtype=projections.dtype, device=projections.device) - pad
+    gy, gx = torch.meshgrid(ys, xs, indexing="ij")
+    pixels = torch.stack([gx.reshape(-1), gy.reshape(-1), torch.ones_like(gx).reshape(-1)])  # (3,P)
+    rotated = rot @ pixels  # (V-1,3,P)
+    points = rotated[:, None] + trans[:, None] / depth_planes.view(1, -1, 1, 1)  # (V-1,D,3,P)
+    u = points[:, :, 0] / points[:, :, 2] / ((w - 1) / 2.0) - 1.0
+    v = points[:, :, 1] / points[:, :, 2] / ((h - 1) / 2.0) - 1.0
+    return torch.stack([u, v], dim=-1)
+
+
+def build_cost_volume(
+    features: torch.Tensor,
+    images: torch.Tensor,
+    projections: torch.Tensor,
+    depth_planes: torch.Tensor,
+    pad: int,
+) -> torch.Tensor:
+    """P = [images of every view warped to the planes (3V), Var_i(F_{i,z})] (paper Eq. 3-4).
+
+    Reproduces the reference code: the variance counts the reference view everywhere (its padded
+    border holds zeros) plus each source view where its warp lands inside the image.
+    """
+    views, _, h, w = features.shape
+    d = depth_planes.shape[0]
+    hp, wp = h + 2 * pad, w + 2 * pad
+    small = F.interpolate(normalise_imagenet(images), size=(h, w), mode="bilinear", align_corners=False)
+    grids = plane_sweep_grid(projections, depth_planes, h, w, pad)  # (V-1,D,P,2)
+
+    ref_features = F.pad(features[:1], (pad, pad, pad, pad))[:, :, None].expand(-1, -1, d, -1, -1)
+    ref_image = F.pad(small[:1], (pad, pad, pad, pad))[:, :, None].expand(-1, -1, d, -1, -1)
+    volume_sum = ref_features
+    volume_sq_sum = ref_features.square()
+    count = torch.ones_like(ref_features[:, :1])
+    warped_images = [ref_image]
+    for i in range(1, views):
+        grid = grids[i - 1 : i]
+        warped = F.grid_sample(features[i : i + 1], grid, mode="bilinear", padding_mode="zeros",
+                               align_corners=True).view(1, -1, d, hp, wp)
+        warped_img = F.grid_sample(small[i : i + 1], grid, mode="bilinear", padding_mode="zeros",
+                                   align_corners=True).view(1, -1, d, hp, wp)
+        inside = ((grid > -1.0) & (grid < 1.0)).all(dim=-1).to(features.dtype).view(1, 1, d, hp, wp)
+        volume_sum = volume_sum + warped
+        volume_sq_sum = volume_sq_sum + warped.square()
+        count = count + inside
+        warped_images.append(warped_img)
+    variance = volume_sq_sum / count - (volume_sum / count).square()
+    return torch.cat(warped_images + [variance], dim=1)
+
+
+class VolumeNetG2(nn.Module):
+    """G2: V = G2(P), a 3D U-Net (down 8->16->32->64, transposed-conv up with skip additions)."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        c0, c1, c2, c3 = cfg.unet_channels
+        cin = cfg.feature_channels + 3 * cfg.views
+
+        def down(a: int, b: int, stride: int = 1) -> ConvNormAct:
+            return ConvNormAct(nn.Conv3d(a, b, 3, stride=stride, padding=1, bias=False), b, cfg)
+
+        def up(a: int, b: int) -> nn.Sequential:
+            conv = nn.ConvTranspose3d(a, b, 3, stride=2, padding=1, output_padding=1, bias=False)
+            norm = BatchStatNorm(b, cfg.activation_slope, cfg.norm_eps, cfg.norm_statistics)
+            return nn.Sequential(conv, norm)
+
+        self.conv0 = down(cin, c0)
+        self.conv1, self.conv2 = down(c0, c1, 2), down(c1, c1)
+        self.conv3, self.conv4 = down(c1, c2, 2), down(c2, c2)
+        self.conv5, self.conv6 = down(c2, c3, 2), down(c3, c3)
+        self.conv7, self.conv9, self.conv11 = up(c3, c2), up(c2, c1), up(c1, c0)
+        if c0 != cfg.volume_channels:
+            raise ValueError("the U-Net's first stage width is the volume's channel count")
+
+    def forward(self, cost: torch.Tensor) -> torch.Tensor:
+        conv0 = self.conv0(cost)
+        conv2 = self.conv2(self.conv1(conv0))
+        conv4 = self.conv4(self.conv3(conv2))
+        x = self.conv6(self.conv5(conv4))
+        x = conv4 + self.conv7(x)
+        x = conv2 + self.conv9(x)
+        return conv0 + self.conv11(x)
+
+
+# ---------------------------------------------------------------------------------------------
+# Per-point features
+# ---------------------------------------------------------------------------------------------
+
+
+def project(points: torch.Tensor, intrinsics: torch.Tensor, extrinsics: torch.Tensor) -> torch.Tensor:
+    """World points (N,3) -> (N,3) = (pixel u, pixel v, camera z) in one view."""
+    cam = points @ extrinsics[:3, :3].transpose(0, 1) + extrinsics[:3, 3]
+    pix = cam @ intrinsics.transpose(0, 1)
+    return torch.cat([pix[:, :2] / pix[:, 2:], pix[:, 2:]], dim=-1)
+
+
+def reference_frustum_coordinates(
+    points: torch.Tensor, intrinsics: torch.Tensor, extrinsics: torch.Tensor,
+    near_far: torch.Tensor, height: int, width: int, pad: int,
+) -> torch.Tensor:
+    """x in the reference frustum, in [0,1]^3: u/(W-1), v/(H-1), (z-near)/(far-near), then the
+    image axes remapped into the padded volume (reference code's get_ndc_coordinate)."""
+    uvz = project(points, intrinsics, extrinsics)
+    u = uvz[:, 0] / (width - 1)
+    v = uvz[:, 1] / (height - 1)
+    z = (uvz[:, 2] - near_far[0]) / (near_far[1] - near_far[0])
+    wf, hf = width / 4.0, height / 4.0
+    u = u * wf / (wf + 2 * pad) + pad / (wf + 2 * pad)
+    v = v * hf / (hf + 2 * pad) + pad / (hf + 2 * pad)
+    return torch.stack([u, v, z], dim=-1)
+
+
+def sample_volume(volume: torch.Tensor, frustum: torch.Tensor) -> torch.Tensor:
+    """s: trilinear sample of V at frustum coordinates (N,3) -> (N,C); zeros outside."""
+    grid = (frustum * 2.0 - 1.0).view(1, 1, 1, -1, 3)
+    s = F.grid_sample(volume, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
+    return s.view(volume.shape[1], -1).transpose(0, 1)
+
+
+def view_grid(points: torch.Tensor, intrinsics: torch.Tensor, extrinsics: torch.Tensor,
+              height: int, width: int) -> torch.Tensor:
+    """Pixel positions of points in one view as a grid_sample grid (align_corners=True), (N,2)."""
+    uvz = project(points, intrinsics, extrinsics)
+    return torch.stack([uvz[:, 0] / (width - 1), uvz[:, 1] / (height - 1)], dim=-1) * 2.0 - 1.0
+
+
+def sample_views(
+    points: torch.Tensor, images: torch.Tensor, features: torch.Tensor | None,
+    intrinsics: torch.Tensor, extrinsics: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Reproject x into every source view.
+
+    Returns the colour/mask part of f, per view [r, g, b, in-image] (N, 4V) (colours with border
+    padding, as the reference code), and, when features are given, the appearance features F_a:
+    the mean over views of [F_i, I_i] at x, zero where x falls outside a view (N, C1+3).
+    """
+    views, _, height, width = images.shape
+    colour_parts, appearance = [], None
+    for i in range(views):
+        grid = view_grid(points, intrinsics[i], extrinsics[i], height, width)
+        grid5 = grid.view(1, 1, -1, 2)
+        rgb = F.grid_sample(images[i : i + 1], grid5, mode="bilinear", padding_mode="border",
+                            align_corners=True).view(3, -1).transpose(0, 1)
+        inside = ((grid > -1.0) & (grid < 1.0)).all(dim=-1, keepdim=True).to(points.dtype)
+        colour_parts += [rgb, inside]
+        if features is not None:
+            feat = F.grid_sample(features[i : i + 1], grid5, mode="bilinear", padding_mode="zeros",
+                                 align_corners=True).view(features.shape[1], -1).transpose(0, 1)
+            term = torch.cat([feat, rgb], dim=-1) * inside
+            appearance = term if appearance is None else appearance + term
+    if appearance is not None:
+        appearance = appearance / views
+    return torch.cat(colour_parts, dim=-1), appearance
+
+
+# ---------------------------------------------------------------------------------------------
+# M1..M4 and the rectifiers
+# ---------------------------------------------------------------------------------------------
+
+
+class TrunkM1(nn.Module):
+    """M1: F_r = M1(E(x), f); each layer's output is gated by a per-point Linear(f) before ReLU,
+    with E(x) concatenated after layer ``skip_layer`` (reference code's Renderer_ours)."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        e = cfg.position_embedding_channels
+        layers = [nn.Linear(e, cfg.width)]
+        for i in range(cfg.trunk_layers - 1):
+            layers.append(nn.Linear(cfg.width + (e if i == cfg.skip_layer else 0), cfg.width))
+        self.linears = nn.ModuleList(layers)
+        self.feature_gate = nn.Linear(cfg.point_feature_channels, cfg.width)
+        self.skip_layer = cfg.skip_layer
+
+    def forward(self, position_embedding: torch.Tensor, point_features: torch.Tensor) -> torch.Tensor:
+        gate = self.feature_gate(point_features)
+        h = position_embedding
+        for i, layer in enumerate(self.linears):
+            h = F.relu(layer(h) * gate)
+            if i == self.skip_layer:
+                h = torch.cat([position_embedding, h], dim=-1)
+        return h
+
+
+class SampleAxisAttention(nn.Module):
+    """Multihead(Q, K, V) of paper Eq. (ss) with attention across the sample axis.
+
+    Tokens are the feature channels and each token's embedding is its S values along the ray, so
+    the model weighs depth samples rather than feature channels; S is fixed by the weights.
+    Q = M3(E(D) ++ E(d)) is one vector per ray (a value per channel token), constant along the
+    samples; K = Linear(key features); output = ReLU(V + W_o [head_1 .. head_h]).
+    """
+
+    def __init__(self, cfg: ModelConfig, key_channels: int):
+        super().__init__()
+        query_in = cfg.depth_embedding_channels + cfg.direction_embedding_channels
+        inner = cfg.heads * cfg.head_dim
+        self.query_m3 = nn.Sequential(nn.Linear(query_in, cfg.width), nn.ReLU(), nn.Linear(cfg.width, cfg.width))
+        self.key_embedding = nn.Linear(key_channels, cfg.width)
+        self.w_q = nn.Linear(cfg.samples, inner)
+        self.w_k = nn.Linear(cfg.samples, inner)
+        self.w_v = nn.Linear(cfg.samples, inner)
+        self.w_o = nn.Linear(inner, cfg.samples)
+        self.heads, self.head_dim = cfg.heads, cfg.head_dim
+
+    def split_heads(self, x: torch.Tensor) -> torch.Tensor:
+        rays, tokens, _ = x.shape
+        return x.view(rays, tokens, self.heads, self.head_dim).transpose(1, 2)
+
+    def forward(self, query: torch.Tensor, keys: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
+        """query (R, Q_in), keys (R,S,K_in), values (R,S,C) -> rectified features (R,S,C)."""
+        q_tokens = self.query_m3(query)  # (R,C)
+        # A token constant along S projects to its value times the row sums of W_q.
+        q = q_tokens[..., None] * self.w_q.weight.sum(dim=1) + self.w_q.bias  # (R,C,h*dk)
+        k = self.w_k(self.key_embedding(keys).transpose(1, 2))  # (R,C,h*dk)
+        v = self.w_v(values.transpose(1, 2))
+        q, k, v = self.split_heads(q), self.split_heads(k), self.split_heads(v)
+        attention = torch.softmax(q @ k.transpose(-1, -2) / math.sqrt(self.head_dim), dim=-1)
+        heads = (attention @ v).transpose(1, 2).reshape(values.shape[0], values.shape[2], -1)
+        return F.relu(values + self.w_o(heads).transpose(1, 2))
+
+
+class ColourHeadMVSNeRF(nn.Module):
+    """Baseline colour head: c = sigmoid(L(ReLU(L([L(F_r), d]))))."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.feature_linear = nn.Linear(cfg.width, cfg.width)
+        self.hidden = nn.Linear(cfg.width + 3, cfg.colour_hidden)
+        self.out = nn.Linear(cfg.colour_hidden, 3)
+
+    def forward(self, radiance: torch.Tensor, direction: torch.Tensor) -> torch.Tensor:
+        h = torch.cat([self.feature_linear(radiance), direction], dim=-1)
+        return torch.sigmoid(self.out(F.relu(self.hidden(h))))
+
+
+class ColourHeadM4(nn.Module):
+    """M4: c = sigmoid(MLP(F, E(D), E(d)))."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        cin = cfg.width + cfg.depth_embedding_channels + cfg.direction_embedding_channels
+        self.hidden = nn.Linear(cin, cfg.colour_hidden)
+        self.out = nn.Linear(cfg.colour_hidden, 3)
+
+    def forward(self, features: torch.Tensor, depth_embedding: torch.Tensor,
+                direction_embedding: torch.Tensor) -> torch.Tensor:
+        h = torch.cat([features, depth_embedding, direction_embedding], dim=-1)
+        return torch.sigmoid(self.out(F.relu(self.hidden(h))))
+
+
+def composite_weights(sigma: torch.Tensor) -> torch.Tensor:
+    """w_k = alpha_k T_k with alpha_k = 1 - exp(-sigma_k) and T_k = prod_{j<k} (1 - alpha_j)
+    (paper Eq. 11-12), written with an exclusive cumulative sum because cumprod has no ONNX op;
+    the 1e-10 matches the reference code."""
+    alpha = 1.0 - torch.exp(-sigma)
+    log_transmit = torch.cumsum(torch.log(1.0 - alpha + 1e-10), dim=-1)
+    exclusive = torch.cat([torch.zeros_like(log_transmit[:, :1]), log_transmit[:, :-1]], dim=-1)
+    return alpha * torch.exp(exclusive)
+
+
+class RayRenderer(nn.Module):
+    """Everything per target ray: point features, M1, M2, rectification, M4, compositing."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.cfg = cfg
+        self.m1 = TrunkM1(cfg)
+        if cfg.variant == "mvsnerf":
+            self.m2 = nn.Sequential(nn.Linear(cfg.width, 1), nn.ReLU())
+            self.colour_head = ColourHeadMVSNeRF(cfg)
+        else:
+            self.m2 = nn.Sequential(nn.Linear(cfg.width, cfg.width), nn.ReLU(), nn.Linear(cfg.width, 1), nn.ReLU())
+            self.colour_head = ColourHeadM4(cfg)
+        self.geometry = SampleAxisAttention(cfg, cfg.point_feature_channels) if cfg.geometry_rectification else None
+        self.appearance = (SampleAxisAttention(cfg, cfg.feature_channels + 3)
+                           if cfg.appearance_rectification else None)
+
+    def forward(
+        self,
+        ray_origins: torch.Tensor,
+        ray_directions: torch.Tensor,
+        near_far: torch.Tensor,
+        depth_range: torch.Tensor,
+        volume: torch.Tensor,
+        images: torch.Tensor,
+        features: torch.Tensor,
+        intrinsics: torch.Tensor,
+        extrinsics: torch.Tensor,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Returns rgb (R,3) before background compositing, depth (R), opacity (R)."""
+        cfg = self.cfg
+        rays, samples = ray_origins.shape[0], cfg.samples
+        _, _, height, width = images.shape
+        steps = torch.linspace(0.0, 1.0, samples, dtype=ray_origins.dtype, device=ray_origins.device)
+        z = near_far[0] * (1.0 - steps) + near_far[1] * steps  # (S) target z-depths
+        points = (ray_origins[:, None, :] + ray_directions[:, None, :] * z[None, :, None]).reshape(-1, 3)
+
+        frustum = reference_frustum_coordinates(points, intrinsics[0], extrinsics[0], near_far,
+                                                height, width, cfg.pad)
+        s = sample_volume(volume, frustum)
+        colours, appearance = sample_views(points, images, features if self.appearance is not None else None,
+                                           intrinsics, extrinsics)
+        point_features = torch.cat([s, colours], dim=-1)  # f (N, 8+4V)
+
+        unit_dir = ray_directions / torch.linalg.vector_norm(ray_directions, dim=-1, keepdim=True)
+        ref_dir = unit_dir @ extrinsics[0, :3, :3].transpose(0, 1)  # d in the reference frame
+        radiance = self.m1(frequency_encoding(frustum, cfg.position_freqs), point_features)
+        sigma = self.m2(radiance).view(rays, samples)
+        weights = composite_weights(sigma)
+        depth = (weights * z[None, :]).sum(dim=-1)
+        opacity = weights.sum(dim=-1)
+
+        radiance = radiance.view(rays, samples, -1)
+        if cfg.variant == "mvsnerf":
+            dirs = ref_dir[:, None, :].expand(-1, samples, -1)
+            colour = self.colour_head(radiance, dirs)
+        else:
+            depth_norm = ((depth - depth_range[0]) / (depth_range[1] - depth_range[0]))[:, None]
+            depth_embedding = frequency_encoding(depth_norm, cfg.depth_freqs)
+            direction_embedding = frequency_encoding(ref_dir, cfg.direction_freqs)
+            query = torch.cat([depth_embedding, direction_embedding], dim=-1)
+            if self.geometry is not None:  # F_c = Multihead(Q, K = f, V = F_r)
+                radiance = self.geometry(query, point_features.view(rays, samples, -1), radiance)
+            if self.appearance is not None:  # F = Multihead(Q, K = mean F_a, V = F_c)
+                radiance = self.appearance(query, appearance.view(rays, samples, -1), radiance)
+            colour = self.colour_head(
+                radiance,
+                depth_embedding[:, None, :].expand(-1, samples, -1),
+                direction_embedding[:, None, :].expand(-1, samples, -1),
+            )
+        rgb = (weights[..., None] * colour).sum(dim=1)
+        return rgb, depth, opacity
+
+
+class SCNeRF(nn.Module):
+    """The whole network; the three ONNX sub-graphs are its encoder, volume and renderer."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.cfg = cfg
+        self.encoder = EncoderG1(cfg)
+        self.volume_net = VolumeNetG2(cfg)
+        self.renderer = RayRenderer(cfg)
+
+    def encode(self, images: torch.Tensor) -> torch.Tensor:
+        return self.encoder(images)
+
+    def build_volume(self, features: torch.Tensor, images: torch.Tensor, projections: torch.Tensor,
+                     depth_planes: torch.Tensor) -> torch.Tensor:
+        cost = build_cost_volume(features, images, projections, depth_planes, self.cfg.pad)
+        return self.volume_net(cost)

@@ -1,0 +1,130 @@
+"""Data types and camera maths shared by the procedural generator.
+
+Conventions (the same as DESIGN.md and the server):
+
+* OpenCV camera axes: x right, y down, z forward.  ``w2c`` maps world points to camera points.
+* Intrinsics put the *centre* of pixel (u, v) at image coordinates (u, v).  The ray of pixel (u, v)
+  therefore has the camera-frame direction ``[(u - cx) / fx, (v - cy) / fy, 1]`` and the image centre
+  is at ``((W - 1) / 2, (H - 1) / 2)``.
+* Because that direction has z = 1, the ray parameter t of a hit *is* its z-depth in the camera
+  frame; the renderer relies on this and never normalises the ray direction it intersects with.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+LAYOUTS: tuple[str, ...] = ("object", "forward", "outdoor")
+
+
+@dataclass
+class Camera:
+    """A pinhole camera: ``K`` (3, 3) and ``w2c`` (4, 4), both float64, OpenCV axes."""
+
+    K: np.ndarray
+    w2c: np.ndarray
+    width: int
+    height: int
+
+    @property
+    def rotation(self) -> np.ndarray:
+        """World-to-camera rotation (3, 3)."""
+        return self.w2c[:3, :3]
+
+    @property
+    def center(self) -> np.ndarray:
+        """Camera centre in world coordinates (3,)."""
+        return -self.w2c[:3, :3].T @ self.w2c[:3, 3]
+
+    @property
+    def c2w(self) -> np.ndarray:
+        return np.linalg.inv(self.w2c)
+
+    @property
+    def forward(self) -> np.ndarray:
+        """Unit optical axis in world coordinates."""
+        return self.w2c[2, :3].copy()
+
+    def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """World points (N, 3) -> pixel coordinates (N, 2) and z-depth (N,)."""
+        cam = points @ self.w2c[:3, :3].T + self.w2c[:3, 3]
+        z = cam[:, 2]
+        uv = (cam[:, :2] / z[:, None]) * np.diag(self.K)[:2] + self.K[:2, 2]
+        return uv, z
+
+    def unproject(self, uv: np.ndarray, depth: np.ndarray) -> np.ndarray:
+        """Pixel coordinates (N, 2) with z-depths (N,) -> world points (N, 3)."""
+        fx, fy, cx, cy = self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2]
+        cam = np.stack([(uv[:, 0] - cx) / fx, (uv[:, 1] - cy) / fy, np.ones(len(uv))], axis=-1)
+        cam = cam * depth[:, None]
+        return (cam - self.w2c[:3, 3]) @ self.w2c[:3, :3]
+
+
+@dataclass
+class View:
+    """One rendered image.
+
+    ``image`` (H, W, 3) float32 in [0, 1], quantised to multiples of 1/255 like an 8-bit photo, so a
+    scene reloaded from the npz cache is bit-identical to a freshly rendered one.
+    ``depth`` (H, W) float32: z-depth in the camera frame of the ray through the pixel centre;
+    ``+inf`` where that ray hits nothing (only possible in the ``object`` layout).
+    ``alpha`` (H, W) float32 in [0, 1]: fraction of the pixel's sub-samples that hit a surface
+    (fractional on silhouettes when rendered with supersampling); the sky dome of ``outdoor`` counts
+    as a surface, so outdoor views are opaque everywhere.  Pixels with alpha 0 are black, which is
+    what the network's compositing (rgb = sum w c, no background term) produces for empty space.
+    """
+
+    image: np.ndarray
+    depth: np.ndarray
+    alpha: np.ndarray
+    camera: Camera
+
+
+@dataclass
+class Scene:
+    """A set of views of one procedural scene with the [near, far] that brackets all its depths."""
+
+    views: list[View]
+    near: float
+    far: float
+    layout: str
+    seed: int
+    meta: dict = field(default_factory=dict)
+
+
+def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> np.ndarray:
+    """World-to-camera matrix (4, 4) of a camera at ``eye`` looking at ``target`` (OpenCV axes).
+
+    The world is z-up in every layout; camera x = forward x up (right), y = forward x right (down),
+    which makes (x, y, z) right-handed with det(R) = +1.
+    """
+    eye = np.asarray(eye, dtype=np.float64)
+    fwd = np.asarray(target, dtype=np.float64) - eye
+    fwd /= np.linalg.norm(fwd)
+    right = np.cross(fwd, up)
+    right /= np.linalg.norm(right)
+    down = np.cross(fwd, right)
+    R = np.stack([right, down, fwd])
+    w2c = np.eye(4)
+    w2c[:3, :3] = R
+    w2c[:3, 3] = -R @ eye
+    return w2c
+
+
+def intrinsics(width: int, height: int, hfov_deg: float) -> np.ndarray:
+    """K (3, 3) with square pixels, the given horizontal field of view and a centred principal point.
+
+    The field of view, not the focal length in pixels, is the scene parameter, so the same seed renders
+    the same picture at any resolution.
+    """
+    fx = width / (2.0 * np.tan(np.radians(hfov_deg) / 2.0))
+    return np.array([[fx, 0.0, (width - 1) / 2.0], [0.0, fx, (height - 1) / 2.0], [0.0, 0.0, 1.0]])
+
+
+def yaw_pitch_w2c(eye: np.ndarray, yaw: float, pitch: float) -> np.ndarray:
+    """World-to-camera matrix for a level camera looking along +y, turned by ``yaw`` (radians, to the
+    left is positive) and tilted by ``pitch`` (radians, up is positive)."""
+    direction = np.array([-np.sin(yaw) * np.cos(pitch), np.cos(yaw) * np.cos(pitch), np.sin(pitch)])
+    return look_at(eye, np.asarray(eye, dtype=np.float64) + direction)

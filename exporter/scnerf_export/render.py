@@ -1,0 +1,88 @@
+"""The full-image reference renderer (PyTorch): 3 source views + target camera -> rgb, depth,
+opacity. Deterministic and chunked; a pixel's result does not depend on the chunk it is in."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from . import cameras as cams
+from .cameras import Camera
+from .model import SCNeRF
+
+
+@dataclass
+class Rendering:
+    rgb: np.ndarray  # (H,W,3) composited on the background
+    depth: np.ndarray  # (H,W)
+    opacity: np.ndarray  # (H,W)
+
+
+def pad_images(images: np.ndarray, multiple: int, background) -> np.ndarray:
+    """Pad (V,H,W,3) on the right/bottom to a multiple with the background colour; K unchanged."""
+    _, h, w, _ = images.shape
+    ph, pw = -h % multiple, -w % multiple
+    if ph == 0 and pw == 0:
+        return images
+    out = np.empty((images.shape[0], h + ph, w + pw, 3), dtype=images.dtype)
+    out[:] = np.asarray(background, dtype=images.dtype)
+    out[:, :h, :w] = images
+    return out
+
+
+@dataclass
+class SceneTensors:
+    """What the encoder and volume produce for one set of source views: reused by every ray chunk."""
+
+    images: torch.Tensor
+    features: torch.Tensor
+    volume: torch.Tensor
+    intrinsics: torch.Tensor
+    extrinsics: torch.Tensor
+
+
+def encode_scene(model: SCNeRF, images: np.ndarray, cameras: list[Camera], near: float, far: float,
+                 background=(0.0, 0.0, 0.0)) -> SceneTensors:
+    cfg = model.cfg
+    padded = pad_images(images.astype(np.float32), cfg.image_multiple, background)
+    imgs = torch.from_numpy(np.ascontiguousarray(padded.transpose(0, 3, 1, 2)))
+    features = model.encode(imgs)
+    volume = model.build_volume(features, imgs, torch.from_numpy(cams.feature_projections(cameras)),
+                                torch.from_numpy(cams.depth_planes(near, far, cfg.depth_planes)))
+    return SceneTensors(imgs, features, volume, torch.from_numpy(cams.stack_intrinsics(cameras)),
+                        torch.from_numpy(cams.stack_extrinsics(cameras)))
+
+
+def render_rays(model: SCNeRF, scene: SceneTensors, origins: np.ndarray, directions: np.ndarray,
+                near: float, far: float, depth_range: tuple[float, float], chunk: int):
+    rgb, depth, opacity = [], [], []
+    near_far = torch.tensor([near, far], dtype=torch.float32)
+    drange = torch.tensor(depth_range, dtype=torch.float32)
+    for start in range(0, origins.shape[0], chunk):
+        o = torch.from_numpy(np.ascontiguousarray(origins[start : start + chunk]))
+        d = torch.from_numpy(np.ascontiguousarray(directions[start : start + chunk]))
+        c, z, a = model.renderer(o, d, near_far, drange, scene.volume, scene.images, scene.features,
+                                 scene.intrinsics, scene.extrinsics)
+        rgb.append(c)
+        depth.append(z)
+        opacity.append(a)
+    return torch.cat(rgb).numpy(), torch.cat(depth).numpy(), torch.cat(opacity).numpy()
+
+
+@torch.no_grad()
+def render_view(model: SCNeRF, images: np.ndarray, cameras: list[Camera], target: Camera,
+                near: float, far: float, background=(0.0, 0.0, 0.0), chunk: int = 1024) -> Rendering:
+    """images: (V,H,W,3) float32 in [0,1] (alpha already composited on ``background``)."""
+    model.eval()
+    scene = encode_scene(model, images, cameras, near, far, background)
+    origins, directions = cams.target_rays(target)
+    depth_range = (near, far)
+    if model.cfg.depth_norm == "image_minmax" and model.cfg.variant != "mvsnerf":
+        _, depth, _ = render_rays(model, scene, origins, directions, near, far, depth_range, chunk)
+        depth_range = (float(depth.min()), float(depth.max()))
+    rgb, depth, opacity = render_rays(model, scene, origins, directions, near, far, depth_range, chunk)
+    rgb = rgb + (1.0 - opacity[:, None]) * np.asarray(background, dtype=np.float32)
+    shape = (target.height, target.width)
+    return Rendering(rgb.reshape(*shape, 3), depth.reshape(shape), opacity.reshape(shape))

@@ -1,0 +1,103 @@
+"""Properties of the PyTorch network that the server relies on."""
+
+import numpy as np
+import pytest
+import torch
+
+from scnerf_export import cameras as cams
+from scnerf_export.config import ModelConfig, small_config
+from scnerf_export.fixtures import random_model, rig_cameras, smooth_pattern
+from scnerf_export.model import affine_inverse, composite_weights
+from scnerf_export.render import render_view
+
+
+def scene(height=64, width=96, seed=0):
+    rng = np.random.default_rng(seed)
+    sources, target, near, far = rig_cameras(height, width)
+    return np.stack([smooth_pattern(rng, height, width) for _ in sources]), sources, target, near, far
+
+
+@pytest.mark.parametrize("variant", ["mvsnerf", "scnerf", "scnerf-geometry", "scnerf-appearance"])
+def test_render_does_not_depend_on_chunk_size(variant):
+    model = random_model(small_config(variant), seed=1)
+    images, sources, target, near, far = scene()
+    target = target.scaled(0.5)
+    a = render_view(model, images, sources, target, near, far, chunk=7)
+    b = render_view(model, images, sources, target, near, far, chunk=target.width * target.height)
+    assert a.opacity.std() > 0.01, "degenerate render: the test would not see chunk effects"
+    np.testing.assert_allclose(a.rgb, b.rgb, atol=1e-6)
+    np.testing.assert_allclose(a.depth, b.depth, rtol=1e-6)
+    np.testing.assert_allclose(a.opacity, b.opacity, atol=1e-6)
+
+
+def test_render_is_deterministic():
+    model = random_model(small_config("scnerf"), seed=2)
+    images, sources, target, near, far = scene()
+    a = render_view(model, images, sources, target.scaled(0.5), near, far)
+    b = render_view(model, images, sources, target.scaled(0.5), near, far)
+    assert np.array_equal(a.rgb, b.rgb) and np.array_equal(a.depth, b.depth)
+
+
+def test_background_fills_what_is_not_opaque():
+    model = random_model(small_config("mvsnerf"), seed=3)
+    images, sources, target, near, far = scene()
+    black = render_view(model, images, sources, target.scaled(0.5), near, far, background=(0, 0, 0))
+    white = render_view(model, images, sources, target.scaled(0.5), near, far, background=(1, 1, 1))
+    np.testing.assert_allclose(white.rgb - black.rgb, np.repeat(1 - black.opacity[..., None], 3, -1), atol=1e-6)
+
+
+def test_affine_inverse_matches_numpy():
+    rng = np.random.default_rng(0)
+    m = np.eye(4)
+    m[:3, :4] = rng.normal(size=(3, 4))
+    np.testing.assert_allclose(affine_inverse(torch.from_numpy(m)).numpy(), np.linalg.inv(m), atol=1e-10)
+
+
+def test_compositing_matches_the_cumulative_product():
+    sigma = torch.rand(5, 17, dtype=torch.float64) * 2
+    alpha = 1 - torch.exp(-sigma)
+    transmit = torch.cumprod(torch.cat([torch.ones(5, 1, dtype=torch.float64), 1 - alpha + 1e-10], -1), -1)[:, :-1]
+    torch.testing.assert_close(composite_weights(sigma), alpha * transmit)
+
+
+def test_depth_is_the_weighted_sample_depth_of_an_opaque_wall():
+    """A ray through a single very dense sample renders that sample's depth with opacity 1."""
+    sigma = torch.zeros(1, 32)
+    sigma[0, 20] = 50.0
+    w = composite_weights(sigma)
+    z = torch.linspace(2.0, 4.0, 32)
+    assert float(w.sum()) == pytest.approx(1.0, abs=1e-6)
+    assert float((w * z).sum()) == pytest.approx(float(z[20]), abs=1e-5)
+
+
+def test_target_rays_go_through_pixel_centres():
+    K = cams.pinhole(100.0, 32, 24)
+    cam = cams.look_at((0.3, -0.2, -2.0), (0, 0, 0), K, 32, 24)
+    origins, directions = cams.target_rays(cam)
+    points = origins.astype(np.float64) + directions.astype(np.float64) * 2.5
+    uvz = (cam.w2c[:3, :3] @ points.T).T + cam.w2c[:3, 3]
+    pix = (K @ uvz.T).T
+    uv = pix[:, :2] / pix[:, 2:]
+    v, u = np.mgrid[0:24, 0:32]
+    np.testing.assert_allclose(uv, np.stack([u.ravel(), v.ravel()], -1), atol=1e-4)
+    np.testing.assert_allclose(uvz[:, 2], 2.5, atol=1e-5)
+
+
+def test_pose_conventions_reach_one_canonical_camera():
+    K = cams.pinhole(50.0, 16, 16)
+    cam = cams.look_at((1.0, 0.5, -3.0), (0, 0, 0), K, 16, 16)
+    gl_c2w = cam.c2w @ cams.OPENGL_TO_OPENCV
+    for matrix, kind, axes in [(cam.w2c, "world_to_camera", "opencv"), (cam.c2w, "camera_to_world", "opencv"),
+                               (gl_c2w, "camera_to_world", "opengl"), (np.linalg.inv(gl_c2w), "world_to_camera", "opengl")]:
+        np.testing.assert_allclose(cams.Camera.from_pose(K, matrix, 16, 16, kind, axes).w2c, cam.w2c, atol=1e-12)
+
+
+def test_config_round_trips_and_rejects_bad_values():
+    cfg = small_config("scnerf-geometry")
+    assert ModelConfig.from_dict(cfg.to_dict()) == cfg
+    with pytest.raises(ValueError):
+        ModelConfig(variant="nerf")
+    with pytest.raises(ValueError):
+        ModelConfig(depth_planes=100)
+    with pytest.raises(ValueError):
+        ModelConfig.from_dict({**cfg.to_dict(), "colour": 1})
