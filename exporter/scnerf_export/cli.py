@@ -1,4 +1,4 @@
-"""`scnerf-export`: convert-mvsnerf, export, fixtures, eval, train."""
+"""`scnerf-export`: convert-mvsnerf, export, fixtures, eval, example, train."""
 
 from __future__ import annotations
 
@@ -45,6 +45,12 @@ def cmd_eval(args) -> None:
         print(f"wrote {args.json}")
 
 
+def cmd_example(args) -> None:
+    from .example import write_example
+
+    print(f"wrote {write_example(args.out)}")
+
+
 def cmd_train(args) -> None:
     from .train import train
 
@@ -87,6 +93,10 @@ def parser() -> argparse.ArgumentParser:
     v.add_argument("--json", type=Path, help="write the results here")
     v.add_argument("--save-renders", type=Path, help="write rendered PNGs here")
     v.set_defaults(func=cmd_eval)
+
+    x = sub.add_parser("example", help="the committed example request (held-out procedural scene)")
+    x.add_argument("--out", required=True, type=Path)
+    x.set_defaults(func=cmd_example)
 
     t = sub.add_parser("train", help="train on procedural scenes")
     t.add_argument("--variant", required=True, choices=["mvsnerf", "scnerf", "scnerf-geometry", "scnerf-appearance"])

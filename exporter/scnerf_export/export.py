@@ -196,7 +196,7 @@ def export_bundle(model: SCNeRF, out_dir: str | Path, provenance: dict) -> dict:
         }
     manifest = {
         "format_version": FORMAT_VERSION,
-        "model_id": f"{model.cfg.variant}-{graphs['renderer']['sha256'][:12]}",
+        "model_id": f"scnerf-{model.cfg.variant}-{graphs['renderer']['sha256'][:12]}",
         "variant": model.cfg.variant,
         "config": model.cfg.to_dict(),
         "graphs": graphs,
@@ -205,6 +205,8 @@ def export_bundle(model: SCNeRF, out_dir: str | Path, provenance: dict) -> dict:
             "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
             "export_validation_max_abs_error": errors,
             "metrics": None,
+            "source_checkpoint": None,
+            "source_sha256": None,
             **provenance,
         },
     }

@@ -41,9 +41,10 @@ class Preset:
 
 def preset(name: str, variant: str) -> Preset:
     if name == "cpu-small":
-        # ~0.3-0.5 s/step on 2 cores: the paper's network shrunk (width 64, 64 planes/samples).
-        cfg = ModelConfig(variant=variant, width=64, depth_planes=64, samples=64, pad=8, colour_hidden=32)
-        return Preset(cfg, width=160, height=128, rays=512, steps=6000, train_scenes=96)
+        # The paper's network shrunk to train on one CPU core in about an hour: width 64, 48 planes and
+        # samples, 384 rays per step (measured ~1.1 s of CPU per scnerf step, ~0.6 s per mvsnerf step).
+        cfg = ModelConfig(variant=variant, width=64, depth_planes=48, samples=48, pad=8, colour_hidden=32)
+        return Preset(cfg, width=160, height=128, rays=384, steps=3000, train_scenes=96)
     if name == "gpu":
         cfg = ModelConfig(variant=variant)
         return Preset(cfg, width=320, height=256, rays=1024, steps=20000, train_scenes=600,

@@ -1,0 +1,11 @@
+#!/usr/bin/env bash
+# Every test of the project: the Rust workspace (unit, HTTP, parity against the committed
+# fixtures, end-to-end) and the exporter's pytest suite. Needs network access to crates.io and
+# PyPI on the first run only.
+set -euo pipefail
+repo=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
+cd "${repo}"
+scripts/fetch-onnxruntime.sh
+scripts/setup-python.sh
+cargo test -j2 --workspace --locked
+.venv/bin/python -m pytest -q -p no:cacheprovider exporter/tests

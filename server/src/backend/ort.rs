@@ -1,0 +1,163 @@
+//! ONNX Runtime backend (`ort` 2.0.0-rc.15, library loaded at run time).
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+
+use ort::environment::{Environment, GlobalThreadPoolOptions};
+use ort::session::builder::GraphOptimizationLevel;
+use ort::session::Session;
+use ort::value::{TensorElementType, TensorRef, ValueType};
+
+use super::{BackendError, GraphRunner, NamedTensors, Tensor};
+use crate::bundle::{check_signature, ActualTensor, Bundle, GraphKind};
+use crate::config::GraphOptLevel;
+
+pub const ORT_VERSION: &str = "1.31.1";
+const LIB_NAMES: [&str; 2] = ["libonnxruntime.so.1.31.1", "libonnxruntime.so"];
+
+#[derive(Debug, Clone)]
+pub struct OrtOptions {
+    /// Explicit library path (`--ort-dylib`); `None` searches the default places.
+    pub dylib: Option<PathBuf>,
+    pub intra_threads: usize,
+    pub opt_level: GraphOptLevel,
+}
+
+/// Where the library is looked for when no path is given: next to the executable (a deployed
+/// binary carries its library), then the repository's third_party/onnxruntime/ filled by
+/// scripts/fetch-onnxruntime.sh (resolved when the binary is compiled).
+pub fn default_dylib_candidates() -> Vec<PathBuf> {
+    let mut dirs = Vec::new();
+    if let Some(exe_dir) = std::env::current_exe().ok().and_then(|p| p.parent().map(Path::to_path_buf)) {
+        dirs.push(exe_dir);
+    }
+    dirs.push(PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../third_party/onnxruntime")));
+    dirs.iter().flat_map(|d| LIB_NAMES.iter().map(move |n| d.join(n))).collect()
+}
+
+pub fn resolve_dylib(explicit: Option<&Path>) -> Result<PathBuf, String> {
+    if let Some(path) = explicit {
+        return if path.is_file() {
+            Ok(path.to_path_buf())
+        } else {
+            Err(format!("ONNX Runtime library {} (--ort-dylib / SCNERF_ORT_DYLIB) does not exist", path.display()))
+        };
+    }
+    let candidates = default_dylib_candidates();
+    candidates.iter().find(|p| p.is_file()).cloned().ok_or_else(|| {
+        let tried: Vec<String> = candidates.iter().map(|p| p.display().to_string()).collect();
+        format!(
+            "ONNX Runtime {ORT_VERSION} not found (tried {}); run scripts/fetch-onnxruntime.sh or pass --ort-dylib",
+            tried.join(", ")
+        )
+    })
+}
+
+/// Loads the library and creates the process's ONNX Runtime environment with one intra-op
+/// thread pool shared by all sessions (the graphs run one at a time on the inference thread,
+/// so one pool of `threads` workers never oversubscribes the CPU).
+pub fn init_environment(opts: &OrtOptions) -> Result<Environment, String> {
+    let path = resolve_dylib(opts.dylib.as_deref())?;
+    let builder =
+        ort::init_from(&path).map_err(|e| format!("cannot load ONNX Runtime from {}: {e}", path.display()))?;
+    let pool = GlobalThreadPoolOptions::default()
+        .with_intra_threads(opts.intra_threads)
+        .and_then(|p| p.with_inter_threads(1))
+        // Spinning idle workers burn CPU between graph runs; on shared machines that costs more
+        // than the microseconds it saves per operator on our large kernels.
+        .and_then(|p| p.with_spin_control(false))
+        .map_err(|e| format!("ONNX Runtime thread pool: {e}"))?;
+    let env = builder
+        .with_name("scnerf-server")
+        .with_global_thread_pool(pool)
+        .build()
+        .map_err(|e| format!("ONNX Runtime environment: {e}"))?;
+    tracing::info!(library = %path.display(), threads = opts.intra_threads, "ONNX Runtime loaded");
+    Ok(env)
+}
+
+pub struct OrtRunner {
+    sessions: HashMap<GraphKind, Session>,
+    _env: Environment,
+}
+
+impl OrtRunner {
+    /// Creates the three sessions and checks each graph's real signature against the manifest.
+    pub fn load(bundle: &Bundle, opts: &OrtOptions) -> Result<OrtRunner, String> {
+        let env = init_environment(opts)?;
+        let mut sessions = HashMap::new();
+        for kind in GraphKind::ALL {
+            let path = bundle.graph_path(kind);
+            let session = Session::builder(&env)
+                .and_then(|b| b.with_optimization_level(opt_level(opts.opt_level)).map_err(Into::into))
+                .and_then(|mut b| b.commit_from_file(&path))
+                .map_err(|e| format!("cannot load {}: {e}", path.display()))?;
+            let entry = bundle.graph(kind);
+            check_signature(kind, "input", &entry.inputs, &describe(session.inputs()))?;
+            check_signature(kind, "output", &entry.outputs, &describe(session.outputs()))?;
+            sessions.insert(kind, session);
+        }
+        Ok(OrtRunner { sessions, _env: env })
+    }
+}
+
+fn opt_level(level: GraphOptLevel) -> GraphOptimizationLevel {
+    match level {
+        GraphOptLevel::Disable => GraphOptimizationLevel::Disable,
+        GraphOptLevel::Basic => GraphOptimizationLevel::Level1,
+        GraphOptLevel::Extended => GraphOptimizationLevel::Level2,
+        GraphOptLevel::All => GraphOptimizationLevel::All,
+    }
+}
+
+fn describe(outlets: &[ort::value::Outlet]) -> Vec<ActualTensor> {
+    outlets
+        .iter()
+        .map(|o| {
+            let (dtype, shape) = match o.dtype() {
+                ValueType::Tensor { ty, shape, .. } => {
+                    (dtype_name(*ty), shape.iter().map(|&d| if d < 0 { None } else { Some(d) }).collect())
+                }
+                other => (format!("{other}"), Vec::new()),
+            };
+            ActualTensor { name: o.name().to_string(), shape, dtype }
+        })
+        .collect()
+}
+
+fn dtype_name(ty: TensorElementType) -> String {
+    match ty {
+        TensorElementType::Float32 => "float32".into(),
+        TensorElementType::Float16 => "float16".into(),
+        TensorElementType::Float64 => "float64".into(),
+        TensorElementType::Int64 => "int64".into(),
+        TensorElementType::Int32 => "int32".into(),
+        other => format!("{other:?}").to_lowercase(),
+    }
+}
+
+impl GraphRunner for OrtRunner {
+    fn run(&mut self, graph: GraphKind, inputs: &NamedTensors) -> Result<NamedTensors, BackendError> {
+        let err = |message: String| BackendError::Run { graph, message };
+        let session = self.sessions.get_mut(&graph).ok_or_else(|| err("no session".into()))?;
+        let mut values = Vec::with_capacity(inputs.len());
+        for (name, tensor) in inputs {
+            // Zero-copy views of our buffers; ONNX Runtime only reads them.
+            let view = TensorRef::from_array_view((tensor.shape.clone(), tensor.data.as_slice()))
+                .map_err(|e| err(format!("input {name}: {e}")))?;
+            values.push((std::borrow::Cow::from(name.as_str()), ort::session::SessionInputValue::from(view)));
+        }
+        let output_names: Vec<String> = session.outputs().iter().map(|o| o.name().to_string()).collect();
+        let outputs = session.run(values).map_err(|e| err(e.to_string()))?;
+        output_names
+            .into_iter()
+            .map(|name| {
+                let value = outputs.get(&name).ok_or_else(|| err(format!("missing output {name}")))?;
+                let (shape, data) =
+                    value.try_extract_tensor::<f32>().map_err(|e| err(format!("output {name}: {e}")))?;
+                let shape: Vec<usize> = shape.iter().map(|&d| d.max(0) as usize).collect();
+                Ok((name, Tensor::new(shape, data.to_vec())))
+            })
+            .collect()
+    }
+}

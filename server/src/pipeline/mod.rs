@@ -1,0 +1,225 @@
+//! The render pipeline, one module per stage:
+//!
+//! request (validated) -> source images decoded and padded -> [encoder] features ->
+//! [volume] encoding volume -> target rays -> chunks -> [renderer] -> image assembly.
+//!
+//! `build_scene` (sources only) and `render_view` (target only) are separate so that a scene
+//! cache can keep a `Scene` and render further views with the renderer alone.
+
+pub mod assemble;
+pub mod chunks;
+pub mod encoder;
+pub mod rays;
+pub mod volume;
+
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use crate::backend::{BackendError, BackendHandle, Tensor};
+use crate::bundle::{Bundle, DepthNorm, GraphKind};
+use crate::camera::Camera;
+use crate::error::ApiError;
+use crate::image_io::{self, RgbF32};
+use crate::request::{Limits, ValidRequest};
+use chunks::{ChunkPolicy, RawView};
+
+/// Wall time per stage, in the order the stages ran.
+#[derive(Debug, Clone, Default)]
+pub struct Timings(pub Vec<(&'static str, Duration)>);
+
+impl Timings {
+    pub fn add(&mut self, stage: &'static str, d: Duration) {
+        self.0.push((stage, d));
+    }
+
+    /// Times one async stage.
+    pub async fn time<T, F: std::future::Future<Output = T>>(&mut self, stage: &'static str, f: F) -> T {
+        let start = Instant::now();
+        let out = f.await;
+        self.add(stage, start.elapsed());
+        out
+    }
+
+    pub fn millis(&self) -> Vec<(&'static str, f64)> {
+        self.0.iter().map(|(s, d)| (*s, d.as_secs_f64() * 1e3)).collect()
+    }
+}
+
+/// Everything the renderer needs about the sources; reusable for any number of target views.
+#[derive(Debug, Clone)]
+pub struct Scene {
+    /// (V, 3, H, W) padded source images in [0, 1].
+    pub images: Tensor,
+    /// (V, C, H/4, W/4) encoder output.
+    pub features: Tensor,
+    /// (1, Cv, D, H/4 + 2·pad, W/4 + 2·pad) encoding volume.
+    pub volume: Tensor,
+    /// (V, 3, 3) full-resolution K per view.
+    pub intrinsics: Tensor,
+    /// (V, 4, 4) OpenCV world-to-camera per view.
+    pub extrinsics: Tensor,
+    pub near: f64,
+    pub far: f64,
+}
+
+impl Scene {
+    /// Approximate memory held by the scene (for cache accounting).
+    pub fn bytes(&self) -> usize {
+        4 * (self.images.len() + self.features.len() + self.volume.len())
+    }
+}
+
+/// Names of the renderer graph's inputs (the graph of a variant declares only what it uses).
+#[derive(Debug, Clone)]
+pub struct SceneInputs {
+    pub renderer_inputs: Vec<String>,
+}
+
+/// A rendered view: composited RGB (H·W·3, in [0, 1]), depth and opacity (H·W).
+#[derive(Debug, Clone)]
+pub struct View {
+    pub width: u32,
+    pub height: u32,
+    pub rgb: Vec<f32>,
+    pub depth: Vec<f32>,
+    pub opacity: Vec<f32>,
+}
+
+/// The pipeline's shared, read-only context.
+#[derive(Clone)]
+pub struct Pipeline {
+    pub backend: BackendHandle,
+    pub bundle: Arc<Bundle>,
+    pub chunking: ChunkPolicy,
+    pub limits: Limits,
+}
+
+impl From<BackendError> for ApiError {
+    fn from(e: BackendError) -> Self {
+        match e {
+            BackendError::QueueFull => {
+                ApiError::Unavailable { message: "server busy: inference queue is full".into(), retry_after_secs: 5 }
+            }
+            other => ApiError::Internal(other.to_string()),
+        }
+    }
+}
+
+impl Pipeline {
+    fn inputs(&self) -> SceneInputs {
+        let names = self.bundle.graph(GraphKind::Renderer).inputs.iter().map(|t| t.name.clone()).collect();
+        SceneInputs { renderer_inputs: names }
+    }
+
+    /// Decodes the source images off the async runtime and stacks them padded.
+    pub async fn decode_sources(&self, req: &ValidRequest) -> Result<Tensor, ApiError> {
+        let sources: Vec<_> =
+            req.sources.iter().map(|(cam, bytes, field)| (cam.clone(), bytes.clone(), field.clone())).collect();
+        let background = req.background;
+        let max_pixels = self.limits.max_source_pixels;
+        let multiple = self.bundle.config.image_multiple;
+        tokio::task::spawn_blocking(move || {
+            let images = sources
+                .iter()
+                .map(|(cam, bytes, field)| decode_one(cam, bytes, field, background, max_pixels))
+                .collect::<Result<Vec<RgbF32>, ApiError>>()?;
+            Ok(image_io::stack_padded(&images, multiple, background))
+        })
+        .await
+        .map_err(|e| ApiError::Internal(format!("image decoding task failed: {e}")))?
+    }
+
+    /// Encoder and volume net over the source views.
+    pub async fn build_scene(
+        &self,
+        cameras: &[Camera],
+        images: Tensor,
+        near: f64,
+        far: f64,
+        timings: &mut Timings,
+    ) -> Result<Scene, BackendError> {
+        let config = &self.bundle.config;
+        let features = timings.time("encoder", encoder::run(&self.backend, config, &images)).await?;
+        let volume =
+            timings.time("volume", volume::run(&self.backend, config, &features, &images, cameras, near, far)).await?;
+        let intrinsics = cameras.iter().flat_map(|c| c.k.into_iter().flatten().map(|x| x as f32)).collect();
+        let extrinsics = cameras.iter().flat_map(|c| c.w2c.into_iter().flatten().map(|x| x as f32)).collect();
+        Ok(Scene {
+            images,
+            features,
+            volume,
+            intrinsics: Tensor::new(vec![cameras.len(), 3, 3], intrinsics),
+            extrinsics: Tensor::new(vec![cameras.len(), 4, 4], extrinsics),
+            near,
+            far,
+        })
+    }
+
+    /// Renders one target view of a scene, `chunk` rays per renderer run (`None`: from the
+    /// memory budget).
+    pub async fn render_view(
+        &self,
+        scene: &Scene,
+        target: &Camera,
+        background: [f32; 3],
+        chunk: Option<usize>,
+        timings: &mut Timings,
+    ) -> Result<View, BackendError> {
+        let start = Instant::now();
+        let rays = rays::generate(target);
+        let chunk = chunk.unwrap_or_else(|| self.chunking.rays_per_chunk(self.bundle.config.samples)).max(1);
+        let inputs = self.inputs();
+        let near_far = [scene.near as f32, scene.far as f32];
+        let raw = match self.bundle.config.depth_norm {
+            DepthNorm::NearFar => chunks::render_rays(&self.backend, scene, &inputs, &rays, near_far, chunk).await?,
+            DepthNorm::ImageMinmax => {
+                // Depth does not depend on depth_range: a first pass gives the depth image whose
+                // min/max normalise the rectification queries of the colour pass.
+                let first = chunks::render_rays(&self.backend, scene, &inputs, &rays, near_far, chunk).await?;
+                let range = min_max(&first.depth).unwrap_or(near_far);
+                chunks::render_rays(&self.backend, scene, &inputs, &rays, range, chunk).await?
+            }
+        };
+        timings.add("renderer", start.elapsed());
+        let start = Instant::now();
+        let view = assemble_view(target, raw, background);
+        timings.add("assemble", start.elapsed());
+        Ok(view)
+    }
+
+    /// The whole request: decode, encoder, volume, renderer, assembly.
+    pub async fn render(&self, req: &ValidRequest, timings: &mut Timings) -> Result<View, ApiError> {
+        let images = timings.time("decode", self.decode_sources(req)).await?;
+        let cameras: Vec<Camera> = req.sources.iter().map(|(c, _, _)| c.clone()).collect();
+        let scene = self.build_scene(&cameras, images, req.near, req.far, timings).await?;
+        Ok(self.render_view(&scene, &req.target, req.background, None, timings).await?)
+    }
+}
+
+fn decode_one(
+    cam: &Camera,
+    bytes: &[u8],
+    field: &str,
+    background: [f32; 3],
+    max_pixels: u64,
+) -> Result<RgbF32, ApiError> {
+    let img = image_io::decode_source(bytes, field, background, max_pixels)?;
+    if (img.width, img.height) != (cam.width, cam.height) {
+        return Err(ApiError::invalid(
+            field.to_string(),
+            format!("image is {}x{} but its camera says {}x{}", img.width, img.height, cam.width, cam.height),
+        ));
+    }
+    Ok(img)
+}
+
+fn min_max(values: &[f32]) -> Option<[f32; 2]> {
+    let mut it = values.iter().copied().filter(|v| v.is_finite());
+    let first = it.next()?;
+    Some(it.fold([first, first], |[lo, hi], v| [lo.min(v), hi.max(v)]))
+}
+
+fn assemble_view(target: &Camera, raw: RawView, background: [f32; 3]) -> View {
+    let rgb = assemble::composite(&raw, background);
+    View { width: target.width, height: target.height, rgb, depth: raw.depth, opacity: raw.opacity }
+}

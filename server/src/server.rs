@@ -1,0 +1,140 @@
+//! Start-up: load and verify the bundle, create the ONNX Runtime sessions, bind, warm up, serve.
+
+use std::io::Write;
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use tokio::net::TcpListener;
+
+use crate::backend::ort::{OrtOptions, OrtRunner};
+use crate::backend::{BackendHandle, Tensor};
+use crate::bundle::Bundle;
+use crate::camera::Camera;
+use crate::config::Config;
+use crate::http::{router, AppState};
+use crate::pipeline::{Pipeline, Timings};
+
+pub async fn run(config: Config) -> Result<(), String> {
+    let bundle_dir = config.bundle_dir();
+    let bundle = Bundle::load(&bundle_dir).map_err(|e| e.to_string())?;
+    tracing::info!(model_id = %bundle.manifest.model_id, dir = %bundle_dir.display(), "bundle verified");
+    let ort = OrtOptions {
+        dylib: config.ort_dylib.clone(),
+        intra_threads: config.intra_threads(),
+        opt_level: config.graph_opt_level,
+    };
+    let runner = {
+        let bundle = bundle.clone();
+        tokio::task::spawn_blocking(move || OrtRunner::load(&bundle, &ort))
+            .await
+            .map_err(|e| e.to_string())?
+            .map_err(|e| format!("bundle {}: {e}", bundle_dir.display()))?
+    };
+    let backend = BackendHandle::spawn(Box::new(runner), config.queue_capacity).map_err(|e| e.to_string())?;
+    let state = AppState {
+        pipeline: Pipeline { backend, bundle: Arc::new(bundle), chunking: config.chunking(), limits: config.limits() },
+        ready: Arc::new(AtomicBool::new(false)),
+        request_timeout: Duration::from_secs(config.request_timeout_secs),
+    };
+
+    let listener =
+        TcpListener::bind(config.addr).await.map_err(|e| format!("cannot listen on {}: {e}", config.addr))?;
+    let local = listener.local_addr().map_err(|e| e.to_string())?;
+    // Scripts and the end-to-end tests read this line to find an ephemeral port.
+    println!("listening on http://{local}");
+    let _ = std::io::stdout().flush();
+    tracing::info!(%local, "listening");
+
+    let (failed_tx, failed_rx) = tokio::sync::oneshot::channel::<String>();
+    if config.skip_warmup {
+        state.set_ready();
+    } else {
+        let state = state.clone();
+        tokio::spawn(async move {
+            match warm_up(&state.pipeline).await {
+                Ok(elapsed) => {
+                    tracing::info!(ms = elapsed.as_millis() as u64, "warm-up render done; ready");
+                    state.set_ready();
+                }
+                Err(e) => {
+                    let _ = failed_tx.send(e);
+                }
+            }
+        });
+    }
+
+    let warmup_error = Arc::new(std::sync::Mutex::new(None));
+    let shutdown = {
+        let warmup_error = warmup_error.clone();
+        async move {
+            tokio::select! {
+                _ = shutdown_signal() => {}
+                Ok(e) = failed_rx => {
+                    *warmup_error.lock().unwrap_or_else(|p| p.into_inner()) = Some(e);
+                }
+            }
+        }
+    };
+    axum::serve(listener, router(state)).with_graceful_shutdown(shutdown).await.map_err(|e| e.to_string())?;
+    let failure = warmup_error.lock().unwrap_or_else(|p| p.into_inner()).take();
+    match failure {
+        Some(e) => Err(format!("warm-up render failed: {e}")),
+        None => Ok(()),
+    }
+}
+
+async fn shutdown_signal() {
+    let ctrl_c = async {
+        let _ = tokio::signal::ctrl_c().await;
+    };
+    #[cfg(unix)]
+    let term = async {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut s) => {
+                s.recv().await;
+            }
+            Err(_) => std::future::pending::<()>().await,
+        }
+    };
+    #[cfg(not(unix))]
+    let term = std::future::pending::<()>();
+    tokio::select! { _ = ctrl_c => {}, _ = term => {} }
+}
+
+/// Renders a tiny synthetic view through all three graphs: checks that the bundle really runs
+/// before /readyz says so, and lets ONNX Runtime allocate its kernels.
+pub async fn warm_up(pipeline: &Pipeline) -> Result<Duration, String> {
+    let start = Instant::now();
+    let config = &pipeline.bundle.config;
+    let size = config.image_multiple;
+    let cameras = warmup_cameras(config.views, size as u32);
+    let images = Tensor::new(vec![config.views, 3, size, size], vec![0.5; config.views * 3 * size * size]);
+    let mut timings = Timings::default();
+    let scene = pipeline.build_scene(&cameras, images, 2.0, 6.0, &mut timings).await.map_err(|e| e.to_string())?;
+    let mut target = cameras[0].clone();
+    target.width = 4;
+    target.height = 4;
+    let view = pipeline.render_view(&scene, &target, [0.0; 3], None, &mut timings).await.map_err(|e| e.to_string())?;
+    if view.rgb.iter().chain(&view.depth).chain(&view.opacity).any(|v| !v.is_finite()) {
+        return Err("the warm-up render produced non-finite values".into());
+    }
+    Ok(start.elapsed())
+}
+
+/// Cameras on a small arc 4 units from the origin, looking at it (OpenCV, world-to-camera).
+fn warmup_cameras(views: usize, size: u32) -> Vec<Camera> {
+    (0..views)
+        .map(|i| {
+            let a = 0.1 * i as f64;
+            let (s, c) = a.sin_cos();
+            // Rotation about y by a; camera centre at R^T * (0, 0, -4) so the origin is 4 ahead.
+            Camera {
+                width: size,
+                height: size,
+                k: [[size as f64, 0.0, size as f64 / 2.0], [0.0, size as f64, size as f64 / 2.0], [0.0, 0.0, 1.0]],
+                w2c: [[c, 0.0, -s, 0.0], [0.0, 1.0, 0.0, 0.0], [s, 0.0, c, 4.0], [0.0, 0.0, 0.0, 1.0]],
+            }
+        })
+        .collect()
+}

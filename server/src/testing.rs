@@ -1,0 +1,206 @@
+//! Test support (not part of the API): a fake graph runner with the bundle contract's shapes,
+//! a manifest for it, and request builders. Lets the HTTP layer be tested without ONNX Runtime.
+
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+use std::time::Duration;
+
+use crate::backend::{BackendError, BackendHandle, GraphRunner, NamedTensors, Tensor};
+use crate::bundle::{validate_manifest, Bundle, GraphKind, Manifest};
+use crate::http::AppState;
+use crate::pipeline::chunks::ChunkPolicy;
+use crate::pipeline::Pipeline;
+use crate::request::Limits;
+
+/// A manifest that satisfies the contract, with a small config (fast fake volumes).
+pub fn manifest(variant: &str, depth_norm: &str) -> Manifest {
+    let sha = "cd".repeat(32);
+    let (v, c, cv, d) = (3, 32, 8, 8);
+    let t =
+        |name: &str, shape: serde_json::Value| serde_json::json!({"name": name, "shape": shape, "dtype": "float32"});
+    let mut renderer_inputs = vec![
+        t("ray_origins", serde_json::json!(["R", 3])),
+        t("ray_directions", serde_json::json!(["R", 3])),
+        t("near_far", serde_json::json!([2])),
+        t("volume", serde_json::json!([1, cv, d, "Hp", "Wp"])),
+        t("images", serde_json::json!([v, 3, "H", "W"])),
+        t("intrinsics", serde_json::json!([v, 3, 3])),
+        t("extrinsics", serde_json::json!([v, 4, 4])),
+    ];
+    if variant != "mvsnerf" {
+        renderer_inputs.push(t("depth_range", serde_json::json!([2])));
+        renderer_inputs.push(t("features", serde_json::json!([v, c, "h", "w"])));
+    }
+    let json = serde_json::json!({
+        "format_version": 1,
+        "model_id": format!("scnerf-{variant}-{}", &sha[..12]),
+        "variant": variant,
+        "config": {"views": v, "feature_channels": c, "volume_channels": cv, "depth_planes": d,
+                   "samples": 16, "pad": 2, "image_multiple": 32, "depth_norm": depth_norm,
+                   "mlp_width": 128},
+        "graphs": {
+            "encoder": {"file": "encoder.onnx", "sha256": "00",
+                "inputs": [t("images", serde_json::json!([v, 3, "H", "W"]))],
+                "outputs": [t("features", serde_json::json!([v, c, "h", "w"]))]},
+            "volume": {"file": "volume.onnx", "sha256": "00",
+                "inputs": [t("features", serde_json::json!([v, c, "h", "w"])),
+                           t("images", serde_json::json!([v, 3, "H", "W"])),
+                           t("projections", serde_json::json!([v, 4, 4])),
+                           t("depth_planes", serde_json::json!([d]))],
+                "outputs": [t("volume", serde_json::json!([1, cv, d, "Hp", "Wp"]))]},
+            "renderer": {"file": "renderer.onnx", "sha256": sha,
+                "inputs": renderer_inputs,
+                "outputs": [t("rgb", serde_json::json!(["R", 3])), t("depth", serde_json::json!(["R"])),
+                            t("opacity", serde_json::json!(["R"]))]}
+        },
+        "provenance": {"source_checkpoint": "fake", "source_sha256": "00", "exporter_version": "0.0.0",
+                       "training": null, "metrics": null, "created": "2026-01-01T00:00:00Z"}
+    });
+    serde_json::from_value(json).expect("test manifest")
+}
+
+pub fn bundle(variant: &str, depth_norm: &str) -> Bundle {
+    let manifest = manifest(variant, depth_norm);
+    let config = validate_manifest(&manifest).expect("test manifest is valid");
+    Bundle { dir: "/nonexistent".into(), manifest, config }
+}
+
+/// Deterministic stand-in for the three graphs. The renderer is a per-ray function of the inputs
+/// (so, like the real graph, independent of chunking); it depends on depth_range so that
+/// two-pass depth normalisation is exercised.
+pub struct FakeRunner {
+    pub config: crate::bundle::ModelConfig,
+    /// Every call fails with this message (to test error paths).
+    pub fail_with: Option<String>,
+    /// Sleep per call (to test deadlines).
+    pub delay: Duration,
+}
+
+impl FakeRunner {
+    pub fn new(bundle: &Bundle) -> FakeRunner {
+        FakeRunner { config: bundle.config.clone(), fail_with: None, delay: Duration::ZERO }
+    }
+}
+
+fn input<'a>(inputs: &'a NamedTensors, name: &str) -> &'a Tensor {
+    &inputs.iter().find(|(n, _)| n == name).unwrap_or_else(|| panic!("fake runner: no input {name}")).1
+}
+
+impl GraphRunner for FakeRunner {
+    fn run(&mut self, graph: GraphKind, inputs: &NamedTensors) -> Result<NamedTensors, BackendError> {
+        std::thread::sleep(self.delay);
+        if let Some(message) = &self.fail_with {
+            return Err(BackendError::Run { graph, message: message.clone() });
+        }
+        let c = &self.config;
+        Ok(match graph {
+            GraphKind::Encoder => {
+                let images = input(inputs, "images");
+                let (v, h, w) = (images.shape[0], images.shape[2] / 4, images.shape[3] / 4);
+                let mean = images.data.iter().sum::<f32>() / images.len() as f32;
+                vec![(
+                    "features".into(),
+                    Tensor::new(vec![v, c.feature_channels, h, w], vec![mean; v * c.feature_channels * h * w]),
+                )]
+            }
+            GraphKind::Volume => {
+                let f = input(inputs, "features");
+                let (hp, wp) = (f.shape[2] + 2 * c.pad, f.shape[3] + 2 * c.pad);
+                let n = c.volume_channels * c.depth_planes * hp * wp;
+                vec![(
+                    "volume".into(),
+                    Tensor::new(vec![1, c.volume_channels, c.depth_planes, hp, wp], vec![f.data[0]; n]),
+                )]
+            }
+            GraphKind::Renderer => {
+                let dirs = input(inputs, "ray_directions");
+                let near_far = input(inputs, "near_far");
+                let range =
+                    inputs.iter().find(|(n, _)| n == "depth_range").map(|(_, t)| t.data[1] - t.data[0]).unwrap_or(1.0);
+                let r = dirs.shape[0];
+                let mut rgb = Vec::with_capacity(r * 3);
+                let mut depth = Vec::with_capacity(r);
+                let mut opacity = Vec::with_capacity(r);
+                for d in dirs.data.chunks_exact(3) {
+                    let norm = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+                    rgb.extend(d.iter().map(|x| 0.5 * (x / norm).abs()));
+                    depth.push(near_far.data[0] + (d[0] / norm).abs() * range);
+                    opacity.push(0.5 + 0.5 * (d[1] / norm).abs());
+                }
+                vec![
+                    ("rgb".into(), Tensor::new(vec![r, 3], rgb)),
+                    ("depth".into(), Tensor::new(vec![r], depth)),
+                    ("opacity".into(), Tensor::new(vec![r], opacity)),
+                ]
+            }
+        })
+    }
+}
+
+/// An AppState over the fake runner, ready at once.
+pub fn state_with(bundle: Bundle, runner: FakeRunner, limits: Limits, timeout: Duration) -> AppState {
+    state_with_queue(bundle, runner, limits, timeout, 8)
+}
+
+pub fn state_with_queue(
+    bundle: Bundle,
+    runner: FakeRunner,
+    limits: Limits,
+    timeout: Duration,
+    queue: usize,
+) -> AppState {
+    let backend = BackendHandle::spawn(Box::new(runner), queue).expect("spawn backend");
+    let state = AppState {
+        pipeline: Pipeline {
+            backend,
+            bundle: Arc::new(bundle),
+            chunking: ChunkPolicy { max_rays: 100, memory_budget_bytes: usize::MAX },
+            limits,
+        },
+        ready: Arc::new(AtomicBool::new(false)),
+        request_timeout: timeout,
+    };
+    state.set_ready();
+    state
+}
+
+pub fn fake_state() -> AppState {
+    let bundle = bundle("scnerf", "near_far");
+    let runner = FakeRunner::new(&bundle);
+    state_with(bundle, runner, Limits::default(), Duration::from_secs(60))
+}
+
+/// A PNG of the given size and colour.
+pub fn png(width: u32, height: u32, rgba: [u8; 4]) -> Vec<u8> {
+    let img = image::RgbaImage::from_pixel(width, height, image::Rgba(rgba));
+    let mut out = Vec::new();
+    image::DynamicImage::ImageRgba8(img)
+        .write_to(&mut std::io::Cursor::new(&mut out), image::ImageFormat::Png)
+        .expect("png");
+    out
+}
+
+/// A camera in DESIGN.md's JSON form: Blender-style camera-to-world, OpenGL axes, on a circle of
+/// radius 4 around the origin at angle `angle`, looking at the origin.
+pub fn camera_json(width: u32, height: u32, angle: f64) -> serde_json::Value {
+    let (s, c) = angle.sin_cos();
+    // OpenGL camera looks down its -z: put z_cam = (s, 0, c) pointing away from the origin.
+    serde_json::json!({
+        "width": width, "height": height,
+        "intrinsics": {"fx": width as f64, "fy": width as f64, "cx": width as f64 / 2.0, "cy": height as f64 / 2.0},
+        "pose": {"matrix": [[c, 0.0, s, 4.0 * s], [0.0, 1.0, 0.0, 0.0], [-s, 0.0, c, 4.0 * c], [0.0, 0.0, 0.0, 1.0]],
+                 "kind": "camera_to_world", "axes": "opengl"}
+    })
+}
+
+/// A valid request JSON without images: 3 sources of `size`, an 8x6 target.
+pub fn request_json(size: u32) -> serde_json::Value {
+    serde_json::json!({
+        "sources": [{"camera": camera_json(size, size, -0.2)}, {"camera": camera_json(size, size, 0.0)},
+                    {"camera": camera_json(size, size, 0.2)}],
+        "target": camera_json(8, 6, 0.1),
+        "near": 2.0, "far": 6.0,
+        "background": [1.0, 1.0, 1.0],
+        "outputs": ["rgb"]
+    })
+}

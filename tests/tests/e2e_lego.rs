@@ -1,0 +1,167 @@
+//! End to end: the real `scnerf-server` binary on an ephemeral loopback port renders NeRF
+//! synthetic lego view r_63 (val) from train views r_6, r_43, r_33, and the PNG it returns is
+//! scored against the ground truth.
+//!
+//! Protocol (kept identical to `scnerf-export eval` so the numbers compare):
+//! * cameras from transforms_{train,val}.json: camera-to-world, OpenGL axes,
+//!   fx = fy = 0.5·800 / tan(0.5·camera_angle_x), cx = cy = 400; near/far 2/6; white background;
+//! * sources at full resolution (800x800 RGBA PNGs as stored; the server composites on white);
+//! * the target is rendered at `SCNERF_E2E_TARGET_SCALE` (default 0.25, i.e. 200x200) by scaling
+//!   its intrinsics (f' = f·s, c' = (c + 0.5)·s − 0.5: pixel centres stay at integers), because a
+//!   full-size 800x800 render takes many minutes on a 2-core CPU; the ground truth
+//!   (r_63.png composited on white) is box-averaged by the same factor;
+//! * PSNR over all pixels of the 8-bit PNG against the float ground truth.
+//!
+//! The bundle is `SCNERF_E2E_BUNDLE` or the default bundle (<repo>/bundles/default). If
+//! `<bundle>/eval/lego.json` holds the exporter's PSNR for r_63, the server's must be within
+//! 0.1 dB of it; otherwise the PSNR must be finite and above 10 dB, and is printed.
+//! The test is skipped, with a message, when ../shared (the dataset) or the bundle is absent.
+
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use scnerf_e2e::{http_request, multipart, psnr, repo_root, server_binary, ServerProcess};
+use serde_json::{json, Value};
+
+const SOURCES: [&str; 3] = ["r_6", "r_43", "r_33"];
+const TARGET: &str = "r_63";
+
+fn lego_dir() -> PathBuf {
+    repo_root().join("../shared/data/nerf_synthetic_lego")
+}
+
+fn bundle_dir() -> PathBuf {
+    std::env::var_os("SCNERF_E2E_BUNDLE").map(PathBuf::from).unwrap_or_else(|| repo_root().join("bundles/default"))
+}
+
+fn target_scale() -> f64 {
+    std::env::var("SCNERF_E2E_TARGET_SCALE").ok().and_then(|s| s.parse().ok()).unwrap_or(0.25)
+}
+
+/// (camera_angle_x, transform_matrix) of a frame named like "r_63" in a transforms file.
+fn frame(file: &Path, name: &str) -> (f64, Value) {
+    let data: Value = serde_json::from_str(&std::fs::read_to_string(file).unwrap()).unwrap();
+    let angle = data["camera_angle_x"].as_f64().unwrap();
+    let fr = data["frames"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|f| f["file_path"].as_str().is_some_and(|p| p.rsplit('/').next() == Some(name)))
+        .unwrap_or_else(|| panic!("{name} not in {}", file.display()));
+    (angle, fr["transform_matrix"].clone())
+}
+
+fn camera(angle_x: f64, matrix: Value, size: u32, scale: f64) -> Value {
+    let f = 0.5 * 800.0 / (0.5 * angle_x).tan() * scale;
+    let c = (400.0 + 0.5) * scale - 0.5;
+    json!({
+        "width": size, "height": size,
+        "intrinsics": {"fx": f, "fy": f, "cx": c, "cy": c},
+        "pose": {"matrix": matrix, "kind": "camera_to_world", "axes": "opengl"}
+    })
+}
+
+/// r_63.png composited on white, box-averaged by `factor`, as (H·W·3) floats in [0, 1].
+fn ground_truth(path: &Path, factor: usize) -> (u32, Vec<f32>) {
+    let img = image::open(path).unwrap().into_rgba32f();
+    let (w, h) = (img.width() as usize, img.height() as usize);
+    assert!(w % factor == 0 && h % factor == 0, "target scale must divide the image size");
+    let (ow, oh) = (w / factor, h / factor);
+    let mut out = vec![0f32; ow * oh * 3];
+    for (x, y, px) in img.enumerate_pixels() {
+        let a = px.0[3];
+        let o = ((y as usize / factor) * ow + x as usize / factor) * 3;
+        for c in 0..3 {
+            out[o + c] += (px.0[c] * a + (1.0 - a)) / (factor * factor) as f32;
+        }
+    }
+    (ow as u32, out)
+}
+
+/// The exporter's PSNR for r_63, if `scnerf-export eval` wrote one: accepts
+/// {"views": {"r_63": {"psnr": x}}}, {"r_63": {"psnr": x}} or {"psnr": {"r_63": x}}.
+fn reference_psnr(bundle: &Path) -> Option<f64> {
+    let text = std::fs::read_to_string(bundle.join("eval/lego.json")).ok()?;
+    let v: Value = serde_json::from_str(&text).ok()?;
+    [&v["views"][TARGET]["psnr"], &v[TARGET]["psnr"], &v["psnr"][TARGET]].iter().find_map(|x| x.as_f64())
+}
+
+#[test]
+fn lego_r63_psnr() {
+    let lego = lego_dir();
+    let bundle = bundle_dir();
+    if !lego.join("transforms_train.json").is_file() {
+        eprintln!("SKIPPED lego end-to-end test: dataset not found at {} (../shared is absent)", lego.display());
+        return;
+    }
+    if !bundle.join("manifest.json").is_file() {
+        eprintln!(
+            "SKIPPED lego end-to-end test: no bundle at {} (set SCNERF_E2E_BUNDLE or create the default bundle)",
+            bundle.display()
+        );
+        return;
+    }
+    let scale = target_scale();
+    let factor = (1.0 / scale).round() as usize;
+    assert!((scale * factor as f64 - 1.0).abs() < 1e-9, "SCNERF_E2E_TARGET_SCALE must be 1/n");
+    let size = 800 / factor as u32;
+
+    let mut sources = Vec::new();
+    let mut images = Vec::new();
+    for name in SOURCES {
+        let (angle, m) = frame(&lego.join("transforms_train.json"), name);
+        sources.push(json!({"camera": camera(angle, m, 800, 1.0)}));
+        images.push(std::fs::read(lego.join(format!("train/{name}.png"))).unwrap());
+    }
+    let (angle, m) = frame(&lego.join("transforms_val.json"), TARGET);
+    let request = json!({
+        "sources": sources, "target": camera(angle, m, size, scale),
+        "near": 2.0, "far": 6.0, "background": [1.0, 1.0, 1.0], "outputs": ["rgb"]
+    });
+    let request = serde_json::to_vec(&request).unwrap();
+    let names = ["source_0", "source_1", "source_2"];
+    let mut parts: Vec<(&str, Option<&str>, &str, &[u8])> = vec![("request", None, "application/json", &request)];
+    for (n, img) in names.iter().zip(&images) {
+        parts.push((n, Some("view.png"), "image/png", img));
+    }
+    let (ctype, body) = multipart(&parts);
+
+    let binary = server_binary();
+    let mut server = ServerProcess::start(&binary, &["--bundle", bundle.to_str().unwrap()]);
+    server.wait_ready(Duration::from_secs(900));
+    let start = Instant::now();
+    let resp = http_request(
+        server.addr,
+        "POST",
+        "/v1/render",
+        &[("Content-Type", &ctype), ("Accept", "image/png")],
+        &body,
+        Duration::from_secs(3600),
+    )
+    .expect("render request");
+    let elapsed = start.elapsed();
+    assert_eq!(resp.status, 200, "{}", String::from_utf8_lossy(&resp.body));
+    assert_eq!(resp.header("content-type"), Some("image/png"));
+    let png = image::load_from_memory(&resp.body).expect("PNG").into_rgb8();
+    assert_eq!((png.width(), png.height()), (size, size));
+    let rendered: Vec<f32> = png.as_raw().iter().map(|&b| f32::from(b) / 255.0).collect();
+    let (gt_size, gt) = ground_truth(&lego.join(format!("val/{TARGET}.png")), factor);
+    assert_eq!(gt_size, size);
+    let score = psnr(&rendered, &gt);
+    eprintln!(
+        "lego {TARGET} at {size}x{size}: PSNR {score:.3} dB, request {:.1} s, server-timing: {}",
+        elapsed.as_secs_f64(),
+        resp.header("server-timing").unwrap_or("-")
+    );
+    assert!(score.is_finite());
+    match reference_psnr(&bundle) {
+        Some(reference) => {
+            eprintln!("scnerf-export eval PSNR for {TARGET}: {reference:.3} dB");
+            assert!(
+                (score - reference).abs() <= 0.1,
+                "server PSNR {score:.3} dB vs exporter {reference:.3} dB: more than 0.1 dB apart"
+            );
+        }
+        None => assert!(score > 10.0, "PSNR {score:.3} dB is implausibly low"),
+    }
+}

@@ -1,0 +1,235 @@
+//! Parity with the exporter's PyTorch reference: every case under tests/fixtures/parity/cases is
+//! rendered through the Rust pipeline (request parsing, camera conversion, image decoding,
+//! ONNX Runtime, chunking, assembly) and compared stage by stage with the committed tensors.
+//!
+//! The fixtures are committed, so a missing fixture directory is a failure, not a skip.
+
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, OnceLock};
+
+use axum::body::Body;
+use axum::http::Request;
+use base64::Engine;
+use http_body_util::BodyExt;
+use scnerf_server::backend::ort::{OrtOptions, OrtRunner};
+use scnerf_server::backend::BackendHandle;
+use scnerf_server::bundle::Bundle;
+use scnerf_server::config::GraphOptLevel;
+use scnerf_server::http::{router, AppState};
+use scnerf_server::pipeline::chunks::ChunkPolicy;
+use scnerf_server::pipeline::{Pipeline, Timings};
+use scnerf_server::request::{ImageMode, Limits, RenderRequest, ValidRequest};
+use tower::ServiceExt;
+
+/// tests/fixtures/parity, or SCNERF_PARITY_FIXTURES (to check a freshly generated set).
+fn fixtures_dir() -> PathBuf {
+    std::env::var_os("SCNERF_PARITY_FIXTURES")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/parity"))
+}
+
+/// One ONNX Runtime pipeline for all tests of this binary (the runtime environment is
+/// process-wide).
+fn pipeline() -> Pipeline {
+    static PIPELINE: OnceLock<Pipeline> = OnceLock::new();
+    PIPELINE
+        .get_or_init(|| {
+            let dir = fixtures_dir().join("bundle");
+            assert!(
+                dir.is_dir(),
+                "parity fixtures missing: {} (they are committed; run `scnerf-export fixtures`)",
+                dir.display()
+            );
+            let bundle = Bundle::load(&dir).unwrap_or_else(|e| panic!("{e}"));
+            let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+            let opts = OrtOptions { dylib: None, intra_threads: threads, opt_level: GraphOptLevel::All };
+            let runner = OrtRunner::load(&bundle, &opts).unwrap_or_else(|e| panic!("{e}"));
+            Pipeline {
+                backend: BackendHandle::spawn(Box::new(runner), 16).unwrap(),
+                bundle: Arc::new(bundle),
+                chunking: ChunkPolicy::default(),
+                limits: Limits::default(),
+            }
+        })
+        .clone()
+}
+
+fn cases() -> Vec<PathBuf> {
+    let dir = fixtures_dir().join("cases");
+    let mut cases: Vec<PathBuf> = std::fs::read_dir(&dir)
+        .unwrap_or_else(|e| panic!("parity fixtures missing: {}: {e}", dir.display()))
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.join("request.json").is_file())
+        .collect();
+    cases.sort();
+    assert!(!cases.is_empty(), "no parity cases under {}", dir.display());
+    cases
+}
+
+fn read_f32(path: &Path) -> Vec<f32> {
+    let bytes = std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    bytes.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect()
+}
+
+struct Expected {
+    json: serde_json::Value,
+    dir: PathBuf,
+}
+
+impl Expected {
+    fn load(case: &Path) -> Expected {
+        let text = std::fs::read_to_string(case.join("expected.json")).unwrap();
+        Expected { json: serde_json::from_str(&text).unwrap(), dir: case.to_path_buf() }
+    }
+
+    fn tensor(&self, name: &str) -> (Vec<usize>, Vec<f32>) {
+        let file = self.json["files"][name].as_str().unwrap_or_else(|| panic!("expected.json: no files.{name}"));
+        let data = read_f32(&self.dir.join(file));
+        let shape: Vec<usize> = self.json["shapes"][name]
+            .as_array()
+            .map(|a| a.iter().map(|d| d.as_u64().unwrap() as usize).collect())
+            .unwrap_or_else(|| vec![data.len()]);
+        assert_eq!(shape.iter().product::<usize>(), data.len(), "{name}: file size does not match its shape");
+        (shape, data)
+    }
+
+    fn tolerance(&self, key: &str, default: f64) -> f64 {
+        self.json["tolerances"][key].as_f64().unwrap_or(default)
+    }
+}
+
+fn request(case: &Path) -> ValidRequest {
+    let json = std::fs::read(case.join("request.json")).unwrap();
+    let mut req = RenderRequest::from_json(&json, ImageMode::Parts).unwrap();
+    for (i, s) in req.sources.iter_mut().enumerate() {
+        s.image = Some(std::fs::read(case.join(format!("source_{i}.png"))).unwrap().into());
+    }
+    req.validate(&pipeline().bundle.config, &Limits::default()).unwrap()
+}
+
+fn max_abs(a: &[f32], b: &[f32]) -> f64 {
+    assert_eq!(a.len(), b.len());
+    a.iter().zip(b).map(|(x, y)| f64::from((x - y).abs())).fold(0.0, f64::max)
+}
+
+/// max |a - b| / max(|b|, 1e-6)... relative to the magnitude of the reference.
+fn max_rel(a: &[f32], b: &[f32]) -> f64 {
+    assert_eq!(a.len(), b.len());
+    a.iter().zip(b).map(|(x, y)| f64::from((x - y).abs()) / f64::from(y.abs()).max(1e-3)).fold(0.0, f64::max)
+}
+
+fn check(case: &str, stage: &str, err: f64, tol: f64) {
+    eprintln!("{case}: {stage} max error {err:.3e} (tolerance {tol:.0e})");
+    assert!(err <= tol, "{case}: {stage} error {err:.3e} exceeds {tol:.0e}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn pipeline_matches_pytorch_stage_by_stage() {
+    let p = pipeline();
+    for case in cases() {
+        let name = case.file_name().unwrap().to_string_lossy().to_string();
+        let expected = Expected::load(&case);
+        let req = request(&case);
+        let mut timings = Timings::default();
+        let images = p.decode_sources(&req).await.unwrap();
+        let cameras: Vec<_> = req.sources.iter().map(|(c, _, _)| c.clone()).collect();
+        let scene = p.build_scene(&cameras, images, req.near, req.far, &mut timings).await.unwrap();
+
+        let (shape, features) = expected.tensor("features");
+        assert_eq!(scene.features.shape, shape, "{name}: features shape");
+        check(
+            &name,
+            "features",
+            max_abs(&scene.features.data, &features),
+            expected.tolerance("features_max_abs", 1e-4),
+        );
+        let (shape, volume) = expected.tensor("volume");
+        assert_eq!(scene.volume.shape, shape, "{name}: volume shape");
+        check(&name, "volume", max_abs(&scene.volume.data, &volume), expected.tolerance("volume_max_abs", 1e-4));
+
+        let view = p.render_view(&scene, &req.target, req.background, None, &mut timings).await.unwrap();
+        assert_eq!(
+            (view.width as u64, view.height as u64),
+            (expected.json["width"].as_u64().unwrap(), expected.json["height"].as_u64().unwrap())
+        );
+        check(&name, "rgb", max_abs(&view.rgb, &expected.tensor("rgb").1), expected.tolerance("rgb_max_abs", 1e-3));
+        check(
+            &name,
+            "depth (relative)",
+            max_rel(&view.depth, &expected.tensor("depth").1),
+            expected.tolerance("depth_max_rel", 1e-3),
+        );
+        check(
+            &name,
+            "opacity",
+            max_abs(&view.opacity, &expected.tensor("opacity").1),
+            expected.tolerance("opacity_max_abs", 1e-3),
+        );
+        eprintln!("{name}: timings {:?}", timings.millis());
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn output_does_not_depend_on_chunk_size() {
+    let p = pipeline();
+    let case = &cases()[0];
+    let req = request(case);
+    let mut timings = Timings::default();
+    let images = p.decode_sources(&req).await.unwrap();
+    let cameras: Vec<_> = req.sources.iter().map(|(c, _, _)| c.clone()).collect();
+    let scene = p.build_scene(&cameras, images, req.near, req.far, &mut timings).await.unwrap();
+    let small = p.render_view(&scene, &req.target, req.background, Some(37), &mut timings).await.unwrap();
+    let large = p.render_view(&scene, &req.target, req.background, Some(5000), &mut timings).await.unwrap();
+    let err = max_abs(&small.rgb, &large.rgb)
+        .max(max_abs(&small.depth, &large.depth))
+        .max(max_abs(&small.opacity, &large.opacity));
+    eprintln!("chunk 37 vs 5000: max abs difference {err:.3e}");
+    assert!(err <= 1e-6, "output depends on the chunk size: max difference {err:.3e}");
+}
+
+/// The same cases through the real HTTP router: multipart in, JSON out (PNG rgb, float32 depth).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn http_multipart_render_matches_pytorch() {
+    let p = pipeline();
+    let state =
+        AppState { pipeline: p, ready: Arc::new(true.into()), request_timeout: std::time::Duration::from_secs(600) };
+    let app = router(state);
+    for case in cases() {
+        let name = case.file_name().unwrap().to_string_lossy().to_string();
+        let expected = Expected::load(&case);
+        let request_json = std::fs::read(case.join("request.json")).unwrap();
+        let images: Vec<Vec<u8>> =
+            (0..3).map(|i| std::fs::read(case.join(format!("source_{i}.png"))).unwrap()).collect();
+        let names: Vec<String> = (0..3).map(|i| format!("source_{i}")).collect();
+        let mut parts: Vec<(&str, Option<&str>, &str, &[u8])> =
+            vec![("request", None, "application/json", &request_json)];
+        for (n, img) in names.iter().zip(&images) {
+            parts.push((n, Some("view.png"), "image/png", img));
+        }
+        let (ctype, body) = scnerf_e2e::multipart(&parts);
+        let req = Request::post("/v1/render")
+            .header("content-type", ctype)
+            .header("accept", "application/json")
+            .body(Body::from(body))
+            .unwrap();
+        let resp = app.clone().oneshot(req).await.unwrap();
+        let status = resp.status();
+        let bytes = resp.into_body().collect().await.unwrap().to_bytes();
+        assert_eq!(status, 200, "{name}: {}", String::from_utf8_lossy(&bytes));
+        let json: serde_json::Value = serde_json::from_slice(&bytes).unwrap();
+        let b64 =
+            |v: &serde_json::Value| base64::engine::general_purpose::STANDARD.decode(v.as_str().unwrap()).unwrap();
+        let png = image::load_from_memory(&b64(&json["rgb"]["data"])).unwrap().into_rgb8();
+        let rgb: Vec<f32> = png.as_raw().iter().map(|&b| f32::from(b) / 255.0).collect();
+        // Quantisation to 8 bits adds at most half a level.
+        check(&name, "http rgb (8-bit)", max_abs(&rgb, &expected.tensor("rgb").1), 0.5 / 255.0 + 1e-3);
+        let depth: Vec<f32> =
+            b64(&json["depth"]["data"]).chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
+        check(
+            &name,
+            "http depth (relative)",
+            max_rel(&depth, &expected.tensor("depth").1),
+            expected.tolerance("depth_max_rel", 1e-3),
+        );
+    }
+}
