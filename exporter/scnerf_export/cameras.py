@@ -25,6 +25,35 @@ class Camera:
     def c2w(self) -> np.ndarray:
         return np.linalg.inv(self.w2c)
 
+    @property
+    def rotation(self) -> np.ndarray:
+        """World-to-camera rotation (3, 3)."""
+        return self.w2c[:3, :3]
+
+    @property
+    def center(self) -> np.ndarray:
+        """Camera centre in world coordinates (3,)."""
+        return -self.w2c[:3, :3].T @ self.w2c[:3, 3]
+
+    @property
+    def forward(self) -> np.ndarray:
+        """Unit optical axis in world coordinates."""
+        return self.w2c[2, :3].copy()
+
+    def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """World points (N, 3) -> pixel coordinates (N, 2) and z-depth (N,)."""
+        cam = points @ self.w2c[:3, :3].T + self.w2c[:3, 3]
+        z = cam[:, 2]
+        uv = (cam[:, :2] / z[:, None]) * np.diag(self.K)[:2] + self.K[:2, 2]
+        return uv, z
+
+    def unproject(self, uv: np.ndarray, depth: np.ndarray) -> np.ndarray:
+        """Pixel coordinates (N, 2) with z-depths (N,) -> world points (N, 3)."""
+        fx, fy, cx, cy = self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2]
+        cam = np.stack([(uv[:, 0] - cx) / fx, (uv[:, 1] - cy) / fy, np.ones(len(uv))], axis=-1)
+        cam = cam * depth[:, None]
+        return (cam - self.w2c[:3, 3]) @ self.w2c[:3, :3]
+
     @classmethod
     def from_pose(cls, K, matrix, width: int, height: int, kind: str = "world_to_camera",
                   axes: str = "opencv") -> "Camera":
@@ -84,18 +113,19 @@ def depth_planes(near: float, far: float, count: int) -> np.ndarray:
     return (near * (1.0 - steps) + far * steps).astype(np.float32)
 
 
-def look_at(eye, target, K: np.ndarray, width: int, height: int, up=(0.0, -1.0, 0.0)) -> Camera:
-    """An OpenCV camera at ``eye`` looking at ``target`` (y axis of the image points along -up)."""
-    eye, target, up = (np.asarray(a, dtype=np.float64) for a in (eye, target, up))
-    forward = target - eye
+def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """World-to-camera matrix (4, 4) of a camera at ``eye`` looking at ``target`` (OpenCV axes):
+    x = forward x up (right), y = forward x right (down), so det(R) = +1."""
+    eye = np.asarray(eye, dtype=np.float64)
+    forward = np.asarray(target, dtype=np.float64) - eye
     forward /= np.linalg.norm(forward)
-    right = np.cross(forward, up)
+    right = np.cross(forward, np.asarray(up, dtype=np.float64))
     right /= np.linalg.norm(right)
     down = np.cross(forward, right)
     w2c = np.eye(4)
     w2c[:3, :3] = np.stack([right, down, forward])
     w2c[:3, 3] = -w2c[:3, :3] @ eye
-    return Camera(np.asarray(K, dtype=np.float64), w2c, width, height)
+    return w2c
 
 
 def pinhole(focal: float, width: int, height: int) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""`scnerf-export`: convert-mvsnerf, export, fixtures, eval, example, train."""
+"""`scnerf-export`: convert-mvsnerf, export, fixtures, eval, example, experiment, train."""
 
 from __future__ import annotations
 
@@ -37,7 +37,8 @@ def cmd_eval(args) -> None:
     from .evaluate import evaluate, split_names, write_json
 
     summary = evaluate(args.bundle, args.scene, args.format, split_names(args.sources), split_names(args.targets),
-                       args.scale, args.near, args.far, args.threads, args.chunk, args.save_renders)
+                       args.scale, args.near, args.far, args.threads, args.chunk, args.save_renders,
+                       args.target_scale)
     if "lpips_unavailable" in summary:
         print(f"LPIPS not computed: {summary['lpips_unavailable']}")
     if args.json:
@@ -49,6 +50,18 @@ def cmd_example(args) -> None:
     from .example import write_example
 
     print(f"wrote {write_example(args.out)}")
+
+
+def cmd_experiment(args) -> None:
+    from .experiment import run
+
+    bundles = {}
+    for item in args.bundle:
+        name, _, path = item.partition("=")
+        if not path:
+            raise ValueError(f"--bundle takes NAME=DIR, got {item!r}")
+        bundles[name] = Path(path)
+    print(run(bundles, args.out, args.scenes, args.cache, args.threads))
 
 
 def cmd_train(args) -> None:
@@ -86,6 +99,8 @@ def parser() -> argparse.ArgumentParser:
     v.add_argument("--sources", help="comma-separated view names (default: the scene's)")
     v.add_argument("--targets", help="comma-separated view names (default: the scene's)")
     v.add_argument("--scale", type=float, default=1.0, help="resize every view by this factor")
+    v.add_argument("--target-scale", type=float, default=1.0,
+                   help="render targets at 1/n size (ground truth box-averaged); sources stay full size")
     v.add_argument("--near", type=float)
     v.add_argument("--far", type=float)
     v.add_argument("--threads", type=int)
@@ -97,6 +112,14 @@ def parser() -> argparse.ArgumentParser:
     x = sub.add_parser("example", help="the committed example request (held-out procedural scene)")
     x.add_argument("--out", required=True, type=Path)
     x.set_defaults(func=cmd_example)
+
+    m = sub.add_parser("experiment", help="bundles side by side on held-out procedural scenes per layout and gap")
+    m.add_argument("--bundle", action="append", required=True, help="NAME=DIR, repeatable")
+    m.add_argument("--out", required=True, type=Path)
+    m.add_argument("--scenes", type=int, default=9, help="held-out scenes (a third per layout)")
+    m.add_argument("--cache", type=Path, help="procedural scene cache")
+    m.add_argument("--threads", type=int)
+    m.set_defaults(func=cmd_experiment)
 
     t = sub.add_parser("train", help="train on procedural scenes")
     t.add_argument("--variant", required=True, choices=["mvsnerf", "scnerf", "scnerf-geometry", "scnerf-appearance"])

@@ -39,7 +39,6 @@ __all__ = [
     "load_llff",
     "load_colmap",
     "get_views",
-    "project",
     "resize_camera",
     "resize_view",
     "crop_view",
@@ -115,17 +114,6 @@ def _invert_rigid(m: np.ndarray) -> np.ndarray:
         out[:3, 3] = -r.T @ m[:3, 3]
         return out
     return np.linalg.inv(m)
-
-
-def project(camera: Camera, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Project world points (N,3) -> pixel coordinates (N,2) and z-depths (N,)."""
-    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    cam = pts @ camera.w2c[:3, :3].T + camera.w2c[:3, 3]
-    z = cam[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        uvw = cam @ camera.K.T
-        uv = uvw[:, :2] / uvw[:, 2:3]
-    return uv, z
 
 
 def resize_camera(camera: Camera, width: int, height: int) -> Camera:

@@ -34,7 +34,7 @@ def rig_cameras(height: int, width: int, radius: float = 3.0) -> tuple[list[Came
     """Three sources and a target around the origin, like a small DTU rig."""
     K = cams.pinhole(1.2 * width, width, height)
     eyes = [(0.0, 0.0, -radius), (0.5, 0.1, -radius), (-0.3, 0.4, -radius), (0.15, 0.2, -radius)]
-    all_cams = [cams.look_at(e, (0.0, 0.0, 0.0), K, width, height) for e in eyes]
+    all_cams = [Camera(K, cams.look_at(e, (0.0, 0.0, 0.0), up=(0.0, -1.0, 0.0)), width, height) for e in eyes]
     return all_cams[:3], all_cams[3], radius - 1.0, radius + 1.0
 
 

@@ -477,7 +477,9 @@ class RayRenderer(nn.Module):
             dirs = ref_dir[:, None, :].expand(-1, samples, -1)
             colour = self.colour_head(radiance, dirs)
         else:
-            depth_norm = ((depth - depth_range[0]) / (depth_range[1] - depth_range[0]))[:, None]
+            # Clamped: an image_minmax range of a flat depth image has max == min.
+            span = torch.clamp(depth_range[1] - depth_range[0], min=1e-6)
+            depth_norm = ((depth - depth_range[0]) / span)[:, None]
             depth_embedding = frequency_encoding(depth_norm, cfg.depth_freqs)
             direction_embedding = frequency_encoding(ref_dir, cfg.direction_freqs)
             query = torch.cat([depth_embedding, direction_embedding], dim=-1)

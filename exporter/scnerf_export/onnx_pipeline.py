@@ -70,6 +70,11 @@ class OnnxBundle:
                     background=(0.0, 0.0, 0.0), chunk: int = 4096) -> Rendering:
         self.timings = {}
         scene = self.encode_scene(images, cameras, near, far, background)
+        return self.render_target(scene, target, near, far, background, chunk)
+
+    def render_target(self, scene: dict, target: Camera, near: float, far: float, background=(0.0, 0.0, 0.0),
+                      chunk: int = 4096) -> Rendering:
+        """One target view of an encoded scene (what a cached scene costs per view)."""
         origins, directions = cams.target_rays(target)
         depth_range = (near, far)
         if self.cfg.depth_norm == "image_minmax" and "depth_range" in self.renderer_inputs:

@@ -13,7 +13,8 @@ import pytest
 from PIL import Image
 
 from scnerf_export import datasets as D
-from scnerf_export.datasets import Camera, load_scene, project
+from scnerf_export.cameras import look_at
+from scnerf_export.datasets import Camera, load_scene
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
@@ -45,20 +46,6 @@ def rot(rng) -> np.ndarray:
     return q
 
 
-def look_at_w2c(center, target=np.zeros(3), up=np.array([0.0, 0.0, 1.0])) -> np.ndarray:
-    """OpenCV world-to-camera of a camera at ``center`` looking at ``target``."""
-    z = target - center
-    z = z / np.linalg.norm(z)
-    x = np.cross(z, up)
-    x = x / np.linalg.norm(x)
-    y = np.cross(z, x)
-    R = np.stack([x, y, z])  # rows: camera axes in world
-    w2c = np.eye(4)
-    w2c[:3, :3] = R
-    w2c[:3, 3] = -R @ center
-    return w2c
-
-
 def make_cameras(n=4, seed=0, K=None, width=W, height=H, radius=4.0):
     rng = np.random.default_rng(seed)
     if K is None:
@@ -67,7 +54,7 @@ def make_cameras(n=4, seed=0, K=None, width=W, height=H, radius=4.0):
     for i in range(n):
         ang = 2 * math.pi * i / n + rng.uniform(-0.2, 0.2)
         c = np.array([radius * math.cos(ang), radius * math.sin(ang), rng.uniform(0.5, 1.5)])
-        w2c = look_at_w2c(c, target=rng.normal(scale=0.1, size=3))
+        w2c = look_at(c, target=rng.normal(scale=0.1, size=3))
         cams.append(Camera(K.copy(), w2c, width, height))
     return cams
 
@@ -334,7 +321,7 @@ def test_colmap_round_trip(tmp_path, model):
         assert_cam_equal(scene.views[f"{i:03d}"].camera, c)
         np.testing.assert_allclose(scene.views[f"{i:03d}"].image, ims[i] / 255.0, atol=1e-6)
     # near/far from the points' depths: all points lie within ~0.5 of the origin at ~4 units
-    zs = np.concatenate([project(c, POINTS)[1] for c in cams])
+    zs = np.concatenate([c.project(POINTS)[1] for c in cams])
     assert scene.near == pytest.approx(0.9 * np.percentile(zs, 1))
     assert scene.far == pytest.approx(1.1 * np.percentile(zs, 99))
     assert 0 < scene.near < zs.min() and scene.far > zs.max()
@@ -405,11 +392,11 @@ def test_same_pixel_in_every_format(tmp_path):
         "colmap": load_scene(tmp_path / "colmap", "colmap"),
     }
     for i, c in enumerate(cams):
-        ref_uv, ref_z = project(c, POINTS)
+        ref_uv, ref_z = c.project(POINTS)
         assert np.all(ref_z > 0) and np.all((ref_uv >= 0) & (ref_uv <= [W - 1, H - 1]))
         for fmt, scene in scenes.items():
             v = list(scene.views.values())[i]
-            uv, z = project(v.camera, POINTS)
+            uv, z = v.camera.project(POINTS)
             np.testing.assert_allclose(uv, ref_uv, atol=1e-9, err_msg=fmt)
             np.testing.assert_allclose(z, ref_z, atol=1e-9, err_msg=fmt)
             np.testing.assert_allclose(v.image, ims[i] / 255.0, atol=1e-6, err_msg=fmt)
@@ -423,8 +410,8 @@ def test_scale_keeps_pixel_centres(tmp_path, scale):
     v = load_scene(tmp_path, "nerfstudio", scale=scale).views["frame_00000"]
     assert (v.camera.width, v.camera.height) == (round(W * scale), round(H * scale))
     assert v.image.shape == (round(H * scale), round(W * scale), 3)
-    uv0, _ = project(cams[0], POINTS)
-    uv1, _ = project(v.camera, POINTS)
+    uv0, _ = cams[0].project(POINTS)
+    uv1, _ = v.camera.project(POINTS)
     np.testing.assert_allclose(uv1, (uv0 + 0.5) * scale - 0.5, atol=1e-9)
     assert v.camera.K[0, 0] == pytest.approx(80.0 * scale)
     assert v.camera.K[0, 2] == pytest.approx((30.25 + 0.5) * scale - 0.5)
@@ -449,8 +436,8 @@ def test_crop_and_resize_view_helpers():
                   mask=np.ones((H, W), bool))
     c = D.crop_view(view, 4, 6, 32, 32)
     assert c.image.shape == (32, 32, 3) and c.mask.shape == (32, 32)
-    uv, _ = project(view.camera, POINTS)
-    uvc, _ = project(c.camera, POINTS)
+    uv, _ = view.camera.project(POINTS)
+    uvc, _ = c.camera.project(POINTS)
     np.testing.assert_allclose(uvc, uv - [4, 6], atol=1e-9)
     np.testing.assert_array_equal(c.image, view.image[6:38, 4:36])
     with pytest.raises(ValueError, match="outside"):
@@ -617,7 +604,7 @@ def test_real_dtu_matches_idr_cameras(dtu_scene):
         P = cams[f"world_mat_{int(name)}"]
         q = np.concatenate([X / D.DTU_SCALE, np.ones((len(X), 1))], 1) @ P[:3].T
         expect = q[:, :2] / q[:, 2:] / 2 - [80, 44]
-        got, zz = project(v.camera, X)
+        got, zz = v.camera.project(X)
         assert np.all(zz > 0)
         np.testing.assert_allclose(got, expect, atol=0.01, err_msg=name)
 
@@ -650,7 +637,7 @@ def test_real_lego(lego_scene):
         # transparent corners composite to white
         assert np.all(v.image[:5, :5] == 1.0), name
         # the object (world origin) is in front of the camera and projects inside the image
-        uv, z = project(v.camera, np.zeros((1, 3)))
+        uv, z = v.camera.project(np.zeros((1, 3)))
         assert 2.0 < z[0] < 6.0, name
         assert np.all((uv > 0) & (uv < 799)), name
         # ... and near the image centre, where the (non-white) object is

@@ -72,7 +72,7 @@ def test_depth_is_the_weighted_sample_depth_of_an_opaque_wall():
 
 def test_target_rays_go_through_pixel_centres():
     K = cams.pinhole(100.0, 32, 24)
-    cam = cams.look_at((0.3, -0.2, -2.0), (0, 0, 0), K, 32, 24)
+    cam = cams.Camera(K, cams.look_at((0.3, -0.2, -2.0), (0, 0, 0), up=(0, -1, 0)), 32, 24)
     origins, directions = cams.target_rays(cam)
     points = origins.astype(np.float64) + directions.astype(np.float64) * 2.5
     uvz = (cam.w2c[:3, :3] @ points.T).T + cam.w2c[:3, 3]
@@ -85,7 +85,7 @@ def test_target_rays_go_through_pixel_centres():
 
 def test_pose_conventions_reach_one_canonical_camera():
     K = cams.pinhole(50.0, 16, 16)
-    cam = cams.look_at((1.0, 0.5, -3.0), (0, 0, 0), K, 16, 16)
+    cam = cams.Camera(K, cams.look_at((1.0, 0.5, -3.0), (0, 0, 0), up=(0, -1, 0)), 16, 16)
     gl_c2w = cam.c2w @ cams.OPENGL_TO_OPENCV
     for matrix, kind, axes in [(cam.w2c, "world_to_camera", "opencv"), (cam.c2w, "camera_to_world", "opencv"),
                                (gl_c2w, "camera_to_world", "opengl"), (np.linalg.inv(gl_c2w), "world_to_camera", "opengl")]:
@@ -101,3 +101,15 @@ def test_config_round_trips_and_rejects_bad_values():
         ModelConfig(depth_planes=100)
     with pytest.raises(ValueError):
         ModelConfig.from_dict({**cfg.to_dict(), "colour": 1})
+
+
+def test_positional_encoding_uses_the_reference_channel_order():
+    """[x, sin(2^k x) for k, cos(2^k x) for k], coordinates fastest: the public checkpoint's trunk
+    reads its 63 inputs in this order (MVSNeRF's Embedder.embed), not NeRF's interleaved one."""
+    from scnerf_export.model import frequency_encoding
+
+    x = torch.tensor([[0.1, 0.2, 0.3]])
+    got = frequency_encoding(x, 2)[0]
+    a = x[0]
+    want = torch.cat([a, torch.sin(a), torch.sin(2 * a), torch.cos(a), torch.cos(2 * a)])
+    torch.testing.assert_close(got, want)

@@ -16,50 +16,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..cameras import Camera, look_at  # noqa: F401  (re-exported: one camera type for the package)
+
 LAYOUTS: tuple[str, ...] = ("object", "forward", "outdoor")
-
-
-@dataclass
-class Camera:
-    """A pinhole camera: ``K`` (3, 3) and ``w2c`` (4, 4), both float64, OpenCV axes."""
-
-    K: np.ndarray
-    w2c: np.ndarray
-    width: int
-    height: int
-
-    @property
-    def rotation(self) -> np.ndarray:
-        """World-to-camera rotation (3, 3)."""
-        return self.w2c[:3, :3]
-
-    @property
-    def center(self) -> np.ndarray:
-        """Camera centre in world coordinates (3,)."""
-        return -self.w2c[:3, :3].T @ self.w2c[:3, 3]
-
-    @property
-    def c2w(self) -> np.ndarray:
-        return np.linalg.inv(self.w2c)
-
-    @property
-    def forward(self) -> np.ndarray:
-        """Unit optical axis in world coordinates."""
-        return self.w2c[2, :3].copy()
-
-    def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """World points (N, 3) -> pixel coordinates (N, 2) and z-depth (N,)."""
-        cam = points @ self.w2c[:3, :3].T + self.w2c[:3, 3]
-        z = cam[:, 2]
-        uv = (cam[:, :2] / z[:, None]) * np.diag(self.K)[:2] + self.K[:2, 2]
-        return uv, z
-
-    def unproject(self, uv: np.ndarray, depth: np.ndarray) -> np.ndarray:
-        """Pixel coordinates (N, 2) with z-depths (N,) -> world points (N, 3)."""
-        fx, fy, cx, cy = self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2]
-        cam = np.stack([(uv[:, 0] - cx) / fx, (uv[:, 1] - cy) / fy, np.ones(len(uv))], axis=-1)
-        cam = cam * depth[:, None]
-        return (cam - self.w2c[:3, 3]) @ self.w2c[:3, :3]
 
 
 @dataclass
@@ -92,25 +51,6 @@ class Scene:
     layout: str
     seed: int
     meta: dict = field(default_factory=dict)
-
-
-def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> np.ndarray:
-    """World-to-camera matrix (4, 4) of a camera at ``eye`` looking at ``target`` (OpenCV axes).
-
-    The world is z-up in every layout; camera x = forward x up (right), y = forward x right (down),
-    which makes (x, y, z) right-handed with det(R) = +1.
-    """
-    eye = np.asarray(eye, dtype=np.float64)
-    fwd = np.asarray(target, dtype=np.float64) - eye
-    fwd /= np.linalg.norm(fwd)
-    right = np.cross(fwd, up)
-    right /= np.linalg.norm(right)
-    down = np.cross(fwd, right)
-    R = np.stack([right, down, fwd])
-    w2c = np.eye(4)
-    w2c[:3, :3] = R
-    w2c[:3, 3] = -R @ eye
-    return w2c
 
 
 def intrinsics(width: int, height: int, hfov_deg: float) -> np.ndarray:
