@@ -20,6 +20,46 @@ pub enum GraphOptLevel {
     All,
 }
 
+/// Where the graphs run: `cpu`, or `cuda` / `cuda:N` (ONNX Runtime's CUDA execution provider on
+/// GPU N; needs the onnxruntime-gpu library, see `--ort-dylib`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Device {
+    Cpu,
+    Cuda { device_id: i32 },
+}
+
+impl std::str::FromStr for Device {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s.trim().to_ascii_lowercase().as_str() {
+            "cpu" => Ok(Device::Cpu),
+            "cuda" | "gpu" => Ok(Device::Cuda { device_id: 0 }),
+            other => other
+                .strip_prefix("cuda:")
+                .and_then(|n| n.parse::<i32>().ok())
+                .filter(|&n| n >= 0)
+                .map(|device_id| Device::Cuda { device_id })
+                .ok_or_else(|| format!("unknown device \"{s}\" (cpu, cuda, cuda:N)")),
+        }
+    }
+}
+
+impl std::fmt::Display for Device {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Device::Cpu => write!(f, "cpu"),
+            Device::Cuda { device_id } => write!(f, "cuda:{device_id}"),
+        }
+    }
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum LogFormat {
+    Text,
+    Json,
+}
+
 #[derive(Debug, Clone, Parser)]
 #[command(name = "scnerf-server", version, about = "SC-NeRF novel-view inference server")]
 pub struct Config {
@@ -46,6 +86,17 @@ pub struct Config {
     #[arg(long, env = "SCNERF_ORT_DYLIB")]
     pub ort_dylib: Option<PathBuf>,
 
+    /// Where the graphs run: cpu, cuda or cuda:N. cuda needs the onnxruntime-gpu 1.31.1 library
+    /// (--ort-dylib) and its CUDA 13 / cuDNN 9 libraries; start-up fails if it cannot be used.
+    #[arg(long, env = "SCNERF_DEVICE", default_value = "cpu")]
+    pub device: Device,
+
+    /// ONNX Runtime's CPU memory arena (on: freed buffers are kept for the next run; off: returned
+    /// to the allocator, lower resident memory between requests). Accepts on/off, true/false.
+    #[arg(long, env = "SCNERF_ORT_ARENA", default_value = "on", action = clap::ArgAction::Set,
+          value_parser = clap::builder::BoolishValueParser::new())]
+    pub ort_arena: bool,
+
     /// Upper bound on rays per renderer run.
     #[arg(long, env = "SCNERF_MAX_RAYS_PER_CHUNK", default_value_t = 4096)]
     pub max_rays_per_chunk: usize,
@@ -68,13 +119,60 @@ pub struct Config {
     #[arg(long, env = "SCNERF_MAX_TARGET_PIXELS", default_value_t = 2048 * 2048)]
     pub max_target_pixels: u64,
 
-    /// Per-request deadline in seconds; past it the request fails with 504.
+    /// Largest JSON document without images, in bytes: the multipart `request` part and
+    /// scene-render bodies (413 beyond).
+    #[arg(long, env = "SCNERF_MAX_JSON_BYTES", default_value_t = 1024 * 1024)]
+    pub max_json_bytes: usize,
+
+    /// Deepest accepted nesting of JSON arrays and objects (400 beyond). Valid requests nest 7 deep.
+    #[arg(long, env = "SCNERF_MAX_JSON_DEPTH", default_value_t = 16)]
+    pub max_json_depth: usize,
+
+    /// Memory for cached scenes (POST /v1/scenes), in MiB; least recently used scenes are evicted
+    /// beyond it. A paper-size scene of 640x512 sources takes ~150 MiB.
+    #[arg(long, env = "SCNERF_SCENE_CACHE_MB", default_value_t = 2048)]
+    pub scene_cache_mb: usize,
+
+    /// A cached scene expires this many seconds after its last use.
+    #[arg(long, env = "SCNERF_SCENE_TTL_SECS", default_value_t = 600)]
+    pub scene_ttl_secs: u64,
+
+    /// Per-request deadline in seconds (body, decoding, inference, encoding); past it the request
+    /// fails with 504 and its remaining graph runs are dropped. A client may ask for less with
+    /// the `x-scnerf-deadline-ms` header.
     #[arg(long, env = "SCNERF_REQUEST_TIMEOUT_SECS", default_value_t = 900)]
     pub request_timeout_secs: u64,
 
-    /// Graph runs waiting for the inference thread before new requests are refused with 503.
-    #[arg(long, env = "SCNERF_QUEUE_CAPACITY", default_value_t = 64)]
+    /// Requests admitted to the inference executor at once (rendering, or waiting for their turn
+    /// in the round-robin over requests); beyond it new requests get 503 + Retry-After.
+    #[arg(long, env = "SCNERF_QUEUE_CAPACITY", default_value_t = 32)]
     pub queue_capacity: usize,
+
+    /// POST requests handled at once (their bodies are in memory meanwhile); beyond it 503 +
+    /// Retry-After before the body is read.
+    #[arg(long, env = "SCNERF_MAX_CONCURRENT_REQUESTS", default_value_t = 256)]
+    pub max_concurrent_requests: usize,
+
+    /// Accepted bearer token (repeat the flag; in the environment, comma-separated). With any
+    /// token configured every route but /healthz, /readyz, /metrics and /openapi.json needs
+    /// `Authorization: Bearer <token>`. Prefer --auth-token-file: command lines are visible to
+    /// other users of the machine.
+    #[arg(long = "auth-token", env = "SCNERF_AUTH_TOKENS", value_delimiter = ',', hide_env_values = true)]
+    pub auth_tokens: Vec<String>,
+
+    /// File of accepted bearer tokens, one per line (`#` comments).
+    #[arg(long, env = "SCNERF_AUTH_TOKEN_FILE")]
+    pub auth_token_file: Option<PathBuf>,
+
+    /// Log format on stderr: `text` (human) or `json` (one object per line, with the request's
+    /// span fields, for log pipelines). Levels: RUST_LOG (default info,ort=warn).
+    #[arg(long, env = "SCNERF_LOG_FORMAT", value_enum, default_value = "text")]
+    pub log_format: LogFormat,
+
+    /// On SIGTERM/SIGINT: stop accepting, then give in-flight requests this many seconds to
+    /// finish before exiting anyway.
+    #[arg(long, env = "SCNERF_SHUTDOWN_GRACE_SECS", default_value_t = 30)]
+    pub shutdown_grace_secs: u64,
 
     /// Skip the warm-up render at start (tests only; /readyz is then ready at once).
     #[arg(long, env = "SCNERF_SKIP_WARMUP", default_value_t = false)]
@@ -90,12 +188,31 @@ impl Config {
         self.threads.filter(|&t| t > 0).unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()))
     }
 
+    pub fn exec_options(&self) -> crate::backend::ort::ExecOptions {
+        crate::backend::ort::ExecOptions { device: self.device, cpu_arena: self.ort_arena }
+    }
+
     pub fn limits(&self) -> crate::request::Limits {
         crate::request::Limits {
             max_body_bytes: self.max_body_bytes,
             max_source_pixels: self.max_source_pixels,
             max_target_pixels: self.max_target_pixels,
+            max_json_bytes: self.max_json_bytes,
+            max_json_depth: self.max_json_depth,
         }
+    }
+
+    /// Fails when the token file cannot be read.
+    pub fn service_options(&self) -> Result<crate::http::ServiceOptions, String> {
+        Ok(crate::http::ServiceOptions {
+            request_timeout: std::time::Duration::from_secs(self.request_timeout_secs),
+            cache: crate::cache::CacheConfig {
+                max_bytes: self.scene_cache_mb.saturating_mul(1024 * 1024),
+                ttl: std::time::Duration::from_secs(self.scene_ttl_secs),
+            },
+            max_concurrent_requests: self.max_concurrent_requests,
+            auth: crate::auth::Auth::from_config(&self.auth_tokens, self.auth_token_file.as_deref())?,
+        })
     }
 
     pub fn chunking(&self) -> crate::pipeline::chunks::ChunkPolicy {
@@ -103,5 +220,24 @@ impl Config {
             max_rays: self.max_rays_per_chunk.max(1),
             memory_budget_bytes: self.chunk_memory_mb.saturating_mul(1024 * 1024),
         }
+    }
+}
+
+#[cfg(test)]
+mod device_tests {
+    use super::*;
+
+    #[test]
+    fn device_and_arena_flags() {
+        assert_eq!("cpu".parse::<Device>(), Ok(Device::Cpu));
+        assert_eq!("CUDA".parse::<Device>(), Ok(Device::Cuda { device_id: 0 }));
+        assert_eq!("cuda:2".parse::<Device>(), Ok(Device::Cuda { device_id: 2 }));
+        assert!("cuda:-1".parse::<Device>().is_err());
+        assert!("tpu".parse::<Device>().is_err());
+        let c = Config::try_parse_from(["scnerf-server"]).unwrap();
+        assert_eq!((c.device, c.ort_arena), (Device::Cpu, true));
+        let c = Config::try_parse_from(["scnerf-server", "--device", "cuda:1", "--ort-arena", "off"]).unwrap();
+        assert_eq!((c.device, c.ort_arena), (Device::Cuda { device_id: 1 }, false));
+        assert_eq!(c.exec_options().device.to_string(), "cuda:1");
     }
 }

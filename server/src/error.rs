@@ -27,8 +27,17 @@ pub enum ApiError {
     #[error("{message}")]
     Invalid { field: String, message: String },
 
+    /// Authentication is on and the request has no valid bearer token.
+    #[error("{message}")]
+    Unauthorized { message: String },
+
     #[error("not found: {path}")]
     NotFound { path: String },
+
+    /// No live scene with this id for this client (unknown, expired, evicted, deleted, or
+    /// created with another token: these are deliberately indistinguishable).
+    #[error("no scene {id} (unknown, expired or evicted: create it again with POST /v1/scenes)")]
+    SceneNotFound { id: String },
 
     #[error("method not allowed")]
     MethodNotAllowed,
@@ -38,8 +47,8 @@ pub enum ApiError {
     Unavailable { message: String, retry_after_secs: u64 },
 
     /// The request's deadline passed before the render finished.
-    #[error("deadline of {secs} s exceeded")]
-    DeadlineExceeded { secs: u64 },
+    #[error("the request's deadline of {ms} ms passed before the render finished")]
+    DeadlineExceeded { ms: u64 },
 
     /// A failure of ours (inference backend, unexpected graph output). Never caused by input.
     #[error("{0}")]
@@ -62,7 +71,8 @@ impl ApiError {
             Self::UnsupportedMediaType { .. } => StatusCode::UNSUPPORTED_MEDIA_TYPE,
             Self::NotAcceptable { .. } => StatusCode::NOT_ACCEPTABLE,
             Self::Invalid { .. } => StatusCode::UNPROCESSABLE_ENTITY,
-            Self::NotFound { .. } => StatusCode::NOT_FOUND,
+            Self::Unauthorized { .. } => StatusCode::UNAUTHORIZED,
+            Self::NotFound { .. } | Self::SceneNotFound { .. } => StatusCode::NOT_FOUND,
             Self::MethodNotAllowed => StatusCode::METHOD_NOT_ALLOWED,
             Self::Unavailable { .. } => StatusCode::SERVICE_UNAVAILABLE,
             Self::DeadlineExceeded { .. } => StatusCode::GATEWAY_TIMEOUT,
@@ -78,7 +88,9 @@ impl ApiError {
             Self::UnsupportedMediaType { .. } => "unsupported_media_type",
             Self::NotAcceptable { .. } => "not_acceptable",
             Self::Invalid { .. } => "invalid_request",
+            Self::Unauthorized { .. } => "unauthorized",
             Self::NotFound { .. } => "not_found",
+            Self::SceneNotFound { .. } => "scene_not_found",
             Self::MethodNotAllowed => "method_not_allowed",
             Self::Unavailable { .. } => "unavailable",
             Self::DeadlineExceeded { .. } => "deadline_exceeded",
@@ -92,46 +104,111 @@ impl ApiError {
                 field.as_deref()
             }
             Self::Invalid { field, .. } => Some(field),
-            _ => None,
+            Self::SceneNotFound { .. } => Some("scene_id"),
+            // Not fields of the body, but what the client got wrong all the same.
+            Self::Unauthorized { .. } => Some("authorization"),
+            Self::NotFound { .. } => Some("path"),
+            Self::MethodNotAllowed => Some("method"),
+            Self::NotAcceptable { .. } => Some("accept"),
+            Self::Unavailable { .. } | Self::DeadlineExceeded { .. } | Self::Internal(_) => None,
         }
+    }
+
+    /// The message as sent and logged: client data quoted in it is clipped (see `clip_quoted`).
+    pub fn message(&self) -> String {
+        clip_quoted(&self.to_string())
     }
 
     pub fn body(&self) -> ErrorBody {
         ErrorBody {
             error: ErrorDetail {
                 code: self.code().to_string(),
-                message: self.to_string(),
-                field: self.field().map(str::to_string),
+                message: self.message(),
+                field: self.field().map(clip_quoted),
             },
         }
     }
 }
 
-#[derive(Debug, Serialize, serde::Deserialize, PartialEq)]
+/// Every error response: `{"error": {"code", "message", "field"}}`.
+#[derive(Debug, Serialize, serde::Deserialize, PartialEq, utoipa::ToSchema)]
+#[schema(as = Error)]
 pub struct ErrorBody {
     pub error: ErrorDetail,
 }
 
-#[derive(Debug, Serialize, serde::Deserialize, PartialEq)]
+#[derive(Debug, Serialize, serde::Deserialize, PartialEq, utoipa::ToSchema)]
 pub struct ErrorDetail {
+    /// Stable machine-readable code, e.g. `invalid_request`, `scene_not_found`.
     pub code: String,
     pub message: String,
+    /// The offending field (`sources[1].camera.pose.matrix`, `source_2`, `near`, `content-type`,
+    /// `authorization`, ...), or null when the error is not about the request.
     pub field: Option<String>,
+}
+
+/// Longest quoted client string kept in an error message.
+const MAX_QUOTED_CHARS: usize = 32;
+/// Longest error message.
+const MAX_MESSAGE_CHARS: usize = 1000;
+
+/// Parsers quote what they could not use (`invalid type: string "iVBORw0KGgo...", expected
+/// f64`): that can be a base64 image or a token pasted into the wrong field. Quoted strings are
+/// cut to their first characters, and the whole message to a sane length, so that neither
+/// responses nor logs carry image data or secrets.
+pub fn clip_quoted(message: &str) -> String {
+    let mut out = String::with_capacity(message.len().min(MAX_MESSAGE_CHARS));
+    let (mut quoted, mut run) = (false, 0usize);
+    for c in message.chars() {
+        if out.len() >= MAX_MESSAGE_CHARS {
+            out.push('…');
+            break;
+        }
+        if c == '"' {
+            quoted = !quoted;
+            run = 0;
+        } else if quoted {
+            run += 1;
+            if run > MAX_QUOTED_CHARS {
+                if run == MAX_QUOTED_CHARS + 1 {
+                    out.push('…');
+                }
+                continue;
+            }
+        }
+        out.push(c);
+    }
+    out
 }
 
 impl IntoResponse for ApiError {
     fn into_response(self) -> Response {
         let status = self.status();
-        // Only our own failures are errors; refusals (4xx, busy, warming up) are routine.
+        // Only our own failures are errors; refusals (4xx, busy, warming up) are routine. The
+        // message of a refusal may quote client data, so only its code and field are logged.
         match &self {
-            Self::Internal(_) => tracing::error!(code = self.code(), "{self}"),
-            Self::DeadlineExceeded { .. } => tracing::warn!(code = self.code(), "{self}"),
-            _ => tracing::debug!(code = self.code(), field = self.field(), "{self}"),
+            Self::Internal(_) => tracing::error!(code = self.code(), "{}", self.message()),
+            Self::DeadlineExceeded { .. } => tracing::warn!(code = self.code(), "{}", self.message()),
+            _ => tracing::debug!(code = self.code(), field = self.field(), "request refused"),
         }
         let mut response = (status, axum::Json(self.body())).into_response();
         if let Self::Unavailable { retry_after_secs, .. } = &self {
             response.headers_mut().insert(header::RETRY_AFTER, HeaderValue::from(*retry_after_secs));
         }
         response
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn quoted_client_data_is_clipped() {
+        let long = "A".repeat(5000);
+        let m = clip_quoted(&format!("invalid type: string \"{long}\", expected f64"));
+        assert_eq!(m, format!("invalid type: string \"{}…\", expected f64", "A".repeat(32)));
+        assert_eq!(clip_quoted("unknown part \"x\""), "unknown part \"x\"");
+        assert!(clip_quoted(&"b".repeat(5000)).chars().count() <= MAX_MESSAGE_CHARS + 1);
     }
 }

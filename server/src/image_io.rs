@@ -18,6 +18,9 @@ pub struct RgbF32 {
 /// Reads only the header: format and size. Lets us refuse oversized images (decompression
 /// bombs) before allocating anything.
 pub fn probe(bytes: &[u8], field: &str) -> Result<(ImageFormat, u32, u32), ApiError> {
+    if bytes.is_empty() {
+        return Err(ApiError::malformed(field.to_string(), "the image is empty"));
+    }
     let reader = ImageReader::new(Cursor::new(bytes))
         .with_guessed_format()
         .map_err(|e| ApiError::malformed(field.to_string(), format!("cannot read image: {e}")))?;
@@ -174,5 +177,28 @@ mod tests {
         let bytes = encode_png(2, 1, &[1, 2, 3, 4, 5, 6]).unwrap();
         let back = image::load_from_memory(&bytes).unwrap().into_rgb8();
         assert_eq!(back.into_raw(), vec![1, 2, 3, 4, 5, 6]);
+    }
+}
+
+#[cfg(test)]
+mod bomb_tests {
+    use super::*;
+
+    #[test]
+    fn a_huge_header_is_read_and_refused() {
+        let bomb = crate::testing::png_header(100_000, 100_000);
+        assert_eq!(probe(&bomb, "source_0").unwrap(), (ImageFormat::Png, 100_000, 100_000));
+        let err = decode_source(&bomb, "source_0", [0.0; 3], 1024 * 1024).unwrap_err();
+        assert!(matches!(&err, ApiError::Invalid { field, .. } if field == "source_0"), "{err:?}");
+        assert!(err.to_string().contains("100000x100000"), "{err}");
+    }
+
+    #[test]
+    fn a_tiny_valid_header_with_missing_data_is_malformed() {
+        let truncated = crate::testing::png_header(1, 1);
+        assert_eq!(probe(&truncated, "s").unwrap().1, 1);
+        // The header is fine; the decoder then finds too little image data.
+        let r = decode_source(&truncated, "s", [0.0; 3], 100);
+        assert!(r.is_ok() || matches!(r, Err(ApiError::Malformed { .. })), "{r:?}");
     }
 }

@@ -1,14 +1,16 @@
 use clap::Parser;
-use tracing_subscriber::EnvFilter;
+use scnerf_server::config::Config;
+use scnerf_server::logging;
 
 fn main() {
-    let config = scnerf_server::config::Config::parse();
+    let config = Config::parse();
     // Logs go to stderr; stdout carries only the `listening on` line that scripts read.
-    tracing_subscriber::fmt()
-        .with_env_filter(EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info,ort=warn")))
-        .with_writer(std::io::stderr)
-        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
-        .init();
+    let ansi = std::io::IsTerminal::is_terminal(&std::io::stderr());
+    let subscriber = logging::subscriber(config.log_format, logging::env_filter(), std::io::stderr, ansi);
+    // try_init also routes the `log` crate's records into tracing.
+    if let Err(e) = tracing_subscriber::util::SubscriberInitExt::try_init(subscriber) {
+        eprintln!("scnerf-server: cannot install the logger: {e}");
+    }
     let runtime = match tokio::runtime::Builder::new_multi_thread().enable_all().build() {
         Ok(rt) => rt,
         Err(e) => {
@@ -16,7 +18,11 @@ fn main() {
             std::process::exit(1);
         }
     };
-    if let Err(e) = runtime.block_on(scnerf_server::server::run(config)) {
+    let result = runtime.block_on(scnerf_server::server::run(config));
+    // Past the grace period, requests still running are abandoned: do not wait for their
+    // blocking tasks (image decoding or encoding) either.
+    runtime.shutdown_timeout(std::time::Duration::from_secs(1));
+    if let Err(e) = result {
         eprintln!("scnerf-server: {e}");
         std::process::exit(1);
     }

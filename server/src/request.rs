@@ -17,15 +17,27 @@ pub struct Limits {
     pub max_body_bytes: usize,
     pub max_source_pixels: u64,
     pub max_target_pixels: u64,
+    /// Largest JSON document without images: the multipart `request` part and scene-render
+    /// bodies. (An `application/json` render body carries base64 images: `max_body_bytes`.)
+    pub max_json_bytes: usize,
+    /// Deepest accepted nesting of JSON arrays/objects; checked before parsing so that a
+    /// pathological document costs one linear scan, not recursion.
+    pub max_json_depth: usize,
 }
 
 impl Default for Limits {
     fn default() -> Self {
-        Limits { max_body_bytes: 64 << 20, max_source_pixels: 1024 * 1024, max_target_pixels: 2048 * 2048 }
+        Limits {
+            max_body_bytes: 64 << 20,
+            max_source_pixels: 1024 * 1024,
+            max_target_pixels: 2048 * 2048,
+            max_json_bytes: 1 << 20,
+            max_json_depth: 16,
+        }
     }
 }
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, utoipa::ToSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum OutputKind {
     Rgb,
@@ -55,7 +67,8 @@ pub struct OutputSet {
 impl OutputSet {
     pub const RGB: OutputSet = OutputSet { rgb: true, depth: false, opacity: false };
 
-    fn from_kinds(kinds: &[OutputKind]) -> Result<OutputSet, ApiError> {
+    fn from_kinds(kinds: Option<&[OutputKind]>) -> Result<OutputSet, ApiError> {
+        let Some(kinds) = kinds else { return Ok(OutputSet::RGB) };
         if kinds.is_empty() {
             return Err(ApiError::invalid("outputs", "outputs must name at least one of rgb, depth, opacity"));
         }
@@ -84,78 +97,203 @@ pub struct SourceSpec {
     pub image_field: String,
 }
 
-/// A parsed, not yet validated, render request.
+/// The scene part of a request (sources and depth range), not yet validated. It is the body of
+/// `POST /v1/scenes` and the part of a render request that a scene cache keeps.
 #[derive(Debug, Clone)]
-pub struct RenderRequest {
+pub struct SceneRequest {
     pub sources: Vec<SourceSpec>,
-    pub target: CameraSpec,
     pub near: f64,
     pub far: f64,
     pub background: Option<Vec<f64>>,
+}
+
+/// The view part of a request: the body of `POST /v1/scenes/{id}/render`.
+#[derive(Debug, Clone)]
+pub struct TargetRequest {
+    pub target: CameraSpec,
     pub outputs: Option<Vec<OutputKind>>,
 }
 
-/// A validated request: canonical cameras, checked numbers, images present (not yet decoded).
+/// A parsed, not yet validated, render request (`POST /v1/render`): a scene and a view of it.
 #[derive(Debug, Clone)]
-pub struct ValidRequest {
+pub struct RenderRequest {
+    pub scene: SceneRequest,
+    pub view: TargetRequest,
+}
+
+/// Validated sources: canonical cameras, checked numbers, images present (not yet decoded).
+#[derive(Debug, Clone)]
+pub struct ValidScene {
     pub sources: Vec<(Camera, Bytes, String)>,
-    pub target: Camera,
     pub near: f64,
     pub far: f64,
     pub background: [f32; 3],
+}
+
+impl ValidScene {
+    pub fn cameras(&self) -> Vec<Camera> {
+        self.sources.iter().map(|(c, _, _)| c.clone()).collect()
+    }
+}
+
+/// A validated target view.
+#[derive(Debug, Clone)]
+pub struct ValidTarget {
+    pub target: Camera,
     pub outputs: OutputSet,
 }
 
-// ---------------------------------------------------------------------------------------------
-// JSON wire form
+/// A validated render request.
+#[derive(Debug, Clone)]
+pub struct ValidRequest {
+    pub scene: ValidScene,
+    pub view: ValidTarget,
+}
 
-#[derive(Deserialize)]
+// ---------------------------------------------------------------------------------------------
+// JSON wire form. These types are the JSON contract: they are what serde parses and what
+// /openapi.json describes (utoipa), so the documentation cannot drift from the parser.
+
+/// `POST /v1/render` JSON body (and the `request` part of a multipart body, without images).
+#[derive(Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
-struct JsonRequest {
+#[schema(as = RenderRequest)]
+pub struct JsonRenderRequest {
+    /// Exactly as many views as the model takes (3); view 0 is the reference view.
+    #[schema(min_items = 3, max_items = 3)]
     sources: Vec<JsonSource>,
     target: JsonCamera,
+    /// Depth range of the scene along the reference view's axis; 0 < near < far.
+    #[schema(exclusive_minimum = 0.0)]
     near: f64,
+    #[schema(exclusive_minimum = 0.0)]
     far: f64,
+    /// RGB in [0, 1] that transparent source pixels and empty space are composited on (default black).
     #[serde(default)]
+    #[schema(min_items = 3, max_items = 3)]
     background: Option<Vec<f64>>,
+    /// Subset of rgb, depth, opacity (default `["rgb"]`).
     #[serde(default)]
+    #[schema(min_items = 1, max_items = 3)]
     outputs: Option<Vec<OutputKind>>,
 }
 
-#[derive(Deserialize)]
+/// `POST /v1/scenes` JSON body (and the `request` part of a multipart body): a render request
+/// without `target` and `outputs`.
+#[derive(Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
-struct JsonSource {
+#[schema(as = SceneRequest)]
+pub struct JsonSceneRequest {
+    #[schema(min_items = 3, max_items = 3)]
+    sources: Vec<JsonSource>,
+    #[schema(exclusive_minimum = 0.0)]
+    near: f64,
+    #[schema(exclusive_minimum = 0.0)]
+    far: f64,
+    #[serde(default)]
+    #[schema(min_items = 3, max_items = 3)]
+    background: Option<Vec<f64>>,
+}
+
+/// `POST /v1/scenes/{id}/render` JSON body.
+#[derive(Deserialize, utoipa::ToSchema)]
+#[serde(deny_unknown_fields)]
+#[schema(as = SceneRenderRequest)]
+pub struct JsonTargetRequest {
+    target: JsonCamera,
+    #[serde(default)]
+    #[schema(min_items = 1, max_items = 3)]
+    outputs: Option<Vec<OutputKind>>,
+}
+
+#[derive(Deserialize, utoipa::ToSchema)]
+#[serde(deny_unknown_fields)]
+#[schema(as = Source)]
+pub struct JsonSource {
     camera: JsonCamera,
+    /// Base64 PNG or JPEG (`application/json` bodies only; multipart sends part `source_i`).
     #[serde(default)]
     image: Option<String>,
 }
 
-#[derive(Deserialize)]
+#[derive(Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
-struct JsonCamera {
+#[schema(as = Camera)]
+pub struct JsonCamera {
+    #[schema(minimum = 1)]
     width: u32,
+    #[schema(minimum = 1)]
     height: u32,
+    /// `{fx, fy, cx, cy}` or a 3x3 matrix (rows); give this or `K`.
     #[serde(default, deserialize_with = "intrinsics_or_matrix")]
+    #[schema(value_type = Option<JsonIntrinsicsSchema>)]
     intrinsics: Option<Intrinsics>,
+    /// 3x3 intrinsic matrix (rows), instead of `intrinsics`.
     #[serde(default, rename = "K")]
+    #[schema(value_type = Option<Matrix3Rows>)]
     k: Option<Mat3>,
     pose: JsonPose,
 }
 
-#[derive(Deserialize)]
+/// Schema of `intrinsics` (the parser is `intrinsics_or_matrix`).
+#[derive(utoipa::ToSchema)]
+#[schema(as = Intrinsics)]
+#[allow(dead_code)]
+pub enum JsonIntrinsicsSchema {
+    Focal(JsonFocal),
+    Matrix(Matrix3Rows),
+}
+
+/// An `n` x `n` matrix as `n` rows of `n` numbers (what serde's fixed-size arrays accept).
+fn square_matrix_schema(n: usize) -> utoipa::openapi::schema::Array {
+    use utoipa::openapi::schema::{ArrayBuilder, ObjectBuilder, Type};
+    let row =
+        ArrayBuilder::new().items(ObjectBuilder::new().schema_type(Type::Number)).min_items(Some(n)).max_items(Some(n));
+    ArrayBuilder::new().items(row).min_items(Some(n)).max_items(Some(n)).build()
+}
+
+/// Schema of a 3x3 matrix (`Mat3`).
+pub struct Matrix3Rows;
+
+/// Schema of a 4x4 matrix (`Mat4`).
+pub struct Matrix4Rows;
+
+impl utoipa::PartialSchema for Matrix3Rows {
+    fn schema() -> utoipa::openapi::RefOr<utoipa::openapi::schema::Schema> {
+        square_matrix_schema(3).into()
+    }
+}
+
+impl utoipa::ToSchema for Matrix3Rows {}
+
+impl utoipa::PartialSchema for Matrix4Rows {
+    fn schema() -> utoipa::openapi::RefOr<utoipa::openapi::schema::Schema> {
+        square_matrix_schema(4).into()
+    }
+}
+
+impl utoipa::ToSchema for Matrix4Rows {}
+
+#[derive(Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
-struct JsonFocal {
+#[schema(as = Focal)]
+pub struct JsonFocal {
     fx: f64,
     fy: f64,
     cx: f64,
     cy: f64,
 }
 
-#[derive(Deserialize)]
+#[derive(Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
-struct JsonPose {
+#[schema(as = Pose)]
+pub struct JsonPose {
+    /// 4x4, row-major (a list of 4 rows of 4 numbers).
+    #[schema(value_type = Matrix4Rows)]
     matrix: Mat4,
+    #[schema(value_type = String, pattern = "^(world_to_camera|camera_to_world)$")]
     kind: PoseKind,
+    #[schema(value_type = String, pattern = "^(opencv|opengl)$")]
     axes: Axes,
 }
 
@@ -201,55 +339,193 @@ pub enum ImageMode {
     Parts,
 }
 
-impl RenderRequest {
-    /// Parses the JSON form (the JSON body, or the `request` part of a multipart body).
-    pub fn from_json(body: &[u8], mode: ImageMode) -> Result<RenderRequest, ApiError> {
-        let de = &mut serde_json::Deserializer::from_slice(body);
-        let parsed: JsonRequest = serde_path_to_error::deserialize(de).map_err(|e| {
-            let path = e.path().to_string();
-            let field = if path == "." || path.is_empty() { None } else { Some(path) };
-            ApiError::malformed(field, format!("invalid JSON request: {}", e.inner()))
-        })?;
-        let mut sources = Vec::with_capacity(parsed.sources.len());
-        for (i, s) in parsed.sources.into_iter().enumerate() {
-            let camera = s.camera.into_spec(&format!("sources[{i}].camera"))?;
-            let (image, image_field) = match (mode, s.image) {
-                (ImageMode::Inline, Some(b64)) => {
-                    (Some(decode_base64(&b64, &format!("sources[{i}].image"))?), format!("sources[{i}].image"))
-                }
-                (ImageMode::Inline, None) => (None, format!("sources[{i}].image")),
-                (ImageMode::Parts, Some(_)) => {
+/// Parses a JSON document into `T`, naming the offending field on failure. The nesting depth is
+/// checked first (a linear scan), so deeply nested input never reaches the recursive parser.
+/// `root` names the whole document in errors about it (`body`, or the multipart part `request`).
+fn parse_json<T: serde::de::DeserializeOwned>(
+    body: &[u8],
+    max_depth: usize,
+    what: &str,
+    root: &str,
+) -> Result<T, ApiError> {
+    check_json_depth(body, max_depth, root)?;
+    let mut de = serde_json::Deserializer::from_slice(body);
+    let value = serde_path_to_error::deserialize(&mut de).map_err(|e| {
+        let message = e.inner().to_string();
+        let field = error_field(&e.path().to_string(), &message).unwrap_or_else(|| root.to_string());
+        ApiError::malformed(Some(field), format!("invalid JSON {what}: {message}"))
+    })?;
+    // One document, nothing after it (serde stops at the end of the first value).
+    de.end().map_err(|e| ApiError::malformed(Some(root.to_string()), format!("invalid JSON {what}: {e}")))?;
+    Ok(value)
+}
+
+/// The field a serde error is about: its path, completed with the name of a missing field
+/// (serde reports those at the enclosing object). `None`: the document as a whole.
+fn error_field(path: &str, message: &str) -> Option<String> {
+    // serde_path_to_error writes `?` for a segment it never learnt (input cut inside a key).
+    let path = path.trim_end_matches('?').trim_end_matches('.');
+    let path = if path == "." { "" } else { path };
+    let missing = message.strip_prefix("missing field `").and_then(|m| m.split('`').next());
+    match (path.is_empty(), missing) {
+        (true, None) => None,
+        (true, Some(name)) => Some(name.to_string()),
+        (false, None) => Some(path.to_string()),
+        (false, Some(name)) => Some(format!("{path}.{name}")),
+    }
+}
+
+/// The name of the JSON document in errors: a JSON body, or the multipart `request` part.
+fn json_root(mode: ImageMode) -> &'static str {
+    match mode {
+        ImageMode::Inline => "body",
+        ImageMode::Parts => "request",
+    }
+}
+
+/// Refuses JSON nested deeper than `max_depth` arrays/objects (brackets inside strings do not
+/// count). Malformed input passes through: the parser reports it with a better message.
+pub fn check_json_depth(body: &[u8], max_depth: usize, root: &str) -> Result<(), ApiError> {
+    let (mut depth, mut in_string, mut escaped) = (0usize, false, false);
+    for &b in body {
+        if in_string {
+            match (escaped, b) {
+                (true, _) => escaped = false,
+                (false, b'\\') => escaped = true,
+                (false, b'"') => in_string = false,
+                _ => {}
+            }
+            continue;
+        }
+        match b {
+            b'"' => in_string = true,
+            b'[' | b'{' => {
+                depth += 1;
+                if depth > max_depth {
                     return Err(ApiError::malformed(
-                        format!("sources[{i}].image"),
-                        format!(
+                        Some(root.to_string()),
+                        format!("JSON nested deeper than the limit of {max_depth} levels"),
+                    ));
+                }
+            }
+            b']' | b'}' => depth = depth.saturating_sub(1),
+            _ => {}
+        }
+    }
+    Ok(())
+}
+
+/// Refuses a JSON document (without images) larger than the limit, naming where it came from.
+pub fn check_json_size(body: &[u8], limit: usize, field: Option<&str>) -> Result<(), ApiError> {
+    if body.len() > limit {
+        return Err(ApiError::TooLarge {
+            field: field.map(str::to_string),
+            message: format!("JSON document of {} bytes exceeds the limit of {limit} bytes", body.len()),
+        });
+    }
+    Ok(())
+}
+
+fn sources_from_json(sources: Vec<JsonSource>, mode: ImageMode) -> Result<Vec<SourceSpec>, ApiError> {
+    let mut out = Vec::with_capacity(sources.len());
+    for (i, s) in sources.into_iter().enumerate() {
+        let camera = s.camera.into_spec(&format!("sources[{i}].camera"))?;
+        let (image, image_field) = match (mode, s.image) {
+            (ImageMode::Inline, Some(b64)) => {
+                (Some(decode_base64(&b64, &format!("sources[{i}].image"))?), format!("sources[{i}].image"))
+            }
+            (ImageMode::Inline, None) => (None, format!("sources[{i}].image")),
+            (ImageMode::Parts, Some(_)) => {
+                return Err(ApiError::malformed(
+                    format!("sources[{i}].image"),
+                    format!(
                         "multipart requests carry images as parts; send part source_{i} instead of sources[{i}].image"
                     ),
-                    ))
-                }
-                (ImageMode::Parts, None) => (None, format!("source_{i}")),
-            };
-            sources.push(SourceSpec { camera, image, image_field });
-        }
-        Ok(RenderRequest {
-            sources,
-            target: parsed.target.into_spec("target")?,
+                ))
+            }
+            (ImageMode::Parts, None) => (None, format!("source_{i}")),
+        };
+        out.push(SourceSpec { camera, image, image_field });
+    }
+    Ok(out)
+}
+
+/// The parts of a request that carry source views, whatever the endpoint.
+pub trait HasSources {
+    fn sources_mut(&mut self) -> &mut Vec<SourceSpec>;
+}
+
+impl HasSources for SceneRequest {
+    fn sources_mut(&mut self) -> &mut Vec<SourceSpec> {
+        &mut self.sources
+    }
+}
+
+impl HasSources for RenderRequest {
+    fn sources_mut(&mut self) -> &mut Vec<SourceSpec> {
+        &mut self.scene.sources
+    }
+}
+
+impl RenderRequest {
+    /// Parses the JSON form (the JSON body, or the `request` part of a multipart body).
+    pub fn from_json(body: &[u8], mode: ImageMode, limits: &Limits) -> Result<RenderRequest, ApiError> {
+        let parsed: JsonRenderRequest = parse_json(body, limits.max_json_depth, "request", json_root(mode))?;
+        let scene = SceneRequest {
+            sources: sources_from_json(parsed.sources, mode)?,
             near: parsed.near,
             far: parsed.far,
             background: parsed.background,
-            outputs: parsed.outputs,
-        })
+        };
+        let view = TargetRequest { target: parsed.target.into_spec("target")?, outputs: parsed.outputs };
+        Ok(RenderRequest { scene, view })
     }
 
     /// Parses the protobuf form.
     pub fn from_protobuf(body: &[u8]) -> Result<RenderRequest, ApiError> {
         use prost::Message;
-        let msg = scnerf_proto::v1::RenderRequest::decode(body)
-            .map_err(|e| ApiError::malformed(None, format!("invalid protobuf RenderRequest: {e}")))?;
+        let msg = scnerf_proto::v1::RenderRequest::decode(body).map_err(|e| {
+            ApiError::malformed(Some("body".to_string()), format!("invalid protobuf RenderRequest: {e}"))
+        })?;
         proto::request_from_proto(msg)
     }
 
     /// Checks the request against the bundle and the limits and converts the cameras.
     pub fn validate(self, config: &ModelConfig, limits: &Limits) -> Result<ValidRequest, ApiError> {
+        // Cheap whole-request checks first, then the target, then the (costlier) sources.
+        let header = self.scene.validate_header(config)?;
+        let view = self.view.validate(limits)?;
+        let scene = self.scene.validate_sources(header, limits)?;
+        Ok(ValidRequest { scene, view })
+    }
+}
+
+impl SceneRequest {
+    pub fn from_json(body: &[u8], mode: ImageMode, limits: &Limits) -> Result<SceneRequest, ApiError> {
+        let parsed: JsonSceneRequest = parse_json(body, limits.max_json_depth, "scene request", json_root(mode))?;
+        Ok(SceneRequest {
+            sources: sources_from_json(parsed.sources, mode)?,
+            near: parsed.near,
+            far: parsed.far,
+            background: parsed.background,
+        })
+    }
+
+    pub fn from_protobuf(body: &[u8]) -> Result<SceneRequest, ApiError> {
+        use prost::Message;
+        let msg = scnerf_proto::v1::SceneRequest::decode(body).map_err(|e| {
+            ApiError::malformed(Some("body".to_string()), format!("invalid protobuf SceneRequest: {e}"))
+        })?;
+        proto::scene_from_proto(msg)
+    }
+
+    pub fn validate(self, config: &ModelConfig, limits: &Limits) -> Result<ValidScene, ApiError> {
+        let header = self.validate_header(config)?;
+        self.validate_sources(header, limits)
+    }
+
+    /// View count, depth range and background: everything but the cameras and images.
+    fn validate_header(&self, config: &ModelConfig) -> Result<[f32; 3], ApiError> {
         if self.sources.len() != config.views {
             return Err(ApiError::invalid(
                 "sources",
@@ -257,28 +533,10 @@ impl RenderRequest {
             ));
         }
         check_depth_range(self.near, self.far)?;
-        let background = check_background(self.background.as_deref())?;
-        let outputs = match &self.outputs {
-            None => OutputSet::RGB,
-            Some(kinds) => OutputSet::from_kinds(kinds)?,
-        };
-        let target = self.target.canonicalize("target")?;
-        let target_pixels = u64::from(target.width) * u64::from(target.height);
-        if target_pixels > limits.max_target_pixels {
-            return Err(ApiError::invalid(
-                "target.width",
-                format!(
-                    "target view of {}x{} exceeds the limit of {} pixels",
-                    target.width, target.height, limits.max_target_pixels
-                ),
-            ));
-        }
-        let (near, far) = (self.near, self.far);
-        let sources = self.validate_sources(limits)?;
-        Ok(ValidRequest { sources, target, near, far, background, outputs })
+        check_background(self.background.as_deref())
     }
 
-    fn validate_sources(self, limits: &Limits) -> Result<Vec<(Camera, Bytes, String)>, ApiError> {
+    fn validate_sources(self, background: [f32; 3], limits: &Limits) -> Result<ValidScene, ApiError> {
         let mut out: Vec<(Camera, Bytes, String)> = Vec::with_capacity(self.sources.len());
         for (i, s) in self.sources.into_iter().enumerate() {
             let field = format!("sources[{i}].camera");
@@ -307,7 +565,41 @@ impl RenderRequest {
             let image = s.image.ok_or_else(|| ApiError::malformed(s.image_field.clone(), "missing source image"))?;
             out.push((camera, image, s.image_field));
         }
-        Ok(out)
+        Ok(ValidScene { sources: out, near: self.near, far: self.far, background })
+    }
+}
+
+impl TargetRequest {
+    pub fn from_json(body: &[u8], limits: &Limits) -> Result<TargetRequest, ApiError> {
+        let parsed: JsonTargetRequest = parse_json(body, limits.max_json_depth, "scene render request", "body")?;
+        Ok(TargetRequest { target: parsed.target.into_spec("target")?, outputs: parsed.outputs })
+    }
+
+    pub fn from_protobuf(body: &[u8]) -> Result<TargetRequest, ApiError> {
+        use prost::Message;
+        let msg = scnerf_proto::v1::SceneRenderRequest::decode(body).map_err(|e| {
+            ApiError::malformed(Some("body".to_string()), format!("invalid protobuf SceneRenderRequest: {e}"))
+        })?;
+        Ok(TargetRequest {
+            target: proto::camera_from_proto(msg.target, "target")?,
+            outputs: proto::outputs_from_proto(&msg.outputs)?,
+        })
+    }
+
+    pub fn validate(self, limits: &Limits) -> Result<ValidTarget, ApiError> {
+        let outputs = OutputSet::from_kinds(self.outputs.as_deref())?;
+        let target = self.target.canonicalize("target")?;
+        let target_pixels = u64::from(target.width) * u64::from(target.height);
+        if target_pixels > limits.max_target_pixels {
+            return Err(ApiError::invalid(
+                "target.width",
+                format!(
+                    "target view of {}x{} exceeds the limit of {} pixels",
+                    target.width, target.height, limits.max_target_pixels
+                ),
+            ));
+        }
+        Ok(ValidTarget { target, outputs })
     }
 }
 
@@ -349,38 +641,53 @@ mod proto {
     use scnerf_proto::v1 as pb;
 
     pub fn request_from_proto(msg: pb::RenderRequest) -> Result<RenderRequest, ApiError> {
-        let mut sources = Vec::with_capacity(msg.sources.len());
-        for (i, s) in msg.sources.into_iter().enumerate() {
-            let field = format!("sources[{i}]");
-            let camera = camera_from_proto(s.camera, &format!("{field}.camera"))?;
-            let image = (!s.image.is_empty()).then(|| Bytes::from(s.image));
-            sources.push(SourceSpec { camera, image, image_field: format!("{field}.image") });
-        }
-        let outputs = if msg.outputs.is_empty() {
-            None
-        } else {
-            let mut kinds = Vec::new();
-            for (i, o) in msg.outputs.iter().enumerate() {
-                kinds.push(OutputKind::parse(o).ok_or_else(|| {
-                    ApiError::malformed(
-                        format!("outputs[{i}]"),
-                        format!("unknown output \"{o}\" (rgb, depth, opacity)"),
-                    )
-                })?);
-            }
-            Some(kinds)
-        };
-        Ok(RenderRequest {
-            sources,
-            target: camera_from_proto(msg.target, "target")?,
+        let scene = SceneRequest {
+            sources: sources_from_proto(msg.sources)?,
             near: msg.near,
             far: msg.far,
             background: (!msg.background.is_empty()).then_some(msg.background),
-            outputs,
+        };
+        let view = TargetRequest {
+            target: camera_from_proto(msg.target, "target")?,
+            outputs: outputs_from_proto(&msg.outputs)?,
+        };
+        Ok(RenderRequest { scene, view })
+    }
+
+    pub fn scene_from_proto(msg: pb::SceneRequest) -> Result<SceneRequest, ApiError> {
+        Ok(SceneRequest {
+            sources: sources_from_proto(msg.sources)?,
+            near: msg.near,
+            far: msg.far,
+            background: (!msg.background.is_empty()).then_some(msg.background),
         })
     }
 
-    fn camera_from_proto(c: Option<pb::Camera>, field: &str) -> Result<CameraSpec, ApiError> {
+    fn sources_from_proto(sources: Vec<pb::Source>) -> Result<Vec<SourceSpec>, ApiError> {
+        let mut out = Vec::with_capacity(sources.len());
+        for (i, s) in sources.into_iter().enumerate() {
+            let field = format!("sources[{i}]");
+            let camera = camera_from_proto(s.camera, &format!("{field}.camera"))?;
+            let image = (!s.image.is_empty()).then(|| Bytes::from(s.image));
+            out.push(SourceSpec { camera, image, image_field: format!("{field}.image") });
+        }
+        Ok(out)
+    }
+
+    pub fn outputs_from_proto(outputs: &[String]) -> Result<Option<Vec<OutputKind>>, ApiError> {
+        if outputs.is_empty() {
+            return Ok(None);
+        }
+        let mut kinds = Vec::with_capacity(outputs.len());
+        for (i, o) in outputs.iter().enumerate() {
+            kinds.push(OutputKind::parse(o).ok_or_else(|| {
+                ApiError::malformed(format!("outputs[{i}]"), format!("unknown output \"{o}\" (rgb, depth, opacity)"))
+            })?);
+        }
+        Ok(Some(kinds))
+    }
+
+    pub fn camera_from_proto(c: Option<pb::Camera>, field: &str) -> Result<CameraSpec, ApiError> {
         let c = c.ok_or_else(|| ApiError::malformed(field.to_string(), "missing camera"))?;
         let intrinsics = match c.intrinsics_kind {
             Some(pb::camera::IntrinsicsKind::Intrinsics(i)) => {
@@ -437,5 +744,29 @@ mod proto {
             m[i / 4][i % 4] = *x;
         }
         Ok(m)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn json_depth_counts_brackets_outside_strings() {
+        assert!(check_json_depth(br#"{"a": [[1], {"b": 2}]}"#, 3, "body").is_ok());
+        assert!(check_json_depth(br#"{"a": [[1], {"b": 2}]}"#, 2, "body").is_err());
+        assert!(check_json_depth(br#"{"a": "[[[[[[\"[[[["}"#, 1, "body").is_ok());
+        let deep = "[".repeat(100_000);
+        let err = check_json_depth(deep.as_bytes(), 16, "request").unwrap_err();
+        assert_eq!(err.field(), Some("request"));
+    }
+
+    #[test]
+    fn serde_errors_name_the_field() {
+        assert_eq!(error_field(".", "missing field `near`"), Some("near".into()));
+        assert_eq!(error_field("target.pose", "missing field `axes`"), Some("target.pose.axes".into()));
+        assert_eq!(error_field("sources[1]", "invalid type"), Some("sources[1]".into()));
+        assert_eq!(error_field(".", "expected value"), None);
+        assert_eq!(error_field("sources[0].camera.?", "EOF while parsing"), Some("sources[0].camera".into()));
     }
 }

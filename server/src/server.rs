@@ -1,7 +1,6 @@
 //! Start-up: load and verify the bundle, create the ONNX Runtime sessions, bind, warm up, serve.
 
 use std::io::Write;
-use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -16,6 +15,13 @@ use crate::http::{router, AppState};
 use crate::pipeline::{Pipeline, Timings};
 
 pub async fn run(config: Config) -> Result<(), String> {
+    let signals = shutdown_signals()?;
+    let grace = Duration::from_secs(config.shutdown_grace_secs);
+    // Before the slow part (loading the graphs): a bad token file fails the start at once.
+    let options = config.service_options()?;
+    if options.auth.enabled() {
+        tracing::info!(tokens = options.auth.token_count(), "bearer-token authentication on");
+    }
     let bundle_dir = config.bundle_dir();
     let bundle = Bundle::load(&bundle_dir).map_err(|e| e.to_string())?;
     tracing::info!(model_id = %bundle.manifest.model_id, dir = %bundle_dir.display(), "bundle verified");
@@ -26,17 +32,16 @@ pub async fn run(config: Config) -> Result<(), String> {
     };
     let runner = {
         let bundle = bundle.clone();
-        tokio::task::spawn_blocking(move || OrtRunner::load(&bundle, &ort))
+        let exec = config.exec_options();
+        tokio::task::spawn_blocking(move || OrtRunner::load_with(&bundle, &ort, &exec))
             .await
             .map_err(|e| e.to_string())?
             .map_err(|e| format!("bundle {}: {e}", bundle_dir.display()))?
     };
     let backend = BackendHandle::spawn(Box::new(runner), config.queue_capacity).map_err(|e| e.to_string())?;
-    let state = AppState {
-        pipeline: Pipeline { backend, bundle: Arc::new(bundle), chunking: config.chunking(), limits: config.limits() },
-        ready: Arc::new(AtomicBool::new(false)),
-        request_timeout: Duration::from_secs(config.request_timeout_secs),
-    };
+    let pipeline = Pipeline { backend, bundle: Arc::new(bundle), chunking: config.chunking(), limits: config.limits() };
+    let state = AppState::new(pipeline, options);
+    spawn_cache_sweeper(&state);
 
     let listener =
         TcpListener::bind(config.addr).await.map_err(|e| format!("cannot listen on {}: {e}", config.addr))?;
@@ -65,41 +70,66 @@ pub async fn run(config: Config) -> Result<(), String> {
     }
 
     let warmup_error = Arc::new(std::sync::Mutex::new(None));
+    let signalled = Arc::new(tokio::sync::Notify::new());
     let shutdown = {
-        let warmup_error = warmup_error.clone();
+        let (warmup_error, signalled, state) = (warmup_error.clone(), signalled.clone(), state.clone());
         async move {
             tokio::select! {
-                _ = shutdown_signal() => {}
+                _ = signals => {
+                    tracing::info!(grace_secs = grace.as_secs(), "shutting down: no new connections; finishing requests in flight");
+                    state.set_draining();
+                    signalled.notify_one();
+                }
                 Ok(e) = failed_rx => {
                     *warmup_error.lock().unwrap_or_else(|p| p.into_inner()) = Some(e);
                 }
             }
         }
     };
-    axum::serve(listener, router(state)).with_graceful_shutdown(shutdown).await.map_err(|e| e.to_string())?;
+    let serve = axum::serve(listener, router(state)).with_graceful_shutdown(shutdown);
+    // In-flight requests get `grace` after the signal; then the process exits regardless.
+    let grace_over = async move {
+        signalled.notified().await;
+        tokio::time::sleep(grace).await;
+    };
+    tokio::select! {
+        served = std::future::IntoFuture::into_future(serve) => served.map_err(|e| e.to_string())?,
+        _ = grace_over => tracing::warn!("grace period over with requests still in flight; exiting"),
+    }
     let failure = warmup_error.lock().unwrap_or_else(|p| p.into_inner()).take();
     match failure {
         Some(e) => Err(format!("warm-up render failed: {e}")),
-        None => Ok(()),
+        None => {
+            tracing::info!("shut down");
+            Ok(())
+        }
     }
 }
 
-async fn shutdown_signal() {
-    let ctrl_c = async {
-        let _ = tokio::signal::ctrl_c().await;
-    };
-    #[cfg(unix)]
-    let term = async {
-        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
-            Ok(mut s) => {
-                s.recv().await;
-            }
-            Err(_) => std::future::pending::<()>().await,
+/// Expired scenes are also dropped on every cache access; this frees their memory when the
+/// server is idle.
+fn spawn_cache_sweeper(state: &AppState) {
+    let scenes = Arc::downgrade(&state.scenes);
+    let period = (state.scenes.config().ttl / 4).clamp(Duration::from_secs(1), Duration::from_secs(60));
+    tokio::spawn(async move {
+        let mut tick = tokio::time::interval(period);
+        loop {
+            tick.tick().await;
+            let Some(scenes) = scenes.upgrade() else { break };
+            scenes.purge_expired(Instant::now());
         }
-    };
-    #[cfg(not(unix))]
-    let term = std::future::pending::<()>();
-    tokio::select! { _ = ctrl_c => {}, _ = term => {} }
+    });
+}
+
+/// Resolves on SIGTERM or SIGINT. The handlers are installed when this is called (before the
+/// server announces itself), so a signal arriving during start-up is not lost or fatal.
+fn shutdown_signals() -> Result<impl std::future::Future<Output = ()>, String> {
+    use tokio::signal::unix::{signal, SignalKind};
+    let mut term = signal(SignalKind::terminate()).map_err(|e| format!("cannot handle SIGTERM: {e}"))?;
+    let mut int = signal(SignalKind::interrupt()).map_err(|e| format!("cannot handle SIGINT: {e}"))?;
+    Ok(async move {
+        tokio::select! { _ = term.recv() => {}, _ = int.recv() => {} }
+    })
 }
 
 /// Renders a tiny synthetic view through all three graphs: checks that the bundle really runs
@@ -111,11 +141,17 @@ pub async fn warm_up(pipeline: &Pipeline) -> Result<Duration, String> {
     let cameras = warmup_cameras(config.views, size as u32);
     let images = Tensor::new(vec![config.views, 3, size, size], vec![0.5; config.views * 3 * size * size]);
     let mut timings = Timings::default();
-    let scene = pipeline.build_scene(&cameras, images, 2.0, 6.0, &mut timings).await.map_err(|e| e.to_string())?;
+    // Warm-up runs before readiness, alone on the executor; the deadline only bounds a hang.
+    let ticket = pipeline.admit(Instant::now() + Duration::from_secs(3600)).map_err(|e| e.to_string())?;
+    let scene =
+        pipeline.build_scene(&ticket, &cameras, images, 2.0, 6.0, &mut timings).await.map_err(|e| e.to_string())?;
     let mut target = cameras[0].clone();
     target.width = 4;
     target.height = 4;
-    let view = pipeline.render_view(&scene, &target, [0.0; 3], None, &mut timings).await.map_err(|e| e.to_string())?;
+    let view = pipeline
+        .render_view(&ticket, &scene, &target, [0.0; 3], None, &mut timings)
+        .await
+        .map_err(|e| e.to_string())?;
     if view.rgb.iter().chain(&view.depth).chain(&view.opacity).any(|v| !v.is_finite()) {
         return Err("the warm-up render produced non-finite values".into());
     }

@@ -1,13 +1,13 @@
 //! Test support (not part of the API): a fake graph runner with the bundle contract's shapes,
 //! a manifest for it, and request builders. Lets the HTTP layer be tested without ONNX Runtime.
 
-use std::sync::atomic::AtomicBool;
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
 use crate::backend::{BackendError, BackendHandle, GraphRunner, NamedTensors, Tensor};
 use crate::bundle::{validate_manifest, Bundle, GraphKind, Manifest};
-use crate::http::AppState;
+use crate::http::{AppState, ServiceOptions};
 use crate::pipeline::chunks::ChunkPolicy;
 use crate::pipeline::Pipeline;
 use crate::request::Limits;
@@ -72,13 +72,15 @@ pub struct FakeRunner {
     pub config: crate::bundle::ModelConfig,
     /// Every call fails with this message (to test error paths).
     pub fail_with: Option<String>,
-    /// Sleep per call (to test deadlines).
+    /// Sleep per call (to test deadlines and scheduling).
     pub delay: Duration,
+    /// Graph runs so far, by kind: encoder, volume, renderer (to see which work was dropped).
+    pub calls: Arc<[AtomicUsize; 3]>,
 }
 
 impl FakeRunner {
     pub fn new(bundle: &Bundle) -> FakeRunner {
-        FakeRunner { config: bundle.config.clone(), fail_with: None, delay: Duration::ZERO }
+        FakeRunner { config: bundle.config.clone(), fail_with: None, delay: Duration::ZERO, calls: Arc::default() }
     }
 }
 
@@ -88,6 +90,12 @@ fn input<'a>(inputs: &'a NamedTensors, name: &str) -> &'a Tensor {
 
 impl GraphRunner for FakeRunner {
     fn run(&mut self, graph: GraphKind, inputs: &NamedTensors) -> Result<NamedTensors, BackendError> {
+        let slot = match graph {
+            GraphKind::Encoder => 0,
+            GraphKind::Volume => 1,
+            GraphKind::Renderer => 2,
+        };
+        self.calls[slot].fetch_add(1, Ordering::SeqCst);
         std::thread::sleep(self.delay);
         if let Some(message) = &self.fail_with {
             return Err(BackendError::Run { graph, message: message.clone() });
@@ -149,17 +157,25 @@ pub fn state_with_queue(
     timeout: Duration,
     queue: usize,
 ) -> AppState {
+    state_with_options(bundle, runner, limits, ServiceOptions { request_timeout: timeout, ..Default::default() }, queue)
+}
+
+/// The general form: any service options (cache size and TTL, deadline, auth...).
+pub fn state_with_options(
+    bundle: Bundle,
+    runner: FakeRunner,
+    limits: Limits,
+    options: ServiceOptions,
+    queue: usize,
+) -> AppState {
     let backend = BackendHandle::spawn(Box::new(runner), queue).expect("spawn backend");
-    let state = AppState {
-        pipeline: Pipeline {
-            backend,
-            bundle: Arc::new(bundle),
-            chunking: ChunkPolicy { max_rays: 100, memory_budget_bytes: usize::MAX },
-            limits,
-        },
-        ready: Arc::new(AtomicBool::new(false)),
-        request_timeout: timeout,
+    let pipeline = Pipeline {
+        backend,
+        bundle: Arc::new(bundle),
+        chunking: ChunkPolicy { max_rays: 100, memory_budget_bytes: usize::MAX },
+        limits,
     };
+    let state = AppState::new(pipeline, options);
     state.set_ready();
     state
 }
@@ -203,4 +219,40 @@ pub fn request_json(size: u32) -> serde_json::Value {
         "background": [1.0, 1.0, 1.0],
         "outputs": ["rgb"]
     })
+}
+
+/// A well-formed PNG that claims `width` x `height` RGB pixels but carries almost no data: what a
+/// decompression bomb looks like to a header reader (e.g. 100000 x 100000 = 30 GB decoded).
+pub fn png_header(width: u32, height: u32) -> Vec<u8> {
+    let mut out = b"\x89PNG\r\n\x1a\n".to_vec();
+    let mut ihdr = Vec::new();
+    ihdr.extend_from_slice(&width.to_be_bytes());
+    ihdr.extend_from_slice(&height.to_be_bytes());
+    ihdr.extend_from_slice(&[8, 2, 0, 0, 0]); // 8-bit, RGB, deflate, no filter, no interlace
+    png_chunk(&mut out, b"IHDR", &ihdr);
+    // A zlib stream of a few zero bytes: far fewer rows than the header promises.
+    png_chunk(&mut out, b"IDAT", &[0x78, 0x9c, 0x63, 0x00, 0x00, 0x00, 0x01, 0x00, 0x01]);
+    png_chunk(&mut out, b"IEND", &[]);
+    out
+}
+
+fn png_chunk(out: &mut Vec<u8>, kind: &[u8; 4], data: &[u8]) {
+    out.extend_from_slice(&(data.len() as u32).to_be_bytes());
+    let start = out.len();
+    out.extend_from_slice(kind);
+    out.extend_from_slice(data);
+    let crc = crc32(&out[start..]);
+    out.extend_from_slice(&crc.to_be_bytes());
+}
+
+/// CRC-32 (IEEE), bitwise: PNG chunk checksums for the test images above.
+fn crc32(data: &[u8]) -> u32 {
+    let mut crc = !0u32;
+    for &b in data {
+        crc ^= u32::from(b);
+        for _ in 0..8 {
+            crc = if crc & 1 == 1 { (crc >> 1) ^ 0xEDB8_8320 } else { crc >> 1 };
+        }
+    }
+    !crc
 }

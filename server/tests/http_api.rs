@@ -311,12 +311,17 @@ async fn full_queue_is_503_with_retry_after() {
 
 #[tokio::test]
 async fn unknown_route_and_wrong_method() {
-    assert_error(&send(app(), Request::get("/v2/render").body(Body::empty()).unwrap()).await, 404, "not_found", None);
+    assert_error(
+        &send(app(), Request::get("/v2/render").body(Body::empty()).unwrap()).await,
+        404,
+        "not_found",
+        Some("path"),
+    );
     assert_error(
         &send(app(), Request::get("/v1/render").body(Body::empty()).unwrap()).await,
         405,
         "method_not_allowed",
-        None,
+        Some("method"),
     );
 }
 
@@ -337,7 +342,7 @@ async fn accept_errors() {
         &send(app(), multipart_with(&request_json(32), 32, Some("text/html"))).await,
         406,
         "not_acceptable",
-        None,
+        Some("accept"),
     );
     let mut req = request_json(32);
     req["outputs"] = json!(["rgb", "depth"]);
@@ -361,7 +366,7 @@ async fn json_syntax_error() {
     assert_error(&send(app(), req).await, 400, "malformed_request", Some("sources"));
     let req =
         Request::post("/v1/render").header("content-type", "application/json").body(Body::from("not json")).unwrap();
-    assert_error(&send(app(), req).await, 400, "malformed_request", None);
+    assert_error(&send(app(), req).await, 400, "malformed_request", Some("body"));
 }
 
 #[tokio::test]
@@ -382,8 +387,10 @@ async fn missing_and_mistyped_fields_are_named() {
     let mut req = request_json(32);
     req.as_object_mut().unwrap().remove("near");
     let got = send(app(), multipart_with(&req, 32, None)).await;
-    assert_error(&got, 400, "malformed_request", None);
-    assert!(String::from_utf8_lossy(&got.2).contains("near"));
+    assert_error(&got, 400, "malformed_request", Some("near"));
+    let mut req = request_json(32);
+    req["sources"][2]["camera"]["pose"].as_object_mut().unwrap().remove("axes");
+    render_multipart_error(req, 400, "malformed_request", Some("sources[2].camera.pose.axes")).await;
     let mut req = request_json(32);
     req["target"]["pose"]["kind"] = json!("camera_to_sky");
     render_multipart_error(req, 400, "malformed_request", Some("target.pose.kind")).await;
@@ -462,7 +469,7 @@ async fn broken_multipart_framing() {
         .header("content-type", format!("multipart/form-data; boundary={BOUNDARY}"))
         .body(Body::from(format!("--{BOUNDARY}\r\nContent-Disposition: form-data; name=\"request\"\r\n\r\n{{\"sou")))
         .unwrap();
-    assert_error(&send(app(), truncated).await, 400, "malformed_request", None);
+    assert_error(&send(app(), truncated).await, 400, "malformed_request", Some("request"));
 }
 
 #[tokio::test]
@@ -506,7 +513,7 @@ async fn protobuf_errors() {
         .header("content-type", "application/x-protobuf")
         .body(Body::from(vec![0xff, 0xff, 0xff]))
         .unwrap();
-    assert_error(&send(app(), garbage).await, 400, "malformed_request", None);
+    assert_error(&send(app(), garbage).await, 400, "malformed_request", Some("body"));
     let mut msg = proto_request();
     msg.sources[1].camera.as_mut().unwrap().pose.as_mut().unwrap().kind = 0;
     assert_error(&send(app(), proto_req(&msg)).await, 400, "malformed_request", Some("sources[1].camera.pose.kind"));
@@ -538,13 +545,18 @@ async fn bodies_over_the_limit_are_413() {
     let limits = Limits { max_body_bytes: 2000, ..Limits::default() };
     let app = router(state_with(b, runner, limits, Duration::from_secs(10)));
     let big = json_with_images(64);
-    assert_error(&send(app.clone(), json_req(&big, None)).await, 413, "payload_too_large", None);
-    assert_error(&send(app.clone(), multipart_with(&request_json(64), 64, None)).await, 413, "payload_too_large", None);
+    assert_error(&send(app.clone(), json_req(&big, None)).await, 413, "payload_too_large", Some("body"));
+    assert_error(
+        &send(app.clone(), multipart_with(&request_json(64), 64, None)).await,
+        413,
+        "payload_too_large",
+        Some("body"),
+    );
     let proto = Request::post("/v1/render")
         .header("content-type", "application/x-protobuf")
         .body(Body::from(vec![0u8; 5000]))
         .unwrap();
-    assert_error(&send(app, proto).await, 413, "payload_too_large", None);
+    assert_error(&send(app, proto).await, 413, "payload_too_large", Some("body"));
 }
 
 // ---------------------------------------------------------------------------------------------

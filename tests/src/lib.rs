@@ -2,6 +2,8 @@
 //! the load generator will reuse it), multipart encoding, locating and starting the server
 //! binary.
 
+pub mod load;
+
 use std::io::{BufRead, BufReader, Read, Write};
 use std::net::{SocketAddr, TcpStream};
 use std::path::{Path, PathBuf};

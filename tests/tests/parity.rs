@@ -15,7 +15,7 @@ use scnerf_server::backend::ort::{OrtOptions, OrtRunner};
 use scnerf_server::backend::BackendHandle;
 use scnerf_server::bundle::Bundle;
 use scnerf_server::config::GraphOptLevel;
-use scnerf_server::http::{router, AppState};
+use scnerf_server::http::{router, AppState, ServiceOptions};
 use scnerf_server::pipeline::chunks::ChunkPolicy;
 use scnerf_server::pipeline::{Pipeline, Timings};
 use scnerf_server::request::{ImageMode, Limits, RenderRequest, ValidRequest};
@@ -52,6 +52,19 @@ fn pipeline() -> Pipeline {
             }
         })
         .clone()
+}
+
+/// A place on the inference executor for one test's graph runs.
+fn admit(p: &Pipeline) -> scnerf_server::backend::Ticket {
+    p.admit(std::time::Instant::now() + std::time::Duration::from_secs(600)).unwrap()
+}
+
+/// The real router over the ONNX Runtime pipeline, ready at once.
+fn ready_state(p: Pipeline) -> AppState {
+    let options = ServiceOptions { request_timeout: std::time::Duration::from_secs(600), ..Default::default() };
+    let state = AppState::new(p, options);
+    state.set_ready();
+    state
 }
 
 fn cases() -> Vec<PathBuf> {
@@ -100,8 +113,8 @@ impl Expected {
 
 fn request(case: &Path) -> ValidRequest {
     let json = std::fs::read(case.join("request.json")).unwrap();
-    let mut req = RenderRequest::from_json(&json, ImageMode::Parts).unwrap();
-    for (i, s) in req.sources.iter_mut().enumerate() {
+    let mut req = RenderRequest::from_json(&json, ImageMode::Parts, &Limits::default()).unwrap();
+    for (i, s) in req.scene.sources.iter_mut().enumerate() {
         s.image = Some(std::fs::read(case.join(format!("source_{i}.png"))).unwrap().into());
     }
     req.validate(&pipeline().bundle.config, &Limits::default()).unwrap()
@@ -131,9 +144,10 @@ async fn pipeline_matches_pytorch_stage_by_stage() {
         let expected = Expected::load(&case);
         let req = request(&case);
         let mut timings = Timings::default();
-        let images = p.decode_sources(&req).await.unwrap();
-        let cameras: Vec<_> = req.sources.iter().map(|(c, _, _)| c.clone()).collect();
-        let scene = p.build_scene(&cameras, images, req.near, req.far, &mut timings).await.unwrap();
+        let ticket = admit(&p);
+        let images = p.decode_sources(&req.scene).await.unwrap();
+        let (near, far) = (req.scene.near, req.scene.far);
+        let scene = p.build_scene(&ticket, &req.scene.cameras(), images, near, far, &mut timings).await.unwrap();
 
         let (shape, features) = expected.tensor("features");
         assert_eq!(scene.features.shape, shape, "{name}: features shape");
@@ -147,7 +161,8 @@ async fn pipeline_matches_pytorch_stage_by_stage() {
         assert_eq!(scene.volume.shape, shape, "{name}: volume shape");
         check(&name, "volume", max_abs(&scene.volume.data, &volume), expected.tolerance("volume_max_abs", 1e-4));
 
-        let view = p.render_view(&scene, &req.target, req.background, None, &mut timings).await.unwrap();
+        let view =
+            p.render_view(&ticket, &scene, &req.view.target, req.scene.background, None, &mut timings).await.unwrap();
         assert_eq!(
             (view.width as u64, view.height as u64),
             (expected.json["width"].as_u64().unwrap(), expected.json["height"].as_u64().unwrap())
@@ -175,11 +190,11 @@ async fn output_does_not_depend_on_chunk_size() {
     let case = &cases()[0];
     let req = request(case);
     let mut timings = Timings::default();
-    let images = p.decode_sources(&req).await.unwrap();
-    let cameras: Vec<_> = req.sources.iter().map(|(c, _, _)| c.clone()).collect();
-    let scene = p.build_scene(&cameras, images, req.near, req.far, &mut timings).await.unwrap();
-    let small = p.render_view(&scene, &req.target, req.background, Some(37), &mut timings).await.unwrap();
-    let large = p.render_view(&scene, &req.target, req.background, Some(5000), &mut timings).await.unwrap();
+    let ticket = admit(&p);
+    let scene = p.prepare_scene(&ticket, &req.scene, &mut timings).await.unwrap();
+    let (target, background) = (&req.view.target, req.scene.background);
+    let small = p.render_view(&ticket, &scene, target, background, Some(37), &mut timings).await.unwrap();
+    let large = p.render_view(&ticket, &scene, target, background, Some(5000), &mut timings).await.unwrap();
     let err = max_abs(&small.rgb, &large.rgb)
         .max(max_abs(&small.depth, &large.depth))
         .max(max_abs(&small.opacity, &large.opacity));
@@ -191,9 +206,7 @@ async fn output_does_not_depend_on_chunk_size() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn http_multipart_render_matches_pytorch() {
     let p = pipeline();
-    let state =
-        AppState { pipeline: p, ready: Arc::new(true.into()), request_timeout: std::time::Duration::from_secs(600) };
-    let app = router(state);
+    let app = router(ready_state(p));
     for case in cases() {
         let name = case.file_name().unwrap().to_string_lossy().to_string();
         let expected = Expected::load(&case);
@@ -232,4 +245,57 @@ async fn http_multipart_render_matches_pytorch() {
             expected.tolerance("depth_max_rel", 1e-3),
         );
     }
+}
+
+/// A view of a cached scene (`POST /v1/scenes` then `POST /v1/scenes/{id}/render`) is
+/// bit-identical to the one-shot `POST /v1/render` of the same request, through the real graphs.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn cached_scene_render_is_bit_identical_to_one_shot() {
+    let app = router(ready_state(pipeline()));
+    let case = &cases()[0];
+    let request: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(case.join("request.json")).unwrap()).unwrap();
+    let images: Vec<Vec<u8>> = (0..3).map(|i| std::fs::read(case.join(format!("source_{i}.png"))).unwrap()).collect();
+    let post = |path: &str, ctype: &str, body: Vec<u8>| {
+        Request::post(path)
+            .header("content-type", ctype)
+            .header("accept", "application/json")
+            .body(Body::from(body))
+            .unwrap()
+    };
+    let multipart = |json: &serde_json::Value| {
+        let json = serde_json::to_vec(json).unwrap();
+        let names = ["source_0", "source_1", "source_2"];
+        let mut parts: Vec<(&str, Option<&str>, &str, &[u8])> = vec![("request", None, "application/json", &json)];
+        parts.extend(names.iter().zip(&images).map(|(n, img)| (*n, Some("view.png"), "image/png", img.as_slice())));
+        scnerf_e2e::multipart(&parts)
+    };
+    let call = |req: Request<Body>| {
+        let app = app.clone();
+        async move {
+            let resp = app.oneshot(req).await.unwrap();
+            let status = resp.status().as_u16();
+            let bytes = resp.into_body().collect().await.unwrap().to_bytes();
+            assert!(status < 300, "{status}: {}", String::from_utf8_lossy(&bytes));
+            serde_json::from_slice::<serde_json::Value>(&bytes).unwrap()
+        }
+    };
+
+    let (ctype, body) = multipart(&request);
+    let one_shot = call(post("/v1/render", &ctype, body)).await;
+
+    let mut scene = request.clone();
+    let obj = scene.as_object_mut().unwrap();
+    let view = serde_json::json!({"target": obj.remove("target").unwrap(), "outputs": obj.remove("outputs").unwrap()});
+    let (ctype, body) = multipart(&scene);
+    let created = call(post("/v1/scenes", &ctype, body)).await;
+    let id = created["scene_id"].as_str().unwrap();
+    let path = format!("/v1/scenes/{id}/render");
+    let cached = call(post(&path, "application/json", serde_json::to_vec(&view).unwrap())).await;
+
+    for key in ["width", "height", "model_id", "rgb", "depth", "opacity"] {
+        assert!(!one_shot[key].is_null(), "{key} missing");
+        assert_eq!(cached[key], one_shot[key], "{key} differs between the cached and the one-shot render");
+    }
+    eprintln!("one-shot timings {}; cached timings {}", one_shot["timings_ms"], cached["timings_ms"]);
 }

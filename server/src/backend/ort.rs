@@ -4,13 +4,14 @@ use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 use ort::environment::{Environment, GlobalThreadPoolOptions};
-use ort::session::builder::GraphOptimizationLevel;
+use ort::ep;
+use ort::session::builder::{GraphOptimizationLevel, SessionBuilder};
 use ort::session::Session;
 use ort::value::{TensorElementType, TensorRef, ValueType};
 
 use super::{BackendError, GraphRunner, NamedTensors, Tensor};
 use crate::bundle::{check_signature, ActualTensor, Bundle, GraphKind};
-use crate::config::GraphOptLevel;
+use crate::config::{Device, GraphOptLevel};
 
 pub const ORT_VERSION: &str = "1.31.1";
 const LIB_NAMES: [&str; 2] = ["libonnxruntime.so.1.31.1", "libonnxruntime.so"];
@@ -21,6 +22,22 @@ pub struct OrtOptions {
     pub dylib: Option<PathBuf>,
     pub intra_threads: usize,
     pub opt_level: GraphOptLevel,
+}
+
+/// Per-session execution settings (`--device`, `--ort-arena`). The default is what the server
+/// always did: the CPU execution provider with ONNX Runtime's CPU memory arena.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ExecOptions {
+    pub device: Device,
+    /// ONNX Runtime's CPU memory arena: keeps freed buffers for reuse (faster repeated runs,
+    /// but the process keeps its peak working set); off returns memory to the allocator.
+    pub cpu_arena: bool,
+}
+
+impl Default for ExecOptions {
+    fn default() -> Self {
+        ExecOptions { device: Device::Cpu, cpu_arena: true }
+    }
 }
 
 /// Where the library is looked for when no path is given: next to the executable (a deployed
@@ -82,15 +99,31 @@ pub struct OrtRunner {
 }
 
 impl OrtRunner {
-    /// Creates the three sessions and checks each graph's real signature against the manifest.
+    /// Creates the three sessions and checks each graph's real signature against the manifest
+    /// (CPU execution provider, default session options).
     pub fn load(bundle: &Bundle, opts: &OrtOptions) -> Result<OrtRunner, String> {
+        Self::load_with(bundle, opts, &ExecOptions::default())
+    }
+
+    /// [`OrtRunner::load`] on the device and with the session options of `exec`. With
+    /// `--device cuda` the loaded library must have the CUDA execution provider (the
+    /// onnxruntime-gpu build) and it must register (CUDA/cuDNN libraries found, a GPU present):
+    /// otherwise start-up fails here, naming the cause; there is no silent fallback to the CPU.
+    pub fn load_with(bundle: &Bundle, opts: &OrtOptions, exec: &ExecOptions) -> Result<OrtRunner, String> {
         let env = init_environment(opts)?;
+        if let Device::Cuda { .. } = exec.device {
+            check_cuda_available(opts)?;
+        }
+        tracing::info!(device = %exec.device, cpu_arena = exec.cpu_arena, "execution settings");
         let mut sessions = HashMap::new();
         for kind in GraphKind::ALL {
             let path = bundle.graph_path(kind);
-            let session = Session::builder(&env)
+            let builder = Session::builder(&env)
                 .and_then(|b| b.with_optimization_level(opt_level(opts.opt_level)).map_err(Into::into))
-                .and_then(|mut b| b.commit_from_file(&path))
+                .map_err(|e| format!("cannot load {}: {e}", path.display()))?;
+            let mut builder = with_execution_providers(builder, exec)?;
+            let session = builder
+                .commit_from_file(&path)
                 .map_err(|e| format!("cannot load {}: {e}", path.display()))?;
             let entry = bundle.graph(kind);
             check_signature(kind, "input", &entry.inputs, &describe(session.inputs()))?;
@@ -98,6 +131,44 @@ impl OrtRunner {
             sessions.insert(kind, session);
         }
         Ok(OrtRunner { sessions, _env: env })
+    }
+}
+
+/// Registers the execution providers of `exec` on a session builder: CUDA (when asked; failing
+/// to register is an error) and the CPU provider (always, last: it runs whatever CUDA cannot, and
+/// carries the arena setting).
+fn with_execution_providers(builder: SessionBuilder, exec: &ExecOptions) -> Result<SessionBuilder, String> {
+    let mut providers = Vec::new();
+    if let Device::Cuda { device_id } = exec.device {
+        providers.push(ep::CUDA::default().with_device_id(device_id).build().error_on_failure());
+    }
+    providers.push(ep::CPU::default().with_arena_allocator(exec.cpu_arena).build().error_on_failure());
+    builder.with_execution_providers(providers).map_err(|e| match exec.device {
+        Device::Cuda { device_id } => format!(
+            "--device {}: ONNX Runtime could not register the CUDA execution provider on GPU {device_id}: {e} \
+             (needs an NVIDIA GPU and the CUDA 13 / cuDNN 9 libraries of the onnxruntime-gpu wheel on \
+             LD_LIBRARY_PATH, e.g. the PyPI nvidia-* wheels' lib directories)",
+            exec.device
+        ),
+        Device::Cpu => format!("cannot configure the CPU execution provider: {e}"),
+    })
+}
+
+/// The library must be a build with the CUDA execution provider (onnxruntime-gpu): the CPU-only
+/// library from scripts/fetch-onnxruntime.sh is not.
+fn check_cuda_available(opts: &OrtOptions) -> Result<(), String> {
+    use ort::ep::ExecutionProvider;
+    match ep::CUDA::is_available() {
+        Ok(true) => Ok(()),
+        Ok(false) => {
+            let lib = resolve_dylib(opts.dylib.as_deref()).map(|p| p.display().to_string()).unwrap_or_default();
+            Err(format!(
+                "--device cuda: the ONNX Runtime library {lib} has no CUDA execution provider; use the \
+                 onnxruntime-gpu {ORT_VERSION} library (libonnxruntime.so.{ORT_VERSION} from the wheel's \
+                 onnxruntime/capi/, next to libonnxruntime_providers_cuda.so) with --ort-dylib, or --device cpu"
+            ))
+        }
+        Err(e) => Err(format!("--device cuda: cannot list ONNX Runtime's execution providers: {e}")),
     }
 }
 
@@ -159,5 +230,33 @@ impl GraphRunner for OrtRunner {
                 Ok((name, Tensor::new(shape, data.to_vec())))
             })
             .collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn fixture_bundle() -> Bundle {
+        let dir = PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../tests/fixtures/parity/bundle"));
+        Bundle::load(&dir).expect("committed parity fixture bundle")
+    }
+
+    fn cpu_library_opts() -> OrtOptions {
+        OrtOptions { dylib: None, intra_threads: 1, opt_level: GraphOptLevel::All }
+    }
+
+    /// The library of scripts/fetch-onnxruntime.sh is the CPU build: asking for CUDA must fail at
+    /// start with a message that says why, never fall back to the CPU silently. (The only test of
+    /// this binary that creates an ONNX Runtime environment: one per process.)
+    #[test]
+    fn cuda_on_the_cpu_library_is_a_clear_error() {
+        let exec = ExecOptions { device: Device::Cuda { device_id: 0 }, cpu_arena: true };
+        let err = match OrtRunner::load_with(&fixture_bundle(), &cpu_library_opts(), &exec) {
+            Ok(_) => panic!("the CPU-only ONNX Runtime accepted --device cuda"),
+            Err(e) => e,
+        };
+        assert!(err.contains("--device cuda"), "{err}");
+        assert!(err.contains("no CUDA execution provider") || err.contains("could not register"), "{err}");
     }
 }

@@ -9,16 +9,61 @@ use bytes::Bytes;
 
 use super::negotiate::RequestFormat;
 use crate::error::ApiError;
-use crate::request::{ImageMode, RenderRequest};
+use crate::request::{check_json_size, HasSources, ImageMode, Limits, RenderRequest, SceneRequest, TargetRequest};
 
 /// Largest number of `source_i` parts we look at; more is an error, not a loop.
 const MAX_SOURCE_PARTS: usize = 16;
 
-pub async fn read_render_request(format: RequestFormat, req: Request, limit: usize) -> Result<RenderRequest, ApiError> {
+/// `POST /v1/render` in any of the three forms.
+pub async fn read_render_request(
+    format: RequestFormat,
+    req: Request,
+    limits: &Limits,
+) -> Result<RenderRequest, ApiError> {
+    let limit = limits.max_body_bytes;
     match format {
-        RequestFormat::Json => RenderRequest::from_json(&read_bytes(req.into_body(), limit).await?, ImageMode::Inline),
+        RequestFormat::Json => {
+            RenderRequest::from_json(&read_bytes(req.into_body(), limit).await?, ImageMode::Inline, limits)
+        }
         RequestFormat::Protobuf => RenderRequest::from_protobuf(&read_bytes(req.into_body(), limit).await?),
-        RequestFormat::Multipart => read_multipart(req, limit).await,
+        RequestFormat::Multipart => {
+            read_multipart(req, limits, |json| RenderRequest::from_json(json, ImageMode::Parts, limits)).await
+        }
+    }
+}
+
+/// `POST /v1/scenes` in any of the three forms.
+pub async fn read_scene_request(
+    format: RequestFormat,
+    req: Request,
+    limits: &Limits,
+) -> Result<SceneRequest, ApiError> {
+    let limit = limits.max_body_bytes;
+    match format {
+        RequestFormat::Json => {
+            SceneRequest::from_json(&read_bytes(req.into_body(), limit).await?, ImageMode::Inline, limits)
+        }
+        RequestFormat::Protobuf => SceneRequest::from_protobuf(&read_bytes(req.into_body(), limit).await?),
+        RequestFormat::Multipart => {
+            read_multipart(req, limits, |json| SceneRequest::from_json(json, ImageMode::Parts, limits)).await
+        }
+    }
+}
+
+/// `POST /v1/scenes/{id}/render`: a small JSON or protobuf document (no images).
+pub async fn read_target_request(
+    format: RequestFormat,
+    req: Request,
+    limits: &Limits,
+) -> Result<TargetRequest, ApiError> {
+    let body = read_bytes(req.into_body(), limits.max_json_bytes).await?;
+    match format {
+        RequestFormat::Json => TargetRequest::from_json(&body, limits),
+        RequestFormat::Protobuf => TargetRequest::from_protobuf(&body),
+        RequestFormat::Multipart => Err(ApiError::UnsupportedMediaType {
+            field: Some("content-type".into()),
+            message: "a scene render request carries no images: send application/json or application/x-protobuf".into(),
+        }),
     }
 }
 
@@ -26,9 +71,9 @@ pub async fn read_render_request(format: RequestFormat, req: Request, limit: usi
 pub async fn read_bytes(body: Body, limit: usize) -> Result<Bytes, ApiError> {
     axum::body::to_bytes(body, limit).await.map_err(|e| {
         if is_length_limit(&e) {
-            too_large(None, limit)
+            too_large("body", limit)
         } else {
-            ApiError::malformed(None, format!("cannot read request body: {e}"))
+            ApiError::malformed(Some("body".to_string()), format!("cannot read request body: {e}"))
         }
     })
 }
@@ -44,27 +89,36 @@ fn is_length_limit(e: &(dyn std::error::Error + 'static)) -> bool {
     false
 }
 
-fn too_large(field: Option<String>, limit: usize) -> ApiError {
-    ApiError::TooLarge { field, message: format!("request body exceeds the limit of {limit} bytes") }
+fn too_large(field: &str, limit: usize) -> ApiError {
+    ApiError::TooLarge {
+        field: Some(field.to_string()),
+        message: format!("request body exceeds the limit of {limit} bytes"),
+    }
 }
 
 /// multipart/form-data: a `request` part (the JSON request without images) and parts
 /// `source_0` .. `source_{V-1}` holding the image files.
-async fn read_multipart(req: Request, limit: usize) -> Result<RenderRequest, ApiError> {
+async fn read_multipart<T: HasSources>(
+    req: Request,
+    limits: &Limits,
+    parse: impl FnOnce(&[u8]) -> Result<T, ApiError>,
+) -> Result<T, ApiError> {
+    let limit = limits.max_body_bytes;
     let mut multipart = Multipart::from_request(req, &()).await.map_err(|e| {
         ApiError::malformed(Some("content-type".to_string()), format!("invalid multipart request: {}", e.body_text()))
     })?;
     let mut request_json: Option<Bytes> = None;
     let mut images: BTreeMap<usize, Bytes> = BTreeMap::new();
     loop {
-        let field = multipart.next_field().await.map_err(|e| multipart_error(e, limit))?;
+        let field = multipart.next_field().await.map_err(|e| multipart_error(e, "body", limit))?;
         let Some(field) = field else { break };
         let name = field
             .name()
             .map(str::to_string)
-            .ok_or_else(|| ApiError::malformed(None, "multipart part without a name"))?;
-        let data = field.bytes().await.map_err(|e| multipart_error(e, limit))?;
+            .ok_or_else(|| ApiError::malformed(Some("body".to_string()), "multipart part without a name"))?;
+        let data = field.bytes().await.map_err(|e| multipart_error(e, &name, limit))?;
         if name == "request" {
+            check_json_size(&data, limits.max_json_bytes, Some("request"))?;
             if request_json.replace(data).is_some() {
                 return Err(ApiError::malformed(Some(name), "part sent twice"));
             }
@@ -81,9 +135,10 @@ async fn read_multipart(req: Request, limit: usize) -> Result<RenderRequest, Api
     }
     let json = request_json
         .ok_or_else(|| ApiError::malformed(Some("request".to_string()), "missing multipart part \"request\""))?;
-    let mut request = RenderRequest::from_json(&json, ImageMode::Parts)?;
+    let mut request = parse(&json)?;
+    let sources = request.sources_mut();
     for (index, data) in images {
-        let source = request.sources.get_mut(index).ok_or_else(|| {
+        let source = sources.get_mut(index).ok_or_else(|| {
             ApiError::malformed(
                 Some(format!("source_{index}")),
                 format!("part source_{index} has no matching entry in request.sources"),
@@ -102,11 +157,12 @@ fn source_index(name: &str) -> Option<usize> {
     digits.parse().ok().filter(|&i| i < MAX_SOURCE_PARTS)
 }
 
-fn multipart_error(e: axum::extract::multipart::MultipartError, limit: usize) -> ApiError {
+/// `field`: the part being read, or `body` between parts.
+fn multipart_error(e: axum::extract::multipart::MultipartError, field: &str, limit: usize) -> ApiError {
     if e.status() == StatusCode::PAYLOAD_TOO_LARGE {
-        too_large(None, limit)
+        too_large(field, limit)
     } else {
-        ApiError::malformed(None, format!("invalid multipart body: {}", e.body_text()))
+        ApiError::malformed(Some(field.to_string()), format!("invalid multipart body: {}", e.body_text()))
     }
 }
 

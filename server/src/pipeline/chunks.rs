@@ -6,7 +6,9 @@
 //! per-chunk statistics), so the output does not depend on the chunk size.
 
 use super::{Scene, SceneInputs};
-use crate::backend::{BackendError, BackendHandle, NamedTensors, Tensor};
+use futures_util::{stream, StreamExt, TryStreamExt};
+
+use crate::backend::{BackendError, NamedTensors, Tensor, Ticket};
 use crate::bundle::GraphKind;
 use crate::pipeline::rays::Rays;
 
@@ -42,9 +44,14 @@ pub struct RawView {
     pub opacity: Vec<f32>,
 }
 
+/// Renderer runs of one request queued at once. Two keep the executor busy while the previous
+/// chunk's outputs are copied out; more would only hold memory (the executor interleaves the
+/// chunks of concurrent requests round-robin, so queuing more does not buy a larger share).
+const CHUNKS_IN_FLIGHT: usize = 2;
+
 /// Runs the renderer over all rays, `chunk` rays at a time, and concatenates the outputs.
 pub async fn render_rays(
-    backend: &BackendHandle,
+    ticket: &Ticket,
     scene: &Scene,
     inputs: &SceneInputs,
     rays: &Rays,
@@ -54,16 +61,17 @@ pub async fn render_rays(
     let n = rays.len();
     let mut out =
         RawView { rgb: Vec::with_capacity(n * 3), depth: Vec::with_capacity(n), opacity: Vec::with_capacity(n) };
-    let mut start = 0;
-    while start < n {
-        let end = (start + chunk).min(n);
-        let r = end - start;
-        let feed = chunk_inputs(scene, inputs, rays, start, end, depth_range);
-        let mut outputs = backend.run(GraphKind::Renderer, feed).await?;
+    let ranges = (0..n).step_by(chunk.max(1)).map(|start| (start, (start + chunk).min(n)));
+    let mut runs = stream::iter(ranges)
+        .map(|(start, end)| {
+            let run = ticket.run(GraphKind::Renderer, chunk_inputs(scene, inputs, rays, start, end, depth_range));
+            async move { run.await.map(|outputs| (end - start, outputs)) }
+        })
+        .buffered(CHUNKS_IN_FLIGHT);
+    while let Some((r, mut outputs)) = runs.try_next().await? {
         out.rgb.extend_from_slice(&outputs.take("rgb", &[Some(r), Some(3)])?.data);
         out.depth.extend_from_slice(&outputs.take("depth", &[Some(r)])?.data);
         out.opacity.extend_from_slice(&outputs.take("opacity", &[Some(r)])?.data);
-        start = end;
     }
     Ok(out)
 }

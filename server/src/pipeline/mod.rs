@@ -15,12 +15,12 @@ pub mod volume;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use crate::backend::{BackendError, BackendHandle, Tensor};
+use crate::backend::{BackendError, BackendHandle, Tensor, Ticket};
 use crate::bundle::{Bundle, DepthNorm, GraphKind};
 use crate::camera::Camera;
 use crate::error::ApiError;
 use crate::image_io::{self, RgbF32};
-use crate::request::{Limits, ValidRequest};
+use crate::request::{Limits, ValidRequest, ValidScene};
 use chunks::{ChunkPolicy, RawView};
 
 /// Wall time per stage, in the order the stages ran.
@@ -98,23 +98,30 @@ impl From<BackendError> for ApiError {
     fn from(e: BackendError) -> Self {
         match e {
             BackendError::QueueFull => {
-                ApiError::Unavailable { message: "server busy: inference queue is full".into(), retry_after_secs: 5 }
+                ApiError::Unavailable { message: "server busy: inference queue is full".into(), retry_after_secs: 2 }
             }
+            // The handler's own timer normally fires first and knows the deadline; this is the
+            // executor noticing it between two graph runs.
+            BackendError::DeadlineExceeded => ApiError::DeadlineExceeded { ms: 0 },
             other => ApiError::Internal(other.to_string()),
         }
     }
 }
 
 impl Pipeline {
+    /// Admits a request to the inference executor until `deadline` (503 when it is full).
+    pub fn admit(&self, deadline: Instant) -> Result<Ticket, ApiError> {
+        Ok(self.backend.admit(deadline)?)
+    }
+
     fn inputs(&self) -> SceneInputs {
         let names = self.bundle.graph(GraphKind::Renderer).inputs.iter().map(|t| t.name.clone()).collect();
         SceneInputs { renderer_inputs: names }
     }
 
     /// Decodes the source images off the async runtime and stacks them padded.
-    pub async fn decode_sources(&self, req: &ValidRequest) -> Result<Tensor, ApiError> {
-        let sources: Vec<_> =
-            req.sources.iter().map(|(cam, bytes, field)| (cam.clone(), bytes.clone(), field.clone())).collect();
+    pub async fn decode_sources(&self, req: &ValidScene) -> Result<Tensor, ApiError> {
+        let sources = req.sources.clone();
         let background = req.background;
         let max_pixels = self.limits.max_source_pixels;
         let multiple = self.bundle.config.image_multiple;
@@ -132,6 +139,7 @@ impl Pipeline {
     /// Encoder and volume net over the source views.
     pub async fn build_scene(
         &self,
+        ticket: &Ticket,
         cameras: &[Camera],
         images: Tensor,
         near: f64,
@@ -139,9 +147,9 @@ impl Pipeline {
         timings: &mut Timings,
     ) -> Result<Scene, BackendError> {
         let config = &self.bundle.config;
-        let features = timings.time("encoder", encoder::run(&self.backend, config, &images)).await?;
+        let features = timings.time("encoder", encoder::run(ticket, config, &images)).await?;
         let volume =
-            timings.time("volume", volume::run(&self.backend, config, &features, &images, cameras, near, far)).await?;
+            timings.time("volume", volume::run(ticket, config, &features, &images, cameras, near, far)).await?;
         let intrinsics = cameras.iter().flat_map(|c| c.k.into_iter().flatten().map(|x| x as f32)).collect();
         let extrinsics = cameras.iter().flat_map(|c| c.w2c.into_iter().flatten().map(|x| x as f32)).collect();
         Ok(Scene {
@@ -159,6 +167,7 @@ impl Pipeline {
     /// memory budget).
     pub async fn render_view(
         &self,
+        ticket: &Ticket,
         scene: &Scene,
         target: &Camera,
         background: [f32; 3],
@@ -171,13 +180,13 @@ impl Pipeline {
         let inputs = self.inputs();
         let near_far = [scene.near as f32, scene.far as f32];
         let raw = match self.bundle.config.depth_norm {
-            DepthNorm::NearFar => chunks::render_rays(&self.backend, scene, &inputs, &rays, near_far, chunk).await?,
+            DepthNorm::NearFar => chunks::render_rays(ticket, scene, &inputs, &rays, near_far, chunk).await?,
             DepthNorm::ImageMinmax => {
                 // Depth does not depend on depth_range: a first pass gives the depth image whose
                 // min/max normalise the rectification queries of the colour pass.
-                let first = chunks::render_rays(&self.backend, scene, &inputs, &rays, near_far, chunk).await?;
+                let first = chunks::render_rays(ticket, scene, &inputs, &rays, near_far, chunk).await?;
                 let range = min_max(&first.depth).unwrap_or(near_far);
-                chunks::render_rays(&self.backend, scene, &inputs, &rays, range, chunk).await?
+                chunks::render_rays(ticket, scene, &inputs, &rays, range, chunk).await?
             }
         };
         timings.add("renderer", start.elapsed());
@@ -187,12 +196,22 @@ impl Pipeline {
         Ok(view)
     }
 
-    /// The whole request: decode, encoder, volume, renderer, assembly.
-    pub async fn render(&self, req: &ValidRequest, timings: &mut Timings) -> Result<View, ApiError> {
+    /// Decode, encoder, volume: the part of a request that a scene cache keeps.
+    pub async fn prepare_scene(
+        &self,
+        ticket: &Ticket,
+        req: &ValidScene,
+        timings: &mut Timings,
+    ) -> Result<Scene, ApiError> {
         let images = timings.time("decode", self.decode_sources(req)).await?;
-        let cameras: Vec<Camera> = req.sources.iter().map(|(c, _, _)| c.clone()).collect();
-        let scene = self.build_scene(&cameras, images, req.near, req.far, timings).await?;
-        Ok(self.render_view(&scene, &req.target, req.background, None, timings).await?)
+        Ok(self.build_scene(ticket, &req.cameras(), images, req.near, req.far, timings).await?)
+    }
+
+    /// The whole request: decode, encoder, volume, renderer, assembly. A cached scene goes
+    /// through exactly the same `render_view`, so its views are bit-identical to these.
+    pub async fn render(&self, ticket: &Ticket, req: &ValidRequest, timings: &mut Timings) -> Result<View, ApiError> {
+        let scene = self.prepare_scene(ticket, &req.scene, timings).await?;
+        Ok(self.render_view(ticket, &scene, &req.view.target, req.scene.background, None, timings).await?)
     }
 }
 
@@ -203,14 +222,15 @@ fn decode_one(
     background: [f32; 3],
     max_pixels: u64,
 ) -> Result<RgbF32, ApiError> {
-    let img = image_io::decode_source(bytes, field, background, max_pixels)?;
-    if (img.width, img.height) != (cam.width, cam.height) {
+    // The header alone tells the size: a mismatch is refused before anything is decoded.
+    let (_, width, height) = image_io::probe(bytes, field)?;
+    if (width, height) != (cam.width, cam.height) {
         return Err(ApiError::invalid(
             field.to_string(),
-            format!("image is {}x{} but its camera says {}x{}", img.width, img.height, cam.width, cam.height),
+            format!("image is {width}x{height} but its camera says {}x{}", cam.width, cam.height),
         ));
     }
-    Ok(img)
+    image_io::decode_source(bytes, field, background, max_pixels)
 }
 
 fn min_max(values: &[f32]) -> Option<[f32; 2]> {

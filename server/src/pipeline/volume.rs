@@ -1,6 +1,6 @@
 //! Stage 2: cost volume + 3D U-Net G2 -> encoding volume in the reference (first) view's frustum.
 
-use crate::backend::{BackendError, BackendHandle, Tensor};
+use crate::backend::{BackendError, Tensor, Ticket};
 use crate::bundle::{GraphKind, ModelConfig};
 use crate::camera::{mul4, Camera, Mat4};
 
@@ -33,7 +33,7 @@ pub fn depth_planes(near: f64, far: f64, d: usize) -> Tensor {
 
 /// features (V, C, h, w) + images + cameras -> volume (1, Cv, D, h + 2·pad, w + 2·pad).
 pub async fn run(
-    backend: &BackendHandle,
+    ticket: &Ticket,
     config: &ModelConfig,
     features: &Tensor,
     images: &Tensor,
@@ -48,7 +48,7 @@ pub async fn run(
         ("projections".to_string(), projections(cameras)),
         ("depth_planes".to_string(), depth_planes(near, far, config.depth_planes)),
     ];
-    let mut out = backend.run(GraphKind::Volume, inputs).await?;
+    let mut out = ticket.run(GraphKind::Volume, inputs).await?;
     let shape = [
         Some(1),
         Some(config.volume_channels),

@@ -1,0 +1,139 @@
+//! Prometheus metrics (`GET /metrics`, OpenMetrics text format) with `prometheus-client`.
+//!
+//! No global recorder: each `AppState` owns its `Metrics` (its own registry), so tests run
+//! side by side without sharing counters. Queue and cache figures are read from their owners at
+//! scrape time (a `Collector`), so they cannot drift from the truth.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use prometheus_client::collector::Collector;
+use prometheus_client::encoding::{DescriptorEncoder, EncodeLabelSet, EncodeMetric};
+use prometheus_client::metrics::counter::{ConstCounter, Counter};
+use prometheus_client::metrics::family::Family;
+use prometheus_client::metrics::gauge::ConstGauge;
+use prometheus_client::metrics::histogram::{exponential_buckets, Histogram};
+use prometheus_client::registry::{Registry, Unit};
+
+use crate::backend::BackendHandle;
+use crate::cache::SceneCache;
+use crate::pipeline::Timings;
+
+/// Content type of the exposition format written by `Metrics::render`.
+pub const CONTENT_TYPE: &str = "application/openmetrics-text; version=1.0.0; charset=utf-8";
+
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct RequestLabels {
+    /// The route template (`/v1/scenes/{id}/render`), never the raw path: bounded cardinality.
+    route: String,
+    method: String,
+    status: u16,
+}
+
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct RouteLabels {
+    route: String,
+}
+
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct StageLabels {
+    stage: String,
+}
+
+type HistogramFamily<L> = Family<L, Histogram, fn() -> Histogram>;
+
+/// Request latencies: 1 ms .. ~9 min in factors of 2 (CPU renders take seconds to minutes).
+fn latency_histogram() -> Histogram {
+    Histogram::new(exponential_buckets(0.001, 2.0, 20))
+}
+
+pub struct Metrics {
+    registry: Registry,
+    requests: Family<RequestLabels, Counter>,
+    request_seconds: HistogramFamily<RouteLabels>,
+    stage_seconds: HistogramFamily<StageLabels>,
+}
+
+impl Metrics {
+    pub fn new(backend: BackendHandle, scenes: Arc<SceneCache>) -> Metrics {
+        let mut registry = Registry::with_prefix("scnerf");
+        let requests = Family::<RequestLabels, Counter>::default();
+        registry.register("http_requests", "HTTP requests by route, method and status", requests.clone());
+        let request_seconds: HistogramFamily<RouteLabels> = Family::new_with_constructor(latency_histogram);
+        registry.register_with_unit(
+            "http_request_duration",
+            "HTTP request latency by route, until the response head",
+            Unit::Seconds,
+            request_seconds.clone(),
+        );
+        let stage_seconds: HistogramFamily<StageLabels> = Family::new_with_constructor(latency_histogram);
+        registry.register_with_unit(
+            "stage_duration",
+            "Render pipeline stage latency (decode, encoder, volume, renderer, assemble, encode)",
+            Unit::Seconds,
+            stage_seconds.clone(),
+        );
+        registry.register_collector(Box::new(StateCollector { backend, scenes }));
+        Metrics { registry, requests, request_seconds, stage_seconds }
+    }
+
+    pub fn observe_request(&self, route: &str, method: &str, status: u16, elapsed: Duration) {
+        let labels = RequestLabels { route: route.to_string(), method: method.to_string(), status };
+        self.requests.get_or_create(&labels).inc();
+        self.request_seconds.get_or_create(&RouteLabels { route: route.to_string() }).observe(elapsed.as_secs_f64());
+    }
+
+    /// Records the stages of a finished request (`total` is the request histogram's job).
+    pub fn observe_stages(&self, timings: &Timings) {
+        for (stage, d) in timings.0.iter().filter(|(s, _)| *s != "total") {
+            self.stage_seconds.get_or_create(&StageLabels { stage: stage.to_string() }).observe(d.as_secs_f64());
+        }
+    }
+
+    pub fn render(&self) -> String {
+        let mut out = String::new();
+        // Writing into a String cannot fail.
+        let _ = prometheus_client::encoding::text::encode(&mut out, &self.registry);
+        out
+    }
+}
+
+/// Executor queue and scene cache figures, read at scrape time.
+struct StateCollector {
+    backend: BackendHandle,
+    scenes: Arc<SceneCache>,
+}
+
+impl std::fmt::Debug for StateCollector {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("StateCollector")
+    }
+}
+
+fn gauge(encoder: &mut DescriptorEncoder, name: &str, help: &str, value: i64) -> Result<(), std::fmt::Error> {
+    let metric = ConstGauge::new(value);
+    metric.encode(encoder.encode_descriptor(name, help, None, metric.metric_type())?)
+}
+
+fn counter(encoder: &mut DescriptorEncoder, name: &str, help: &str, value: u64) -> Result<(), std::fmt::Error> {
+    let metric = ConstCounter::new(value);
+    metric.encode(encoder.encode_descriptor(name, help, None, metric.metric_type())?)
+}
+
+impl Collector for StateCollector {
+    fn encode(&self, mut e: DescriptorEncoder) -> Result<(), std::fmt::Error> {
+        let q = self.backend.stats();
+        let c = self.scenes.stats();
+        let n = |v: usize| i64::try_from(v).unwrap_or(i64::MAX);
+        gauge(&mut e, "inference_queue_requests", "Requests admitted to the inference executor", n(q.admitted))?;
+        gauge(&mut e, "inference_queue_jobs", "Graph runs waiting for the inference executor", n(q.queued_jobs))?;
+        gauge(&mut e, "inference_queue_capacity", "Requests the executor admits at once", n(q.capacity))?;
+        gauge(&mut e, "scene_cache_entries", "Scenes in the cache", n(c.entries))?;
+        gauge(&mut e, "scene_cache_bytes", "Memory held by cached scenes", n(c.bytes))?;
+        counter(&mut e, "scene_cache_hits", "Scene lookups that found the scene", c.hits)?;
+        counter(&mut e, "scene_cache_misses", "Scene lookups for unknown, expired or other clients' scenes", c.misses)?;
+        counter(&mut e, "scene_cache_evictions", "Scenes evicted to stay within the byte limit", c.evictions)?;
+        counter(&mut e, "scene_cache_expirations", "Scenes dropped after their idle TTL", c.expirations)?;
+        Ok(())
+    }
+}

@@ -1,0 +1,125 @@
+//! Helpers shared by the router-level test files (driven with `tower::ServiceExt::oneshot`).
+#![allow(dead_code)] // each test file uses a different subset
+
+use axum::body::{Body, Bytes};
+use axum::http::{HeaderMap, Request, StatusCode};
+use axum::Router;
+use base64::Engine;
+use http_body_util::BodyExt;
+use scnerf_server::testing::{png, request_json};
+use serde_json::{json, Value};
+use tower::ServiceExt;
+
+pub const BOUNDARY: &str = "XtestBoundaryX";
+
+pub type Got = (StatusCode, HeaderMap, Bytes);
+
+pub async fn send(app: Router, req: Request<Body>) -> Got {
+    let resp = app.oneshot(req).await.expect("infallible");
+    let status = resp.status();
+    let headers = resp.headers().clone();
+    let body = resp.into_body().collect().await.unwrap().to_bytes();
+    (status, headers, body)
+}
+
+/// Asserts DESIGN.md's error body with the given status, code and field.
+pub fn assert_error(got: &Got, status: u16, code: &str, field: Option<&str>) {
+    let (s, headers, body) = got;
+    let text = String::from_utf8_lossy(body);
+    assert_eq!(s.as_u16(), status, "body: {text}");
+    assert_eq!(headers["content-type"], "application/json", "{text}");
+    let v: Value = serde_json::from_slice(body).unwrap_or_else(|_| panic!("not JSON: {text}"));
+    assert_eq!(v["error"]["code"], code, "{text}");
+    assert!(v["error"]["message"].as_str().is_some_and(|m| !m.is_empty()), "{text}");
+    match field {
+        Some(f) => assert_eq!(v["error"]["field"], f, "{text}"),
+        None => assert!(v["error"]["field"].is_null(), "{text}"),
+    }
+}
+
+pub fn json_of(got: &Got) -> Value {
+    serde_json::from_slice(&got.2).unwrap_or_else(|_| panic!("not JSON: {}", String::from_utf8_lossy(&got.2)))
+}
+
+pub fn multipart_body(parts: &[(&str, &[u8])]) -> Vec<u8> {
+    let mut body = Vec::new();
+    for (name, data) in parts {
+        body.extend_from_slice(
+            format!("--{BOUNDARY}\r\nContent-Disposition: form-data; name=\"{name}\"; filename=\"{name}\"\r\n\r\n")
+                .as_bytes(),
+        );
+        body.extend_from_slice(data);
+        body.extend_from_slice(b"\r\n");
+    }
+    body.extend_from_slice(format!("--{BOUNDARY}--\r\n").as_bytes());
+    body
+}
+
+pub fn multipart_to(path: &str, parts: &[(&str, &[u8])], headers: &[(&str, &str)]) -> Request<Body> {
+    let mut b = Request::post(path).header("content-type", format!("multipart/form-data; boundary={BOUNDARY}"));
+    for (k, v) in headers {
+        b = b.header(*k, *v);
+    }
+    b.body(Body::from(multipart_body(parts))).unwrap()
+}
+
+pub fn images(size: u32) -> Vec<Vec<u8>> {
+    (0..3).map(|i| png(size, size, [40 * i as u8, 100, 200, 255])).collect()
+}
+
+/// A multipart request to `path` with the given request JSON and three images of `size`.
+pub fn multipart_with(path: &str, request: &Value, size: u32, headers: &[(&str, &str)]) -> Request<Body> {
+    let json = serde_json::to_vec(request).unwrap();
+    let imgs = images(size);
+    let parts: [(&str, &[u8]); 4] =
+        [("request", &json), ("source_0", &imgs[0]), ("source_1", &imgs[1]), ("source_2", &imgs[2])];
+    multipart_to(path, &parts, headers)
+}
+
+pub fn json_to(path: &str, body: &Value, headers: &[(&str, &str)]) -> Request<Body> {
+    raw_to("POST", path, "application/json", serde_json::to_vec(body).unwrap(), headers)
+}
+
+pub fn raw_to(method: &str, path: &str, ctype: &str, body: Vec<u8>, headers: &[(&str, &str)]) -> Request<Body> {
+    let mut b = Request::builder().method(method).uri(path).header("content-type", ctype);
+    for (k, v) in headers {
+        b = b.header(*k, *v);
+    }
+    b.body(Body::from(body)).unwrap()
+}
+
+pub fn get(path: &str, headers: &[(&str, &str)]) -> Request<Body> {
+    let mut b = Request::get(path);
+    for (k, v) in headers {
+        b = b.header(*k, *v);
+    }
+    b.body(Body::empty()).unwrap()
+}
+
+pub fn b64(data: &[u8]) -> String {
+    base64::engine::general_purpose::STANDARD.encode(data)
+}
+
+/// DESIGN.md's JSON body: the request with base64 images.
+pub fn json_with_images(size: u32) -> Value {
+    let mut v = request_json(size);
+    for (i, img) in images(size).iter().enumerate() {
+        v["sources"][i]["image"] = json!(b64(img));
+    }
+    v
+}
+
+/// The scene part of `request_json` (no target, no outputs).
+pub fn scene_json(size: u32) -> Value {
+    let mut v = request_json(size);
+    let obj = v.as_object_mut().unwrap();
+    obj.remove("target");
+    obj.remove("outputs");
+    v
+}
+
+/// The view part of `request_json`.
+pub fn target_json(size: u32) -> Value {
+    let v = request_json(size);
+    json!({"target": v["target"], "outputs": v["outputs"]})
+}

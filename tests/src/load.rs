@@ -1,0 +1,313 @@
+//! A bounded load generator for the scene-render endpoint (used by `src/bin/loadgen.rs` and its
+//! smoke test). Plain threads and the blocking HTTP/1.1 client of this crate: nothing new to
+//! compile, and at the request rates a CPU renderer sustains, threads are cheap enough.
+//!
+//! Two modes: closed loop (N workers, each sends its next request when the previous one is
+//! answered: measures the sustainable throughput) and open loop (requests start at a fixed rate
+//! whatever the answers: shows what overload does). Open loop never has more than
+//! `max_in_flight` requests outstanding (that is what keeps the generator bounded); a start it
+//! skips for that reason is counted, not hidden.
+
+use std::collections::BTreeMap;
+use std::net::SocketAddr;
+use std::path::Path;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use serde_json::{json, Value};
+
+use crate::{http_request, multipart, HttpResponse};
+
+/// What one request of the load sends.
+#[derive(Debug, Clone)]
+pub struct Scenario {
+    pub addr: SocketAddr,
+    pub token: Option<String>,
+    /// `/v1/scenes/{id}/render`.
+    pub path: String,
+    /// The JSON `{"target", "outputs"}` body.
+    pub body: Vec<u8>,
+    pub timeout: Duration,
+}
+
+#[derive(Debug, Clone, Copy)]
+pub enum Mode {
+    Closed { concurrency: usize },
+    Open { rate: f64, max_in_flight: usize },
+}
+
+/// One request: when it started (since the run began), how long it took, and its status
+/// (`None`: no HTTP answer: connection refused, reset or timed out).
+#[derive(Debug, Clone, Copy)]
+pub struct Sample {
+    pub started: Duration,
+    pub latency: Duration,
+    pub status: Option<u16>,
+}
+
+fn auth_header(token: &Option<String>) -> Option<String> {
+    token.as_ref().map(|t| format!("Bearer {t}"))
+}
+
+impl Scenario {
+    fn send(&self) -> std::io::Result<HttpResponse> {
+        let auth = auth_header(&self.token);
+        let mut headers = vec![("content-type", "application/json")];
+        if let Some(a) = &auth {
+            headers.push(("authorization", a.as_str()));
+        }
+        http_request(self.addr, "POST", &self.path, &headers, &self.body, self.timeout)
+    }
+
+    fn sample(&self, run_start: Instant) -> Sample {
+        let t0 = Instant::now();
+        let status = self.send().ok().map(|r| r.status);
+        Sample { started: t0 - run_start, latency: t0.elapsed(), status }
+    }
+}
+
+/// The outcome of a run.
+#[derive(Debug, Default)]
+pub struct Outcome {
+    pub samples: Vec<Sample>,
+    /// Open loop: starts skipped because `max_in_flight` requests were outstanding.
+    pub skipped: usize,
+    pub elapsed: Duration,
+}
+
+/// Drives the scenario for `duration`, then waits for the requests still outstanding.
+pub fn run(scenario: &Scenario, mode: Mode, duration: Duration) -> Outcome {
+    let start = Instant::now();
+    let samples = Arc::new(Mutex::new(Vec::new()));
+    let skipped = match mode {
+        Mode::Closed { concurrency } => {
+            closed_loop(scenario, concurrency, start, duration, &samples);
+            0
+        }
+        Mode::Open { rate, max_in_flight } => open_loop(scenario, rate, max_in_flight, start, duration, &samples),
+    };
+    let samples = std::mem::take(&mut *samples.lock().unwrap());
+    Outcome { samples, skipped, elapsed: start.elapsed() }
+}
+
+fn closed_loop(
+    scenario: &Scenario,
+    concurrency: usize,
+    start: Instant,
+    duration: Duration,
+    out: &Arc<Mutex<Vec<Sample>>>,
+) {
+    let workers: Vec<_> = (0..concurrency.max(1))
+        .map(|_| {
+            let (scenario, out) = (scenario.clone(), out.clone());
+            std::thread::spawn(move || {
+                while start.elapsed() < duration {
+                    let s = scenario.sample(start);
+                    out.lock().unwrap().push(s);
+                }
+            })
+        })
+        .collect();
+    for w in workers {
+        let _ = w.join();
+    }
+}
+
+fn open_loop(
+    scenario: &Scenario,
+    rate: f64,
+    max_in_flight: usize,
+    start: Instant,
+    duration: Duration,
+    out: &Arc<Mutex<Vec<Sample>>>,
+) -> usize {
+    let interval = Duration::from_secs_f64(1.0 / rate.max(1e-3));
+    let in_flight = Arc::new(AtomicUsize::new(0));
+    let mut handles = Vec::new();
+    let mut skipped = 0;
+    let mut next = Duration::ZERO;
+    while next < duration {
+        if let Some(wait) = next.checked_sub(start.elapsed()) {
+            std::thread::sleep(wait);
+        }
+        next += interval;
+        if in_flight.load(Ordering::SeqCst) >= max_in_flight {
+            skipped += 1;
+            continue;
+        }
+        in_flight.fetch_add(1, Ordering::SeqCst);
+        let (scenario, out, in_flight) = (scenario.clone(), out.clone(), in_flight.clone());
+        handles.push(std::thread::spawn(move || {
+            let s = scenario.sample(start);
+            out.lock().unwrap().push(s);
+            in_flight.fetch_sub(1, Ordering::SeqCst);
+        }));
+        handles.retain(|h| !h.is_finished());
+    }
+    for h in handles {
+        let _ = h.join();
+    }
+    skipped
+}
+
+/// Latency percentile (nearest rank) of sorted durations.
+pub fn percentile(sorted: &[Duration], p: f64) -> Option<Duration> {
+    if sorted.is_empty() {
+        return None;
+    }
+    let rank = ((p / 100.0) * sorted.len() as f64).ceil() as usize;
+    Some(sorted[rank.clamp(1, sorted.len()) - 1])
+}
+
+/// Figures of a run.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct Report {
+    pub requests: usize,
+    pub elapsed_s: f64,
+    /// 200 answers per second.
+    pub throughput_rps: f64,
+    /// Status -> count; transport failures under "error".
+    pub statuses: BTreeMap<String, usize>,
+    pub skipped_starts: usize,
+    pub latency_ok_ms: Percentiles,
+    pub latency_all_ms: Percentiles,
+}
+
+#[derive(Debug, Clone, Default, serde::Serialize)]
+pub struct Percentiles {
+    pub p50: Option<f64>,
+    pub p95: Option<f64>,
+    pub p99: Option<f64>,
+    pub max: Option<f64>,
+}
+
+fn percentiles(mut latencies: Vec<Duration>) -> Percentiles {
+    latencies.sort();
+    let ms = |d: Option<Duration>| d.map(|d| (d.as_secs_f64() * 1e4).round() / 10.0);
+    Percentiles {
+        p50: ms(percentile(&latencies, 50.0)),
+        p95: ms(percentile(&latencies, 95.0)),
+        p99: ms(percentile(&latencies, 99.0)),
+        max: ms(latencies.last().copied()),
+    }
+}
+
+impl Report {
+    pub fn new(outcome: &Outcome) -> Report {
+        let mut statuses = BTreeMap::new();
+        for s in &outcome.samples {
+            let key = s.status.map_or("error".to_string(), |c| c.to_string());
+            *statuses.entry(key).or_insert(0) += 1;
+        }
+        let ok: Vec<Duration> = outcome.samples.iter().filter(|s| s.status == Some(200)).map(|s| s.latency).collect();
+        let elapsed = outcome.elapsed.as_secs_f64();
+        Report {
+            requests: outcome.samples.len(),
+            elapsed_s: (elapsed * 100.0).round() / 100.0,
+            throughput_rps: ((ok.len() as f64 / elapsed.max(1e-9)) * 1000.0).round() / 1000.0,
+            statuses,
+            skipped_starts: outcome.skipped,
+            latency_ok_ms: percentiles(ok),
+            latency_all_ms: percentiles(outcome.samples.iter().map(|s| s.latency).collect()),
+        }
+    }
+
+    /// Statuses outside `allowed` (transport errors count as "error").
+    pub fn unexpected(&self, allowed: &[u16]) -> Vec<String> {
+        self.statuses.keys().filter(|k| !k.parse::<u16>().is_ok_and(|c| allowed.contains(&c))).cloned().collect()
+    }
+}
+
+/// `VmHWM` (peak resident set) and `VmRSS` of a process, in KiB, from /proc (Linux).
+pub fn memory_kib(pid: u32) -> Option<(u64, u64)> {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    let field = |name: &str| {
+        status.lines().find_map(|l| l.strip_prefix(name)?.trim().strip_suffix("kB")?.trim().parse::<u64>().ok())
+    };
+    Some((field("VmHWM:")?, field("VmRSS:")?))
+}
+
+/// A test case directory (`request.json` + `source_{i}.png`, like the parity fixtures).
+pub struct Case {
+    pub request: Value,
+    pub images: Vec<Vec<u8>>,
+}
+
+impl Case {
+    pub fn load(dir: &Path) -> std::io::Result<Case> {
+        let request =
+            serde_json::from_slice(&std::fs::read(dir.join("request.json"))?).map_err(std::io::Error::other)?;
+        let images = (0..3).map(|i| std::fs::read(dir.join(format!("source_{i}.png")))).collect::<Result<_, _>>()?;
+        Ok(Case { request, images })
+    }
+
+    /// Creates the case's scene on the server; returns its id.
+    pub fn create_scene(&self, addr: SocketAddr, token: &Option<String>) -> Result<String, String> {
+        let mut scene = self.request.clone();
+        let obj = scene.as_object_mut().ok_or("request.json is not an object")?;
+        obj.remove("target");
+        obj.remove("outputs");
+        let json = serde_json::to_vec(&scene).map_err(|e| e.to_string())?;
+        let names = ["source_0", "source_1", "source_2"];
+        let mut parts: Vec<(&str, Option<&str>, &str, &[u8])> = vec![("request", None, "application/json", &json)];
+        parts
+            .extend(names.iter().zip(&self.images).map(|(n, img)| (*n, Some("view.png"), "image/png", img.as_slice())));
+        let (ctype, body) = multipart(&parts);
+        let auth = auth_header(token);
+        let mut headers = vec![("content-type", ctype.as_str())];
+        if let Some(a) = &auth {
+            headers.push(("authorization", a.as_str()));
+        }
+        let r = http_request(addr, "POST", "/v1/scenes", &headers, &body, Duration::from_secs(600))
+            .map_err(|e| format!("POST /v1/scenes: {e}"))?;
+        if r.status != 201 {
+            return Err(format!("POST /v1/scenes: {} {}", r.status, String::from_utf8_lossy(&r.body)));
+        }
+        let v: Value = serde_json::from_slice(&r.body).map_err(|e| e.to_string())?;
+        v["scene_id"].as_str().map(str::to_string).ok_or_else(|| "no scene_id in the answer".into())
+    }
+
+    /// The case's target camera resized to `size` x `size` (intrinsics scaled so that pixel
+    /// centres stay at integer coordinates), as a scene-render body asking for RGB.
+    pub fn view_body(&self, size: u32) -> Vec<u8> {
+        let mut target = self.request["target"].clone();
+        let (w, h) = (target["width"].as_f64().unwrap_or(1.0), target["height"].as_f64().unwrap_or(1.0));
+        let (sx, sy) = (f64::from(size) / w, f64::from(size) / h);
+        let i = &mut target["intrinsics"];
+        if let (Some(fx), Some(fy), Some(cx), Some(cy)) =
+            (i["fx"].as_f64(), i["fy"].as_f64(), i["cx"].as_f64(), i["cy"].as_f64())
+        {
+            *i = json!({"fx": fx * sx, "fy": fy * sy, "cx": (cx + 0.5) * sx - 0.5, "cy": (cy + 0.5) * sy - 0.5});
+        }
+        target["width"] = json!(size);
+        target["height"] = json!(size);
+        serde_json::to_vec(&json!({"target": target, "outputs": ["rgb"]})).unwrap_or_default()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn nearest_rank_percentiles() {
+        let d: Vec<Duration> = (1..=100).map(Duration::from_millis).collect();
+        assert_eq!(percentile(&d, 50.0), Some(Duration::from_millis(50)));
+        assert_eq!(percentile(&d, 99.0), Some(Duration::from_millis(99)));
+        assert_eq!(percentile(&d[..1], 95.0), Some(Duration::from_millis(1)));
+        assert_eq!(percentile(&[], 50.0), None);
+    }
+
+    #[test]
+    fn report_counts_statuses() {
+        let s = |status| Sample { started: Duration::ZERO, latency: Duration::from_millis(10), status };
+        let outcome =
+            Outcome { samples: vec![s(Some(200)), s(Some(503)), s(None)], skipped: 2, elapsed: Duration::from_secs(1) };
+        let r = Report::new(&outcome);
+        assert_eq!(r.requests, 3);
+        assert_eq!(r.throughput_rps, 1.0);
+        assert_eq!(r.statuses["error"], 1);
+        assert_eq!(r.unexpected(&[200, 429, 503]), vec!["error".to_string()]);
+    }
+}

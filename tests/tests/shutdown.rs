@@ -1,0 +1,115 @@
+//! Graceful shutdown of the real binary: SIGTERM while a render is in flight. The server stops
+//! accepting connections, finishes the request (the client gets its 200), and exits 0; past the
+//! grace period it exits 0 without waiting further.
+
+use std::path::PathBuf;
+use std::process::ExitStatus;
+use std::time::{Duration, Instant};
+
+use scnerf_e2e::{http_request, multipart, repo_root, server_binary, HttpResponse, ServerProcess};
+
+fn fixtures() -> PathBuf {
+    repo_root().join("tests/fixtures/parity")
+}
+
+/// The first parity case as a multipart render request (96x64 target, a few seconds of CPU).
+fn render_body() -> (String, Vec<u8>) {
+    let case = fixtures().join("cases/opencv_64x96");
+    let json = std::fs::read(case.join("request.json")).expect("parity fixtures are committed");
+    let images: Vec<Vec<u8>> = (0..3).map(|i| std::fs::read(case.join(format!("source_{i}.png"))).unwrap()).collect();
+    let mut request: serde_json::Value = serde_json::from_slice(&json).unwrap();
+    request["outputs"] = serde_json::json!(["rgb"]);
+    let json = serde_json::to_vec(&request).unwrap();
+    let names = ["source_0", "source_1", "source_2"];
+    let mut parts: Vec<(&str, Option<&str>, &str, &[u8])> = vec![("request", None, "application/json", &json)];
+    parts.extend(names.iter().zip(&images).map(|(n, img)| (*n, Some("view.png"), "image/png", img.as_slice())));
+    multipart(&parts)
+}
+
+fn start(grace_secs: &str) -> ServerProcess {
+    let bundle = fixtures().join("bundle");
+    let bundle = bundle.to_str().unwrap();
+    let mut server = ServerProcess::start(
+        &server_binary(),
+        &["--bundle", bundle, "--skip-warmup", "--shutdown-grace-secs", grace_secs],
+    );
+    server.wait_ready(Duration::from_secs(120));
+    server
+}
+
+/// Sends the render on another thread; returns once the server has admitted it.
+fn render_in_flight(server: &ServerProcess) -> std::thread::JoinHandle<std::io::Result<HttpResponse>> {
+    let addr = server.addr;
+    let client = std::thread::spawn(move || {
+        let (ctype, body) = render_body();
+        http_request(addr, "POST", "/v1/render", &[("content-type", &ctype)], &body, Duration::from_secs(600))
+    });
+    let start = Instant::now();
+    loop {
+        let metrics = http_request(addr, "GET", "/metrics", &[], b"", Duration::from_secs(10)).unwrap();
+        if String::from_utf8_lossy(&metrics.body).lines().any(|l| l == "scnerf_inference_queue_requests 1") {
+            return client;
+        }
+        assert!(start.elapsed() < Duration::from_secs(60), "the render was never admitted");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+fn sigterm(server: &ServerProcess) {
+    let pid = libc::pid_t::try_from(server.child.id()).unwrap();
+    // SAFETY: kill(2) with a valid signal number on our own child process.
+    assert_eq!(unsafe { libc::kill(pid, libc::SIGTERM) }, 0);
+}
+
+fn wait_exit(server: &mut ServerProcess, timeout: Duration) -> ExitStatus {
+    let start = Instant::now();
+    loop {
+        if let Some(status) = server.child.try_wait().unwrap() {
+            return status;
+        }
+        assert!(start.elapsed() < timeout, "the server did not exit within {timeout:?} of SIGTERM");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+#[test]
+fn sigterm_finishes_the_request_in_flight_and_exits_0() {
+    let mut server = start("300");
+    let client = render_in_flight(&server);
+    let signalled = Instant::now();
+    sigterm(&server);
+
+    // No new connections once the signal is handled (the render is still running).
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while http_request(server.addr, "GET", "/healthz", &[], b"", Duration::from_secs(2)).is_ok() {
+        assert!(Instant::now() < deadline, "still accepting connections after SIGTERM");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    assert!(server.child.try_wait().unwrap().is_none(), "exited before finishing the request in flight");
+
+    let response = client.join().unwrap().expect("the request in flight is answered");
+    assert_eq!(response.status, 200, "{}", String::from_utf8_lossy(&response.body));
+    let png = image::load_from_memory(&response.body).expect("a PNG");
+    assert_eq!((png.width(), png.height()), (96, 64));
+    let status = wait_exit(&mut server, Duration::from_secs(60));
+    assert_eq!(status.code(), Some(0), "{status}");
+    eprintln!("request answered and server exited {:?} after SIGTERM", signalled.elapsed());
+}
+
+#[test]
+fn past_the_grace_period_the_server_exits_0_anyway() {
+    let mut server = start("1");
+    let client = render_in_flight(&server);
+    let signalled = Instant::now();
+    sigterm(&server);
+    let status = wait_exit(&mut server, Duration::from_secs(30));
+    assert_eq!(status.code(), Some(0), "{status}");
+    let took = signalled.elapsed();
+    // The render alone takes several seconds here; the exit must not have waited for it.
+    let response = client.join().unwrap();
+    assert!(response.is_err() || response.as_ref().is_ok_and(|r| r.status == 200), "{response:?}");
+    eprintln!(
+        "exited {took:?} after SIGTERM with a 1 s grace period ({})",
+        if response.is_err() { "request cut" } else { "request had finished" }
+    );
+}
