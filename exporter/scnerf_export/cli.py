@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
@@ -23,6 +24,8 @@ def cmd_export(args) -> None:
     from .export import export_bundle
 
     model, provenance = load_checkpoint(args.checkpoint)
+    if args.metrics:
+        provenance["metrics"] = json.loads(args.metrics.read_text())
     manifest = export_bundle(model, args.out, provenance)
     print(f"wrote {args.out} ({manifest['model_id']})")
 
@@ -72,6 +75,31 @@ def cmd_train(args) -> None:
     print(f"checkpoint {last}")
 
 
+def cmd_quantize(args) -> None:
+    import json
+
+    from .precision import compare_bundles, procedural_cases, quantize_bundle
+
+    graphs = tuple(g.strip() for g in args.graphs.split(",") if g.strip())
+    manifest = quantize_bundle(args.bundle, args.out, args.precision, graphs=graphs, min_inner=args.min_inner)
+    print(f"wrote {args.out} ({manifest['model_id']}, {args.precision}: {', '.join(graphs)})")
+    if args.compare:
+        width, height = (int(x) for x in args.compare_size.lower().split("x"))
+        report = compare_bundles(args.bundle, args.out, procedural_cases(args.compare, width, height),
+                                 threads=args.threads)
+        for row in report["rows"]:
+            print(f"{row['case']:>22}  fp32 {row['psnr_fp32']:6.2f} dB  {args.precision} {row['psnr_candidate']:6.2f} dB"
+                  f"  drop {row['psnr_drop']:+.3f} dB  renderer {row['renderer_seconds_fp32']:.2f} s -> "
+                  f"{row['renderer_seconds_candidate']:.2f} s")
+        verdict = "offer" if report["offer"] else "do not offer"
+        print(f"mean PSNR drop {report['psnr_drop_db']:+.3f} dB, renderer speed-up x{report['renderer_speedup']:.2f}: "
+              f"{verdict} ({report['rule']})")
+        if args.json:
+            args.json.parent.mkdir(parents=True, exist_ok=True)
+            args.json.write_text(json.dumps(report, indent=2, default=float) + "\n")
+            print(f"wrote {args.json}")
+
+
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="scnerf-export", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
@@ -84,6 +112,7 @@ def parser() -> argparse.ArgumentParser:
     e = sub.add_parser("export", help="checkpoint (project or MVSNeRF) -> bundle")
     e.add_argument("--checkpoint", required=True, type=Path)
     e.add_argument("--out", required=True, type=Path)
+    e.add_argument("--metrics", type=Path, help="JSON of measured metrics for the manifest's provenance")
     e.set_defaults(func=cmd_export)
 
     f = sub.add_parser("fixtures", help="parity fixtures for the Rust tests (random small model)")
@@ -131,6 +160,19 @@ def parser() -> argparse.ArgumentParser:
     t.add_argument("--cache", type=Path, help="procedural scene cache (default OUT/cache)")
     t.add_argument("--threads", type=int)
     t.set_defaults(func=cmd_train)
+
+    q = sub.add_parser("quantize", help="float32 bundle -> int8 or fp16 bundle (renderer MatMuls), PSNR check")
+    q.add_argument("--bundle", required=True, type=Path, help="float32 bundle")
+    q.add_argument("--out", required=True, type=Path)
+    q.add_argument("--precision", required=True, choices=["int8", "fp16"])
+    q.add_argument("--graphs", default="renderer", help="comma-separated: renderer (default), volume")
+    q.add_argument("--min-inner", type=int, default=16, help="convert only products with inner size >= this")
+    q.add_argument("--compare", type=int, default=0, metavar="N",
+                   help="render N held-out procedural views through both bundles and report the PSNR drop")
+    q.add_argument("--compare-size", default="160x128")
+    q.add_argument("--threads", type=int)
+    q.add_argument("--json", type=Path, help="write the comparison here")
+    q.set_defaults(func=cmd_quantize)
     return p
 
 

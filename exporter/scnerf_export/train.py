@@ -101,7 +101,13 @@ def validate(model: SCNeRF, examples, out_dir: Path, step: int) -> dict:
 def hardware() -> str:
     if torch.cuda.is_available():
         return f"CUDA {torch.cuda.get_device_name(0)}"
-    return f"CPU {platform.processor() or platform.machine()}, {torch.get_num_threads()} threads"
+    model = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as f:
+            model = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    return f"CPU {model}, {torch.get_num_threads()} threads of {os.cpu_count()}"
 
 
 def train(variant: str, preset_name: str, out_dir: str | Path, resume: bool = False, steps: int | None = None,

@@ -12,10 +12,9 @@
 //!   (r_63.png composited on white) is box-averaged by the same factor;
 //! * PSNR over all pixels of the 8-bit PNG against the float ground truth.
 //!
-//! The bundle is `SCNERF_E2E_BUNDLE` or the default bundle (<repo>/bundles/default). If
-//! `<bundle>/eval/lego.json` holds the exporter's PSNR for r_63, the server's must be within
-//! 0.1 dB of it; otherwise the PSNR must be finite and above 10 dB, and is printed.
-//! The test is skipped, with a message, when ../shared (the dataset) or the bundle is absent.
+//! The bundle is `SCNERF_E2E_BUNDLE` or the committed default bundle (<repo>/bundles/default);
+//! `<bundle>/eval/lego.json` holds the exporter's PSNR for r_63 and the server's must be within
+//! 0.1 dB of it. The test is skipped, with a message, only when ../shared (the dataset) is absent.
 
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
@@ -94,13 +93,15 @@ fn lego_r63_psnr() {
         eprintln!("SKIPPED lego end-to-end test: dataset not found at {} (../shared is absent)", lego.display());
         return;
     }
-    if !bundle.join("manifest.json").is_file() {
-        eprintln!(
-            "SKIPPED lego end-to-end test: no bundle at {} (set SCNERF_E2E_BUNDLE or create the default bundle)",
+    // The default bundle is committed: its absence is a failure, not a skip.
+    assert!(bundle.join("manifest.json").is_file(), "no bundle at {}", bundle.display());
+    let reference = reference_psnr(&bundle).unwrap_or_else(|| {
+        panic!(
+            "{}/eval/lego.json is missing: write it with `scnerf-export eval --scene ../shared/data/nerf_synthetic_lego \
+             --format blender --targets r_63 --target-scale 0.25 --bundle B --json B/eval/lego.json`",
             bundle.display()
-        );
-        return;
-    }
+        )
+    });
     let scale = target_scale();
     let factor = (1.0 / scale).round() as usize;
     assert!((scale * factor as f64 - 1.0).abs() < 1e-9, "SCNERF_E2E_TARGET_SCALE must be 1/n");
@@ -153,15 +154,9 @@ fn lego_r63_psnr() {
         elapsed.as_secs_f64(),
         resp.header("server-timing").unwrap_or("-")
     );
-    assert!(score.is_finite());
-    match reference_psnr(&bundle) {
-        Some(reference) => {
-            eprintln!("scnerf-export eval PSNR for {TARGET}: {reference:.3} dB");
-            assert!(
-                (score - reference).abs() <= 0.1,
-                "server PSNR {score:.3} dB vs exporter {reference:.3} dB: more than 0.1 dB apart"
-            );
-        }
-        None => assert!(score > 10.0, "PSNR {score:.3} dB is implausibly low"),
-    }
+    eprintln!("scnerf-export eval PSNR for {TARGET}: {reference:.3} dB");
+    assert!(
+        (score - reference).abs() <= 0.1,
+        "server PSNR {score:.3} dB vs exporter {reference:.3} dB: more than 0.1 dB apart"
+    );
 }
