@@ -32,7 +32,7 @@ def write_example(out_dir: str | Path, seed: int = VAL_SEED0 + 4242, layout: str
     Image.fromarray((target.image * 255).round().astype(np.uint8)).save(out / "target_truth.png")
     request = {"sources": [{"camera": camera_json(scene.views[i].camera)} for i in sources],
                "target": camera_json(target.camera), "near": float(scene.near), "far": float(scene.far),
-               "background": [0.0, 0.0, 0.0], "outputs": ["rgb", "depth"]}
+               "background": [0.0, 0.0, 0.0], "outputs": ["rgb"]}
     (out / "request.json").write_text(json.dumps(request, indent=2) + "\n")
     (out / "README.md").write_text(
         f"Procedural scene (layout `{layout}`, seed {seed}, a validation seed: never trained on), rendered by\n"
