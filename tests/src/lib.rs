@@ -94,6 +94,22 @@ fn dechunk(mut data: &[u8]) -> std::io::Result<Vec<u8>> {
 }
 
 /// multipart/form-data body from (name, filename, content type, bytes) parts.
+/// POSTs a render body to /v1/render asking for a PNG; panics unless a 200 `image/png` comes back.
+pub fn post_render_png(addr: SocketAddr, content_type: &str, body: &[u8], timeout: Duration) -> HttpResponse {
+    let resp = http_request(
+        addr,
+        "POST",
+        "/v1/render",
+        &[("Content-Type", content_type), ("Accept", "image/png")],
+        body,
+        timeout,
+    )
+    .expect("render request");
+    assert_eq!(resp.status, 200, "{}", String::from_utf8_lossy(&resp.body));
+    assert_eq!(resp.header("content-type"), Some("image/png"));
+    resp
+}
+
 pub fn multipart(parts: &[(&str, Option<&str>, &str, &[u8])]) -> (String, Vec<u8>) {
     let boundary = "scnerf-e2e-7d1f0b3a9c";
     let mut body = Vec::new();

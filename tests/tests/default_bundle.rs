@@ -4,7 +4,7 @@
 
 use std::time::Duration;
 
-use scnerf_e2e::{http_request, multipart, psnr, repo_root, server_binary, ServerProcess};
+use scnerf_e2e::{http_request, multipart, post_render_png, psnr, repo_root, server_binary, ServerProcess};
 use serde_json::Value;
 
 #[test]
@@ -26,16 +26,7 @@ fn default_bundle_renders_the_example_above_its_floor() {
     let model: Value = serde_json::from_slice(&model.body).unwrap();
     assert_eq!(model["model_id"], expected["model_id"], "default bundle changed: re-measure the floor");
 
-    let resp = http_request(
-        server.addr,
-        "POST",
-        "/v1/render",
-        &[("Content-Type", &ctype), ("Accept", "image/png")],
-        &body,
-        Duration::from_secs(1800),
-    )
-    .expect("render request");
-    assert_eq!(resp.status, 200, "{}", String::from_utf8_lossy(&resp.body));
+    let resp = post_render_png(server.addr, &ctype, &body, Duration::from_secs(1800));
     let rendered = image::load_from_memory(&resp.body).expect("PNG").into_rgb8();
     let truth = image::load_from_memory(&read("target_truth.png")).expect("truth PNG").into_rgb8();
     assert_eq!(rendered.dimensions(), truth.dimensions());

@@ -19,7 +19,7 @@
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
-use scnerf_e2e::{http_request, multipart, psnr, repo_root, server_binary, ServerProcess};
+use scnerf_e2e::{multipart, post_render_png, psnr, repo_root, server_binary, ServerProcess};
 use serde_json::{json, Value};
 
 const SOURCES: [&str; 3] = ["r_6", "r_43", "r_33"];
@@ -131,18 +131,8 @@ fn lego_r63_psnr() {
     let mut server = ServerProcess::start(&binary, &["--bundle", bundle.to_str().unwrap()]);
     server.wait_ready(Duration::from_secs(900));
     let start = Instant::now();
-    let resp = http_request(
-        server.addr,
-        "POST",
-        "/v1/render",
-        &[("Content-Type", &ctype), ("Accept", "image/png")],
-        &body,
-        Duration::from_secs(3600),
-    )
-    .expect("render request");
+    let resp = post_render_png(server.addr, &ctype, &body, Duration::from_secs(3600));
     let elapsed = start.elapsed();
-    assert_eq!(resp.status, 200, "{}", String::from_utf8_lossy(&resp.body));
-    assert_eq!(resp.header("content-type"), Some("image/png"));
     let png = image::load_from_memory(&resp.body).expect("PNG").into_rgb8();
     assert_eq!((png.width(), png.height()), (size, size));
     let rendered: Vec<f32> = png.as_raw().iter().map(|&b| f32::from(b) / 255.0).collect();
