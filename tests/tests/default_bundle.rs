@@ -12,7 +12,8 @@ fn default_bundle_renders_the_example_above_its_floor() {
     let example = repo_root().join("examples/procedural-object");
     let read = |name: &str| std::fs::read(example.join(name)).unwrap_or_else(|e| panic!("{name}: {e}"));
     let expected: Value = serde_json::from_slice(&read("regression.json")).unwrap();
-    let (request, s0, s1, s2) = (read("request.json"), read("source_0.png"), read("source_1.png"), read("source_2.png"));
+    let (request, s0, s1, s2) =
+        (read("request.json"), read("source_0.png"), read("source_1.png"), read("source_2.png"));
     let (ctype, body) = multipart(&[
         ("request", None, "application/json", &request),
         ("source_0", Some("source_0.png"), "image/png", &s0),
@@ -22,7 +23,8 @@ fn default_bundle_renders_the_example_above_its_floor() {
 
     let mut server = ServerProcess::start(&server_binary(), &[]);
     server.wait_ready(Duration::from_secs(600));
-    let model = http_request(server.addr, "GET", "/v1/model", &[], &[], Duration::from_secs(10)).expect("GET /v1/model");
+    let model =
+        http_request(server.addr, "GET", "/v1/model", &[], &[], Duration::from_secs(10)).expect("GET /v1/model");
     let model: Value = serde_json::from_slice(&model.body).unwrap();
     assert_eq!(model["model_id"], expected["model_id"], "default bundle changed: re-measure the floor");
 

@@ -122,9 +122,8 @@ impl OrtRunner {
                 .and_then(|b| b.with_optimization_level(opt_level(opts.opt_level)).map_err(Into::into))
                 .map_err(|e| format!("cannot load {}: {e}", path.display()))?;
             let mut builder = with_execution_providers(builder, exec)?;
-            let session = builder
-                .commit_from_file(&path)
-                .map_err(|e| format!("cannot load {}: {e}", path.display()))?;
+            let session =
+                builder.commit_from_file(&path).map_err(|e| format!("cannot load {}: {e}", path.display()))?;
             let entry = bundle.graph(kind);
             check_signature(kind, "input", &entry.inputs, &describe(session.inputs()))?;
             check_signature(kind, "output", &entry.outputs, &describe(session.outputs()))?;
