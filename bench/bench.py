@@ -638,6 +638,7 @@ def main(argv=None) -> int:
     p.add_argument("--cache", default=str(REPO / "bench/.cache"), help="benchmark scenes")
     p.add_argument("--label", help="free text recorded with the results (default: contended/quiet from the load)")
     p.add_argument("--no-write", action="store_true", help="print only")
+    p.add_argument("--report", help="rewrite latest.md (and the ratios) from a results JSON, measuring nothing")
     p.add_argument("--merge", help="results JSON of an earlier run of the same bundle: its other sizes/methods are "
                                    "added to this run's JSON and table (e.g. 640x512 measured separately)")
     p.add_argument("--profile", action="store_true",
@@ -648,6 +649,16 @@ def main(argv=None) -> int:
     p.add_argument("--save-rgb", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
 
+    if args.report:
+        results = json.loads(Path(args.report).read_text())
+        for entry in results["sizes"].values():
+            recompute_ratios(entry)
+        md = markdown(results)
+        print(md)
+        if not args.no_write:
+            Path(args.report).write_text(json.dumps(results, indent=2, default=float) + "\n")
+            (Path(args.out) / "latest.md").write_text(md)
+        return 0
     if args.worker:
         fn = {"gemm": worker_gemm, "torch": worker_torch, "ort": worker_ort, "profile": worker_profile}[args.worker]
         print(json.dumps(fn(args)))
@@ -782,6 +793,10 @@ def orchestrate(args) -> int:
         results["merged_runs"] = [{k: earlier.get(k) for k in ("started", "finished", "label", "gemm", "contention",
                                                                "threads", "server_args")}]
         results["renderer_profile"] = results.get("renderer_profile") or earlier.get("renderer_profile")
+        results["server_bin"] = results["server_bin"] or earlier.get("server_bin")
+        results["server_args"] = results["server_args"] or earlier.get("server_args", [])
+        for entry in results["sizes"].values():
+            recompute_ratios(entry)
         if earlier.get("label") == "contended":
             results["label"] = "contended"
     md = markdown(results)
@@ -794,6 +809,18 @@ def orchestrate(args) -> int:
         (out / "latest.md").write_text(md)
         log(f"wrote {out / name} and {out / 'latest.md'}")
     return 0
+
+
+def recompute_ratios(entry: dict) -> None:
+    """Ratios to PyTorch eager for every method of a size (after merging runs)."""
+    torch_ms = entry["methods"].get("torch", {}).get("cold_ms", {})
+    if not torch_ms.get("total"):
+        return
+    for r in entry["methods"].values():
+        cold = r.get("cold_ms")
+        if cold:
+            r["ratio_to_torch"] = {s: cold[s] / torch_ms[s] for s in ("total", "encoder", "volume", "renderer")
+                                   if cold.get(s) and torch_ms.get(s)}
 
 
 def derive(entry: dict, gemm_flops: float, rgbs: dict, truth) -> None:
