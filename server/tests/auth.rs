@@ -4,30 +4,12 @@ mod common;
 
 use axum::body::Body;
 use axum::http::Request;
-use axum::Router;
 use common::*;
-use scnerf_server::auth::Auth;
-use scnerf_server::http::{router, ServiceOptions};
-use scnerf_server::request::Limits;
-use scnerf_server::testing::{bundle, request_json, state_with_options, FakeRunner};
-
-const ALICE: &str = "alice-token-9f8e7d6c5b4a";
-const BOB: &str = "bob-token-0a1b2c3d4e5f";
-
-fn app() -> Router {
-    let b = bundle("scnerf", "near_far");
-    let runner = FakeRunner::new(&b);
-    let options = ServiceOptions { auth: Auth::from_tokens(&[ALICE, BOB]), ..Default::default() };
-    router(state_with_options(b, runner, Limits::default(), options, 8))
-}
-
-fn bearer(token: &str) -> String {
-    format!("Bearer {token}")
-}
+use scnerf_server::testing::request_json;
 
 #[tokio::test]
 async fn requests_without_a_valid_token_are_401() {
-    let app = app();
+    let app = two_token_app();
     let render = |headers: &[(&str, &str)]| multipart_with("/v1/render", &request_json(32), 32, headers);
     let cases: [(&str, Option<String>); 5] = [
         ("no header", None),
@@ -55,7 +37,7 @@ async fn requests_without_a_valid_token_are_401() {
 
 #[tokio::test]
 async fn health_metrics_and_openapi_stay_public() {
-    let app = app();
+    let app = two_token_app();
     for path in ["/healthz", "/readyz", "/metrics", "/openapi.json"] {
         assert_eq!(send(app.clone(), get(path, &[])).await.0, 200, "{path}");
     }
@@ -63,7 +45,7 @@ async fn health_metrics_and_openapi_stay_public() {
 
 #[tokio::test]
 async fn a_scene_is_visible_only_to_the_token_that_created_it() {
-    let app = app();
+    let app = two_token_app();
     let alice = bearer(ALICE);
     let bob = bearer(BOB);
     let got = send(app.clone(), multipart_with("/v1/scenes", &scene_json(32), 32, &[("authorization", &alice)])).await;

@@ -17,7 +17,8 @@ use scnerf_server::testing::{self, bundle, camera_json, fake_state, png, request
 use serde_json::{json, Value};
 use tower::ServiceExt;
 
-const BOUNDARY: &str = "XtestBoundaryX";
+mod common;
+use common::{multipart_body, BOUNDARY};
 
 fn app() -> Router {
     router(fake_state())
@@ -44,20 +45,6 @@ fn assert_error(got: &(StatusCode, HeaderMap, Bytes), status: u16, code: &str, f
         Some(f) => assert_eq!(v["error"]["field"], f, "{text}"),
         None => assert!(v["error"]["field"].is_null(), "{text}"),
     }
-}
-
-fn multipart_body(parts: &[(&str, &[u8])]) -> Vec<u8> {
-    let mut body = Vec::new();
-    for (name, data) in parts {
-        body.extend_from_slice(
-            format!("--{BOUNDARY}\r\nContent-Disposition: form-data; name=\"{name}\"; filename=\"{name}\"\r\n\r\n")
-                .as_bytes(),
-        );
-        body.extend_from_slice(data);
-        body.extend_from_slice(b"\r\n");
-    }
-    body.extend_from_slice(format!("--{BOUNDARY}--\r\n").as_bytes());
-    body
 }
 
 fn multipart_req(parts: &[(&str, &[u8])], accept: Option<&str>) -> Request<Body> {

@@ -9,28 +9,10 @@ use std::io::Write;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use axum::Router;
 use common::*;
-use scnerf_server::auth::Auth;
 use scnerf_server::config::LogFormat;
-use scnerf_server::http::{router, ServiceOptions};
-use scnerf_server::request::Limits;
-use scnerf_server::testing::{bundle, request_json, state_with_options, FakeRunner};
+use scnerf_server::testing::request_json;
 use serde_json::json;
-
-const ALICE: &str = "alice-token-9f8e7d6c5b4a";
-const BOB: &str = "bob-token-0a1b2c3d4e5f";
-
-fn app() -> Router {
-    let b = bundle("scnerf", "near_far");
-    let runner = FakeRunner::new(&b);
-    let options = ServiceOptions { auth: Auth::from_tokens(&[ALICE, BOB]), ..Default::default() };
-    router(state_with_options(b, runner, Limits::default(), options, 8))
-}
-
-fn bearer(token: &str) -> String {
-    format!("Bearer {token}")
-}
 
 /// A `MakeWriter` into a shared buffer.
 #[derive(Clone, Default)]
@@ -63,7 +45,7 @@ async fn logs_are_json_with_request_ids_and_carry_no_tokens_or_images() {
     let subscriber = scnerf_server::logging::subscriber(LogFormat::Json, filter, move || writer.clone(), false);
     let _guard = tracing::subscriber::set_default(subscriber);
 
-    let app = app();
+    let app = two_token_app();
     let alice = bearer(ALICE);
     let headers = [("authorization", alice.as_str()), ("x-request-id", "req-0042")];
     assert_eq!(send(app.clone(), multipart_with("/v1/render", &request_json(32), 32, &headers)).await.0, 200);

@@ -123,3 +123,22 @@ pub fn target_json(size: u32) -> Value {
     let v = request_json(size);
     json!({"target": v["target"], "outputs": v["outputs"]})
 }
+
+pub const ALICE: &str = "alice-token-9f8e7d6c5b4a";
+pub const BOB: &str = "bob-token-0a1b2c3d4e5f";
+
+/// The router over a fake runner with bearer auth for the two tokens above.
+pub fn two_token_app() -> Router {
+    use scnerf_server::auth::Auth;
+    use scnerf_server::http::{router, ServiceOptions};
+    use scnerf_server::request::Limits;
+    use scnerf_server::testing::{bundle, state_with_options, FakeRunner};
+    let b = bundle("scnerf", "near_far");
+    let runner = FakeRunner::new(&b);
+    let options = ServiceOptions { auth: Auth::from_tokens(&[ALICE, BOB]), ..Default::default() };
+    router(state_with_options(b, runner, Limits::default(), options, 8))
+}
+
+pub fn bearer(token: &str) -> String {
+    format!("Bearer {token}")
+}
