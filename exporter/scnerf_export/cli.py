@@ -100,6 +100,14 @@ def cmd_quantize(args) -> None:
             print(f"wrote {args.json}")
 
 
+def cmd_reexport(args) -> None:
+    from .reexport import reexport_bundle
+
+    manifest = reexport_bundle(args.bundle, args.out)
+    diff = manifest["provenance"]["reexport"]["renderer_max_abs_difference"]
+    print(f"wrote {args.out} ({manifest['model_id']}; renderer agrees with {args.bundle} to {diff:.2g})")
+
+
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="scnerf-export", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
@@ -173,6 +181,11 @@ def parser() -> argparse.ArgumentParser:
     q.add_argument("--threads", type=int)
     q.add_argument("--json", type=Path, help="write the comparison here")
     q.set_defaults(func=cmd_quantize)
+
+    r = sub.add_parser("reexport", help="bundle -> the same bundle with this exporter's renderer graph")
+    r.add_argument("--bundle", required=True, type=Path)
+    r.add_argument("--out", required=True, type=Path)
+    r.set_defaults(func=cmd_reexport)
     return p
 
 

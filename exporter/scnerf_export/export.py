@@ -140,6 +140,15 @@ def _rename_dims(proto: onnx.ModelProto, signature: dict) -> None:
                     dim.dim_param = axis
 
 
+def _strip_debug_metadata(proto: onnx.ModelProto) -> None:
+    """Drop the exporter's per-node debug records (Python stack traces and object addresses):
+    without them the same model exports to the same bytes, so a bundle's model id is reproducible."""
+    del proto.graph.metadata_props[:]
+    for node in proto.graph.node:
+        del node.metadata_props[:]
+        node.doc_string = ""
+
+
 def _export_graph(module: nn.Module, inputs: dict[str, torch.Tensor], model: SCNeRF, graph: str,
                   path: Path) -> None:
     signature = graph_signatures(model)[graph]
@@ -155,6 +164,7 @@ def _export_graph(module: nn.Module, inputs: dict[str, torch.Tensor], model: SCN
             verbose=False,
         )
     proto = program.model_proto
+    _strip_debug_metadata(proto)
     _rename_dims(proto, signature)
     onnx.checker.check_model(proto, full_check=True)
     onnx.save(proto, path)

@@ -89,7 +89,10 @@ def frequency_encoding(x: torch.Tensor, freqs: int) -> torch.Tensor:
     [sin, cos] per frequency: the public checkpoint's first trunk layer and skip layer read the
     63 channels in this order, so any other order scrambles the trunk's input.
     """
-    scaled = torch.cat([x * float(2**i) for i in range(freqs)], dim=-1)
+    # [2^0 x, ..., 2^(L-1) x] as one product with a block matrix of powers of two: exact, and one
+    # operator instead of L multiplications and a concatenation.
+    powers = torch.tensor([float(2**i) for i in range(freqs)], dtype=x.dtype, device=x.device)
+    scaled = x @ torch.kron(powers[None, :], torch.eye(x.shape[-1], dtype=x.dtype, device=x.device))
     return torch.cat([x, torch.sin(scaled), torch.cos(scaled)], dim=-1)
 
 
@@ -294,24 +297,21 @@ def sample_views(
     Returns the colour/mask part of f, per view [r, g, b, in-image] (N, 4V) (colours with border
     padding, as the reference code), and, when features are given, the appearance features F_a:
     the mean over views of [F_i, I_i] at x, zero where x falls outside a view (N, C1+3).
+    All views are sampled in one grid_sample call each (the batch axis is the view).
     """
     views, _, height, width = images.shape
-    colour_parts, appearance = [], None
-    for i in range(views):
-        grid = view_grid(points, intrinsics[i], extrinsics[i], height, width)
-        grid5 = grid.view(1, 1, -1, 2)
-        rgb = F.grid_sample(images[i : i + 1], grid5, mode="bilinear", padding_mode="border",
-                            align_corners=True).view(3, -1).transpose(0, 1)
-        inside = ((grid > -1.0) & (grid < 1.0)).all(dim=-1, keepdim=True).to(points.dtype)
-        colour_parts += [rgb, inside]
-        if features is not None:
-            feat = F.grid_sample(features[i : i + 1], grid5, mode="bilinear", padding_mode="zeros",
-                                 align_corners=True).view(features.shape[1], -1).transpose(0, 1)
-            term = torch.cat([feat, rgb], dim=-1) * inside
-            appearance = term if appearance is None else appearance + term
-    if appearance is not None:
-        appearance = appearance / views
-    return torch.cat(colour_parts, dim=-1), appearance
+    grid = torch.stack([view_grid(points, intrinsics[i], extrinsics[i], height, width) for i in range(views)])
+    grid4 = grid.view(views, 1, -1, 2)  # (V,1,N,2)
+    inside = ((grid > -1.0) & (grid < 1.0)).all(dim=-1, keepdim=True).to(points.dtype)  # (V,N,1)
+    rgb = F.grid_sample(images, grid4, mode="bilinear", padding_mode="border",
+                        align_corners=True).view(views, 3, -1).transpose(1, 2)  # (V,N,3)
+    colours = torch.cat([rgb, inside], dim=-1).transpose(0, 1).reshape(points.shape[0], 4 * views)
+    if features is None:
+        return colours, None
+    feat = F.grid_sample(features, grid4, mode="bilinear", padding_mode="zeros",
+                         align_corners=True).view(views, features.shape[1], -1).transpose(1, 2)
+    appearance = (torch.cat([feat, rgb], dim=-1) * inside).sum(dim=0) / views
+    return colours, appearance
 
 
 # ---------------------------------------------------------------------------------------------
@@ -364,21 +364,26 @@ class SampleAxisAttention(nn.Module):
         self.w_o = nn.Linear(inner, cfg.samples)
         self.heads, self.head_dim = cfg.heads, cfg.head_dim
 
-    def split_heads(self, x: torch.Tensor) -> torch.Tensor:
-        rays, tokens, _ = x.shape
-        return x.view(rays, tokens, self.heads, self.head_dim).transpose(1, 2)
-
     def forward(self, query: torch.Tensor, keys: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
-        """query (R, Q_in), keys (R,S,K_in), values (R,S,C) -> rectified features (R,S,C)."""
+        """query (R, Q_in), keys (R,S,K_in), values (R,S,C) -> rectified features (R,S,C).
+
+        Computed in the (R, S, C) layout the trunk produces: a projection along S is a left
+        product W @ X (R, S, C) -> (R, h*dk, C), so no tensor is transposed. Q is one value per
+        channel token, constant along S, so Q K^T is an outer product per head:
+        (q_c w + b) . k_c' = q_c (w . k_c') + (b . k_c'), with w the row sums of W_q.
+        """
+        rays, _, channels = values.shape
+        heads, dk = self.heads, self.head_dim
         q_tokens = self.query_m3(query)  # (R,C)
-        # A token constant along S projects to its value times the row sums of W_q.
-        q = q_tokens[..., None] * self.w_q.weight.sum(dim=1) + self.w_q.bias  # (R,C,h*dk)
-        k = self.w_k(self.key_embedding(keys).transpose(1, 2))  # (R,C,h*dk)
-        v = self.w_v(values.transpose(1, 2))
-        q, k, v = self.split_heads(q), self.split_heads(k), self.split_heads(v)
-        attention = torch.softmax(q @ k.transpose(-1, -2) / math.sqrt(self.head_dim), dim=-1)
-        heads = (attention @ v).transpose(1, 2).reshape(values.shape[0], values.shape[2], -1)
-        return F.relu(values + self.w_o(heads).transpose(1, 2))
+        k_t = (self.w_k.weight @ self.key_embedding(keys) + self.w_k.bias[:, None]).view(rays, heads, dk, channels)
+        v_t = (self.w_v.weight @ values + self.w_v.bias[:, None]).view(rays, heads, dk, channels)
+        q_parts = torch.stack([self.w_q.weight.sum(dim=1), self.w_q.bias]).view(2, heads, dk).transpose(0, 1)
+        slope_offset = (q_parts / math.sqrt(dk)) @ k_t  # (R,h,2,C)
+        q_affine = torch.stack([q_tokens, torch.ones_like(q_tokens)], dim=-1)[:, None]  # (R,1,C,2)
+        scores = q_affine @ slope_offset  # (R,h,C,C)
+        attention = torch.softmax(scores, dim=-1)
+        heads_t = (v_t @ attention.transpose(-1, -2)).reshape(rays, heads * dk, channels)
+        return F.relu(values + self.w_o.weight @ heads_t + self.w_o.bias[:, None])
 
 
 class ColourHeadMVSNeRF(nn.Module):
@@ -404,10 +409,16 @@ class ColourHeadM4(nn.Module):
         self.hidden = nn.Linear(cin, cfg.colour_hidden)
         self.out = nn.Linear(cfg.colour_hidden, 3)
 
-    def forward(self, features: torch.Tensor, depth_embedding: torch.Tensor,
-                direction_embedding: torch.Tensor) -> torch.Tensor:
-        h = torch.cat([features, depth_embedding, direction_embedding], dim=-1)
-        return torch.sigmoid(self.out(F.relu(self.hidden(h))))
+    def forward(self, features: torch.Tensor, ray_embedding: torch.Tensor) -> torch.Tensor:
+        """features F (R,S,C), ray_embedding [E(D), E(d)] (R,E) -> colours (R,S,3).
+
+        The first layer reads [F, E(D), E(d)]; the embeddings are one per ray, so their part of it
+        is computed per ray and broadcast along S instead of copied to every sample.
+        """
+        c = features.shape[-1]
+        per_ray = F.linear(ray_embedding, self.hidden.weight[:, c:], self.hidden.bias)
+        h = F.linear(features, self.hidden.weight[:, :c]) + per_ray[:, None, :]
+        return torch.sigmoid(self.out(F.relu(h)))
 
 
 def composite_weights(sigma: torch.Tensor) -> torch.Tensor:
@@ -487,11 +498,7 @@ class RayRenderer(nn.Module):
                 radiance = self.geometry(query, point_features.view(rays, samples, -1), radiance)
             if self.appearance is not None:  # F = Multihead(Q, K = mean F_a, V = F_c)
                 radiance = self.appearance(query, appearance.view(rays, samples, -1), radiance)
-            colour = self.colour_head(
-                radiance,
-                depth_embedding[:, None, :].expand(-1, samples, -1),
-                direction_embedding[:, None, :].expand(-1, samples, -1),
-            )
+            colour = self.colour_head(radiance, query)
         rgb = (weights[..., None] * colour).sum(dim=1)
         return rgb, depth, opacity
 
