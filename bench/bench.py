@@ -58,7 +58,7 @@ def psnr(a, b) -> float:
     return float("inf") if mse == 0 else 10.0 * np.log10(1.0 / mse)
 
 
-def server_chunk(samples: int, budget_mb: int = 4096, max_rays: int = 4096) -> int:
+def server_chunk(samples: int, budget_mb: int = 1024, max_rays: int = 512) -> int:
     """The server's default rays per renderer run (server/src/pipeline/chunks.rs: budget / (S x 18 KiB))."""
     return max(1, min(max_rays, budget_mb * 1024 * 1024 // (samples * 18 * 1024)))
 

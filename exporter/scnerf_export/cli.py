@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from .checkpoint import CheckpointError
+from .onnx_pipeline import DEFAULT_CHUNK
 
 
 def cmd_convert(args) -> None:
@@ -141,7 +142,7 @@ def parser() -> argparse.ArgumentParser:
     v.add_argument("--near", type=float)
     v.add_argument("--far", type=float)
     v.add_argument("--threads", type=int)
-    v.add_argument("--chunk", type=int, default=4096, help="rays per renderer call")
+    v.add_argument("--chunk", type=int, default=DEFAULT_CHUNK, help="rays per renderer call")
     v.add_argument("--json", type=Path, help="write the results here")
     v.add_argument("--save-renders", type=Path, help="write rendered PNGs here")
     v.set_defaults(func=cmd_eval)

@@ -10,7 +10,7 @@ import numpy as np
 from PIL import Image
 
 from . import datasets, metrics
-from .onnx_pipeline import OnnxBundle
+from .onnx_pipeline import DEFAULT_CHUNK, OnnxBundle
 
 
 def split_names(value: str | None) -> list[str] | None:
@@ -19,7 +19,7 @@ def split_names(value: str | None) -> list[str] | None:
 
 def evaluate(bundle_dir: str | Path, scene_dir: str | Path, fmt: str, sources: list[str] | None = None,
              targets: list[str] | None = None, scale: float = 1.0, near: float | None = None,
-             far: float | None = None, threads: int | None = None, chunk: int = 4096,
+             far: float | None = None, threads: int | None = None, chunk: int = DEFAULT_CHUNK,
              save_dir: str | Path | None = None, target_scale: float = 1.0) -> dict:
     scene = datasets.load_scene(scene_dir, fmt, scale=scale, near=near, far=far)
     sources = sources or scene.default_sources

@@ -369,8 +369,8 @@ class SampleAxisAttention(nn.Module):
 
         Computed in the (R, S, C) layout the trunk produces: a projection along S is a left
         product W @ X (R, S, C) -> (R, h*dk, C), so no tensor is transposed. Q is one value per
-        channel token, constant along S, so Q K^T is an outer product per head:
-        (q_c w + b) . k_c' = q_c (w . k_c') + (b . k_c'), with w the row sums of W_q.
+        channel token, constant along S, so per head Q K^T has inner size 2 instead of d_k:
+        (q_c w + b) . k_c' = [q_c, 1] . [w . k_c', b . k_c'], with w the row sums of W_q.
         """
         rays, _, channels = values.shape
         heads, dk = self.heads, self.head_dim

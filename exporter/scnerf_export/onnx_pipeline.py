@@ -16,6 +16,11 @@ from .export import read_manifest
 from .render import Rendering, pad_images
 
 
+# Rays per renderer run, the server's default (server/src/config.rs, --max-rays-per-chunk): small
+# runs keep the renderer's activations in cache.
+DEFAULT_CHUNK = 512
+
+
 def session_options(threads: int | None) -> ort.SessionOptions:
     options = ort.SessionOptions()
     options.intra_op_num_threads = threads or os.cpu_count() or 1
@@ -67,13 +72,13 @@ class OnnxBundle:
         return tuple(np.concatenate([o[i] for o in outs]) for i in range(3))
 
     def render_view(self, images: np.ndarray, cameras: list[Camera], target: Camera, near: float, far: float,
-                    background=(0.0, 0.0, 0.0), chunk: int = 4096) -> Rendering:
+                    background=(0.0, 0.0, 0.0), chunk: int = DEFAULT_CHUNK) -> Rendering:
         self.timings = {}
         scene = self.encode_scene(images, cameras, near, far, background)
         return self.render_target(scene, target, near, far, background, chunk)
 
     def render_target(self, scene: dict, target: Camera, near: float, far: float, background=(0.0, 0.0, 0.0),
-                      chunk: int = 4096) -> Rendering:
+                      chunk: int = DEFAULT_CHUNK) -> Rendering:
         """One target view of an encoded scene (what a cached scene costs per view)."""
         origins, directions = cams.target_rays(target)
         depth_range = (near, far)

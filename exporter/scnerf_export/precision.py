@@ -232,12 +232,13 @@ def procedural_cases(count: int = 4, width: int = 160, height: int = 128, seed_o
 
 
 def compare_bundles(reference_dir: str | Path, candidate_dir: str | Path, cases: list[dict],
-                    threads: int | None = None, chunk: int = 4096) -> dict:
+                    threads: int | None = None, chunk: int | None = None) -> dict:
     import time
 
     from .metrics import psnr
-    from .onnx_pipeline import OnnxBundle
+    from .onnx_pipeline import DEFAULT_CHUNK, OnnxBundle
 
+    chunk = chunk or DEFAULT_CHUNK
     ref, cand = OnnxBundle(reference_dir, threads), OnnxBundle(candidate_dir, threads)
     rows = []
     for case in cases:

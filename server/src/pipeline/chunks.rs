@@ -25,7 +25,7 @@ pub struct ChunkPolicy {
 
 impl Default for ChunkPolicy {
     fn default() -> Self {
-        ChunkPolicy { max_rays: 4096, memory_budget_bytes: 4096 << 20 }
+        ChunkPolicy { max_rays: 512, memory_budget_bytes: 1024 << 20 }
     }
 }
 
