@@ -23,6 +23,8 @@ OPSET = 20
 
 # Example sizes for tracing: small and unlike any other axis so that no dimension is specialised.
 _EXAMPLE_BLOCKS_H, _EXAMPLE_BLOCKS_W, _EXAMPLE_RAYS = 2, 3, 37
+# A second validation size, not the tracing one: a size frozen into a graph shows up only there.
+CHECK_BLOCKS, CHECK_RAYS = (3, 2), 512
 
 
 class EncoderGraph(nn.Module):
@@ -94,17 +96,19 @@ def graph_signatures(model: SCNeRF) -> dict[str, dict[str, list]]:
     }
 
 
-def example_inputs(model: SCNeRF, seed: int = 0) -> dict[str, dict[str, torch.Tensor]]:
-    """Plausible tensors for tracing and validation: a small scene with real camera geometry."""
+def example_inputs(model: SCNeRF, seed: int = 0, blocks: tuple[int, int] = (_EXAMPLE_BLOCKS_H, _EXAMPLE_BLOCKS_W),
+                   rays: int = _EXAMPLE_RAYS) -> dict[str, dict[str, torch.Tensor]]:
+    """Plausible tensors for tracing and validation: a small scene with real camera geometry,
+    images of ``blocks`` x 32 pixels, ``rays`` target rays."""
     from .fixtures import synthetic_rig  # local import: fixtures imports this module
 
     cfg = model.cfg
-    rig = synthetic_rig(cfg, 32 * _EXAMPLE_BLOCKS_H, 32 * _EXAMPLE_BLOCKS_W, seed=seed)
+    rig = synthetic_rig(cfg, 32 * blocks[0], 32 * blocks[1], seed=seed)
     with torch.no_grad():
         features = model.encode(rig["images"])
         volume = model.build_volume(features, rig["images"], rig["projections"], rig["depth_planes"])
     rays = {
-        "ray_origins": rig["ray_origins"][:_EXAMPLE_RAYS], "ray_directions": rig["ray_directions"][:_EXAMPLE_RAYS],
+        "ray_origins": rig["ray_origins"][:rays], "ray_directions": rig["ray_directions"][:rays],
         # A tensor of its own: torch.export would alias two inputs given the same tensor object.
         "near_far": rig["near_far"], "depth_range": rig["near_far"] * torch.tensor([1.05, 0.95]), "volume": volume,
         "images": rig["images"], "features": features,
@@ -193,13 +197,14 @@ def export_bundle(model: SCNeRF, out_dir: str | Path, provenance: dict) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     model = model.eval()
     inputs = example_inputs(model)
+    checks = example_inputs(model, blocks=CHECK_BLOCKS, rays=CHECK_RAYS)
     modules = {"encoder": EncoderGraph(model), "volume": VolumeGraph(model), "renderer": RendererGraph(model)}
     signatures = graph_signatures(model)
     graphs, errors = {}, {}
     for name, module in modules.items():
         path = out / f"{name}.onnx"
         _export_graph(module, inputs[name], model, name, path)
-        errors[name] = validate_graph(path, module, inputs[name], tolerance=1e-4)
+        errors[name] = max(validate_graph(path, module, example[name], tolerance=1e-4) for example in (inputs, checks))
         graphs[name] = {
             "file": path.name, "sha256": sha256_file(path),
             "inputs": _io_spec(signatures[name]["inputs"]), "outputs": _io_spec(signatures[name]["outputs"]),

@@ -288,6 +288,18 @@ def view_grid(points: torch.Tensor, intrinsics: torch.Tensor, extrinsics: torch.
     return torch.stack([uvz[:, 0] / (width - 1), uvz[:, 1] / (height - 1)], dim=-1) * 2.0 - 1.0
 
 
+def same_taps_without_corner_alignment(grid: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """The grid that makes grid_sample(align_corners=False) read what grid reads with
+    align_corners=True on a height x width map: x = (g + 1)(W - 1) / 2 = ((g' + 1) W - 1) / 2.
+    ONNX Runtime's CPU GridSample has a fast path (taps computed once for all channels) only for
+    bilinear, zero padding and align_corners=False: it halves the cost of sampling the features."""
+    # Per axis with the sizes as scalars: a tensor built from them would be frozen at the tracing
+    # example's size in the exported graph.
+    x = ((grid[..., 0] + 1.0) * (width - 1) + 1.0) / width - 1.0
+    y = ((grid[..., 1] + 1.0) * (height - 1) + 1.0) / height - 1.0
+    return torch.stack([x, y], dim=-1)
+
+
 def sample_views(
     points: torch.Tensor, images: torch.Tensor, features: torch.Tensor | None,
     intrinsics: torch.Tensor, extrinsics: torch.Tensor,
@@ -308,8 +320,9 @@ def sample_views(
     colours = torch.cat([rgb, inside], dim=-1).transpose(0, 1).reshape(points.shape[0], 4 * views)
     if features is None:
         return colours, None
-    feat = F.grid_sample(features, grid4, mode="bilinear", padding_mode="zeros",
-                         align_corners=True).view(views, features.shape[1], -1).transpose(1, 2)
+    feat_grid = same_taps_without_corner_alignment(grid4, features.shape[2], features.shape[3])
+    feat = F.grid_sample(features, feat_grid, mode="bilinear", padding_mode="zeros",
+                         align_corners=False).view(views, features.shape[1], -1).transpose(1, 2)
     appearance = (torch.cat([feat, rgb], dim=-1) * inside).sum(dim=0) / views
     return colours, appearance
 

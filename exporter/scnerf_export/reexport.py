@@ -29,8 +29,8 @@ from onnx import numpy_helper
 from . import __version__
 from .checkpoint import sha256_file
 from .config import ModelConfig
-from .export import (RendererGraph, _export_graph, _io_spec, example_inputs, graph_signatures, read_manifest,
-                     validate_graph, write_manifest)
+from .export import (CHECK_BLOCKS, CHECK_RAYS, RendererGraph, _export_graph, _io_spec, example_inputs,
+                     graph_signatures, read_manifest, validate_graph, write_manifest)
 from .model import SCNeRF
 
 AGREEMENT_TOLERANCE = 1e-4
@@ -100,7 +100,7 @@ def _session(path: Path) -> ort.InferenceSession:
 
 def graphs_agree(bundle: Path, old_renderer: Path, new_renderer: Path, model: SCNeRF) -> float:
     """Max abs difference of the two renderers on the bundle's own features and volume."""
-    inputs = example_inputs(model)
+    inputs = example_inputs(model, blocks=CHECK_BLOCKS, rays=CHECK_RAYS)
     (features,) = _session(bundle / "encoder.onnx").run(None, {k: v.numpy() for k, v in inputs["encoder"].items()})
     volume_inputs = {k: v.numpy() for k, v in inputs["volume"].items()}
     volume_inputs["features"] = features
