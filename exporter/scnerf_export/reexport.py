@@ -1,11 +1,12 @@
 """`scnerf-export reexport --bundle IN --out OUT`: a 0.1 bundle's renderer written again by this exporter.
 
 A bundle carries no checkpoint, only its graphs; the renderer's weights are read back from the
-renderer.onnx that scnerf-export 0.1 wrote, the renderer is exported with this version's graph and the two graphs are run side
-by side in ONNX Runtime on the bundle's own features and volume: the new graph is written only if
-they agree (max abs error <= 1e-4 on rgb, depth, opacity). encoder.onnx and volume.onnx are copied
-unchanged (so are results measured with the old graph, which stay with the old bundle). This is
-how a bundle gets the faster renderer graph without its training checkpoint.
+renderer.onnx that scnerf-export 0.1 wrote, the renderer is exported with this version's graph, and
+the two graphs are run side by side in ONNX Runtime on the bundle's own features and volume, at an
+image size other than the tracing one: the new graph is kept only if they agree (max abs error
+<= 1e-4 on rgb, depth, opacity). encoder.onnx and volume.onnx are copied unchanged; results
+measured with the old graph stay with the old bundle. This is how a bundle gets the faster
+renderer graph without its training checkpoint.
 
 Weights are found the way exporter 0.1 wrote them: under their parameter names
 (``model.renderer.<name>``), or, for a linear layer lowered to ``MatMul(x, W^T) + bias``, as the
