@@ -183,7 +183,7 @@ def parser() -> argparse.ArgumentParser:
     q.add_argument("--json", type=Path, help="write the comparison here")
     q.set_defaults(func=cmd_quantize)
 
-    r = sub.add_parser("reexport", help="bundle -> the same bundle with this exporter's renderer graph")
+    r = sub.add_parser("reexport", help="exporter 0.1 bundle -> the same model with this exporter's renderer graph")
     r.add_argument("--bundle", required=True, type=Path)
     r.add_argument("--out", required=True, type=Path)
     r.set_defaults(func=cmd_reexport)
