@@ -75,16 +75,15 @@ def renderer_state_from_graph(path: Path, model: SCNeRF) -> dict[str, torch.Tens
         name = _PREFIX + key
         if name in constants:
             value = constants[name]
-        elif key.endswith("w_q.weight"):
-            row_sums = _weight_behind_bias(_PREFIX + key[: -len("weight")] + "bias", constants, producers,
-                                           consumers, "Mul")
-            value = None if row_sums is None else np.zeros(tuple(param.shape), np.float32)
-            if value is not None:
-                value[:, 0] = row_sums.reshape(-1)
         elif key.endswith(".weight"):
-            product = _weight_behind_bias(name[: -len("weight")] + "bias", constants, producers, consumers,
-                                          "MatMul")
-            value = None if product is None else product.T
+            bias = name[: -len("weight")] + "bias"
+            if key.endswith("w_q.weight"):
+                value = _weight_behind_bias(bias, constants, producers, consumers, "Mul")  # row sums
+                if value is not None:
+                    value = np.pad(value.reshape(-1, 1), ((0, 0), (0, param.shape[1] - 1)))
+            else:
+                value = _weight_behind_bias(bias, constants, producers, consumers, "MatMul")
+                value = None if value is None else value.T
         else:
             value = None
         if value is None:

@@ -98,14 +98,14 @@ pub struct Config {
     pub ort_arena: bool,
 
     /// Upper bound on rays per renderer run. Small runs keep the activations in cache: on 2 cores,
-    /// 256-1024 rays render the default bundle ~25-35% faster than 4096 with a third of the
-    /// memory (bench/README.md).
-    #[arg(long, env = "SCNERF_MAX_RAYS_PER_CHUNK", default_value_t = 512)]
+    /// 512 rays rendered the default bundle 6-34% faster than 4096 with 1.6-4x less memory
+    /// (bench/README.md).
+    #[arg(long, env = "SCNERF_MAX_RAYS_PER_CHUNK", default_value_t = crate::pipeline::chunks::DEFAULT_MAX_RAYS)]
     pub max_rays_per_chunk: usize,
 
     /// Memory budget of one renderer run in MiB; the chunk size is derived from it and the
     /// bundle's samples per ray (see pipeline::chunks).
-    #[arg(long, env = "SCNERF_CHUNK_MEMORY_MB", default_value_t = 1024)]
+    #[arg(long, env = "SCNERF_CHUNK_MEMORY_MB", default_value_t = crate::pipeline::chunks::DEFAULT_MEMORY_MB)]
     pub chunk_memory_mb: usize,
 
     /// Largest accepted request body in bytes.

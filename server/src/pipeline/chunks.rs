@@ -17,6 +17,11 @@ use crate::pipeline::rays::Rays;
 /// at 2048 rays x 128 samples, i.e. ~18 KiB per point.
 pub const BYTES_PER_SAMPLE: usize = 18 * 1024;
 
+/// Default upper bound on rays per renderer run (`--max-rays-per-chunk`).
+pub const DEFAULT_MAX_RAYS: usize = 512;
+/// Default renderer memory budget in MiB (`--chunk-memory-mb`).
+pub const DEFAULT_MEMORY_MB: usize = 1024;
+
 #[derive(Debug, Clone, Copy)]
 pub struct ChunkPolicy {
     pub max_rays: usize,
@@ -25,7 +30,7 @@ pub struct ChunkPolicy {
 
 impl Default for ChunkPolicy {
     fn default() -> Self {
-        ChunkPolicy { max_rays: 512, memory_budget_bytes: 1024 << 20 }
+        ChunkPolicy { max_rays: DEFAULT_MAX_RAYS, memory_budget_bytes: DEFAULT_MEMORY_MB << 20 }
     }
 }
 
