@@ -97,6 +97,14 @@ pub struct Config {
           value_parser = clap::builder::BoolishValueParser::new())]
     pub ort_arena: bool,
 
+    /// Whether ONNX Runtime's idle intra-op workers spin before sleeping. On: each of the
+    /// renderer's few hundred operators per run starts without waking threads (measured 10%
+    /// faster on 2 cores, bench/README.md), at the price of busy workers for a moment after each
+    /// run; off for machines shared with other work. Accepts on/off, true/false.
+    #[arg(long, env = "SCNERF_ORT_SPIN", default_value = "on", action = clap::ArgAction::Set,
+          value_parser = clap::builder::BoolishValueParser::new())]
+    pub ort_spin: bool,
+
     /// Upper bound on rays per renderer run. Small runs keep the activations in cache: on 2 cores,
     /// 512 rays rendered the default bundle 6-34% faster than 4096 with 1.6-4x less memory
     /// (bench/README.md).
@@ -230,16 +238,17 @@ mod device_tests {
     use super::*;
 
     #[test]
-    fn device_and_arena_flags() {
+    fn device_arena_and_spin_flags() {
         assert_eq!("cpu".parse::<Device>(), Ok(Device::Cpu));
         assert_eq!("CUDA".parse::<Device>(), Ok(Device::Cuda { device_id: 0 }));
         assert_eq!("cuda:2".parse::<Device>(), Ok(Device::Cuda { device_id: 2 }));
         assert!("cuda:-1".parse::<Device>().is_err());
         assert!("tpu".parse::<Device>().is_err());
         let c = Config::try_parse_from(["scnerf-server"]).unwrap();
-        assert_eq!((c.device, c.ort_arena), (Device::Cpu, true));
-        let c = Config::try_parse_from(["scnerf-server", "--device", "cuda:1", "--ort-arena", "off"]).unwrap();
-        assert_eq!((c.device, c.ort_arena), (Device::Cuda { device_id: 1 }, false));
+        assert_eq!((c.device, c.ort_arena, c.ort_spin), (Device::Cpu, true, true));
+        let c = Config::try_parse_from(["scnerf-server", "--device", "cuda:1", "--ort-arena", "off", "--ort-spin=off"])
+            .unwrap();
+        assert_eq!((c.device, c.ort_arena, c.ort_spin), (Device::Cuda { device_id: 1 }, false, false));
         assert_eq!(c.exec_options().device.to_string(), "cuda:1");
     }
 }

@@ -29,6 +29,7 @@ pub async fn run(config: Config) -> Result<(), String> {
         dylib: config.ort_dylib.clone(),
         intra_threads: config.intra_threads(),
         opt_level: config.graph_opt_level,
+        spin: config.ort_spin,
     };
     let runner = {
         let bundle = bundle.clone();

@@ -53,7 +53,7 @@ fn limits() -> Limits {
 fn app() -> (Router, AppState) {
     let bundle = Bundle::load(&parity_dir().join("bundle")).unwrap_or_else(|e| panic!("{e}"));
     let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
-    let opts = OrtOptions { dylib: None, intra_threads: threads, opt_level: GraphOptLevel::All };
+    let opts = OrtOptions { dylib: None, intra_threads: threads, opt_level: GraphOptLevel::All, spin: false };
     let runner = OrtRunner::load(&bundle, &opts).unwrap_or_else(|e| panic!("{e}"));
     let pipeline = Pipeline {
         backend: BackendHandle::spawn(Box::new(runner), 8).unwrap(),

@@ -42,7 +42,7 @@ fn pipeline() -> Pipeline {
             );
             let bundle = Bundle::load(&dir).unwrap_or_else(|e| panic!("{e}"));
             let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
-            let opts = OrtOptions { dylib: None, intra_threads: threads, opt_level: GraphOptLevel::All };
+            let opts = OrtOptions { dylib: None, intra_threads: threads, opt_level: GraphOptLevel::All, spin: false };
             let runner = OrtRunner::load(&bundle, &opts).unwrap_or_else(|e| panic!("{e}"));
             Pipeline {
                 backend: BackendHandle::spawn(Box::new(runner), 16).unwrap(),

@@ -22,6 +22,8 @@ pub struct OrtOptions {
     pub dylib: Option<PathBuf>,
     pub intra_threads: usize,
     pub opt_level: GraphOptLevel,
+    /// Idle intra-op workers spin before they sleep (`--ort-spin`).
+    pub spin: bool,
 }
 
 /// Per-session execution settings (`--device`, `--ort-arena`). The default is what the server
@@ -80,9 +82,7 @@ pub fn init_environment(opts: &OrtOptions) -> Result<Environment, String> {
     let pool = GlobalThreadPoolOptions::default()
         .with_intra_threads(opts.intra_threads)
         .and_then(|p| p.with_inter_threads(1))
-        // Spinning idle workers burn CPU between graph runs; on shared machines that costs more
-        // than the microseconds it saves per operator on our large kernels.
-        .and_then(|p| p.with_spin_control(false))
+        .and_then(|p| p.with_spin_control(opts.spin))
         .map_err(|e| format!("ONNX Runtime thread pool: {e}"))?;
     let env = builder
         .with_name("scnerf-server")
@@ -242,7 +242,7 @@ mod tests {
     }
 
     fn cpu_library_opts() -> OrtOptions {
-        OrtOptions { dylib: None, intra_threads: 1, opt_level: GraphOptLevel::All }
+        OrtOptions { dylib: None, intra_threads: 1, opt_level: GraphOptLevel::All, spin: false }
     }
 
     /// The library of scripts/fetch-onnxruntime.sh is the CPU build: asking for CUDA must fail at

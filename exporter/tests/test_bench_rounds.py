@@ -1,0 +1,34 @@
+"""bench/bench.py keeps, per method, the fastest of several interleaved rounds."""
+
+import importlib.util
+from pathlib import Path
+
+BENCH = Path(__file__).resolve().parents[2] / "bench" / "bench.py"
+
+
+def _bench():
+    spec = importlib.util.spec_from_file_location("bench", BENCH)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _run(total_ms: float, tag: str) -> dict:
+    return {"cold_ms": {"total": total_ms}, "tag": tag}
+
+
+def test_fastest_round_is_kept_and_every_round_recorded():
+    bench = _bench()
+    results: dict = {}
+    for total, tag in [(500.0, "first"), (300.0, "second"), (400.0, "third")]:
+        bench.keep_fastest(results, "server", _run(total, tag))
+    assert results["server"]["tag"] == "second"
+    assert results["server"]["round_totals_ms"] == [500.0, 300.0, 400.0]
+
+
+def test_a_round_that_ran_replaces_an_earlier_failure():
+    bench = _bench()
+    results = {"ort": {"error": "worker died"}}
+    bench.keep_fastest(results, "ort", _run(700.0, "ran"))
+    assert results["ort"]["tag"] == "ran"
+    assert results["ort"]["round_totals_ms"] == [700.0]
