@@ -698,7 +698,8 @@ def orchestrate(args) -> int:
         "bundle": {"dir": args.bundle, "model_id": manifest["model_id"], "variant": manifest["variant"],
                    "precision": manifest.get("precision", "fp32"),
                    "config": {k: cfg[k] for k in ("width", "samples", "depth_planes", "views", "pad")}},
-        "threads": args.threads, "rounds": args.rounds, "python_chunk": chunk, "server_bin": str(server_bin) if server_bin else None,
+        "threads": args.threads, "rounds": args.rounds, "python_chunk": chunk,
+        "server_bin": str(server_bin) if server_bin else None,
         "server_args": args.server_args, "methods": methods, "variants": variants,
         "contention": {"busy_processes_before": busy_before, "loadavg_before": load_before},
         "gemm": None, "sizes": {},
@@ -738,11 +739,11 @@ def orchestrate(args) -> int:
                     entry["methods"].setdefault(label, {"error": str(exc)[-2000:]})
                     continue
                 log(f"  {label}: " + fmt_stages(r.get("cold_ms", {})))
+                if label != method:
+                    r["variant_of"] = method
                 keep_fastest(entry["methods"], label, r)
                 if entry["methods"][label] is r:
                     rgbs[label] = rgb
-                if label != method:
-                    r["variant_of"] = method
         if args.profile and key == f"{sizes[0][0]}x{sizes[0][1]}":
             for name, directory in [("fp32", args.bundle), *variants.items()]:
                 log(f"{key}: profiling one renderer chunk of {name} ...")
