@@ -16,7 +16,7 @@ from .export import read_manifest
 from .render import Rendering, pad_images
 
 
-# Rays per renderer run, the server's default (server/src/config.rs, --max-rays-per-chunk): small
+# Rays per renderer run, the server's default (DEFAULT_MAX_RAYS in server/src/pipeline/chunks.rs): small
 # runs keep the renderer's activations in cache.
 DEFAULT_CHUNK = 512
 

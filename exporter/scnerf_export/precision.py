@@ -37,6 +37,7 @@ from onnx import helper, numpy_helper
 
 from .checkpoint import sha256_file
 from .export import read_manifest, write_manifest
+from .onnx_pipeline import DEFAULT_CHUNK, OnnxBundle
 
 PRECISIONS = ("fp32", "int8", "fp16")
 MAX_PSNR_DROP_DB = 0.1
@@ -232,13 +233,11 @@ def procedural_cases(count: int = 4, width: int = 160, height: int = 128, seed_o
 
 
 def compare_bundles(reference_dir: str | Path, candidate_dir: str | Path, cases: list[dict],
-                    threads: int | None = None, chunk: int | None = None) -> dict:
+                    threads: int | None = None, chunk: int = DEFAULT_CHUNK) -> dict:
     import time
 
     from .metrics import psnr
-    from .onnx_pipeline import DEFAULT_CHUNK, OnnxBundle
 
-    chunk = chunk or DEFAULT_CHUNK
     ref, cand = OnnxBundle(reference_dir, threads), OnnxBundle(candidate_dir, threads)
     rows = []
     for case in cases:

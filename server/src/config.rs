@@ -98,7 +98,7 @@ pub struct Config {
     pub ort_arena: bool,
 
     /// Whether ONNX Runtime's idle intra-op workers spin before sleeping. On: each of the
-    /// renderer's few hundred operators per run starts without waking threads (measured 10%
+    /// renderer's few hundred operators per run starts without waking threads (measured 5-10%
     /// faster on 2 cores, bench/README.md), at the price of busy workers for a moment after each
     /// run; off for machines shared with other work. Accepts on/off, true/false.
     #[arg(long, env = "SCNERF_ORT_SPIN", default_value = "on", action = clap::ArgAction::Set,
