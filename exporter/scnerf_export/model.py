@@ -388,15 +388,30 @@ class SampleAxisAttention(nn.Module):
         rays, _, channels = values.shape
         heads, dk = self.heads, self.head_dim
         q_tokens = self.query_m3(query)  # (R,C)
-        k_t = (self.w_k.weight @ self.key_embedding(keys) + self.w_k.bias[:, None]).view(rays, heads, dk, channels)
         v_t = (self.w_v.weight @ values + self.w_v.bias[:, None]).view(rays, heads, dk, channels)
-        q_parts = torch.stack([self.w_q.weight.sum(dim=1), self.w_q.bias]).view(2, heads, dk).transpose(0, 1)
-        slope_offset = (q_parts / math.sqrt(dk)) @ k_t  # (R,h,2,C)
+        slope_offset = self._key_terms(keys).view(rays, heads, 2, channels)
         q_affine = torch.stack([q_tokens, torch.ones_like(q_tokens)], dim=-1)[:, None]  # (R,1,C,2)
         scores = q_affine @ slope_offset  # (R,h,C,C)
         attention = torch.softmax(scores, dim=-1)
         heads_t = (v_t @ attention.transpose(-1, -2)).reshape(rays, heads * dk, channels)
         return F.relu(values + self.w_o.weight @ heads_t + self.w_o.bias[:, None])
+
+    def _key_terms(self, keys: torch.Tensor) -> torch.Tensor:
+        """[w . k_c', b . k_c'] / sqrt(d_k) per head and key token c': (R,S,K_in) -> (R,2h,C).
+
+        K = W_k Linear(keys) enters the scores only through these 2h products, so they are folded
+        into W_k first (2h rows along S instead of h d_k), and applied to the K_in key channels
+        before the embedding widens them to the C tokens: a sixth to a ninth of the work of K.
+        The embedding's bias becomes a constant (2h, C) term; W_k's bias adds the same amount to
+        every score of a query token, which the softmax cancels, so it is left out.
+        """
+        heads, dk = self.heads, self.head_dim
+        q_parts = torch.stack([self.w_q.weight.sum(dim=1), self.w_q.bias]).view(2, heads, dk).transpose(0, 1)
+        q_parts = q_parts / math.sqrt(dk)  # (h,2,dk)
+        rows = (q_parts @ self.w_k.weight.view(heads, dk, -1)).reshape(2 * heads, -1)  # (2h,S)
+        embedding = self.key_embedding
+        bias = rows.sum(dim=1, keepdim=True) * embedding.bias[None, :]  # (2h,C)
+        return F.linear(rows @ keys, embedding.weight) + bias
 
 
 class ColourHeadMVSNeRF(nn.Module):

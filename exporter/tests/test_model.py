@@ -113,3 +113,37 @@ def test_positional_encoding_uses_the_reference_channel_order():
     a = x[0]
     want = torch.cat([a, torch.sin(a), torch.sin(2 * a), torch.cos(a), torch.cos(2 * a)])
     torch.testing.assert_close(got, want)
+
+
+def test_rectifier_equals_textbook_multihead_attention():
+    """The rectifier's folded form (rank-2 queries, W_k folded into the two score terms) computes
+    paper Eq. (ss) as written: tokens are the C channels, each embedded by its S values."""
+    from scnerf_export.model import SampleAxisAttention
+
+    cfg = small_config()
+    torch.manual_seed(0)
+    attention = SampleAxisAttention(cfg, key_channels=7).double()
+    for p in attention.parameters():  # the default init leaves the scores too flat to tell apart
+        torch.nn.init.normal_(p, std=0.5)
+    rays, s, c, heads, dk = 3, cfg.samples, cfg.width, cfg.heads, cfg.head_dim
+    query = torch.randn(rays, cfg.depth_embedding_channels + cfg.direction_embedding_channels, dtype=torch.float64)
+    keys = torch.randn(rays, s, 7, dtype=torch.float64)
+    values = torch.randn(rays, s, c, dtype=torch.float64)
+
+    q_tokens = attention.query_m3(query)[:, :, None].expand(-1, -1, s)  # (R,C,S): q_c along S
+    k_tokens = attention.key_embedding(keys).transpose(1, 2)
+    v_tokens = values.transpose(1, 2)
+
+    def split_heads(x):
+        return x.view(rays, c, heads, dk).transpose(1, 2)  # (R,h,C,dk)
+
+    q = split_heads(attention.w_q(q_tokens))
+    k = split_heads(attention.w_k(k_tokens))
+    v = split_heads(attention.w_v(v_tokens))
+    weights = torch.softmax(q @ k.transpose(-1, -2) / dk**0.5, dim=-1)
+    concatenated = (weights @ v).transpose(1, 2).reshape(rays, c, heads * dk)
+    want = torch.relu(v_tokens + attention.w_o(concatenated)).transpose(1, 2)
+
+    got = attention(query, keys, values)
+    torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
+    assert weights.max() > 0.5, "scores too flat: the check would pass for a wrong key path"
