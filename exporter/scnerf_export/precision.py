@@ -14,7 +14,8 @@ feeds it exactly as before (docs/bundle.md). The manifest gets a top-level ``"pr
   ``Gemm``, which dynamic quantisation does not cover, so each ``Gemm`` with a constant weight is
   first rewritten as ``MatMul`` (+ ``Add`` of the bias). Only products with a constant weight and an
   inner size of at least ``min_inner`` are quantised: the camera projections (inner size 3, inputs
-  from the request) and the activation x activation products of the attention stay float32.
+  from the request), the activation x activation products of the attention and the products that
+  make the attention scores (``products_feeding_softmax``) stay float32.
 * ``fp16``: the same matrix products with float16 weights and inputs (a Cast to float16 before,
   back to float32 after); sampling coordinates, encodings and compositing stay float32, where
   float16 would lose sub-pixel positions and high-frequency encodings. The target is the CUDA
@@ -81,16 +82,48 @@ def gemm_to_matmul(model: onnx.ModelProto) -> int:
 
 
 def quantizable_matmuls(model: onnx.ModelProto, min_inner: int = 16, exclude: tuple[str, ...] = ()) -> list[str]:
-    """MatMul nodes with a constant 2-D weight of inner size >= min_inner, by name."""
+    """MatMul nodes with a constant 2-D weight of inner size >= min_inner, by name, except those
+    that compute attention scores."""
     inits = {t.name: t for t in model.graph.initializer}
+    scores = products_feeding_softmax(model, inits)
     names = []
     for node in model.graph.node:
-        if node.op_type != "MatMul" or node.input[1] not in inits:
+        if node.op_type != "MatMul" or node.input[1] not in inits or node.name in scores:
             continue
         dims = list(inits[node.input[1]].dims)
         if len(dims) == 2 and dims[0] >= min_inner and not any(x in node.name for x in exclude):
             names.append(node.name)
     return names
+
+
+def products_feeding_softmax(model: onnx.ModelProto, inits: dict) -> set[str]:
+    """Weight products whose output reaches a Softmax before any other weight product.
+
+    The softmax exponentiates the scores, so an error there is amplified, and per-tensor int8
+    activations cannot hold the rectifiers' score terms (query slopes and offsets of very
+    different sizes in one tensor: 21 dB against float32 when they were quantised). These
+    products are per ray, not per sample, so keeping them float32 costs little."""
+    consumers: dict[str, list] = {}
+    for node in model.graph.node:
+        for name in node.input:
+            consumers.setdefault(name, []).append(node)
+
+    def weight_product(node) -> bool:
+        return node.op_type in ("MatMul", "Gemm") and any(i in inits for i in node.input)
+
+    found = set()
+    for start in model.graph.node:
+        if not weight_product(start):
+            continue
+        frontier, seen = list(start.output), set()
+        while frontier:
+            for node in consumers.get(frontier.pop(), []):
+                if node.op_type == "Softmax":
+                    found.add(start.name)
+                elif not weight_product(node) and node.name not in seen:
+                    seen.add(node.name)
+                    frontier.extend(node.output)
+    return found
 
 
 def quantize_graph_int8(src: Path, dst: Path, min_inner: int = 16, exclude: tuple[str, ...] = (),

@@ -15,8 +15,8 @@ from scnerf_export.cli import main
 from scnerf_export.export import read_manifest
 from scnerf_export.metrics import psnr
 from scnerf_export.onnx_pipeline import OnnxBundle
-from scnerf_export.precision import (compare_bundles, gemm_to_matmul, procedural_cases, quantize_bundle,
-                                     verify_bundle_hashes)
+from scnerf_export.precision import (compare_bundles, gemm_to_matmul, procedural_cases, quantizable_matmuls,
+                                     quantize_bundle, verify_bundle_hashes)
 
 
 @pytest.fixture(scope="module")
@@ -87,6 +87,34 @@ def test_gemm_rewrite_is_exact(tmp_path, fp32_bundle, case, fp32_render):
     ort.InferenceSession(str(bundle / "renderer.onnx"), providers=["CPUExecutionProvider"])
     got = render(bundle, case)
     assert float(np.abs(got.rgb - fp32_render.rgb).max()) <= 1e-5
+
+
+def test_attention_score_products_stay_float32(fp32_bundle):
+    """Of the rectifiers' weight products, those that make the scores (each rectifier's key terms
+    and the last layer of its query MLP M3) are not converted; the trunk's layers are."""
+    model = onnx.load(str(fp32_bundle / "renderer.onnx"))
+    gemm_to_matmul(model)
+    inits = {t.name for t in model.graph.initializer}
+    softmax_inputs = {n.input[0] for n in model.graph.node if n.op_type == "Softmax"}
+    assert len(softmax_inputs) == 2  # geometry and appearance rectifiers
+    producers = {o: n for n in model.graph.node for o in n.output}
+
+    def weight_products_upstream(name, seen):
+        node = producers.get(name)
+        if node is None or node.name in seen:
+            return set()
+        seen.add(node.name)
+        if node.op_type == "MatMul" and any(i in inits for i in node.input):
+            return {node.name}
+        return set().union(*(weight_products_upstream(i, seen) for i in node.input))
+
+    scores = set().union(*(weight_products_upstream(name, set()) for name in softmax_inputs))
+    converted = set(quantizable_matmuls(model))
+    score_weights = {i for n in model.graph.node if n.name in scores for i in n.input if i in inits}
+    assert any("query_m3.2" in w for w in score_weights)
+    assert len(scores) >= 4 and not scores & converted
+    trunk = {n.name for n in model.graph.node if n.op_type == "MatMul" and any("m1.linears" in i for i in n.input)}
+    assert trunk and trunk <= converted
 
 
 def test_refuses_bad_requests(tmp_path, fp32_bundle):
