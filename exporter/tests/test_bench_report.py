@@ -1,4 +1,5 @@
-"""bench/bench.py keeps, per method, the fastest of several interleaved rounds."""
+"""bench/bench.py keeps, per method, the fastest of several interleaved rounds, and checks the
+issue's targets against the right rows."""
 
 import importlib.util
 from pathlib import Path
@@ -32,3 +33,19 @@ def test_a_round_that_ran_replaces_an_earlier_failure():
     bench.keep_fastest(results, "ort", _run(700.0, "ran"))
     assert results["ort"]["tag"] == "ran"
     assert results["ort"]["round_totals_ms"] == [700.0]
+
+
+def _reduced_precision_line(res: dict) -> str:
+    return next(line for line in _bench().targets(res) if line.startswith("* reduced-precision"))
+
+
+def test_reduced_precision_target_reads_only_reduced_precision_variants():
+    methods = {"server": _run(75_000.0, "fp32"), "server-int8": _run(28_000.0, "int8"),
+               "server-graph0.1": _run(20_000.0, "fp32 graph")}
+    res = {"sizes": {"640x512": {"methods": methods}},
+           "variant_precision": {"int8": "int8", "graph0.1": "fp32"}}
+    assert _reduced_precision_line(res) == "* reduced-precision 640x512 view <= 30 s: met (int8 28.0 s)"
+    methods["server-int8"] = _run(31_000.0, "int8")
+    assert _reduced_precision_line(res) == "* reduced-precision 640x512 view <= 30 s: NOT met (int8 31.0 s)"
+    res["variant_precision"]["int8"] = "fp32"
+    assert _reduced_precision_line(res).endswith("not measured (no data)")
