@@ -275,10 +275,10 @@ def reference_frustum_coordinates(
 
 
 def sample_volume(volume: torch.Tensor, frustum: torch.Tensor) -> torch.Tensor:
-    """s: trilinear sample of V at frustum coordinates (N,3) -> (N,C); zeros outside."""
+    """s: trilinear sample of V at frustum coordinates (N,3) -> (C,N), channels first; zeros outside."""
     grid = (frustum * 2.0 - 1.0).view(1, 1, 1, -1, 3)
     s = F.grid_sample(volume, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
-    return s.view(volume.shape[1], -1).transpose(0, 1)
+    return s.view(volume.shape[1], -1)
 
 
 def view_grid(points: torch.Tensor, intrinsics: torch.Tensor, extrinsics: torch.Tensor,
@@ -306,24 +306,28 @@ def sample_views(
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
     """Reproject x into every source view.
 
-    Returns the colour/mask part of f, per view [r, g, b, in-image] (N, 4V) (colours with border
-    padding, as the reference code), and, when features are given, the appearance features F_a:
-    the mean over views of [F_i, I_i] at x, zero where x falls outside a view (N, C1+3).
+    Returns, channels first, the colour/mask part of f, per view [r, g, b, in-image] (4V, N)
+    (colours with border padding, as the reference code), and, when features are given, the
+    appearance features F_a: the mean over views of [F_i, I_i] at x, zero where x falls outside a
+    view (C1+3, N). Channels first is grid_sample's own layout, so nothing per point is transposed.
     All views are sampled in one grid_sample call each (the batch axis is the view).
     """
     views, _, height, width = images.shape
     grid = torch.stack([view_grid(points, intrinsics[i], extrinsics[i], height, width) for i in range(views)])
     grid4 = grid.view(views, 1, -1, 2)  # (V,1,N,2)
-    inside = ((grid > -1.0) & (grid < 1.0)).all(dim=-1, keepdim=True).to(points.dtype)  # (V,N,1)
-    rgb = F.grid_sample(images, grid4, mode="bilinear", padding_mode="border",
-                        align_corners=True).view(views, 3, -1).transpose(1, 2)  # (V,N,3)
-    colours = torch.cat([rgb, inside], dim=-1).transpose(0, 1).reshape(points.shape[0], 4 * views)
+    inside = ((grid > -1.0) & (grid < 1.0)).all(dim=-1).to(points.dtype)[:, None]  # (V,1,N)
+    # Border padding is sampling at the grid clamped to the image; clamped, the taps can take the
+    # fast align_corners=False path (see same_taps_without_corner_alignment).
+    colour_grid = same_taps_without_corner_alignment(grid4.clamp(-1.0, 1.0), height, width)
+    rgb = F.grid_sample(images, colour_grid, mode="bilinear", padding_mode="zeros",
+                        align_corners=False).view(views, 3, -1)  # (V,3,N)
+    colours = torch.cat([rgb, inside], dim=1).reshape(4 * views, -1)
     if features is None:
         return colours, None
     feat_grid = same_taps_without_corner_alignment(grid4, features.shape[2], features.shape[3])
     feat = F.grid_sample(features, feat_grid, mode="bilinear", padding_mode="zeros",
-                         align_corners=False).view(views, features.shape[1], -1).transpose(1, 2)
-    appearance = (torch.cat([feat, rgb], dim=-1) * inside).sum(dim=0) / views
+                         align_corners=False).view(views, features.shape[1], -1)  # (V,C1,N)
+    appearance = torch.cat([(feat * inside).sum(dim=0), (rgb * inside).sum(dim=0)]) / views
     return colours, appearance
 
 
@@ -334,7 +338,7 @@ def sample_views(
 
 class TrunkM1(nn.Module):
     """M1: F_r = M1(E(x), f); each layer's output is gated by a per-point Linear(f) before ReLU,
-    with E(x) concatenated after layer ``skip_layer`` (reference code's Renderer_ours)."""
+    with E(x) concatenated to the output of layer ``skip_layer`` (reference code's Renderer_ours)."""
 
     def __init__(self, cfg: ModelConfig):
         super().__init__()
@@ -347,13 +351,20 @@ class TrunkM1(nn.Module):
         self.skip_layer = cfg.skip_layer
 
     def forward(self, position_embedding: torch.Tensor, point_features: torch.Tensor) -> torch.Tensor:
+        """E(x) (N,E), f (N,F) -> F_r (N,width)."""
         gate = self.feature_gate(point_features)
         h = position_embedding
         for i, layer in enumerate(self.linears):
-            h = F.relu(layer(h) * gate)
-            if i == self.skip_layer:
-                h = torch.cat([position_embedding, h], dim=-1)
+            pre = self._skip_input_layer(layer, position_embedding, h) if i == self.skip_layer + 1 else layer(h)
+            h = F.relu(pre * gate)
         return h
+
+    @staticmethod
+    def _skip_input_layer(layer: nn.Linear, position_embedding: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
+        """layer([E(x), h]) as the sum of its two halves' products: the same number, without
+        writing the concatenation out for every point."""
+        e = position_embedding.shape[-1]
+        return torch.addmm(F.linear(position_embedding, layer.weight[:, :e], layer.bias), h, layer.weight[:, e:].t())
 
 
 class SampleAxisAttention(nn.Module):
@@ -378,7 +389,7 @@ class SampleAxisAttention(nn.Module):
         self.heads, self.head_dim = cfg.heads, cfg.head_dim
 
     def forward(self, query: torch.Tensor, keys: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
-        """query (R, Q_in), keys (R,S,K_in), values (R,S,C) -> rectified features (R,S,C).
+        """query (R, Q_in), keys channels first (K_in,R,S), values (R,S,C) -> rectified features (R,S,C).
 
         Computed in the (R, S, C) layout the trunk produces: a projection along S is a left
         product W @ X (R, S, C) -> (R, h*dk, C), so no tensor is transposed. Q is one value per
@@ -397,13 +408,14 @@ class SampleAxisAttention(nn.Module):
         return F.relu(values + self.w_o.weight @ heads_t + self.w_o.bias[:, None])
 
     def _key_terms(self, keys: torch.Tensor) -> torch.Tensor:
-        """[w . k_c', b . k_c'] / sqrt(d_k) per head and key token c': (R,S,K_in) -> (R,2h,C).
+        """[w . k_c', b . k_c'] / sqrt(d_k) per head and key token c': (K_in,R,S) -> (R,2h,C).
 
         K = W_k Linear(keys) enters the scores only through these 2h products, so they are folded
         into W_k first (2h rows along S instead of h d_k), and applied to the K_in key channels
         before the embedding widens them to the C tokens: a sixth to a ninth of the work of K.
-        The embedding's bias becomes a constant (2h, C) term; W_k's bias adds the same amount to
-        every score of a query token, which the softmax cancels, so it is left out.
+        The keys come channels first, as they are sampled, so the rows are one product over all
+        channels and rays. The embedding's bias becomes a constant (2h, C) term; W_k's bias adds
+        the same amount to every score of a query token, which the softmax cancels, so it is left out.
         """
         heads, dk = self.heads, self.head_dim
         q_parts = torch.stack([self.w_q.weight.sum(dim=1), self.w_q.bias]).view(2, heads, dk).transpose(0, 1)
@@ -411,7 +423,9 @@ class SampleAxisAttention(nn.Module):
         rows = (q_parts @ self.w_k.weight.view(heads, dk, -1)).reshape(2 * heads, -1)  # (2h,S)
         embedding = self.key_embedding
         bias = rows.sum(dim=1, keepdim=True) * embedding.bias[None, :]  # (2h,C)
-        return F.linear(rows @ keys, embedding.weight) + bias
+        channels, rays, samples = keys.shape
+        projected = (keys.reshape(channels * rays, samples) @ rows.transpose(0, 1)).view(channels, -1)
+        return F.linear(projected.transpose(0, 1), embedding.weight).view(rays, -1, bias.shape[1]) + bias
 
 
 class ColourHeadMVSNeRF(nn.Module):
@@ -501,11 +515,11 @@ class RayRenderer(nn.Module):
         s = sample_volume(volume, frustum)
         colours, appearance = sample_views(points, images, features if self.appearance is not None else None,
                                            intrinsics, extrinsics)
-        point_features = torch.cat([s, colours], dim=-1)  # f (N, 8+4V)
+        point_features = torch.cat([s, colours])  # f, channels first (8+4V, N)
 
         unit_dir = ray_directions / torch.linalg.vector_norm(ray_directions, dim=-1, keepdim=True)
         ref_dir = unit_dir @ extrinsics[0, :3, :3].transpose(0, 1)  # d in the reference frame
-        radiance = self.m1(frequency_encoding(frustum, cfg.position_freqs), point_features)
+        radiance = self.m1(frequency_encoding(frustum, cfg.position_freqs), point_features.transpose(0, 1))
         sigma = self.m2(radiance).view(rays, samples)
         weights = composite_weights(sigma)
         depth = (weights * z[None, :]).sum(dim=-1)
@@ -523,9 +537,9 @@ class RayRenderer(nn.Module):
             direction_embedding = frequency_encoding(ref_dir, cfg.direction_freqs)
             query = torch.cat([depth_embedding, direction_embedding], dim=-1)
             if self.geometry is not None:  # F_c = Multihead(Q, K = f, V = F_r)
-                radiance = self.geometry(query, point_features.view(rays, samples, -1), radiance)
+                radiance = self.geometry(query, point_features.view(-1, rays, samples), radiance)
             if self.appearance is not None:  # F = Multihead(Q, K = mean F_a, V = F_c)
-                radiance = self.appearance(query, appearance.view(rays, samples, -1), radiance)
+                radiance = self.appearance(query, appearance.view(-1, rays, samples), radiance)
             colour = self.colour_head(radiance, query)
         rgb = (weights[..., None] * colour).sum(dim=1)
         return rgb, depth, opacity

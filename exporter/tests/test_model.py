@@ -101,6 +101,8 @@ def test_config_round_trips_and_rejects_bad_values():
         ModelConfig(depth_planes=100)
     with pytest.raises(ValueError):
         ModelConfig.from_dict({**cfg.to_dict(), "colour": 1})
+    with pytest.raises(ValueError, match="skip_layer"):  # no layer after it would read E(x) again
+        ModelConfig(trunk_layers=6, skip_layer=5)
 
 
 def test_positional_encoding_uses_the_reference_channel_order():
@@ -144,6 +146,48 @@ def test_rectifier_equals_textbook_multihead_attention():
     concatenated = (weights @ v).transpose(1, 2).reshape(rays, c, heads * dk)
     want = torch.relu(v_tokens + attention.w_o(concatenated)).transpose(1, 2)
 
-    got = attention(query, keys, values)
+    got = attention(query, keys.permute(2, 0, 1), values)  # keys channels first, as sampled
     torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
     assert weights.max() > 0.5, "scores too flat: the check would pass for a wrong key path"
+
+
+def test_trunk_skip_layer_reads_the_concatenation():
+    """M1's layer after the skip reads [E(x), h]; it is computed as two products, so check it
+    against the concatenation written out (float64)."""
+    from scnerf_export.model import TrunkM1
+
+    cfg = small_config()
+    torch.manual_seed(0)
+    trunk = TrunkM1(cfg).double()
+    embedding = torch.randn(11, cfg.position_embedding_channels, dtype=torch.float64)
+    features = torch.randn(11, cfg.point_feature_channels, dtype=torch.float64)
+
+    gate = trunk.feature_gate(features)
+    h = embedding
+    for i, layer in enumerate(trunk.linears):
+        h = torch.relu(layer(h) * gate)
+        if i == cfg.skip_layer:
+            h = torch.cat([embedding, h], dim=-1)
+    torch.testing.assert_close(trunk(embedding, features), h, rtol=1e-12, atol=1e-12)
+
+
+def test_colours_are_the_border_padded_samples():
+    """The colour taps go through grid_sample's align_corners=False path on a clamped grid; they
+    must read what border padding with align_corners=True reads, at and beyond the image edges."""
+    from scnerf_export.model import sample_views, view_grid
+
+    images, sources, *_ = scene(height=12, width=16)
+    images = torch.from_numpy(images).permute(0, 3, 1, 2).double()
+    intrinsics = torch.from_numpy(cams.stack_intrinsics(sources)).double()
+    extrinsics = torch.from_numpy(cams.stack_extrinsics(sources)).double()
+    torch.manual_seed(0)
+    points = torch.randn(500, 3, dtype=torch.float64) * 2.0
+    colours, _ = sample_views(points, images, None, intrinsics, extrinsics)
+
+    rgb = colours.view(len(sources), 4, -1)[:, :3]
+    for i in range(len(sources)):
+        grid = view_grid(points, intrinsics[i], extrinsics[i], 12, 16).view(1, 1, -1, 2)
+        assert (grid.abs() > 1).any() and (grid.abs() < 1).all(dim=-1).any(), "need points in and out"
+        want = torch.nn.functional.grid_sample(images[i : i + 1], grid, mode="bilinear",
+                                               padding_mode="border", align_corners=True).view(3, -1)
+        torch.testing.assert_close(rgb[i], want, rtol=1e-12, atol=1e-12)
