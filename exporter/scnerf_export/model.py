@@ -251,11 +251,16 @@ class VolumeNetG2(nn.Module):
 # ---------------------------------------------------------------------------------------------
 
 
-def project(points: torch.Tensor, intrinsics: torch.Tensor, extrinsics: torch.Tensor) -> torch.Tensor:
-    """World points (N,3) -> (N,3) = (pixel u, pixel v, camera z) in one view."""
+def project(points: torch.Tensor, intrinsics: torch.Tensor, extrinsics: torch.Tensor
+            ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """World points (N,3) -> pixel u, pixel v and camera z in one view, each (N).
+
+    Separate axes rather than one (N,3) tensor: every caller takes them apart again, and a
+    per-axis division is a plain elementwise one, not a broadcast (ONNX Runtime's is far slower)."""
     cam = points @ extrinsics[:3, :3].transpose(0, 1) + extrinsics[:3, 3]
     pix = cam @ intrinsics.transpose(0, 1)
-    return torch.cat([pix[:, :2] / pix[:, 2:], pix[:, 2:]], dim=-1)
+    z = pix[:, 2]
+    return pix[:, 0] / z, pix[:, 1] / z, z
 
 
 def reference_frustum_coordinates(
@@ -264,10 +269,10 @@ def reference_frustum_coordinates(
 ) -> torch.Tensor:
     """x in the reference frustum, in [0,1]^3: u/(W-1), v/(H-1), (z-near)/(far-near), then the
     image axes remapped into the padded volume (reference code's get_ndc_coordinate)."""
-    uvz = project(points, intrinsics, extrinsics)
-    u = uvz[:, 0] / (width - 1)
-    v = uvz[:, 1] / (height - 1)
-    z = (uvz[:, 2] - near_far[0]) / (near_far[1] - near_far[0])
+    u, v, z = project(points, intrinsics, extrinsics)
+    u = u / (width - 1)
+    v = v / (height - 1)
+    z = (z - near_far[0]) / (near_far[1] - near_far[0])
     wf, hf = width / 4.0, height / 4.0
     u = u * wf / (wf + 2 * pad) + pad / (wf + 2 * pad)
     v = v * hf / (hf + 2 * pad) + pad / (hf + 2 * pad)
@@ -284,8 +289,8 @@ def sample_volume(volume: torch.Tensor, frustum: torch.Tensor) -> torch.Tensor:
 def view_grid(points: torch.Tensor, intrinsics: torch.Tensor, extrinsics: torch.Tensor,
               height: int, width: int) -> torch.Tensor:
     """Pixel positions of points in one view as a grid_sample grid (align_corners=True), (N,2)."""
-    uvz = project(points, intrinsics, extrinsics)
-    return torch.stack([uvz[:, 0] / (width - 1), uvz[:, 1] / (height - 1)], dim=-1) * 2.0 - 1.0
+    u, v, _ = project(points, intrinsics, extrinsics)
+    return torch.stack([u / (width - 1), v / (height - 1)], dim=-1) * 2.0 - 1.0
 
 
 def same_taps_without_corner_alignment(grid: torch.Tensor, height: int, width: int) -> torch.Tensor:
@@ -399,13 +404,16 @@ class SampleAxisAttention(nn.Module):
         rays, _, channels = values.shape
         heads, dk = self.heads, self.head_dim
         q_tokens = self.query_m3(query)  # (R,C)
-        v_t = (self.w_v.weight @ values + self.w_v.bias[:, None]).view(rays, heads, dk, channels)
+        v_t = (self.w_v.weight @ values).view(rays, heads, dk, channels)  # W_v's bias: see below
         slope_offset = self._key_terms(keys).view(rays, heads, 2, channels)
         q_affine = torch.stack([q_tokens, torch.ones_like(q_tokens)], dim=-1)[:, None]  # (R,1,C,2)
         scores = q_affine @ slope_offset  # (R,h,C,C)
         attention = torch.softmax(scores, dim=-1)
         heads_t = (v_t @ attention.transpose(-1, -2)).reshape(rays, heads * dk, channels)
-        return F.relu(values + self.w_o.weight @ heads_t + self.w_o.bias[:, None])
+        # Each attention row sums to 1, so W_v's bias comes through the heads unchanged and joins
+        # W_o's: one broadcast addition instead of two.
+        bias = self.w_o.weight @ self.w_v.bias + self.w_o.bias
+        return F.relu(values + self.w_o.weight @ heads_t + bias[:, None])
 
     def _key_terms(self, keys: torch.Tensor) -> torch.Tensor:
         """[w . k_c', b . k_c'] / sqrt(d_k) per head and key token c': (K_in,R,S) -> (R,2h,C).
