@@ -17,6 +17,7 @@ from torch.export import Dim
 from . import __version__
 from .checkpoint import sha256_file
 from .model import SCNeRF
+from .ray_groups import attention_cores_in_ray_groups
 
 FORMAT_VERSION = 1
 OPSET = 20
@@ -169,6 +170,8 @@ def _export_graph(module: nn.Module, inputs: dict[str, torch.Tensor], model: SCN
         )
     proto = program.model_proto
     _strip_debug_metadata(proto)
+    if graph == "renderer":
+        attention_cores_in_ray_groups(proto)
     _rename_dims(proto, signature)
     onnx.checker.check_model(proto, full_check=True)
     onnx.save(proto, path)

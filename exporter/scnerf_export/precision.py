@@ -126,6 +126,42 @@ def products_feeding_softmax(model: onnx.ModelProto, inits: dict) -> set[str]:
     return found
 
 
+def _outer_scope_reads(node) -> set[str]:
+    """Names the node's subgraphs (a Loop's body) read from the enclosing graph."""
+    reads = set()
+    for attribute in node.attribute:
+        for body in ([attribute.g] if attribute.type == onnx.AttributeProto.GRAPH else list(attribute.graphs)):
+            local = {v.name for v in body.input} | {t.name for t in body.initializer}
+            for inner in body.node:
+                reads |= {i for i in inner.input if i and i not in local} | (_outer_scope_reads(inner) - local)
+                local |= set(inner.output)
+    return reads
+
+
+def sort_with_outer_scope_reads(graph: onnx.GraphProto) -> None:
+    """Order the nodes so that every node follows the producers of what it and its subgraphs read,
+    keeping the given order where it already does. onnxruntime's quantiser sorts by explicit
+    inputs only, which puts the renderer's ray-group Loops before the tensors their bodies slice."""
+    nodes = list(graph.node)
+    producer = {out: k for k, node in enumerate(nodes) for out in node.output}
+    reads = [sorted(set(node.input) | _outer_scope_reads(node)) for node in nodes]
+    placed, order = set(), []
+    for k in range(len(nodes)):
+        stack = [k]  # depth-first, without recursion: the dependency chains are ~1000 nodes long
+        while stack:
+            top = stack[-1]
+            missing = [producer[n] for n in reads[top] if n in producer and producer[n] not in placed]
+            if top in placed:
+                stack.pop()
+            elif missing:
+                stack.extend(missing)
+            else:
+                placed.add(top)
+                order.append(nodes[stack.pop()])
+    del graph.node[:]
+    graph.node.extend(order)
+
+
 def quantize_graph_int8(src: Path, dst: Path, min_inner: int = 16, exclude: tuple[str, ...] = (),
                         per_channel: bool = True) -> dict:
     from onnxruntime.quantization import QuantType, quantize_dynamic
@@ -143,7 +179,10 @@ def quantize_graph_int8(src: Path, dst: Path, min_inner: int = 16, exclude: tupl
             weight_type=QuantType.QInt8, nodes_to_quantize=targets, op_types_to_quantize=["MatMul"],
             extra_options={"MatMulConstBOnly": True},
         )
-    onnx.checker.check_model(str(dst))
+    quantized = onnx.load(str(dst))
+    sort_with_outer_scope_reads(quantized.graph)
+    onnx.checker.check_model(quantized)
+    onnx.save(quantized, str(dst))
     return {"method": "onnxruntime.quantization.quantize_dynamic", "weight_type": "QInt8",
             "activation_type": "QUInt8 (dynamic, per tensor)", "per_channel": per_channel,
             "gemm_rewritten_as_matmul": rewritten, "quantized_matmuls": len(targets), "min_inner": min_inner}

@@ -107,3 +107,26 @@ def test_committed_fixtures_match_the_committed_bundle(parity_fixtures):
         assert np.abs(got.rgb - read("rgb")).max() <= expected["tolerances"]["rgb_max_abs"]
         assert np.abs(got.depth - read("depth")).max() <= expected["tolerances"]["depth_max_rel"] * np.abs(read("depth")).max()
         assert np.abs(got.opacity - read("opacity")).max() <= expected["tolerances"]["opacity_max_abs"]
+
+
+def test_the_renderer_runs_its_attention_cores_in_ray_groups(exported):
+    """scnerf renderers carry one Loop per rectifier (scnerf_export.ray_groups) and match PyTorch
+    for a single ray, a whole group and a group plus one (the Loop, the rest, both)."""
+    from scnerf_export.ray_groups import RAYS_PER_GROUP
+
+    model, out, _ = exported
+    proto = onnx.load(out / "renderer.onnx")
+    rectifiers = (model.renderer.geometry is not None) + (model.renderer.appearance is not None)
+    assert [n.op_type for n in proto.graph.node].count("Loop") == rectifiers
+    height, width = SIZES[0]
+    inputs = subgraph_inputs(model, height, width)["renderer"]
+    rig = synthetic_rig(model.cfg, height, width, seed=height + width)  # the rays subgraph_inputs thins out
+    session = ort.InferenceSession(str(out / "renderer.onnx"), providers=["CPUExecutionProvider"])
+    for rays in (1, RAYS_PER_GROUP, RAYS_PER_GROUP + 1):
+        feeds = {**inputs, "ray_origins": rig["ray_origins"][:rays], "ray_directions": rig["ray_directions"][:rays]}
+        got = session.run(None, {k: v.numpy() for k, v in feeds.items()})
+        with torch.no_grad():
+            want = RendererGraph(model)(*feeds.values())
+        for g, w in zip(got, want):
+            assert g.shape == tuple(w.shape)
+            assert np.abs(g - w.numpy()).max() <= 1e-4, f"{rays} rays"

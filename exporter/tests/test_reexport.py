@@ -10,6 +10,7 @@ import shutil
 import onnx
 import pytest
 
+from scnerf_export import __version__
 from scnerf_export.cli import main
 from scnerf_export.export import read_manifest
 from scnerf_export.reexport import ReexportError, reexport_bundle
@@ -62,7 +63,7 @@ def test_reexport_refuses_to_overwrite_its_source():
 
 
 def test_reexport_refuses_bundles_of_other_exporter_versions(tmp_path):
-    with pytest.raises(ReexportError, match="written by scnerf-export 0.2.0"):
+    with pytest.raises(ReexportError, match=f"written by scnerf-export {__version__}"):
         reexport_bundle(CURRENT_BUNDLE, tmp_path / "out")
 
 
