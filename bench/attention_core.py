@@ -4,10 +4,11 @@ Per ray and head, the core is softmax over key tokens of [q_c, 1] . [slope_c', o
 size 2, see SampleAxisAttention) times the values: (R, h, C, C) scores for R rays. The renderer
 graph runs it as MatMul -> Softmax -> MatMul(V, A^T). This times, at the default bundle's sizes,
 that chain and its ops alone, against ONNX's Attention (opset 23, 4-D and 3-D inputs),
-com.microsoft's MultiHeadAttention, and the chain inside a Loop over groups of rays (each group's
-scores small enough for the cache). Every variant is checked against the chain.
+com.microsoft's MultiHeadAttention, and the chain inside a Loop over groups of rays as the
+exporter writes it (each group's scores small enough for the cache). Every variant is checked
+against the chain.
 
-    .venv/bin/python bench/attention_core.py --rays 512 --rounds 30 --groups 16,64
+    .venv/bin/python bench/attention_core.py --rays 512 --rounds 30 --groups 16,32,64
 """
 from __future__ import annotations
 
@@ -15,13 +16,16 @@ import argparse
 import time
 
 import numpy as np
+import onnx
 import onnxruntime as ort
 from onnx import TensorProto, helper
+
+from scnerf_export.ray_groups import attention_cores_in_ray_groups
 
 HEADS, HEAD_DIM, TOKENS = 4, 8, 64  # the default bundle's h, d_k and width C
 
 
-def model(nodes, inputs: dict, opsets=(("", 18),)) -> bytes:
+def model(nodes, inputs: dict, opsets=(("", 18),)) -> onnx.ModelProto:
     """A graph of `nodes` whose output `y` is sliced to one ray: only the core's work is timed,
     not the copy of a large graph output."""
     first = [helper.make_node("Constant", [], [n], value=helper.make_tensor(n, TensorProto.INT64, [1], [v]))
@@ -30,8 +34,7 @@ def model(nodes, inputs: dict, opsets=(("", 18),)) -> bytes:
     graph = helper.make_graph(
         nodes, "core", [helper.make_tensor_value_info(n, TensorProto.FLOAT, a.shape) for n, a in inputs.items()],
         [helper.make_tensor_value_info("out", TensorProto.FLOAT, None)])
-    return helper.make_model(graph, opset_imports=[helper.make_opsetid(d, v) for d, v in opsets],
-                             ir_version=10).SerializeToString()
+    return helper.make_model(graph, opset_imports=[helper.make_opsetid(d, v) for d, v in opsets], ir_version=10)
 
 
 def chain(prefix: str, qa: str, so: str, vt: str, out: str) -> list:
@@ -41,26 +44,10 @@ def chain(prefix: str, qa: str, so: str, vt: str, out: str) -> list:
             helper.make_node("MatMul", [vt, prefix + "attention_t"], [out])]
 
 
-def looped_chain(group: int) -> list:
-    """The chain per group of `group` rays in a Loop (R a multiple of the group)."""
-    const = lambda n, v: helper.make_node("Constant", [], [n], value=helper.make_tensor(n, TensorProto.INT64, [1], [v]))
-    body = helper.make_graph(
-        [const("g", group), const("axis", 0), helper.make_node("Unsqueeze", ["i", "axis"], ["i1"]),
-         helper.make_node("Mul", ["i1", "g"], ["start"]), helper.make_node("Add", ["start", "g"], ["end"]),
-         *[helper.make_node("Slice", [n, "start", "end", "axis"], [n + "_i"]) for n in ("qa", "so", "vt")],
-         *chain("b_", "qa_i", "so_i", "vt_i", "y_i"), helper.make_node("Identity", ["cond"], ["cond_out"])],
-        "group", [helper.make_tensor_value_info("i", TensorProto.INT64, []),
-                  helper.make_tensor_value_info("cond", TensorProto.BOOL, [])],
-        [helper.make_tensor_value_info("cond_out", TensorProto.BOOL, []),
-         helper.make_tensor_value_info("y_i", TensorProto.FLOAT, [group, HEADS, HEAD_DIM, TOKENS])])
-    return [const("gg", group), const("z", 0), helper.make_node("Shape", ["qa"], ["shape"]),
-            helper.make_node("Gather", ["shape", "z"], ["rays"]), helper.make_node("Div", ["rays", "gg"], ["n1"]),
-            helper.make_node("Squeeze", ["n1"], ["n"]),
-            helper.make_node("Constant", [], ["true"], value=helper.make_tensor("t", TensorProto.BOOL, [], [True])),
-            helper.make_node("Loop", ["n", "true"], ["stacked"], body=body),
-            helper.make_node("Constant", [], ["out_shape"], value=helper.make_tensor(
-                "s", TensorProto.INT64, [4], [-1, HEADS, HEAD_DIM, TOKENS])),
-            helper.make_node("Reshape", ["stacked", "out_shape"], ["y"])]
+def in_ray_groups(graph: onnx.ModelProto, group: int) -> onnx.ModelProto:
+    """The chain as the exporter writes it into the renderer (scnerf_export.ray_groups)."""
+    attention_cores_in_ray_groups(graph, rays_per_group=group)
+    return graph
 
 
 def variants(rays: int, groups: list[int], rng) -> list:
@@ -97,8 +84,9 @@ def variants(rays: int, groups: list[int], rng) -> list:
          model([helper.make_node("MultiHeadAttention", ["q", "k", "v"], ["y"], domain="com.microsoft",
                                  num_heads=h, scale=1.0)], heads_in_hidden, (("", 18), ("com.microsoft", 1))),
          heads_in_hidden, from_hidden),
-        *[(f"chain in a Loop, {g} rays a turn", model(looped_chain(g), core), core, lambda y: y)
-          for g in groups if rays % g == 0],
+        *[(f"chain in a Loop, {g} rays a turn", in_ray_groups(model(chain("", "qa", "so", "vt", "y"), core), g),
+           core, lambda y: y)
+          for g in groups],
     ]
 
 
@@ -107,14 +95,14 @@ def main() -> None:
     parser.add_argument("--rays", type=int, default=512)
     parser.add_argument("--rounds", type=int, default=30)
     parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--groups", default="16,64", help="ray groups of the Loop variants")
+    parser.add_argument("--groups", default="16,32,64", help="ray groups of the Loop variants")
     args = parser.parse_args()
     options = ort.SessionOptions()
     options.intra_op_num_threads, options.inter_op_num_threads = args.threads, 1
     options.add_session_config_entry("session.intra_op.allow_spinning", "0")  # see bench/ab.py
-    cases = [(name, ort.InferenceSession(graph, options, providers=["CPUExecutionProvider"]), feeds, layout, [])
-             for name, graph, feeds, layout in variants(args.rays, [int(g) for g in args.groups.split(",")],
-                                                        np.random.default_rng(0))]
+    groups = [int(g) for g in args.groups.split(",")]
+    cases = [(name, ort.InferenceSession(graph.SerializeToString(), options, providers=["CPUExecutionProvider"]),
+              feeds, layout, []) for name, graph, feeds, layout in variants(args.rays, groups, np.random.default_rng(0))]
     for _ in range(args.rounds):
         for _, session, feeds, _, spent in cases:
             start = time.perf_counter()

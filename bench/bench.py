@@ -247,6 +247,10 @@ def worker_ort(args) -> dict:
     return _finish(args, "ort", stages, total, result.rgb, load_s, {"png_bytes": len(png)})
 
 
+# Their kernel time is that of the nodes of their subgraphs, which the profile lists too.
+CONTAINER_OPS = ("Loop", "If", "Scan")
+
+
 def worker_profile(args) -> dict:
     """ONNX Runtime's profiler on one renderer run of ``--chunk`` rays of the scene: time per
     operator type (where the renderer's time goes besides its matrix products)."""
@@ -280,7 +284,8 @@ def worker_profile(args) -> dict:
     last_run = max(e["ts"] for e in events if e.get("name") == "model_run")
     by_op: collections.Counter = collections.Counter()
     for e in events:
-        if e.get("cat") == "Node" and e["name"].endswith("_kernel_time") and e["ts"] >= last_run:
+        if (e.get("cat") == "Node" and e["name"].endswith("_kernel_time") and e["ts"] >= last_run
+                and e["args"].get("op_name") not in CONTAINER_OPS):
             by_op[e["args"].get("op_name", "?")] += e["dur"]
     total = sum(by_op.values()) or 1
     return {"rays": int(feeds["ray_origins"].shape[0]), "wall_ms": wall * 1000.0, "kernel_ms": total / 1000.0,
@@ -497,12 +502,16 @@ def parse_server_timing(headers: dict) -> dict:
 def renderer_gemm_flops(onnx_path: Path, rays: int, hw: tuple[int, int], pad: int) -> dict:
     """Sum of 2*M*N*K over the renderer's MatMul/Gemm nodes (batch dims multiplied in), with every
     shape from ONNX shape inference (data propagation on) at R = ``rays`` and the given padded
-    source size. Every MatMul/Gemm of the renderer is per ray, so the count is exactly linear in R."""
+    source size. Every MatMul/Gemm of the renderer is per ray, so the count is exactly linear in R.
+    Shape inference does not look inside a Loop, so the attention cores that the graph runs a
+    group of rays at a time are counted as their plain chains (the same products)."""
     import numpy as np
     import onnx
     from onnx import shape_inference
+    from scnerf_export.ray_groups import plain_attention_cores
 
     model = onnx.load(str(onnx_path))
+    plain_attention_cores(model)
     H, W = hw
     dims = {"R": rays, "H": H, "W": W, "h": H // 4, "w": W // 4, "Hp": H // 4 + 2 * pad, "Wp": W // 4 + 2 * pad}
     for value in model.graph.input:

@@ -4,9 +4,9 @@ Each rectifier's core, scores -> softmax -> values (``SampleAxisAttention``: Mat
 Transpose, MatMul in the graph), makes (R, h, C, C) scores: 64 KiB per ray for the default bundle,
 33 MB for a 512-ray run, beyond the 32 MB L3 of the development machine, so each of its three
 ops streams them through memory. In an ONNX ``Loop`` over groups of ``RAYS_PER_GROUP`` rays the
-scores of a group (2 MiB) stay in the cache from one op to the next. The rest of the renderer
-keeps whole runs, where its products are more efficient (whole runs of 64 rays are no faster,
-bench/README.md). The maths and the order of every sum are the same, so the outputs are
+scores of a group (2 MiB) stay in the cache from one op to the next, while the rest of the
+renderer keeps its long runs (whole runs of 64 rays instead of 512 were within 4 %,
+bench/README.md). The products and the order of every sum are the same, so the outputs are
 identical to the unrewritten graph's.
 
 The Loop takes the first R - r rays in groups; the remaining r (1..group) rays run through a copy
@@ -14,45 +14,80 @@ of the core outside it, so any R >= 1 works and neither path ever sees an empty 
 """
 from __future__ import annotations
 
+import re
+
 import onnx
 from onnx import TensorProto, helper
 
 RAYS_PER_GROUP = 32
+_GROUP_PREFIX = re.compile(r"^ray_group\d+_")
 
 
 def attention_cores_in_ray_groups(model: onnx.ModelProto, rays_per_group: int = RAYS_PER_GROUP) -> int:
     """Rewrite every MatMul -> Softmax -> Transpose -> MatMul chain in place; returns how many."""
     graph = model.graph
-    producers = {out: node for node in graph.node for out in node.output}
-    consumers: dict[str, list] = {}
-    for node in graph.node:
+    nodes = list(graph.node)  # nodes are told apart by position: names may be empty
+    producer = {out: k for k, node in enumerate(nodes) for out in node.output}
+    consumers: dict[str, list[int]] = {}
+    for k, node in enumerate(nodes):
         for name in node.input:
-            consumers.setdefault(name, []).append(node)
+            consumers.setdefault(name, []).append(k)
 
-    cores = [core for core in (_attention_core(n, producers, consumers) for n in graph.node if n.op_type == "Softmax")
-             if core is not None]
-    replacement = {node.name: [] for core in cores for node in core}
-    for k, core in enumerate(cores):
+    cores = [core for core in (_attention_core(nodes, k, producer, consumers)
+                               for k, node in enumerate(nodes) if node.op_type == "Softmax") if core is not None]
+    replacement = {k: [] for core in cores for k in core}
+    for g, core in enumerate(cores):
         # The rewritten core takes the place of its last node: all its inputs exist by then.
-        replacement[core[-1].name] = _grouped(core, f"ray_group{k}_", rays_per_group)
-    nodes = [new for node in graph.node for new in replacement.get(node.name, [node])]
+        replacement[core[-1]] = _grouped([nodes[k] for k in core], f"ray_group{g}_", rays_per_group)
     del graph.node[:]
-    graph.node.extend(nodes)
+    graph.node.extend(new for k, node in enumerate(nodes) for new in replacement.get(k, [node]))
     return len(cores)
 
 
-def _attention_core(softmax, producers, consumers) -> list | None:
-    """[scores, softmax, transpose, values] when softmax sits in such a chain, else None."""
-    def only_consumer(node):
-        users = consumers.get(node.output[0], [])
+def plain_attention_cores(model: onnx.ModelProto) -> int:
+    """The inverse rewrite: each group back to its plain chain over all R rays at once (the same
+    products), e.g. for counting FLOPs by shape inference, which does not look inside a Loop.
+    The copy after the loop is the chain with every name prefixed, so unprefixing it restores it."""
+    graph = model.graph
+    prefixes = sorted({m.group(0) for node in graph.node for out in node.output if (m := _GROUP_PREFIX.match(out))})
+    for p in prefixes:
+        rest = p + "rest_"
+        strip = lambda name: name[len(rest):] if name.startswith(rest) else name
+        chain = []
+        for node in graph.node:
+            if node.name.startswith(rest):
+                plain = onnx.NodeProto()
+                plain.CopyFrom(node)
+                plain.name = strip(node.name)
+                plain.input[:] = [strip(i) for i in node.input]
+                plain.output[:] = [strip(o) for o in node.output]
+                chain.append(plain)
+        nodes = list(graph.node)
+        # Everything the rewrite made has a prefixed output, except the Concat that writes the
+        # chain's own output name; the chain goes back where that Concat was.
+        made = [k for k, node in enumerate(nodes)
+                if any(o.startswith(p) for o in node.output) or node.output[0] == chain[-1].output[0]]
+        at = made[-1] - (len(made) - 1)
+        dropped = set(made)
+        kept = [node for k, node in enumerate(nodes) if k not in dropped]
+        del graph.node[:]
+        graph.node.extend(kept[:at] + chain + kept[at:])
+    return len(prefixes)
+
+
+def _attention_core(nodes, softmax: int, producer, consumers) -> list[int] | None:
+    """Positions of [scores, softmax, transpose, values] when the softmax sits in such a chain."""
+    def only_consumer(k):
+        users = consumers.get(nodes[k].output[0], [])
         return users[0] if len(users) == 1 else None
 
-    scores = producers.get(softmax.input[0])
+    scores = producer.get(nodes[softmax].input[0])
     transpose = only_consumer(softmax)
     values = only_consumer(transpose) if transpose is not None else None
-    if (scores is None or scores.op_type != "MatMul" or len(consumers[scores.output[0]]) != 1
-            or transpose is None or transpose.op_type != "Transpose"
-            or values is None or values.op_type != "MatMul" or values.input[1] != transpose.output[0]):
+    if (scores is None or nodes[scores].op_type != "MatMul" or only_consumer(scores) != softmax
+            or transpose is None or nodes[transpose].op_type != "Transpose"
+            or values is None or nodes[values].op_type != "MatMul"
+            or nodes[values].input[1] != nodes[transpose].output[0]):
         return None
     return [scores, softmax, transpose, values]
 
@@ -64,7 +99,7 @@ def _copy(core: list, prefix: str, inputs: dict[str, str]) -> list:
     for node in core:
         copy = onnx.NodeProto()
         copy.CopyFrom(node)
-        copy.name = prefix + node.name
+        copy.name = prefix + (node.name or node.output[0])  # ONNX Runtime refuses two nodes of one name
         copy.input[:] = [inputs.get(i, prefix + i if i in made else i) for i in node.input]
         copy.output[:] = [prefix + o for o in node.output]
         copies.append(copy)
@@ -72,7 +107,8 @@ def _copy(core: list, prefix: str, inputs: dict[str, str]) -> list:
 
 
 def _ints(name: str, values: list[int]):
-    return helper.make_node("Constant", [], [name], value=helper.make_tensor(name, TensorProto.INT64, [len(values)], values))
+    tensor = helper.make_tensor(name, TensorProto.INT64, [len(values)], values)
+    return helper.make_node("Constant", [], [name], value=tensor)
 
 
 def _grouped(core: list, p: str, group: int) -> list:

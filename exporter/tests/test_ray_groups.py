@@ -7,7 +7,7 @@ import onnxruntime as ort
 import pytest
 from onnx import TensorProto, helper
 
-from scnerf_export.ray_groups import attention_cores_in_ray_groups
+from scnerf_export.ray_groups import attention_cores_in_ray_groups, plain_attention_cores
 
 HEADS, HEAD_DIM, TOKENS = 2, 3, 5
 
@@ -51,6 +51,16 @@ def test_grouped_core_equals_the_chain_for_every_ray_count(rays):
     np.testing.assert_array_equal(got, want)  # same maths in the same order: not merely close
 
 
+def test_nodes_without_names_are_rewritten_alike():
+    plain, grouped = chain_model(extra_softmax=True), chain_model(extra_softmax=True)
+    for node in grouped.graph.node:
+        node.name = ""
+    assert attention_cores_in_ray_groups(grouped, rays_per_group=4) == 1
+    assert [n.op_type for n in grouped.graph.node].count("Softmax") == 2  # the rest's copy and the other one
+    for g, w in zip(run(grouped, 9), run(plain, 9)):
+        np.testing.assert_array_equal(g, w)
+
+
 def test_a_softmax_outside_the_chain_is_left_alone():
     grouped = chain_model(extra_softmax=True)
     assert attention_cores_in_ray_groups(grouped, rays_per_group=4) == 1
@@ -67,3 +77,10 @@ def test_a_graph_without_the_chain_is_unchanged():
     before = model.SerializeToString()
     assert attention_cores_in_ray_groups(model) == 0
     assert model.SerializeToString() == before
+
+
+def test_the_inverse_rewrite_restores_the_plain_chain():
+    original, model = chain_model(extra_softmax=True), chain_model(extra_softmax=True)
+    attention_cores_in_ray_groups(model, rays_per_group=4)
+    assert plain_attention_cores(model) == 1
+    assert list(model.graph.node) == list(original.graph.node)
