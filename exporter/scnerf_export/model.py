@@ -433,7 +433,7 @@ class SampleAxisAttention(nn.Module):
         bias = rows.sum(dim=1, keepdim=True) * embedding.bias[None, :]  # (2h,C)
         channels, rays, samples = keys.shape
         projected = (keys.reshape(channels * rays, samples) @ rows.transpose(0, 1)).view(channels, -1)
-        return F.linear(projected.transpose(0, 1), embedding.weight).view(rays, -1, bias.shape[1]) + bias
+        return F.linear(projected.transpose(0, 1), embedding.weight).view(rays, -1, embedding.out_features) + bias
 
 
 class ColourHeadMVSNeRF(nn.Module):
