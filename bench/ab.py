@@ -16,55 +16,31 @@ A bundle may carry ONNX Runtime session config entries after '@' (key=value, '@'
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
 import numpy as np
 import onnxruntime as ort
-from PIL import Image
 
-from scnerf_export import cameras
-from scnerf_export.onnx_pipeline import OnnxBundle
+from bench import renderer_run_feeds  # bench/bench.py, beside this script
+from scnerf_export.onnx_pipeline import OnnxBundle, session_options
 
 REPO = Path(__file__).resolve().parent.parent
 EXAMPLE = REPO / "examples" / "procedural-object"
 
 
-def example_scene():
-    """Source images, source cameras, the target's rays and near/far of the committed example."""
-    request = json.loads((EXAMPLE / "request.json").read_text())
-
-    def camera(c: dict) -> cameras.Camera:
-        i = c["intrinsics"]
-        k = np.array([[i["fx"], 0, i["cx"]], [0, i["fy"], i["cy"]], [0, 0, 1.0]])
-        pose = c["pose"]
-        return cameras.Camera.from_pose(k, pose["matrix"], c["width"], c["height"], pose["kind"], pose["axes"])
-
-    images = np.stack([np.asarray(Image.open(EXAMPLE / f"source_{i}.png").convert("RGB"), np.float32) / 255
-                       for i in range(len(request["sources"]))])
-    sources = [camera(s["camera"]) for s in request["sources"]]
-    origins, directions = cameras.target_rays(camera(request["target"]))
-    return images, sources, origins, directions, (request["near"], request["far"])
-
-
-def renderer_run(spec: str, threads: int, spin: bool, scene, first_ray: int, rays: int):
+def renderer_run(spec: str, threads: int, spin: bool, first_ray: int, rays: int):
     """(session, feeds) for one bundle spec 'DIR[@key=value...]' on a fixed slice of the rays."""
     path, *entries = spec.split("@")
-    images, sources, origins, directions, (near, far) = scene
-    encoded = OnnxBundle(path, threads=1).encode_scene(images, sources, near, far, [0, 0, 0])
-    options = ort.SessionOptions()
-    options.intra_op_num_threads, options.inter_op_num_threads = threads, 1
+    bundle = OnnxBundle(path, threads=1)
+    options = session_options(threads)
     options.add_session_config_entry("session.intra_op.allow_spinning", "1" if spin else "0")
     for entry in entries:
         key, value = entry.split("=", 1)
         options.add_session_config_entry(key, value)
-    session = ort.InferenceSession(str(Path(path) / "renderer.onnx"), options, providers=["CPUExecutionProvider"])
-    span = np.array([near, far], np.float32)
-    known = {**encoded, "near_far": span, "depth_range": span,
-             "ray_origins": np.ascontiguousarray(origins[first_ray:first_ray + rays]),
-             "ray_directions": np.ascontiguousarray(directions[first_ray:first_ray + rays])}
-    return session, {i.name: known[i.name] for i in session.get_inputs()}
+    renderer = Path(path) / bundle.manifest["graphs"]["renderer"]["file"]
+    session = ort.InferenceSession(str(renderer), options, providers=["CPUExecutionProvider"])
+    return session, renderer_run_feeds(bundle, EXAMPLE, first_ray, rays)
 
 
 def main() -> None:
@@ -78,9 +54,8 @@ def main() -> None:
     parser.add_argument("--spin", action="store_true", help="let idle workers spin (see the module docstring)")
     args = parser.parse_args()
 
-    scene = example_scene()
     entries = [(spec, int(rays)) for spec in args.bundles for rays in args.rays.split(",")]
-    runs = [renderer_run(spec, args.threads, args.spin, scene, args.first_ray, rays) for spec, rays in entries]
+    runs = [renderer_run(spec, args.threads, args.spin, args.first_ray, rays) for spec, rays in entries]
     for session, feeds in runs:  # first runs allocate the arenas
         session.run(None, feeds)
     times = [[] for _ in runs]

@@ -20,6 +20,7 @@ import onnx
 import onnxruntime as ort
 from onnx import TensorProto, helper
 
+from scnerf_export.onnx_pipeline import session_options
 from scnerf_export.ray_groups import attention_cores_in_ray_groups
 
 HEADS, HEAD_DIM, TOKENS = 4, 8, 64  # the default bundle's h, d_k and width C
@@ -97,8 +98,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--groups", default="16,32,64", help="ray groups of the Loop variants")
     args = parser.parse_args()
-    options = ort.SessionOptions()
-    options.intra_op_num_threads, options.inter_op_num_threads = args.threads, 1
+    options = session_options(args.threads)
     options.add_session_config_entry("session.intra_op.allow_spinning", "0")  # see bench/ab.py
     groups = [int(g) for g in args.groups.split(",")]
     cases = [(name, ort.InferenceSession(graph.SerializeToString(), options, providers=["CPUExecutionProvider"]),

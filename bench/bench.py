@@ -162,7 +162,7 @@ def _timed(fn) -> float:
     return time.perf_counter() - start
 
 
-def _read_scene(scene_dir: Path):
+def read_scene(scene_dir: Path):
     """Decode the source PNGs (timed: the 'decode' stage) and the cameras."""
     import numpy as np
 
@@ -187,7 +187,7 @@ def worker_torch(args) -> dict:
     t0 = time.perf_counter()
     model, weights_note = load_torch_model(args.bundle, args.checkpoint)
     load_s = time.perf_counter() - t0
-    request, images, cameras, target, decode = _read_scene(Path(args.scene_dir))
+    request, images, cameras, target, decode = read_scene(Path(args.scene_dir))
     near, far, bg = request["near"], request["far"], request["background"]
     cfg = model.cfg
     stages = {"decode": decode}
@@ -235,7 +235,7 @@ def worker_ort(args) -> dict:
     t0 = time.perf_counter()
     bundle = OnnxBundle(args.bundle, threads=args.threads)
     load_s = time.perf_counter() - t0
-    request, images, cameras, target, decode = _read_scene(Path(args.scene_dir))
+    request, images, cameras, target, decode = read_scene(Path(args.scene_dir))
     total0 = time.perf_counter()
     result = bundle.render_view(images, cameras, target, request["near"], request["far"],
                                 tuple(request["background"]), chunk=args.chunk)
@@ -251,26 +251,34 @@ def worker_ort(args) -> dict:
 CONTAINER_OPS = ("Loop", "If", "Scan")
 
 
+def renderer_run_feeds(bundle, scene_dir: Path, first_ray: int, rays: int) -> dict:
+    """The renderer's inputs for rays [first_ray, first_ray + rays) of the scene's target view."""
+    import numpy as np
+
+    from scnerf_export import cameras as cams
+
+    request, images, cameras, target, _ = read_scene(scene_dir)
+    near, far = request["near"], request["far"]
+    scene = bundle.encode_scene(images, cameras, near, far, tuple(request["background"]))
+    origins, directions = cams.target_rays(target)
+    span = np.array([near, far], np.float32)
+    fixed = {**scene, "near_far": span, "depth_range": span,
+             "ray_origins": np.ascontiguousarray(origins[first_ray:first_ray + rays]),
+             "ray_directions": np.ascontiguousarray(directions[first_ray:first_ray + rays])}
+    return {n: fixed[n] for n in bundle.renderer_inputs}
+
+
 def worker_profile(args) -> dict:
     """ONNX Runtime's profiler on one renderer run of ``--chunk`` rays of the scene: time per
     operator type (where the renderer's time goes besides its matrix products)."""
     import collections
 
-    import numpy as np
     import onnxruntime as ort
 
-    from scnerf_export import cameras as cams
     from scnerf_export.onnx_pipeline import OnnxBundle, session_options
 
     bundle = OnnxBundle(args.bundle, threads=args.threads)
-    request, images, cameras, target, _ = _read_scene(Path(args.scene_dir))
-    near, far = request["near"], request["far"]
-    scene = bundle.encode_scene(images, cameras, near, far, tuple(request["background"]))
-    origins, directions = cams.target_rays(target)
-    fixed = {**scene, "near_far": np.array([near, far], np.float32), "depth_range": np.array([near, far], np.float32)}
-    feeds = {n: fixed[n] for n in bundle.renderer_inputs if n in fixed}
-    feeds["ray_origins"] = np.ascontiguousarray(origins[: args.chunk])
-    feeds["ray_directions"] = np.ascontiguousarray(directions[: args.chunk])
+    feeds = renderer_run_feeds(bundle, Path(args.scene_dir), 0, args.chunk)
     options = session_options(args.threads)
     options.enable_profiling = True
     options.profile_file_prefix = str(Path(args.scene_dir).parent / "tmp" / "ort-profile")

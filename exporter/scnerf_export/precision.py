@@ -150,14 +150,15 @@ def sort_with_outer_scope_reads(graph: onnx.GraphProto) -> None:
         stack = [k]  # depth-first, without recursion: the dependency chains are ~1000 nodes long
         while stack:
             top = stack[-1]
-            missing = [producer[n] for n in reads[top] if n in producer and producer[n] not in placed]
             if top in placed:
                 stack.pop()
-            elif missing:
+                continue
+            missing = [producer[n] for n in reads[top] if n in producer and producer[n] not in placed]
+            if missing:
                 stack.extend(missing)
             else:
-                placed.add(top)
-                order.append(nodes[stack.pop()])
+                placed.add(stack.pop())
+                order.append(nodes[top])
     del graph.node[:]
     graph.node.extend(order)
 
