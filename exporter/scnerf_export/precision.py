@@ -36,6 +36,7 @@ import numpy as np
 import onnx
 from onnx import helper, numpy_helper
 
+from . import onnx_graph
 from .checkpoint import sha256_file
 from .export import read_manifest, write_manifest
 from .onnx_pipeline import DEFAULT_CHUNK, OnnxBundle
@@ -103,64 +104,26 @@ def products_feeding_softmax(model: onnx.ModelProto, inits: dict) -> set[str]:
     activations cannot hold the rectifiers' score terms (query slopes and offsets of very
     different sizes in one tensor: 21 dB against float32 when they were quantised). These
     products are per ray, not per sample, so keeping them float32 costs little."""
-    consumers: dict[str, list] = {}
-    for node in model.graph.node:
-        for name in node.input:
-            consumers.setdefault(name, []).append(node)
+    nodes = list(model.graph.node)
+    readers = onnx_graph.consumers(nodes)
 
     def weight_product(node) -> bool:
         return node.op_type in ("MatMul", "Gemm") and any(i in inits for i in node.input)
 
     found = set()
-    for start in model.graph.node:
+    for start in nodes:
         if not weight_product(start):
             continue
         frontier, seen = list(start.output), set()
         while frontier:
-            for node in consumers.get(frontier.pop(), []):
+            for k in readers.get(frontier.pop(), []):
+                node = nodes[k]
                 if node.op_type == "Softmax":
                     found.add(start.name)
-                elif not weight_product(node) and node.name not in seen:
-                    seen.add(node.name)
+                elif not weight_product(node) and k not in seen:
+                    seen.add(k)
                     frontier.extend(node.output)
     return found
-
-
-def _outer_scope_reads(node) -> set[str]:
-    """Names the node's subgraphs (a Loop's body) read from the enclosing graph."""
-    reads = set()
-    for attribute in node.attribute:
-        for body in ([attribute.g] if attribute.type == onnx.AttributeProto.GRAPH else list(attribute.graphs)):
-            local = {v.name for v in body.input} | {t.name for t in body.initializer}
-            for inner in body.node:
-                reads |= {i for i in inner.input if i and i not in local} | (_outer_scope_reads(inner) - local)
-                local |= set(inner.output)
-    return reads
-
-
-def sort_with_outer_scope_reads(graph: onnx.GraphProto) -> None:
-    """Order the nodes so that every node follows the producers of what it and its subgraphs read,
-    keeping the given order where it already does. onnxruntime's quantiser sorts by explicit
-    inputs only, which puts the renderer's ray-group Loops before the tensors their bodies slice."""
-    nodes = list(graph.node)
-    producer = {out: k for k, node in enumerate(nodes) for out in node.output}
-    reads = [sorted(set(node.input) | _outer_scope_reads(node)) for node in nodes]
-    placed, order = set(), []
-    for k in range(len(nodes)):
-        stack = [k]  # depth-first, without recursion: the dependency chains are ~1000 nodes long
-        while stack:
-            top = stack[-1]
-            if top in placed:
-                stack.pop()
-                continue
-            missing = [producer[n] for n in reads[top] if n in producer and producer[n] not in placed]
-            if missing:
-                stack.extend(missing)
-            else:
-                placed.add(stack.pop())
-                order.append(nodes[top])
-    del graph.node[:]
-    graph.node.extend(order)
 
 
 def quantize_graph_int8(src: Path, dst: Path, min_inner: int = 16, exclude: tuple[str, ...] = (),
@@ -181,7 +144,7 @@ def quantize_graph_int8(src: Path, dst: Path, min_inner: int = 16, exclude: tupl
             extra_options={"MatMulConstBOnly": True},
         )
     quantized = onnx.load(str(dst))
-    sort_with_outer_scope_reads(quantized.graph)
+    onnx_graph.sort_with_outer_scope_reads(quantized.graph)
     onnx.checker.check_model(quantized)
     onnx.save(quantized, str(dst))
     return {"method": "onnxruntime.quantization.quantize_dynamic", "weight_type": "QInt8",

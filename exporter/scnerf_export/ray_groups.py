@@ -19,6 +19,8 @@ import re
 import onnx
 from onnx import TensorProto, helper
 
+from . import onnx_graph
+
 RAYS_PER_GROUP = 32
 _GROUP_PREFIX = re.compile(r"^ray_group\d+_")
 
@@ -26,13 +28,8 @@ _GROUP_PREFIX = re.compile(r"^ray_group\d+_")
 def attention_cores_in_ray_groups(model: onnx.ModelProto, rays_per_group: int = RAYS_PER_GROUP) -> int:
     """Rewrite every MatMul -> Softmax -> Transpose -> MatMul chain in place; returns how many."""
     graph = model.graph
-    nodes = list(graph.node)  # nodes are told apart by position: names may be empty
-    producer = {out: k for k, node in enumerate(nodes) for out in node.output}
-    consumers: dict[str, list[int]] = {}
-    for k, node in enumerate(nodes):
-        for name in node.input:
-            consumers.setdefault(name, []).append(k)
-
+    nodes = list(graph.node)
+    producer, consumers = onnx_graph.producers(nodes), onnx_graph.consumers(nodes)
     cores = [core for core in (_attention_core(nodes, k, producer, consumers)
                                for k, node in enumerate(nodes) if node.op_type == "Softmax") if core is not None]
     replacement = {k: [] for core in cores for k in core}

@@ -27,7 +27,7 @@ import onnxruntime as ort
 import torch
 from onnx import numpy_helper
 
-from . import __version__
+from . import __version__, onnx_graph
 from .checkpoint import sha256_file
 from .config import ModelConfig
 from .export import (CHECK_BLOCKS, CHECK_RAYS, RendererGraph, _export_graph, _io_spec, example_inputs,
@@ -43,23 +43,24 @@ class ReexportError(ValueError):
     """The bundle's renderer cannot be read back; the message is one line, fit for a CLI."""
 
 
-def _graph_index(proto: onnx.ModelProto):
-    constants = {t.name: numpy_helper.to_array(t) for t in proto.graph.initializer}
-    producers = {out: node for node in proto.graph.node for out in node.output}
-    consumers: dict[str, list] = {}
-    for node in proto.graph.node:
-        for name in node.input:
-            consumers.setdefault(name, []).append(node)
-    return constants, producers, consumers
+class _GraphIndex:
+    """The constants of a renderer graph and who makes and reads each tensor (by node position)."""
+
+    def __init__(self, proto: onnx.ModelProto):
+        self.constants = {t.name: numpy_helper.to_array(t) for t in proto.graph.initializer}
+        self.nodes = list(proto.graph.node)
+        self.producers = onnx_graph.producers(self.nodes)
+        self.consumers = onnx_graph.consumers(self.nodes)
 
 
-def _weight_behind_bias(bias: str, constants, producers, consumers, op_type: str) -> np.ndarray | None:
+def _weight_behind_bias(bias: str, index: _GraphIndex, op_type: str) -> np.ndarray | None:
     """The constant operand of the ``op_type`` node whose output is added to ``bias``."""
-    for add in consumers.get(bias, []):
+    constants = index.constants
+    for add in (index.nodes[k] for k in index.consumers.get(bias, [])):
         if add.op_type != "Add":
             continue
         other = add.input[0] if add.input[1] == bias else add.input[1]
-        node = producers.get(other)
+        node = index.nodes[index.producers[other]] if other in index.producers else None
         if node is not None and node.op_type == op_type:
             found = [constants[n] for n in node.input if n in constants]
             if len(found) == 1:
@@ -69,7 +70,8 @@ def _weight_behind_bias(bias: str, constants, producers, consumers, op_type: str
 
 def renderer_state_from_graph(path: Path, model: SCNeRF) -> dict[str, torch.Tensor]:
     """Every renderer parameter of ``model``'s config, read from a renderer.onnx."""
-    constants, producers, consumers = _graph_index(onnx.load(str(path)))
+    index = _GraphIndex(onnx.load(str(path)))
+    constants = index.constants
     state = {}
     for key, param in model.renderer.state_dict().items():
         name = _PREFIX + key
@@ -78,11 +80,11 @@ def renderer_state_from_graph(path: Path, model: SCNeRF) -> dict[str, torch.Tens
         elif key.endswith(".weight"):
             bias = name[: -len("weight")] + "bias"
             if key.endswith("w_q.weight"):
-                value = _weight_behind_bias(bias, constants, producers, consumers, "Mul")  # row sums
+                value = _weight_behind_bias(bias, index, "Mul")  # row sums
                 if value is not None:
                     value = np.pad(value.reshape(-1, 1), ((0, 0), (0, param.shape[1] - 1)))
             else:
-                value = _weight_behind_bias(bias, constants, producers, consumers, "MatMul")
+                value = _weight_behind_bias(bias, index, "MatMul")
                 value = None if value is None else value.T
         else:
             value = None
