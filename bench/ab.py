@@ -40,7 +40,7 @@ def renderer_run(spec: str, threads: int, spin: bool, first_ray: int, rays: int)
         options.add_session_config_entry(key, value)
     renderer = Path(path) / bundle.manifest["graphs"]["renderer"]["file"]
     session = ort.InferenceSession(str(renderer), options, providers=["CPUExecutionProvider"])
-    return session, renderer_run_feeds(bundle, EXAMPLE, first_ray, rays)
+    return session, renderer_run_feeds(bundle, EXAMPLE, slice(first_ray, first_ray + rays))
 
 
 def main() -> None:

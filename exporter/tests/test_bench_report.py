@@ -49,3 +49,12 @@ def test_reduced_precision_target_reads_only_reduced_precision_variants():
     assert _reduced_precision_line(res) == "* reduced-precision 640x512 view <= 30 s: NOT met (int8 31.0 s)"
     res["variant_precision"]["int8"] = "fp32"
     assert _reduced_precision_line(res).endswith("not measured (no data)")
+
+
+def test_profile_shares_leave_container_ops_out():
+    """A Loop's kernel time is its body's nodes', which the profile lists too: counted once."""
+    shares = _bench().kernel_shares({"Gemm": 30.0, "Loop": 25.0, "Softmax": 20.0, "MatMul": 10.0})
+    assert shares["kernel_ms"] == 60.0
+    assert "Loop" not in shares["by_op_ms"] and "Loop" not in shares["by_op_share"]
+    assert list(shares["by_op_share"]) == ["Gemm", "Softmax", "MatMul"]
+    assert abs(sum(shares["by_op_share"].values()) - 1.0) < 1e-12
