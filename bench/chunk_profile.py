@@ -13,15 +13,13 @@ drift of the machine's speed shifts all of them alike.
 from __future__ import annotations
 
 import argparse
-import bisect
 import collections
-import json
 from pathlib import Path
 
 import numpy as np
 import onnxruntime as ort
 
-from bench import CONTAINER_OPS, REPO, make_scene_dir, parse_sizes, renderer_run_feeds
+from bench import REPO, kernel_events_by_run, make_scene_dir, parse_sizes, renderer_run_feeds
 from scnerf_export.onnx_pipeline import OnnxBundle, session_options
 
 PRODUCTS = ("Gemm", "MatMul", "FusedGemm", "FusedMatMul")
@@ -29,18 +27,6 @@ PRODUCTS = ("Gemm", "MatMul", "FusedGemm", "FusedMatMul")
 
 def tile_pixels(rows: int, cols: int, top: int, left: int, width: int) -> np.ndarray:
     return np.array([(top + r) * width + left + c for r in range(rows) for c in range(cols)])
-
-
-def kernel_events_by_run(profile: Path) -> list[list[dict]]:
-    """The profile's node kernel events, grouped by the run they belong to, runs in order."""
-    events = json.loads(profile.read_text())
-    starts = sorted(e["ts"] for e in events if e.get("name") == "model_run")
-    runs: list[list[dict]] = [[] for _ in starts]
-    for e in events:
-        if (e.get("cat") == "Node" and e["name"].endswith("_kernel_time")
-                and e["args"].get("op_name") not in CONTAINER_OPS):
-            runs[bisect.bisect_right(starts, e["ts"]) - 1].append(e)
-    return runs
 
 
 def main() -> None:
@@ -60,6 +46,8 @@ def main() -> None:
     tiles = [tuple(int(v) for v in t.split("x")) for t in args.tiles.split(",")]
     centred = ((height - max(r for r, _ in tiles)) // 2, (width - max(c for _, c in tiles)) // 2)
     spots = [tuple(int(v) for v in at.split(",")) for at in args.at] or [centred]
+    if len({rows * cols for rows, cols in tiles}) > 1:
+        parser.error("--tiles: every order must take the same number of rays per run")
     if any(top + rows > height or left + cols > width for rows, cols in tiles for top, left in spots):
         parser.error(f"a tile at an --at position leaves the {width}x{height} view")
     runs = [(t, tile_pixels(*t, top, left, width)) for t in tiles for top, left in spots]
