@@ -2,13 +2,13 @@
 
 ONNX Runtime's profiler on renderer runs of the benchmark scene (bench.py's, at any size): the
 kernel time per op type and the slowest nodes with their shapes. Each ``--tiles`` entry is a ray
-order: a run takes the pixels of an R x C tile (rows x columns; 1x512 is a run of a row, as the
+order: a run takes the pixels of an R x C tile (rows x columns; 1x512 is a piece of a row, as the
 server cuts them) at every ``--at`` position; the orders take turns within each round, so a
 drift of the machine's speed shifts all of them alike.
 
     .venv/bin/python bench/chunk_profile.py --size 640x512
     .venv/bin/python bench/chunk_profile.py --size 640x512 --tiles 1x512,16x32,32x16 \\
-        --at 250,64 --at 200,300 --at 300,100 --at 260,40 --rounds 6
+        --at 250,64 --at 200,100 --at 300,100 --at 260,40 --rounds 10
 """
 from __future__ import annotations
 
