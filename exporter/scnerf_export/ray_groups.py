@@ -50,15 +50,7 @@ def plain_attention_cores(model: onnx.ModelProto) -> int:
     for p in prefixes:
         rest = p + "rest_"
         strip = lambda name: name[len(rest):] if name.startswith(rest) else name
-        chain = []
-        for node in graph.node:
-            if node.name.startswith(rest):
-                plain = onnx.NodeProto()
-                plain.CopyFrom(node)
-                plain.name = strip(node.name)
-                plain.input[:] = [strip(i) for i in node.input]
-                plain.output[:] = [strip(o) for o in node.output]
-                chain.append(plain)
+        chain = [_renamed(node, strip(node.name), strip, strip) for node in graph.node if node.name.startswith(rest)]
         nodes = list(graph.node)
         # Everything the rewrite made has a prefixed output, except the Concat that writes the
         # chain's own output name; the chain goes back where that Concat was.
@@ -92,15 +84,19 @@ def _attention_core(nodes, softmax: int, producer, consumers) -> list[int] | Non
 def _copy(core: list, prefix: str, inputs: dict[str, str]) -> list:
     """The core's nodes with their inputs renamed by `inputs` and their outputs by `prefix`."""
     made = {out for node in core for out in node.output}
-    copies = []
-    for node in core:
-        copy = onnx.NodeProto()
-        copy.CopyFrom(node)
-        copy.name = prefix + (node.name or node.output[0])  # ONNX Runtime refuses two nodes of one name
-        copy.input[:] = [inputs.get(i, prefix + i if i in made else i) for i in node.input]
-        copy.output[:] = [prefix + o for o in node.output]
-        copies.append(copy)
-    return copies
+    return [_renamed(node, prefix + (node.name or node.output[0]),  # ONNX Runtime refuses two nodes of one name
+                     lambda i: inputs.get(i, prefix + i if i in made else i), lambda o: prefix + o)
+            for node in core]
+
+
+def _renamed(node, name: str, rename_input, rename_output) -> onnx.NodeProto:
+    """A copy of the node under `name`, its inputs and outputs renamed by the two functions."""
+    copy = onnx.NodeProto()
+    copy.CopyFrom(node)
+    copy.name = name
+    copy.input[:] = [rename_input(i) for i in node.input]
+    copy.output[:] = [rename_output(o) for o in node.output]
+    return copy
 
 
 def _ints(name: str, values: list[int]):
