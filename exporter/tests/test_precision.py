@@ -10,6 +10,7 @@ import onnx
 import onnxruntime as ort
 import pytest
 
+from scnerf_export import onnx_graph
 from scnerf_export.checkpoint import sha256_file
 from scnerf_export.cli import main
 from scnerf_export.export import read_manifest
@@ -97,13 +98,15 @@ def test_attention_score_products_stay_float32(fp32_bundle):
     inits = {t.name for t in model.graph.initializer}
     softmax_inputs = {n.input[0] for n in model.graph.node if n.op_type == "Softmax"}
     assert len(softmax_inputs) == 2  # geometry and appearance rectifiers
-    producers = {o: n for n in model.graph.node for o in n.output}
+    nodes = list(model.graph.node)
+    producers = onnx_graph.producers(nodes)
 
     def weight_products_upstream(name, seen):
-        node = producers.get(name)
-        if node is None or node.name in seen or node.op_type == "Shape":  # a shape carries no values
+        k = producers.get(name)
+        if k is None or k in seen or nodes[k].op_type == "Shape":  # a shape carries no values
             return set()
-        seen.add(node.name)
+        seen.add(k)
+        node = nodes[k]
         if node.op_type == "MatMul" and any(i in inits for i in node.input):
             return {node.name}
         return set().union(*(weight_products_upstream(i, seen) for i in node.input))
