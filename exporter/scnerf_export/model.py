@@ -12,6 +12,7 @@ control flow and ops without an ONNX equivalent (cumprod, linalg.inv).
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -481,6 +482,16 @@ def composite_weights(sigma: torch.Tensor) -> torch.Tensor:
     return alpha * torch.exp(exclusive)
 
 
+class RadiancePoints(NamedTuple):
+    """A chunk of rays after the trunk: everything the heads read, channels first where sampled."""
+
+    z: torch.Tensor  # sample depths along the target's axis, (S) shared by every ray or (R,S)
+    radiance: torch.Tensor  # F_r (R*S, width)
+    point_features: torch.Tensor  # f (8+4V, R*S)
+    appearance: torch.Tensor | None  # mean [F_i, I_i] over the views (C1+3, R*S)
+    ref_dir: torch.Tensor  # unit ray directions in the reference camera's frame (R,3)
+
+
 class RayRenderer(nn.Module):
     """Everything per target ray: point features, M1, M2, rectification, M4, compositing."""
 
@@ -511,8 +522,24 @@ class RayRenderer(nn.Module):
         extrinsics: torch.Tensor,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Returns rgb (R,3) before background compositing, depth (R), opacity (R)."""
+        points = self.radiance_points(ray_origins, ray_directions, near_far, volume, images, features,
+                                      intrinsics, extrinsics)
+        return self.shade(points, depth_range)
+
+    def radiance_points(
+        self,
+        ray_origins: torch.Tensor,
+        ray_directions: torch.Tensor,
+        near_far: torch.Tensor,
+        volume: torch.Tensor,
+        images: torch.Tensor,
+        features: torch.Tensor | None,
+        intrinsics: torch.Tensor,
+        extrinsics: torch.Tensor,
+    ) -> RadiancePoints:
+        """The S points of every ray through M1: what the heads (M2, rectifiers, M4) read."""
         cfg = self.cfg
-        rays, samples = ray_origins.shape[0], cfg.samples
+        samples = cfg.samples
         _, _, height, width = images.shape
         steps = torch.linspace(0.0, 1.0, samples, dtype=ray_origins.dtype, device=ray_origins.device)
         z = near_far[0] * (1.0 - steps) + near_far[1] * steps  # (S) target z-depths
@@ -528,12 +555,22 @@ class RayRenderer(nn.Module):
         unit_dir = ray_directions / torch.linalg.vector_norm(ray_directions, dim=-1, keepdim=True)
         ref_dir = unit_dir @ extrinsics[0, :3, :3].transpose(0, 1)  # d in the reference frame
         radiance = self.m1(frequency_encoding(frustum, cfg.position_freqs), point_features.transpose(0, 1))
-        sigma = self.m2(radiance).view(rays, samples)
+        return RadiancePoints(z, radiance, point_features, appearance, ref_dir)
+
+    def shade(self, points: RadiancePoints, depth_range: torch.Tensor
+              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """M2 -> compositing weights and depth D -> rectification -> M4 -> rgb (R,3), depth, opacity.
+
+        depth_range is (2) for the whole chunk, or (2,R) per ray (training batches mix scenes)."""
+        cfg = self.cfg
+        rays, samples = points.ref_dir.shape[0], cfg.samples
+        ref_dir, z = points.ref_dir, points.z
+        sigma = self.m2(points.radiance).view(rays, samples)
         weights = composite_weights(sigma)
-        depth = (weights * z[None, :]).sum(dim=-1)
+        depth = (weights * (z[None, :] if z.dim() == 1 else z)).sum(dim=-1)
         opacity = weights.sum(dim=-1)
 
-        radiance = radiance.view(rays, samples, -1)
+        radiance = points.radiance.view(rays, samples, -1)
         if cfg.variant == "mvsnerf":
             dirs = ref_dir[:, None, :].expand(-1, samples, -1)
             colour = self.colour_head(radiance, dirs)
@@ -545,9 +582,9 @@ class RayRenderer(nn.Module):
             direction_embedding = frequency_encoding(ref_dir, cfg.direction_freqs)
             query = torch.cat([depth_embedding, direction_embedding], dim=-1)
             if self.geometry is not None:  # F_c = Multihead(Q, K = f, V = F_r)
-                radiance = self.geometry(query, point_features.view(-1, rays, samples), radiance)
+                radiance = self.geometry(query, points.point_features.view(-1, rays, samples), radiance)
             if self.appearance is not None:  # F = Multihead(Q, K = mean F_a, V = F_c)
-                radiance = self.appearance(query, appearance.view(-1, rays, samples), radiance)
+                radiance = self.appearance(query, points.appearance.view(-1, rays, samples), radiance)
             colour = self.colour_head(radiance, query)
         rgb = (weights[..., None] * colour).sum(dim=1)
         return rgb, depth, opacity
