@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import re
+import warnings
 import zipfile
 from pathlib import Path
 
@@ -13,6 +14,7 @@ from .config import ModelConfig
 from .model import SCNeRF
 
 PROJECT_FORMAT = "scnerf-checkpoint-v1"
+MVSNERF_LICENCE_FILE = "LICENSE.mvsnerf"
 
 # Reference-code names -> ours. Encoder and U-Net keep the reference module names, so only their
 # prefixes change; the NeRF MLP is renamed after the paper's symbols.
@@ -98,8 +100,85 @@ def load_mvsnerf(path: str | Path, cfg: ModelConfig | None = None) -> tuple[SCNe
         "source_kind": "mvsnerf-public",
         "source_global_step": int(data.get("global_step", -1)),
         "training": "public MVSNeRF checkpoint (DTU, MIT licence), imported without change",
+        **_licence(path),
     }
     return model.eval(), provenance
+
+
+def _licence(checkpoint: Path) -> dict:
+    """The licence text that travels with every copy of the public weights (MIT requires it),
+    read from ``LICENSE.mvsnerf`` beside the checkpoint; export writes it into the bundle."""
+    text = checkpoint.with_name(MVSNERF_LICENCE_FILE)
+    if not text.is_file():
+        warnings.warn(f"{text} not found: the bundle will not carry the MVSNeRF licence text", stacklevel=2)
+        return {"licence": None}
+    return {"licence": "MIT", "licence_file": MVSNERF_LICENCE_FILE, "licence_text": text.read_text()}
+
+
+def scnerf_from_mvsnerf(mvsnerf: SCNeRF) -> SCNeRF:
+    """An ``scnerf`` network that renders what the ``mvsnerf`` network renders.
+
+    - G1, G2 and M1 are copied.
+    - M2 = ReLU(w2 ReLU(I F_r)): F_r >= 0 leaves the trunk through a ReLU, so ReLU(I F_r) = F_r,
+      and w2 is MVSNeRF's density layer.
+    - M4's first layer reads [F, E(D), E(d)]; MVSNeRF's colour hidden layer reads
+      [L_f(F_r), d] = [W_f F_r + b_f, d]. Composed: the F columns are W_h[:, :C] W_f, the bias
+      W_h[:, :C] b_f + b_h, and the columns of the raw d (the first three of E(d)) are MVSNeRF's
+      direction columns; every other E(D)/E(d) column is zero. The output layer is copied.
+    - Each rectifier returns ReLU(V + W_o heads + b): W_o = 0 and b = 0 give ReLU(V) = V (V >= 0),
+      so F = F_c = F_r. The attention weights keep their random initialisation: they are what
+      training on top learns, and they reach the output only through W_o.
+    """
+    cfg = mvsnerf.cfg
+    if cfg.variant != "mvsnerf":
+        raise ValueError(f"expected an mvsnerf network, got {cfg.variant!r}")
+    model = SCNeRF(cfg.replace(variant="scnerf"))
+    state = model.state_dict()
+    source = mvsnerf.state_dict()
+    for key, tensor in source.items():
+        if key.startswith(("encoder.", "volume_net.", "renderer.m1.")):
+            state[key] = tensor.clone()
+    width = cfg.width
+    state["renderer.m2.0.weight"] = torch.eye(width)
+    state["renderer.m2.0.bias"] = torch.zeros(width)
+    state["renderer.m2.2.weight"] = source["renderer.m2.0.weight"].clone()
+    state["renderer.m2.2.bias"] = source["renderer.m2.0.bias"].clone()
+
+    w_f, b_f = source["renderer.colour_head.feature_linear.weight"], source["renderer.colour_head.feature_linear.bias"]
+    w_h, b_h = source["renderer.colour_head.hidden.weight"], source["renderer.colour_head.hidden.bias"]
+    hidden = torch.zeros_like(state["renderer.colour_head.hidden.weight"])
+    with torch.no_grad():
+        hidden[:, :width] = (w_h[:, :width].double() @ w_f.double()).float()
+        direction = width + cfg.depth_embedding_channels  # E(d) starts with the raw direction
+        hidden[:, direction : direction + 3] = w_h[:, width:]
+        state["renderer.colour_head.hidden.bias"] = (w_h[:, :width].double() @ b_f.double() + b_h.double()).float()
+    state["renderer.colour_head.hidden.weight"] = hidden
+    state["renderer.colour_head.out.weight"] = source["renderer.colour_head.out.weight"].clone()
+    state["renderer.colour_head.out.bias"] = source["renderer.colour_head.out.bias"].clone()
+    for rectifier in ("geometry", "appearance"):
+        state[f"renderer.{rectifier}.w_o.weight"] = torch.zeros_like(state[f"renderer.{rectifier}.w_o.weight"])
+        state[f"renderer.{rectifier}.w_o.bias"] = torch.zeros_like(state[f"renderer.{rectifier}.w_o.bias"])
+    model.load_state_dict(state, strict=True)
+    return model.eval()
+
+
+def init_scnerf(mvsnerf_checkpoint: str | Path, out: str | Path, seed: int = 0) -> Path:
+    """`init-scnerf`: the public MVSNeRF weights as an ``scnerf`` project checkpoint (see
+    :func:`scnerf_from_mvsnerf`); ``seed`` draws the rectifiers' attention weights."""
+    torch.manual_seed(seed)
+    mvsnerf, provenance = load_mvsnerf(mvsnerf_checkpoint)
+    model = scnerf_from_mvsnerf(mvsnerf)
+    save_checkpoint(out, model, {"derived_from": base_weights(provenance),
+                                 "training": {"steps": 0, "seed": seed,
+                                              "what": "exact initialisation from the public MVSNeRF weights"}})
+    return Path(out)
+
+
+def base_weights(provenance: dict) -> dict:
+    """What a derived checkpoint records of the weights it started from."""
+    keys = ("source_checkpoint", "source_sha256", "source_kind", "source_global_step", "licence", "licence_file",
+            "licence_text")
+    return {k: provenance[k] for k in keys if k in provenance}
 
 
 def save_checkpoint(path: str | Path, model: SCNeRF, extra: dict) -> None:
@@ -128,4 +207,6 @@ def load_checkpoint(path: str | Path) -> tuple[SCNeRF, dict]:
         "training": data.get("training"),
         "metrics": data.get("metrics"),
     }
+    if data.get("derived_from"):
+        provenance["derived_from"] = data["derived_from"]
     return model.eval(), provenance

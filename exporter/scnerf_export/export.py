@@ -212,6 +212,7 @@ def export_bundle(model: SCNeRF, out_dir: str | Path, provenance: dict) -> dict:
             "file": path.name, "sha256": sha256_file(path),
             "inputs": _io_spec(signatures[name]["inputs"]), "outputs": _io_spec(signatures[name]["outputs"]),
         }
+    provenance = write_licences(out, provenance)
     manifest = {
         "format_version": FORMAT_VERSION,
         "model_id": f"scnerf-{model.cfg.variant}-{graphs['renderer']['sha256'][:12]}",
@@ -230,6 +231,18 @@ def export_bundle(model: SCNeRF, out_dir: str | Path, provenance: dict) -> dict:
     }
     write_manifest(out, manifest)
     return manifest
+
+
+def write_licences(bundle_dir: Path, provenance: dict) -> dict:
+    """Write the licence text of weights the bundle derives from (the MVSNeRF checkpoint's MIT
+    licence must travel with every copy) beside the graphs; the manifest names the file instead."""
+    provenance = dict(provenance)
+    if isinstance(provenance.get("derived_from"), dict):
+        provenance["derived_from"] = dict(provenance["derived_from"])
+    for holder in (provenance, provenance.get("derived_from")):
+        if isinstance(holder, dict) and holder.get("licence_text"):
+            (bundle_dir / holder["licence_file"]).write_text(holder.pop("licence_text"))
+    return provenance
 
 
 def write_manifest(bundle_dir: Path, manifest: dict) -> None:
