@@ -28,18 +28,15 @@ import socket
 import subprocess
 import sys
 import time
-import urllib.error
-import urllib.request
-import uuid
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO / "exporter"))
 
 DEFAULT_SIZES = ("160x128", "320x256", "640x512")
-# The committed example (examples/procedural-object): a held-out procedural scene, rendered here
-# at every benchmark size from the same cameras (the layout's cameras do not depend on the size).
-SCENE_SEED_OFFSET, SCENE_LAYOUT, SCENE_VIEWS, SCENE_TARGET = 4242, "object", 16, 7
+# The committed example's scene (examples/tabletop: a procedural tabletop from a validation seed),
+# rendered here at every benchmark size from the same cameras (they do not depend on the size).
+SCENE_SEED_OFFSET, SCENE_LAYOUT, SCENE_VIEWS, SCENE_TARGET = 4242, "tabletop", 16, 7
 BUSY_PATTERN = r"scnerf-export (train|eval)"
 
 
@@ -97,7 +94,7 @@ def make_scene_dir(root: Path, width: int, height: int) -> Path:
     """Sources, request.json and ground truth of the benchmark scene at one size (cached on disk)."""
     from PIL import Image
 
-    from scnerf_export.example import camera_json
+    from scnerf_export.serving import camera_json
     from scnerf_export.procedural import pick_sources
     from scnerf_export.procedural.core import Scene, View
     from scnerf_export.procedural.dataset import VAL_SEED0
@@ -379,66 +376,6 @@ def find_checkpoint(bundle_dir: str, prov: dict) -> str:
 # the server over HTTP
 
 
-class Server:
-    def __init__(self, binary: Path, bundle: str, threads: int, extra: list[str]):
-        self.log = open(os.devnull, "w")  # noqa: SIM115
-        env = {**os.environ, "RUST_LOG": os.environ.get("RUST_LOG", "warn")}
-        start = time.perf_counter()
-        self.proc = subprocess.Popen(
-            [str(binary), "--bundle", bundle, "--addr", "127.0.0.1:0", "--threads", str(threads), *extra],
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
-        line = self.proc.stdout.readline()
-        m = re.search(r"listening on (http://\S+)", line)
-        if not m:
-            err = self.proc.stderr.read()
-            raise RuntimeError(f"server did not start: {line!r} {err[-2000:]}")
-        self.url = m.group(1)
-        deadline = time.time() + 900
-        while time.time() < deadline:
-            if self.proc.poll() is not None:
-                raise RuntimeError(f"server exited: {self.proc.stderr.read()[-2000:]}")
-            try:
-                if self.request("GET", "/readyz")[0] == 200:
-                    break
-            except OSError:
-                pass
-            time.sleep(0.2)
-        self.startup_ms = (time.perf_counter() - start) * 1000.0
-        self.model = json.loads(self.request("GET", "/v1/model")[1])
-
-    def request(self, method: str, path: str, body: bytes | None = None, headers: dict | None = None):
-        req = urllib.request.Request(self.url + path, data=body, method=method, headers=headers or {})
-        try:
-            with urllib.request.urlopen(req, timeout=3600) as resp:
-                return resp.status, resp.read(), dict(resp.headers)
-        except urllib.error.HTTPError as e:
-            return e.code, e.read(), dict(e.headers)
-
-    def peak_rss_mib(self) -> float:
-        for line in Path(f"/proc/{self.proc.pid}/status").read_text().splitlines():
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) / 1024.0
-        return float("nan")
-
-    def stop(self) -> None:
-        self.proc.terminate()
-        try:
-            self.proc.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            self.proc.wait()
-
-
-def multipart(fields: list[tuple[str, str, bytes, str]]) -> tuple[bytes, str]:
-    boundary = uuid.uuid4().hex
-    parts = []
-    for name, filename, data, ctype in fields:
-        disp = f'form-data; name="{name}"' + (f'; filename="{filename}"' if filename else "")
-        parts.append(f"--{boundary}\r\nContent-Disposition: {disp}\r\nContent-Type: {ctype}\r\n\r\n".encode()
-                     + data + b"\r\n")
-    return b"".join(parts) + f"--{boundary}--\r\n".encode(), f"multipart/form-data; boundary={boundary}"
-
-
 def decode_json_rgb(body: bytes):
     import numpy as np
     from PIL import Image
@@ -453,7 +390,9 @@ def bench_server(args, bundle: str, scene_dir: Path, cached: bool = True) -> dic
     /v1/scenes/{id}/render of the same target (cached scene)."""
     request = json.loads((scene_dir / "request.json").read_text())
     sources = [(scene_dir / f"source_{i}.png").read_bytes() for i in range(len(request["sources"]))]
-    server = Server(Path(args.server_bin), bundle, args.threads, args.server_args)
+    from scnerf_export.serving import ServerProcess, multipart
+
+    server = ServerProcess(Path(args.server_bin), bundle, args.threads, tuple(args.server_args))
     out: dict = {"method": "server", "startup_ms": server.startup_ms, "model_id": server.model.get("model_id"),
                  "threads": args.threads}
     try:
@@ -635,15 +574,6 @@ def load() -> list[float]:
     return [round(x, 2) for x in os.getloadavg()]
 
 
-def find_server(explicit: str | None) -> Path | None:
-    if explicit:
-        return Path(explicit)
-    for p in (REPO / "target/release/scnerf-server", REPO / "target/debug/scnerf-server"):
-        if p.is_file():
-            return p
-    return None
-
-
 def parse_sizes(text: str) -> list[tuple[int, int]]:
     return [tuple(int(x) for x in s.lower().split("x")) for s in text.split(",") if s.strip()]
 
@@ -707,6 +637,7 @@ def orchestrate(args) -> int:
     import numpy as np
 
     from scnerf_export.export import read_manifest
+    from scnerf_export.serving import find_server_binary
 
     started = dt.datetime.now(dt.timezone.utc)
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
@@ -717,9 +648,9 @@ def orchestrate(args) -> int:
     variants = dict(v.split("=", 1) for v in args.variant)
     variant_sizes = {f"{w}x{h}" for w, h in parse_sizes(args.variant_sizes or args.sizes)}
     cached_sizes = {f"{w}x{h}" for w, h in parse_sizes(args.cached_sizes or args.sizes)}
-    server_bin = find_server(args.server_bin) if "server" in methods else None
+    server_bin = find_server_binary(args.server_bin) if "server" in methods else None
     if "server" in methods or (variants and "server" in args.variant_methods):
-        server_bin = find_server(args.server_bin)
+        server_bin = find_server_binary(args.server_bin)
         if server_bin is None:
             raise SystemExit("no server binary: cargo build --release -j2 -p scnerf-server (or pass --server-bin)")
         args.server_bin = str(server_bin)

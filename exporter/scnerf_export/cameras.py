@@ -130,3 +130,14 @@ def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
 
 def pinhole(focal: float, width: int, height: int) -> np.ndarray:
     return np.array([[focal, 0.0, (width - 1) / 2.0], [0.0, focal, (height - 1) / 2.0], [0.0, 0.0, 1.0]])
+
+
+def rank_sources(target: Camera, candidates: list[Camera]) -> list[int]:
+    """Source selection, MVSNeRF's rule: candidates ordered by the distance of their camera centre
+    to the target's, nearest first (the first becomes the volume's reference view). Ties go to the
+    lower index, so the choice is deterministic; a candidate whose optical axis faces away from the
+    target's (angle >= 90 degrees) sees the other side of the scene and is left out."""
+    distance = np.array([np.linalg.norm(c.center - target.center) for c in candidates])
+    facing = np.array([float(c.forward @ target.forward) > 0.0 for c in candidates])
+    order = np.lexsort((np.arange(len(candidates)), distance))
+    return [int(i) for i in order if facing[i]]

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from .cameras import Camera
+from .cameras import Camera, rank_sources
 
 __all__ = [
     "Camera",
@@ -39,6 +39,7 @@ __all__ = [
     "load_llff",
     "load_colmap",
     "get_views",
+    "nearest_sources",
     "resize_camera",
     "resize_view",
     "crop_view",
@@ -183,6 +184,16 @@ def crop_view(view: View, x0: int, y0: int, width: int, height: int) -> View:
         None if view.depth is None else view.depth[sl].copy(),
         None if view.mask is None else view.mask[sl].copy(),
     )
+
+
+def nearest_sources(scene: SceneData, target: str, pool: list[str], count: int = 3) -> list[str]:
+    """The ``count`` views of ``pool`` nearest the target (:func:`cameras.rank_sources`: camera-centre
+    distance, MVSNeRF's evaluation rule), nearest first; the target itself is never a source."""
+    candidates = [name for name in pool if name != target]
+    ranked = rank_sources(scene.views[target].camera, [scene.views[n].camera for n in candidates])
+    if len(ranked) < count:
+        raise ValueError(f"view {target!r}: only {len(ranked)} source views face its way, {count} needed")
+    return [candidates[i] for i in ranked[:count]]
 
 
 def get_views(scene: SceneData, names) -> list[View]:

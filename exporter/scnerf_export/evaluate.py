@@ -1,4 +1,5 @@
-"""`scnerf-export eval`: render target views of a real scene through ONNX Runtime and score them."""
+"""`scnerf-export eval`: render target views of a real scene through ONNX Runtime (or a running
+server) and score them."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ from PIL import Image
 
 from . import datasets, metrics
 from .onnx_pipeline import DEFAULT_CHUNK, OnnxBundle
+from .serving import ServedBundle
 
 
 def split_names(value: str | None) -> list[str] | None:
@@ -20,30 +22,37 @@ def split_names(value: str | None) -> list[str] | None:
 def evaluate(bundle_dir: str | Path, scene_dir: str | Path, fmt: str, sources: list[str] | None = None,
              targets: list[str] | None = None, scale: float = 1.0, near: float | None = None,
              far: float | None = None, threads: int | None = None, chunk: int = DEFAULT_CHUNK,
-             save_dir: str | Path | None = None, target_scale: float = 1.0) -> dict:
+             save_dir: str | Path | None = None, target_scale: float = 1.0, server: str | None = None) -> dict:
+    """Render every target, through ONNX Runtime in this process or through the server at ``server``
+    (its scene API, PNG output), and score it. Sources: ``sources`` for every target (``["fixed"]``: the
+    scene's own fixed triple, MVSNeRF's r_6/r_43/r_33 or 25/21/33), or by default the paper's
+    protocol: per target, the 3 views of the source pool (:func:`source_pool`) nearest to it by
+    camera-centre distance. Each source triple is encoded once."""
     scene = datasets.load_scene(scene_dir, fmt, scale=scale, near=near, far=far)
-    sources = sources or scene.default_sources
     targets = targets or scene.default_targets
-    if not sources or not targets:
-        raise ValueError("this scene has no default source/target views: pass --sources and --targets")
-    source_views = datasets.get_views(scene, sources)
-    bundle = OnnxBundle(bundle_dir, threads=threads)
-    images = np.stack([v.image for v in source_views])
-    cameras = [v.camera for v in source_views]
-    start = time.perf_counter()
-    encoded = bundle.encode_scene(images, cameras, scene.near, scene.far, scene.background)
-    encode_seconds = time.perf_counter() - start
-    print(f"encoder + volume: {encode_seconds:.1f} s (once for all targets)", flush=True)
+    if not targets:
+        raise ValueError("this scene names no target views: pass --targets")
+    if sources == ["fixed"]:
+        sources = scene.default_sources
+        if not sources:
+            raise ValueError("this scene names no fixed source views: pass --sources A,B,C")
+    pool = source_pool(scene, targets)
+    bundle = ServedBundle(server) if server else OnnxBundle(bundle_dir, threads=threads)
+    encoded: dict[tuple[str, ...], tuple[dict, float]] = {}
     rows = []
     for view in datasets.get_views(scene, targets):
+        names = tuple(sources or datasets.nearest_sources(scene, view.name, pool))
+        if names not in encoded:
+            encoded[names] = encode_sources(bundle, scene, names)
+        scene_tensors, encode_seconds = encoded[names]
         if target_scale != 1.0:
             view = downscale_target(view, target_scale)
-        bundle.timings = {}
         start = time.perf_counter()
-        result = bundle.render_target(encoded, view.camera, scene.near, scene.far, scene.background, chunk)
+        result = bundle.render_target(scene_tensors, view.camera, scene.near, scene.far, scene.background, chunk)
         seconds = time.perf_counter() - start
-        row = {"view": view.name, "psnr": metrics.psnr(result.rgb, view.image), "ssim": metrics.ssim(result.rgb, view.image),
-               "seconds": seconds, "seconds_with_encoding": seconds + encode_seconds}
+        row = {"view": view.name, "sources": list(names), "psnr": metrics.psnr(result.rgb, view.image),
+               "ssim": metrics.ssim(result.rgb, view.image), "seconds": seconds,
+               "seconds_with_encoding": seconds + encode_seconds}
         if view.mask is not None:
             masked = metrics.dtu_masked_metrics(result.rgb, view.image, view.mask)
             row.update({"psnr_masked": masked["psnr"], "ssim_masked": masked["ssim"]})
@@ -55,17 +64,39 @@ def evaluate(bundle_dir: str | Path, scene_dir: str | Path, fmt: str, sources: l
             out.mkdir(parents=True, exist_ok=True)
             Image.fromarray((np.clip(result.rgb, 0, 1) * 255).round().astype(np.uint8)).save(out / f"{view.name}.png")
         print(format_row(row), flush=True)
-    summary = {"bundle": str(bundle_dir), "model_id": bundle.manifest["model_id"], "scene": str(scene_dir),
-               "encode_seconds": encode_seconds, "threads": threads,
-               "format": fmt, "scale": scale, "target_scale": target_scale, "sources": sources, "targets": targets,
+    summary = {"bundle": server or str(bundle_dir), "model_id": bundle.manifest["model_id"], "scene": str(scene_dir),
+               "protocol": PROTOCOL_FIXED if sources else PROTOCOL_NEAREST,
+               "encode_seconds": sum(seconds for _, seconds in encoded.values()), "threads": threads,
+               "format": fmt, "scale": scale, "target_scale": target_scale, "targets": targets,
                "near": scene.near, "far": scene.far, "views": {r["view"]: r for r in rows},
                "mean": metrics.mean_metrics(rows)}
     lpips_ok, reason = metrics.lpips_available("vgg")
     summary["lpips"] = None if not lpips_ok else "not computed"
     if not lpips_ok:
         summary["lpips_unavailable"] = reason
-    print(format_row({"view": "mean", **summary["mean"]}), flush=True)
+    print(format_row({"view": "mean", "sources": [], **summary["mean"]}), flush=True)
     return summary
+
+
+def source_pool(scene: datasets.SceneData, targets: list[str]) -> list[str]:
+    """Every view that is neither asked for nor one of the scene's own targets: targets are never sources."""
+    excluded = set(targets) | set(scene.default_targets or [])
+    return [name for name in scene.views if name not in excluded]
+
+
+PROTOCOL_NEAREST = "per target, the 3 source-pool views nearest by camera-centre distance"
+PROTOCOL_FIXED = "the same source views for every target"
+
+
+def encode_sources(bundle: OnnxBundle, scene: datasets.SceneData, names: tuple[str, ...]) -> tuple[dict, float]:
+    """The encoder and volume of one source triple (reference first), and the seconds it took."""
+    views = datasets.get_views(scene, list(names))
+    start = time.perf_counter()
+    encoded = bundle.encode_scene(np.stack([v.image for v in views]), [v.camera for v in views],
+                                  scene.near, scene.far, scene.background)
+    seconds = time.perf_counter() - start
+    print(f"sources {','.join(names)}: encoder + volume {seconds:.1f} s", flush=True)
+    return encoded, seconds
 
 
 def downscale_target(view: datasets.View, factor: float) -> datasets.View:
@@ -81,7 +112,8 @@ def downscale_target(view: datasets.View, factor: float) -> datasets.View:
 
 
 def format_row(row: dict) -> str:
-    parts = [f"{row['view']:>8}", f"PSNR {row['psnr']:6.2f}", f"SSIM {row['ssim']:.3f}"]
+    parts = [f"{row['view']:>8}", f"{','.join(row['sources']):>12}", f"PSNR {row['psnr']:6.2f}",
+             f"SSIM {row['ssim']:.3f}"]
     if "psnr_masked" in row:
         parts += [f"masked PSNR {row['psnr_masked']:6.2f}", f"masked SSIM {row['ssim_masked']:.3f}"]
     if isinstance(row.get("depth"), dict) and "abs_err" in row["depth"]:

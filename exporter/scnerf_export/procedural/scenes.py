@@ -2,8 +2,7 @@
 
 from __future__ import annotations
 
-import numpy as np
-
+from ..cameras import rank_sources
 from .core import Scene
 from .layouts import build_layout
 from .render import render_view
@@ -27,11 +26,11 @@ def make_scene(seed: int, layout: str, n_views: int = 20, width: int = 160, heig
 
 
 def source_ranking(scene: Scene, target_index: int) -> list[int]:
-    """All other views, nearest camera centre first (ties broken by index)."""
-    centers = np.stack([v.camera.center for v in scene.views])
-    dist = np.linalg.norm(centers - centers[target_index], axis=-1)
-    order = [int(i) for i in np.lexsort((np.arange(len(dist)), dist)) if i != target_index]
-    return order
+    """All other views that face the target's way, nearest camera centre first
+    (:func:`scnerf_export.cameras.rank_sources`)."""
+    others = [i for i in range(len(scene.views)) if i != target_index]
+    ranked = rank_sources(scene.views[target_index].camera, [scene.views[i].camera for i in others])
+    return [others[i] for i in ranked]
 
 
 def pick_sources(scene: Scene, target_index: int, gap: str = "small", n_sources: int = 3) -> list[int]:
