@@ -3,7 +3,8 @@
 Why: the project must train its own SC-NeRF without downloading datasets, and the paper's claim
 (rectification helps most when test scenes differ from training: outdoor depth ranges, large
 viewpoint gaps) needs scenes whose layout, depth range and source/target gap we control.  Three
-layouts mimic DTU (``object``), LLFF (``forward``) and Spaces (``outdoor``); see ``layouts``.
+layouts mimic DTU (``object``), LLFF (``forward``) and Spaces (``outdoor``); a fourth, ``tabletop``, is
+photo-like (textured objects with cast shadows on a table, DTU's framing); see ``layouts``.
 
 Quick use::
 
@@ -15,7 +16,7 @@ Quick use::
 Cameras follow DESIGN.md: OpenCV axes, world-to-camera, pixel (u, v) centred at (u, v).
 """
 
-from .core import LAYOUTS, Camera, Scene, View, intrinsics, look_at
+from .core import ALL_LAYOUTS, LAYOUTS, Camera, Scene, View, intrinsics, look_at
 from .dataset import (
     TRAIN_SEED0,
     VAL_SEED0,
@@ -34,7 +35,7 @@ from .scenes import GAPS, make_scene, pick_sources, source_ranking
 from .textures import Material
 
 __all__ = [
-    "GAPS", "LAYOUTS", "TRAIN_SEED0", "VAL_SEED0",
+    "ALL_LAYOUTS", "GAPS", "LAYOUTS", "TRAIN_SEED0", "VAL_SEED0",
     "Box", "Camera", "Cylinder", "Example", "Haze", "Light", "Material", "Plane", "ProceduralDataset",
     "Scene", "SkyDome", "Sphere", "View", "World",
     "build_dataset", "intrinsics", "load_scene", "look_at", "make_scene", "pick_sources", "render_view",

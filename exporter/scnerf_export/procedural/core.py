@@ -18,7 +18,10 @@ import numpy as np
 
 from ..cameras import Camera, look_at  # noqa: F401  (re-exported: one camera type for the package)
 
+# The three scene families of the procedural training mix (object: DTU-like, forward: LLFF-like,
+# outdoor: Spaces-like), and the photo-like tabletop (DTU's framing at DTU's resolution).
 LAYOUTS: tuple[str, ...] = ("object", "forward", "outdoor")
+ALL_LAYOUTS: tuple[str, ...] = LAYOUTS + ("tabletop",)
 
 
 @dataclass

@@ -16,7 +16,7 @@ from typing import Iterator, Sequence
 
 import numpy as np
 
-from .core import LAYOUTS, Camera, Scene, View
+from .core import ALL_LAYOUTS, LAYOUTS, Camera, Scene, View
 from .scenes import GAPS, make_scene, pick_sources
 
 TRAIN_SEED0 = 0
@@ -157,7 +157,7 @@ class ProceduralDataset:
                  n_sources: int = 3, cache_dir: str | os.PathLike | None = None, supersample: int = 2,
                  seed: int = 0, memory_scenes: int = 16):
         for layout in layouts:
-            if layout not in LAYOUTS:
+            if layout not in ALL_LAYOUTS:
                 raise ValueError(f"unknown layout {layout!r}")
         for gap in gaps:
             if gap not in GAPS:

@@ -22,9 +22,11 @@ near/far, measured on a fixed-size depth probe) with the output resolution at a 
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
-from .core import LAYOUTS, Camera, intrinsics, look_at, yaw_pitch_w2c
+from .core import ALL_LAYOUTS, Camera, intrinsics, look_at, yaw_pitch_w2c
 from .geometry import Box, Cylinder, Plane, Primitive, SkyDome, Sphere, rotation_from_euler
 from .render import Haze, Light, World, trace_depth
 from .textures import Material, random_color, random_material
@@ -144,6 +146,57 @@ def _object_cameras(rng: np.random.Generator, n: int, width: int, height: int, h
 def _object_near_far(cameras: list[Camera]) -> tuple[float, float]:
     zc = [float(cam.w2c[2, :3] @ OBJECT_TARGET + cam.w2c[2, 3]) for cam in cameras]
     return min(zc) - OBJECT_BALL_RADIUS, max(zc) + OBJECT_BALL_RADIUS
+
+
+# ----------------------------------------------------------------------------------------------
+# tabletop (photo-like, DTU's framing)
+
+TABLETOP_TARGET = np.array([0.0, 0.0, 0.2])
+TABLETOP_HFOV = (26.0, 32.0)  # DTU's 640x512 crops see ~25 degrees: objects fill the frame
+
+
+def _tabletop_world(rng: np.random.Generator, cam_azimuth: float) -> World:
+    """A square table with a wood, stone or cloth texture, four to eight textured objects on it, a
+    sun from the cameras' side with cast shadows; beyond the table the void is black, like DTU's."""
+    table_mat = random_material(rng, scale_range=(1.5, 5.0), specular_prob=0.15,
+                                patterns=("noise", "marble", "stripes", "checker"), weights=(3, 3, 2, 1))
+    table_mat = dataclasses.replace(table_mat, colors=np.stack([random_color(rng, sat=(0.1, 0.45), val=(0.35, 0.85))
+                                                                 for _ in range(3)]))
+    half = rng.uniform(1.4, 1.8)
+    prims: list[Primitive] = [Box(center=np.array([0.0, 0.0, -0.05]), material=table_mat,
+                                  rotation=rotation_from_euler(rng.uniform(0, 2 * np.pi)),
+                                  half=np.array([half, half, 0.05]))]
+    n_obj = int(rng.integers(4, 9))
+    tries = 0
+    while len(prims) < n_obj + 1 and tries < 200:
+        tries += 1
+        rad = 0.7 * np.sqrt(rng.uniform())
+        ang = rng.uniform(0, 2 * np.pi)
+        base = np.array([rad * np.cos(ang), rad * np.sin(ang), 0.0])
+        mat = random_material(rng, scale_range=(4.0, 16.0), specular_prob=0.35)
+        prim, bound = _random_shape(rng, rng.uniform(0.15, 0.4), base, mat, upright=True)
+        if all(np.linalg.norm(prim.center[:2] - q.center[:2]) > 0.6 * (bound + q.bound) for q in prims[1:]):
+            prims.append(prim)
+    light = _sun(rng, (35.0, 70.0), (0.25, 0.4), np.degrees(cam_azimuth), 70.0)
+    return World(primitives=prims, light=light, shadows=True)
+
+
+def _tabletop_cameras(rng: np.random.Generator, n: int, width: int, height: int, hfov: float,
+                      az0: float) -> list[Camera]:
+    """Rows of cameras on an arc around the table, as DTU's robot arm places them."""
+    dist = rng.uniform(3.0, 3.4)
+    az_span = np.radians(rng.uniform(90.0, 120.0))
+    el_lo, el_hi = np.radians(rng.uniform(18.0, 25.0)), np.radians(rng.uniform(40.0, 50.0))
+    K = intrinsics(width, height, hfov)
+    cams = []
+    for gx, gy in _grid(rng, n, aspect=3.0, jitter=0.2):
+        az = az0 + (gx - 0.5) * az_span
+        el = el_lo + gy * (el_hi - el_lo)
+        r = dist + rng.uniform(-0.05, 0.05)
+        eye = TABLETOP_TARGET + r * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+        target = TABLETOP_TARGET + rng.normal(0.0, 0.03, size=3)
+        cams.append(Camera(K=K.copy(), w2c=look_at(eye, target), width=width, height=height))
+    return cams
 
 
 # ----------------------------------------------------------------------------------------------
@@ -306,9 +359,9 @@ def _outdoor_cameras(rng: np.random.Generator, n: int, width: int, height: int, 
 def build_layout(seed: int, layout: str, n_views: int, width: int, height: int
                  ) -> tuple[World, list[Camera], float, float]:
     """World, cameras and [near, far] of scene ``seed`` in ``layout`` (nothing rendered yet)."""
-    if layout not in LAYOUTS:
-        raise ValueError(f"layout must be one of {LAYOUTS}, got {layout!r}")
-    world_seq, cam_seq = np.random.SeedSequence([int(seed), LAYOUTS.index(layout)]).spawn(2)
+    if layout not in ALL_LAYOUTS:
+        raise ValueError(f"layout must be one of {ALL_LAYOUTS}, got {layout!r}")
+    world_seq, cam_seq = np.random.SeedSequence([int(seed), ALL_LAYOUTS.index(layout)]).spawn(2)
     wrng, crng = np.random.default_rng(world_seq), np.random.default_rng(cam_seq)
     if layout == "object":
         hfov = float(wrng.uniform(40.0, 46.0))
@@ -316,6 +369,13 @@ def build_layout(seed: int, layout: str, n_views: int, width: int, height: int
         world = _object_world(wrng, az0)
         cams = _object_cameras(crng, n_views, width, height, hfov, az0)
         near, far = _object_near_far(cams)
+    elif layout == "tabletop":
+        hfov = float(wrng.uniform(*TABLETOP_HFOV))
+        az0 = float(wrng.uniform(0.0, 2.0 * np.pi))
+        world = _tabletop_world(wrng, az0)
+        cams = _tabletop_cameras(crng, n_views, width, height, hfov, az0)
+        lo, hi = _probe_range(world, cams)
+        near, far = 0.9 * lo, 1.05 * hi
     elif layout == "forward":
         hfov = float(wrng.uniform(50.0, 65.0))
         cam_height = float(wrng.uniform(0.8, 1.6))

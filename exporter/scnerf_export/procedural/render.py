@@ -1,7 +1,7 @@
 """A vectorised ray tracer: all rays of an image are intersected with each primitive at once.
 
-Shading is Lambert with one directional light plus ambient (no shadows), a small optional Blinn-Phong
-highlight, and an optional world-space haze.  The haze depends on a surface point's distance from a
+Shading is Lambert with one directional light plus ambient, cast shadows where the world asks for
+them, a small optional Blinn-Phong highlight, and an optional world-space haze.  The haze depends on a surface point's distance from a
 fixed world point, not from the camera, so it looks like aerial perspective yet stays identical in
 every view (it hides the aliasing of far-away ground texture without breaking multi-view consistency).
 """
@@ -18,6 +18,7 @@ from .textures import albedo, sky_color
 
 
 CHUNK = 1 << 15  # rays traced and shaded together
+SHADOW_OFFSET = 1e-4  # shadow rays start this far off the surface, so it does not shadow itself
 
 
 @dataclass
@@ -40,6 +41,7 @@ class World:
     primitives: list[Primitive]
     light: Light
     haze: Haze | None = None
+    shadows: bool = False  # surfaces the light cannot see get ambient light only
 
 
 def pixel_rays(camera: Camera, offset: tuple[float, float] = (0.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
@@ -118,6 +120,8 @@ def shade(world: World, origin: np.ndarray, dirs: np.ndarray, t: np.ndarray, ids
             view = -d / np.linalg.norm(d, axis=-1, keepdims=True)
             n = np.where((np.einsum("ij,ij->i", n, view) < 0.0)[:, None], -n, n)  # face the viewer
             ndl = np.clip(n @ light.direction, 0.0, None)
+            if world.shadows:
+                ndl = ndl * ~_occluded(world, p + SHADOW_OFFSET * n, light.direction)
             col = base * (light.ambient + light.diffuse * ndl[:, None]) * light.color
             if mat.specular > 0.0:
                 h = light.direction + view
@@ -130,6 +134,12 @@ def shade(world: World, origin: np.ndarray, dirs: np.ndarray, t: np.ndarray, ids
             col = col + (world.haze.color - col) * f
         rgb[sel] = col
     return np.clip(rgb, 0.0, 1.0)
+
+
+def _occluded(world: World, points: np.ndarray, direction: np.ndarray) -> np.ndarray:
+    """Whether anything lies between each point and a directional light."""
+    t, _ = trace(world, points, np.broadcast_to(direction, points.shape).copy())
+    return np.isfinite(t)
 
 
 def subpixel_offsets(supersample: int) -> list[tuple[float, float]]:
