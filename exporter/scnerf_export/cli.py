@@ -1,4 +1,4 @@
-"""`scnerf-export`: convert-mvsnerf, export, fixtures, eval, example, experiment, train."""
+"""`scnerf-export`: convert-mvsnerf, init-scnerf, export, fixtures, eval, example, experiment, train."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from .checkpoint import CheckpointError
+from .finetune import Recipe
 from .onnx_pipeline import DEFAULT_CHUNK
 
 
@@ -18,6 +19,12 @@ def cmd_convert(args) -> None:
     model, provenance = load_mvsnerf(args.ckpt)
     manifest = export_bundle(model, args.out, provenance)
     print(f"wrote {args.out} ({manifest['model_id']})")
+
+
+def cmd_init_scnerf(args) -> None:
+    from .checkpoint import init_scnerf
+
+    print(f"wrote {init_scnerf(args.from_mvsnerf, args.out, seed=args.seed)}")
 
 
 def cmd_export(args) -> None:
@@ -40,9 +47,11 @@ def cmd_fixtures(args) -> None:
 def cmd_eval(args) -> None:
     from .evaluate import evaluate, split_names, write_json
 
+    if (args.bundle is None) == (args.server is None):
+        raise ValueError("eval takes exactly one of --bundle DIR and --server URL")
     summary = evaluate(args.bundle, args.scene, args.format, split_names(args.sources), split_names(args.targets),
                        args.scale, args.near, args.far, args.threads, args.chunk, args.save_renders,
-                       args.target_scale)
+                       args.target_scale, args.server)
     if "lpips_unavailable" in summary:
         print(f"LPIPS not computed: {summary['lpips_unavailable']}")
     if args.json:
@@ -74,6 +83,14 @@ def cmd_train(args) -> None:
     last = train(args.variant, args.preset, args.out, resume=args.resume, steps=args.steps, seed=args.seed,
                  cache_dir=args.cache, threads=args.threads)
     print(f"checkpoint {last}")
+
+
+def cmd_finetune(args) -> None:
+    from .finetune import finetune
+
+    recipe = Recipe(steps=args.steps, rays=args.rays, lr=args.lr, pretrained_lr_scale=args.pretrained_lr_scale,
+                    scenes=args.scenes, seed=args.seed, validate_every=args.validate_every)
+    print(f"checkpoint {finetune(args.init, args.out, args.shared, recipe, args.threads, args.cache)}")
 
 
 def cmd_quantize(args) -> None:
@@ -118,6 +135,12 @@ def parser() -> argparse.ArgumentParser:
     c.add_argument("--out", required=True, type=Path)
     c.set_defaults(func=cmd_convert)
 
+    i = sub.add_parser("init-scnerf", help="public MVSNeRF checkpoint -> scnerf checkpoint that renders the same")
+    i.add_argument("--from-mvsnerf", required=True, type=Path, help="the public MVSNeRF checkpoint")
+    i.add_argument("--out", required=True, type=Path, help="project checkpoint to write")
+    i.add_argument("--seed", type=int, default=0, help="draws the rectifiers' attention weights")
+    i.set_defaults(func=cmd_init_scnerf)
+
     e = sub.add_parser("export", help="checkpoint (project or MVSNeRF) -> bundle")
     e.add_argument("--checkpoint", required=True, type=Path)
     e.add_argument("--out", required=True, type=Path)
@@ -131,10 +154,13 @@ def parser() -> argparse.ArgumentParser:
     f.set_defaults(func=cmd_fixtures)
 
     v = sub.add_parser("eval", help="render target views of a scene through ONNX Runtime and score them")
-    v.add_argument("--bundle", required=True, type=Path)
+    v.add_argument("--bundle", type=Path, help="render through ONNX Runtime in this process")
+    v.add_argument("--server", help="render through the server at this URL instead (e.g. http://127.0.0.1:8080)")
     v.add_argument("--scene", required=True, type=Path)
     v.add_argument("--format", required=True, choices=["dtu", "blender", "llff", "nerfstudio", "colmap"])
-    v.add_argument("--sources", help="comma-separated view names (default: the scene's)")
+    v.add_argument("--sources", help="comma-separated view names, the same for every target, or 'fixed' for the "
+                   "scene's fixed triple (default: per target, the 3 nearest views by camera-centre distance "
+                   "among those that are not targets)")
     v.add_argument("--targets", help="comma-separated view names (default: the scene's)")
     v.add_argument("--scale", type=float, default=1.0, help="resize every view by this factor")
     v.add_argument("--target-scale", type=float, default=1.0,
@@ -169,6 +195,24 @@ def parser() -> argparse.ArgumentParser:
     t.add_argument("--cache", type=Path, help="procedural scene cache (default OUT/cache)")
     t.add_argument("--threads", type=int)
     t.set_defaults(func=cmd_train)
+
+    defaults = Recipe()
+    n = sub.add_parser("finetune", help="train scnerf's heads on a frozen backbone from an init-scnerf checkpoint")
+    n.add_argument("--init", required=True, type=Path, help="checkpoint from init-scnerf")
+    n.add_argument("--out", required=True, type=Path)
+    n.add_argument("--shared", type=Path, default=Path("../shared"),
+                   help="folder with data/ (validation scenes: they choose the checkpoint, never train)")
+    n.add_argument("--steps", type=int, default=defaults.steps)
+    n.add_argument("--rays", type=int, default=defaults.rays, help="rays per step")
+    n.add_argument("--lr", type=float, default=defaults.lr, help="learning rate of the rectifiers")
+    n.add_argument("--pretrained-lr-scale", type=float, default=defaults.pretrained_lr_scale,
+                   help="M2's and M4's learning rate relative to the rectifiers'")
+    n.add_argument("--scenes", type=int, default=defaults.scenes, help="procedural training scenes")
+    n.add_argument("--validate-every", type=int, default=defaults.validate_every)
+    n.add_argument("--seed", type=int, default=defaults.seed)
+    n.add_argument("--threads", type=int)
+    n.add_argument("--cache", type=Path, help="procedural scenes and ray banks (default OUT/cache); reusable")
+    n.set_defaults(func=cmd_finetune)
 
     q = sub.add_parser("quantize", help="float32 bundle -> int8 or fp16 bundle (renderer MatMuls), PSNR check")
     q.add_argument("--bundle", required=True, type=Path, help="float32 bundle")
