@@ -77,11 +77,20 @@ async fn render_within(
 pub const DEADLINE_HEADER: &str = "x-scnerf-deadline-ms";
 
 /// The request's time budget: the configured timeout, or less when the client asks for less.
+/// The header sent twice is refused rather than one of its values picked.
 pub(super) fn deadline_of(headers: &HeaderMap, default: Duration) -> Result<Duration, ApiError> {
-    let Some(value) = headers.get(DEADLINE_HEADER) else { return Ok(default) };
-    let ms = value.to_str().ok().and_then(|v| v.trim().parse::<u64>().ok()).filter(|&ms| ms > 0).ok_or_else(|| {
-        ApiError::malformed(Some(DEADLINE_HEADER.to_string()), "expected a whole number of milliseconds > 0")
-    })?;
+    let malformed = |message| ApiError::malformed(Some(DEADLINE_HEADER.to_string()), message);
+    let mut values = headers.get_all(DEADLINE_HEADER).iter();
+    let Some(value) = values.next() else { return Ok(default) };
+    if values.next().is_some() {
+        return Err(malformed("sent more than once"));
+    }
+    let ms = value
+        .to_str()
+        .ok()
+        .and_then(|v| v.trim().parse::<u64>().ok())
+        .filter(|&ms| ms > 0)
+        .ok_or_else(|| malformed("expected a whole number of milliseconds > 0"))?;
     Ok(default.min(Duration::from_millis(ms)))
 }
 
