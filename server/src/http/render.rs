@@ -66,7 +66,8 @@ async fn render_within(
     let valid = parsed.validate(&pipeline.bundle.config, &pipeline.limits)?;
     let out_format = response_format(&headers, valid.view.outputs)?;
 
-    let ticket = pipeline.admit(deadline)?;
+    let work = pipeline.scene_work(&valid.scene.cameras()).plus(pipeline.view_work(&valid.view.target));
+    let ticket = pipeline.admit(deadline, work)?;
     let mut timings = Timings::default();
     let view = pipeline.render(&ticket, &valid, &mut timings).await?;
     drop(ticket); // encoding needs no inference: let the next request in

@@ -88,7 +88,7 @@ async fn create_within(
     let parsed = read_scene_request(format, req, &pipeline.limits).await?;
     let valid = parsed.validate(&pipeline.bundle.config, &pipeline.limits)?;
 
-    let ticket = pipeline.admit(deadline)?;
+    let ticket = pipeline.admit(deadline, pipeline.scene_work(&valid.cameras()))?;
     let mut timings = Timings::default();
     let scene = pipeline.prepare_scene(&ticket, &valid, &mut timings).await?;
     drop(ticket);
@@ -168,7 +168,7 @@ async fn render_within(
     let out_format = response_format(&headers, valid.outputs)?;
     let hit = state.scenes.get(&id, &owner, Instant::now()).ok_or(ApiError::SceneNotFound { id })?;
 
-    let ticket = pipeline.admit(deadline)?;
+    let ticket = pipeline.admit(deadline, pipeline.view_work(&valid.target))?;
     let mut timings = Timings::default();
     let cached = &hit.scene;
     let view =
