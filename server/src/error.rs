@@ -230,7 +230,10 @@ mod tests {
         assert_eq!(clip_quoted("unknown part \"x\""), "unknown part \"x\"");
         assert!(clip_quoted(&"b".repeat(5000)).chars().count() <= MAX_MESSAGE_CHARS + 1);
         let huge = format!("near ({}) must be smaller than far (2)", 1e308);
-        assert_eq!(clip_quoted(&huge), format!("near ({}…) must be smaller than far (2)", "1".to_owned() + &"0".repeat(31)));
+        assert_eq!(
+            clip_quoted(&huge),
+            format!("near ({}…) must be smaller than far (2)", "1".to_owned() + &"0".repeat(31))
+        );
         assert_eq!(clip_quoted("sources[12].camera, 1920x1080"), "sources[12].camera, 1920x1080");
     }
 }

@@ -94,10 +94,7 @@ pub async fn run(config: Config) -> Result<(), String> {
         return Err(format!("warm-up render failed: {e}"));
     }
     if stopped.cut > 0 {
-        return Err(format!(
-            "the shutdown grace period ran out: {} requests in flight were answered 503",
-            stopped.cut
-        ));
+        return Err(format!("the shutdown grace period ran out: {} requests in flight were answered 503", stopped.cut));
     }
     tracing::info!("shut down");
     Ok(())

@@ -245,7 +245,8 @@ fn cases() -> Vec<Case> {
             ("source_1", &m.images[1]),
             ("source_2", &m.images[2]),
         ]);
-        let headers = [("authorization", m.auth.as_str()), ("x-scnerf-deadline-ms", "1"), ("x-scnerf-deadline-ms", "600000")];
+        let headers =
+            [("authorization", m.auth.as_str()), ("x-scnerf-deadline-ms", "1"), ("x-scnerf-deadline-ms", "600000")];
         raw_to("POST", "/v1/render", &boundary_ct, body, &headers)
     };
     let request_text = serde_json::to_string(&m.request).unwrap();
@@ -520,9 +521,13 @@ fn cases() -> Vec<Case> {
             INVALID,
             "near",
         ),
+        case("far 1e300", m.proto(|p| p.far = 1e300), 422, INVALID, "far"),
         case(
-            "far 1e300",
-            m.proto(|p| p.far = 1e300),
+            "near 1e308 beyond far 1e307 (a 309-digit echo)",
+            m.multipart(&m.edited(|v| {
+                v["near"] = json!(1e308);
+                v["far"] = json!(1e307);
+            })),
             422,
             INVALID,
             "far",
@@ -552,13 +557,7 @@ fn cases() -> Vec<Case> {
             INVALID,
             "sources",
         ),
-        case(
-            "protobuf with 4 outputs",
-            m.proto(|p| p.outputs = vec!["rgb".into(); 4]),
-            422,
-            INVALID,
-            "outputs",
-        ),
+        case("protobuf with 4 outputs", m.proto(|p| p.outputs = vec!["rgb".into(); 4]), 422, INVALID, "outputs"),
         case(
             "3x3 pose matrix",
             m.multipart(&m.edited(|v| v["target"]["pose"]["matrix"] = json!([[1, 0, 0], [0, 1, 0], [0, 0, 1]]))),

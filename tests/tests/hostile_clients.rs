@@ -90,8 +90,15 @@ fn trickling_uploads_get_408_and_one_client_cannot_hold_every_post_slot() {
     std::thread::sleep(Duration::from_millis(300));
     // Another client still gets a slot: its POST reaches the handler (400: `{}` is no view).
     let path = "/v1/scenes/0123456789abcdef0123456789abcdef/render";
-    let other = http_request(server.addr, "POST", path, &[("content-type", "application/json")], b"{}", Duration::from_secs(10))
-        .unwrap();
+    let other = http_request(
+        server.addr,
+        "POST",
+        path,
+        &[("content-type", "application/json")],
+        b"{}",
+        Duration::from_secs(10),
+    )
+    .unwrap();
     assert_eq!(other.status, 400, "{}", String::from_utf8_lossy(&other.body));
     let mut statuses: Vec<_> = uploads.into_iter().map(|u| u.join().unwrap()).collect();
     statuses.sort();

@@ -515,7 +515,9 @@ mod tests {
         let b = backend.admit(ms(600), rays(300.0)).unwrap();
         // After both: 800 ms of work ahead.
         match backend.admit(ms(900), rays(200.0)) {
-            Err(BackendError::WouldMissDeadline { ahead_secs }) => assert!((0.7..1.0).contains(&ahead_secs), "{ahead_secs}"),
+            Err(BackendError::WouldMissDeadline { ahead_secs }) => {
+                assert!((0.7..1.0).contains(&ahead_secs), "{ahead_secs}")
+            }
             other => panic!("{:?}", other.err()),
         }
         assert!(backend.admit(far(), rays(200.0)).is_ok());

@@ -301,7 +301,6 @@ impl HttpBody for MinRateBody {
     }
 }
 
-
 #[cfg(test)]
 mod tests {
     use super::source_index;

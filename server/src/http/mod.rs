@@ -82,7 +82,10 @@ impl AppState {
             scenes,
             metrics,
             auth: Arc::new(options.auth),
-            in_flight: Arc::new(middleware::Slots::new(options.max_concurrent_requests, options.max_requests_per_client)),
+            in_flight: Arc::new(middleware::Slots::new(
+                options.max_concurrent_requests,
+                options.max_requests_per_client,
+            )),
             uploads: options.uploads,
         }
     }

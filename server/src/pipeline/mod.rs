@@ -130,7 +130,9 @@ impl Pipeline {
         let multiple = self.bundle.config.image_multiple;
         let pixels: f64 = sources
             .iter()
-            .map(|c| (c.width as usize).div_ceil(multiple) * (c.height as usize).div_ceil(multiple) * multiple * multiple)
+            .map(|c| {
+                (c.width as usize).div_ceil(multiple) * (c.height as usize).div_ceil(multiple) * multiple * multiple
+            })
             .sum::<usize>() as f64;
         Work::of(GraphKind::Encoder, pixels).plus(Work::of(GraphKind::Volume, pixels))
     }
