@@ -5,7 +5,7 @@
 //! the test and prints the seed and the case number that reproduce it.
 //!
 //! CI runs a few thousand cases; the long run is
-//! `SCNERF_FUZZ_CASES=1000000 cargo test --release -p scnerf-server --test fuzz -- --nocapture`
+//! `SCNERF_FUZZ_CASES=1000000 cargo test -p scnerf-server --test fuzz -- --nocapture`
 //! (`SCNERF_FUZZ_SEED` picks another sequence).
 
 mod common;
