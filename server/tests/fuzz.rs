@@ -12,7 +12,7 @@ mod common;
 
 use axum::body::Body;
 use axum::http::Request;
-use common::{b64, images, multipart_body, BOUNDARY};
+use common::{b64, images, multipart_body, proto_camera, BOUNDARY};
 use prost::Message;
 use scnerf_proto::v1 as pb;
 use scnerf_server::bundle::ModelConfig;
@@ -87,31 +87,6 @@ fn mutate(rng: &mut Rng, seed: &[u8]) -> Vec<u8> {
         }
     }
     data
-}
-
-fn proto_camera(c: &serde_json::Value) -> pb::Camera {
-    let f = |v: &serde_json::Value| v.as_f64().unwrap();
-    let i = &c["intrinsics"];
-    pb::Camera {
-        width: c["width"].as_u64().unwrap() as u32,
-        height: c["height"].as_u64().unwrap() as u32,
-        intrinsics_kind: Some(pb::camera::IntrinsicsKind::Intrinsics(pb::Intrinsics {
-            fx: f(&i["fx"]),
-            fy: f(&i["fy"]),
-            cx: f(&i["cx"]),
-            cy: f(&i["cy"]),
-        })),
-        pose: Some(pb::Pose {
-            matrix: c["pose"]["matrix"]
-                .as_array()
-                .unwrap()
-                .iter()
-                .flat_map(|r| r.as_array().unwrap().iter().map(f))
-                .collect(),
-            kind: pb::PoseKind::CameraToWorld as i32,
-            axes: pb::Axes::Opengl as i32,
-        }),
-    }
 }
 
 /// The seeds: one valid body per decoder.

@@ -150,31 +150,6 @@ impl Make {
     }
 }
 
-fn proto_camera(c: &Value) -> pb::Camera {
-    let i = &c["intrinsics"];
-    let f = |v: &Value| v.as_f64().unwrap();
-    pb::Camera {
-        width: c["width"].as_u64().unwrap() as u32,
-        height: c["height"].as_u64().unwrap() as u32,
-        intrinsics_kind: Some(pb::camera::IntrinsicsKind::Intrinsics(pb::Intrinsics {
-            fx: f(&i["fx"]),
-            fy: f(&i["fy"]),
-            cx: f(&i["cx"]),
-            cy: f(&i["cy"]),
-        })),
-        pose: Some(pb::Pose {
-            matrix: c["pose"]["matrix"]
-                .as_array()
-                .unwrap()
-                .iter()
-                .flat_map(|r| r.as_array().unwrap().iter().map(f))
-                .collect(),
-            kind: pb::PoseKind::WorldToCamera as i32,
-            axes: pb::Axes::Opencv as i32,
-        }),
-    }
-}
-
 fn proto_request(r: &Value, images: &[Vec<u8>]) -> pb::RenderRequest {
     pb::RenderRequest {
         sources: (0..3)
