@@ -5,6 +5,7 @@
 #                           Runtime either way; release only speeds up the Rust side)
 #   BUNDLE=DIR              bundle to serve (default: the committed parity-fixture bundle)
 #   SERVER_ARGS="..."       extra server flags
+#   SERVER_BIN=PATH         run this server binary instead of the one built here
 
 repo=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 PROFILE=${PROFILE:-debug}
@@ -17,13 +18,14 @@ build_binaries() {
   [[ ${PROFILE} == release ]] && flags+=(--release)
   (cd "${repo}" && cargo build "${flags[@]}")
   BIN_DIR=${repo}/target/${PROFILE}
+  SERVER=${SERVER_BIN:-${BIN_DIR}/scnerf-server}
 }
 
 # Starts the server; sets SERVER_PID and ADDR; waits for /readyz.
 start_server() {
   local log=${OUT}/server.log
   # shellcheck disable=SC2086
-  "${BIN_DIR}/scnerf-server" --bundle "${BUNDLE}" --addr 127.0.0.1:0 ${SERVER_ARGS:-} >"${OUT}/server.stdout" 2>"${log}" &
+  "${SERVER}" --bundle "${BUNDLE}" --addr 127.0.0.1:0 ${SERVER_ARGS:-} >"${OUT}/server.stdout" 2>"${log}" &
   SERVER_PID=$!
   trap stop_server EXIT
   for _ in $(seq 600); do

@@ -8,6 +8,8 @@
 #   EXCLUDE_CHECKS (positive_data_acceptance): that check expects every schema-valid request to
 #   succeed, but validity here goes beyond what a schema can say (images must decode to the
 #   camera's size, poses must be rotations, near < far), so schema-valid requests get 400/422.
+# scripts/schemathesis_hooks.py makes half the JSON scene creations valid, so that the stateful
+# phase creates scenes and follows the links to render and delete them.
 # The `x-scnerf-deadline-ms` header is pinned to 120 s: a client asking for a 1 ms deadline gets
 # the documented 504, which is not a server error; pinned, any 5xx is a real failure.
 set -euo pipefail
@@ -30,6 +32,8 @@ cat >"${config}" <<'TOML'
 [parameters]
 "header.x-scnerf-deadline-ms" = "120000"
 TOML
+# Valid scenes for POST /v1/scenes, so that the stateful phase follows its links (see the file).
+export SCHEMATHESIS_HOOKS=schemathesis_hooks PYTHONPATH="${repo}/scripts${PYTHONPATH:+:${PYTHONPATH}}"
 "${venv}/bin/schemathesis" --config-file "${config}" run "http://${ADDR}/openapi.json" \
   --header "Authorization: Bearer ${TOKEN}" \
   --checks "${CHECKS}" ${EXCLUDE_CHECKS:+--exclude-checks "${EXCLUDE_CHECKS}"} \

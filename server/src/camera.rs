@@ -82,6 +82,16 @@ impl Camera {
 /// scaled or sheared matrices.
 pub const ROTATION_TOLERANCE: f64 = 1e-3;
 
+/// Bounds that keep a camera renderable: the graphs compute rays, sample points and projections
+/// in float32, where 1e-300 is 0 and 1e300 is infinite, and such cameras rendered blank views.
+/// Focal lengths are relative to the image's larger side (fields of view from 0.06 to 179.8
+/// degrees); the principal point may lie off the image (crops), by up to 1000 image sizes.
+pub const FOCAL_PER_SIZE: std::ops::RangeInclusive<f64> = 1e-3..=1e3;
+pub const MAX_PRINCIPAL_OFFSET_PER_SIZE: f64 = 1e3;
+/// Largest camera translation, near and far plane in world units; smallest near plane.
+pub const MAX_WORLD_EXTENT: f64 = 1e6;
+pub const MIN_NEAR: f64 = 1e-6;
+
 /// OpenGL camera axes -> OpenCV camera axes: flip y and z.
 const GL_TO_CV: Mat4 = [[1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0], [0.0, 0.0, 0.0, 1.0]];
 
@@ -115,6 +125,22 @@ impl CameraSpec {
         if k[0][0] <= 0.0 || k[1][1] <= 0.0 {
             return Err(ApiError::invalid(at, "focal lengths fx and fy must be > 0"));
         }
+        let size = f64::from(self.width.max(self.height));
+        let (lo, hi) = (FOCAL_PER_SIZE.start() * size, FOCAL_PER_SIZE.end() * size);
+        if !(FOCAL_PER_SIZE.contains(&(k[0][0] / size)) && FOCAL_PER_SIZE.contains(&(k[1][1] / size))) {
+            return Err(ApiError::invalid(
+                at,
+                format!("focal lengths fx and fy must be within [{lo:e}, {hi:e}] pixels for a {size}-pixel image"),
+            ));
+        }
+        let max_offset = MAX_PRINCIPAL_OFFSET_PER_SIZE * size;
+        let offsets = [k[0][2] - f64::from(self.width) / 2.0, k[1][2] - f64::from(self.height) / 2.0];
+        if offsets.iter().any(|o| o.abs() > max_offset) {
+            return Err(ApiError::invalid(
+                at,
+                format!("the principal point cx, cy must lie within {max_offset:e} pixels of the image centre"),
+            ));
+        }
         Ok(k)
     }
 
@@ -129,6 +155,9 @@ impl CameraSpec {
             return Err(ApiError::invalid(at, "the last row of the pose matrix must be [0, 0, 0, 1]"));
         }
         check_rotation(m).map_err(|msg| ApiError::invalid(at.clone(), msg))?;
+        if m[..3].iter().any(|row| row[3].abs() > MAX_WORLD_EXTENT) {
+            return Err(ApiError::invalid(at, format!("the translation must be within {MAX_WORLD_EXTENT:e} units")));
+        }
         // Bring the pose to world-to-camera in its own axes, then change the camera axes.
         let w2c_axes = match self.pose.kind {
             PoseKind::WorldToCamera => *m,
@@ -327,6 +356,16 @@ mod tests {
         let mut s = good.clone();
         s.intrinsics = Intrinsics::Matrix([[50.0, 0.0, 32.0], [0.0, 50.0, 24.0], [0.0, 1.0, 1.0]]);
         assert!(invalid_field(&s).1.contains("form"));
+
+        // Finite but beyond what float32 rendering can use.
+        for (fx, cx) in [(1e-300, 32.0), (1e300, 32.0), (50.0, 1e300), (50.0, -1e9)] {
+            let mut s = good.clone();
+            s.intrinsics = Intrinsics::Focal { fx, fy: 50.0, cx, cy: 24.0 };
+            assert_eq!(invalid_field(&s).0, "sources[1].camera.intrinsics", "fx {fx}, cx {cx}");
+        }
+        let mut s = good.clone();
+        s.pose.matrix[1][3] = 1e300;
+        assert!(invalid_field(&s).1.contains("translation"));
 
         let mut s = good;
         s.width = 0;

@@ -163,6 +163,38 @@ pub struct Config {
     #[arg(long, env = "SCNERF_MAX_CONCURRENT_REQUESTS", default_value_t = 256)]
     pub max_concurrent_requests: usize,
 
+    /// POST requests handled at once from one client (peer IP address); beyond it 429 +
+    /// Retry-After, so that one source cannot hold every slot. 0: no per-client cap (behind a
+    /// reverse proxy every request comes from the proxy's address).
+    #[arg(long, env = "SCNERF_MAX_REQUESTS_PER_CLIENT", default_value_t = 32)]
+    pub max_requests_per_client: usize,
+
+    /// Time any request body may take to arrive, whatever its rate (separate from the render
+    /// deadline). Past it the body must keep up --min-body-bytes-per-sec, or the request ends
+    /// with 408.
+    #[arg(long, env = "SCNERF_BODY_TIMEOUT_SECS", default_value_t = 30)]
+    pub body_timeout_secs: u64,
+
+    /// Slowest accepted upload: past --body-timeout-secs, each byte received buys the body
+    /// 1/N s more. A stalled or trickling upload ends with 408 and frees its slot and memory.
+    #[arg(long, env = "SCNERF_MIN_BODY_BYTES_PER_SEC", default_value_t = 32 * 1024)]
+    pub min_body_bytes_per_sec: u64,
+
+    /// Open connections at most (further clients wait in the listen backlog). Must fit in the
+    /// open-file limit with 64 to spare: checked at start (the soft limit is raised when the
+    /// hard limit allows).
+    #[arg(long, env = "SCNERF_MAX_CONNECTIONS", default_value_t = 512)]
+    pub max_connections: usize,
+
+    /// A connection must send a complete request head within this many seconds of opening or
+    /// of its previous response (idle keep-alive), or it is closed.
+    #[arg(long, env = "SCNERF_HEADER_READ_TIMEOUT_SECS", default_value_t = 30)]
+    pub header_read_timeout_secs: u64,
+
+    /// Largest request head (request line and headers) in bytes; beyond it 431.
+    #[arg(long, env = "SCNERF_MAX_HEADER_BYTES", default_value_t = 16 * 1024)]
+    pub max_header_bytes: usize,
+
     /// Accepted bearer token (repeat the flag; in the environment, comma-separated). With any
     /// token configured every route but /healthz, /readyz, /metrics and /openapi.json needs
     /// `Authorization: Bearer <token>`. Prefer --auth-token-file: command lines are visible to
@@ -179,8 +211,9 @@ pub struct Config {
     #[arg(long, env = "SCNERF_LOG_FORMAT", value_enum, default_value = "text")]
     pub log_format: LogFormat,
 
-    /// On SIGTERM/SIGINT: stop accepting, then give in-flight requests this many seconds to
-    /// finish before exiting anyway.
+    /// On SIGTERM/SIGINT: stop accepting, close connections without a request in progress, and
+    /// give in-flight requests this many seconds to finish; those still running then get 503
+    /// and the process exits with status 1.
     #[arg(long, env = "SCNERF_SHUTDOWN_GRACE_SECS", default_value_t = 30)]
     pub shutdown_grace_secs: u64,
 
@@ -221,8 +254,23 @@ impl Config {
                 ttl: std::time::Duration::from_secs(self.scene_ttl_secs),
             },
             max_concurrent_requests: self.max_concurrent_requests,
+            max_requests_per_client: self.max_requests_per_client,
+            uploads: crate::http::body::UploadPolicy {
+                grace: std::time::Duration::from_secs(self.body_timeout_secs),
+                min_bytes_per_sec: self.min_body_bytes_per_sec.max(1),
+            },
             auth: crate::auth::Auth::from_config(&self.auth_tokens, self.auth_token_file.as_deref())?,
         })
+    }
+
+    pub fn serve_options(&self) -> crate::http::serve::ServeOptions {
+        crate::http::serve::ServeOptions {
+            max_connections: self.max_connections.max(1),
+            header_read_timeout: std::time::Duration::from_secs(self.header_read_timeout_secs.max(1)),
+            // hyper needs room for at least a request line and a few headers.
+            max_header_bytes: self.max_header_bytes.max(1024),
+            shutdown_grace: std::time::Duration::from_secs(self.shutdown_grace_secs),
+        }
     }
 
     pub fn chunking(&self) -> crate::pipeline::chunks::ChunkPolicy {

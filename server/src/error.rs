@@ -42,6 +42,14 @@ pub enum ApiError {
     #[error("method not allowed")]
     MethodNotAllowed,
 
+    /// The request body arrived too slowly (see `http::body::UploadPolicy`).
+    #[error("{message}")]
+    BodyTimeout { message: String },
+
+    /// This client already has as many requests in flight as one client may.
+    #[error("{message}")]
+    TooManyRequests { message: String, retry_after_secs: u64 },
+
     /// Not ready yet (warming up) or overloaded; the client may retry later.
     #[error("{message}")]
     Unavailable { message: String, retry_after_secs: u64 },
@@ -74,6 +82,8 @@ impl ApiError {
             Self::Unauthorized { .. } => StatusCode::UNAUTHORIZED,
             Self::NotFound { .. } | Self::SceneNotFound { .. } => StatusCode::NOT_FOUND,
             Self::MethodNotAllowed => StatusCode::METHOD_NOT_ALLOWED,
+            Self::BodyTimeout { .. } => StatusCode::REQUEST_TIMEOUT,
+            Self::TooManyRequests { .. } => StatusCode::TOO_MANY_REQUESTS,
             Self::Unavailable { .. } => StatusCode::SERVICE_UNAVAILABLE,
             Self::DeadlineExceeded { .. } => StatusCode::GATEWAY_TIMEOUT,
             Self::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
@@ -92,6 +102,8 @@ impl ApiError {
             Self::NotFound { .. } => "not_found",
             Self::SceneNotFound { .. } => "scene_not_found",
             Self::MethodNotAllowed => "method_not_allowed",
+            Self::BodyTimeout { .. } => "body_timeout",
+            Self::TooManyRequests { .. } => "too_many_requests",
             Self::Unavailable { .. } => "unavailable",
             Self::DeadlineExceeded { .. } => "deadline_exceeded",
             Self::Internal(_) => "internal",
@@ -105,12 +117,16 @@ impl ApiError {
             }
             Self::Invalid { field, .. } => Some(field),
             Self::SceneNotFound { .. } => Some("scene_id"),
+            Self::BodyTimeout { .. } => Some("body"),
             // Not fields of the body, but what the client got wrong all the same.
             Self::Unauthorized { .. } => Some("authorization"),
             Self::NotFound { .. } => Some("path"),
             Self::MethodNotAllowed => Some("method"),
             Self::NotAcceptable { .. } => Some("accept"),
-            Self::Unavailable { .. } | Self::DeadlineExceeded { .. } | Self::Internal(_) => None,
+            Self::TooManyRequests { .. }
+            | Self::Unavailable { .. }
+            | Self::DeadlineExceeded { .. }
+            | Self::Internal(_) => None,
         }
     }
 
@@ -155,7 +171,8 @@ const MAX_MESSAGE_CHARS: usize = 1000;
 /// Parsers quote what they could not use (`invalid type: string "iVBORw0KGgo...", expected
 /// f64`): that can be a base64 image or a token pasted into the wrong field. Quoted strings are
 /// cut to their first characters, and the whole message to a sane length, so that neither
-/// responses nor logs carry image data or secrets.
+/// responses nor logs carry image data or secrets. Runs of digits are cut the same way: a number
+/// such as 1e308 is echoed with all its 309 digits.
 pub fn clip_quoted(message: &str) -> String {
     let mut out = String::with_capacity(message.len().min(MAX_MESSAGE_CHARS));
     let (mut quoted, mut run) = (false, 0usize);
@@ -167,7 +184,7 @@ pub fn clip_quoted(message: &str) -> String {
         if c == '"' {
             quoted = !quoted;
             run = 0;
-        } else if quoted {
+        } else if quoted || c.is_ascii_digit() {
             run += 1;
             if run > MAX_QUOTED_CHARS {
                 if run == MAX_QUOTED_CHARS + 1 {
@@ -175,6 +192,8 @@ pub fn clip_quoted(message: &str) -> String {
                 }
                 continue;
             }
+        } else {
+            run = 0;
         }
         out.push(c);
     }
@@ -192,7 +211,7 @@ impl IntoResponse for ApiError {
             _ => tracing::debug!(code = self.code(), field = self.field(), "request refused"),
         }
         let mut response = (status, axum::Json(self.body())).into_response();
-        if let Self::Unavailable { retry_after_secs, .. } = &self {
+        if let Self::Unavailable { retry_after_secs, .. } | Self::TooManyRequests { retry_after_secs, .. } = &self {
             response.headers_mut().insert(header::RETRY_AFTER, HeaderValue::from(*retry_after_secs));
         }
         response
@@ -210,5 +229,11 @@ mod tests {
         assert_eq!(m, format!("invalid type: string \"{}…\", expected f64", "A".repeat(32)));
         assert_eq!(clip_quoted("unknown part \"x\""), "unknown part \"x\"");
         assert!(clip_quoted(&"b".repeat(5000)).chars().count() <= MAX_MESSAGE_CHARS + 1);
+        let huge = format!("near ({}) must be smaller than far (2)", 1e308);
+        assert_eq!(
+            clip_quoted(&huge),
+            format!("near ({}…) must be smaller than far (2)", "1".to_owned() + &"0".repeat(31))
+        );
+        assert_eq!(clip_quoted("sources[12].camera, 1920x1080"), "sources[12].camera, 1920x1080");
     }
 }

@@ -8,7 +8,7 @@ use bytes::Bytes;
 use serde::{Deserialize, Deserializer};
 
 use crate::bundle::ModelConfig;
-use crate::camera::{Axes, Camera, CameraSpec, Intrinsics, Mat3, Mat4, Pose, PoseKind};
+use crate::camera::{Axes, Camera, CameraSpec, Intrinsics, Mat3, Mat4, Pose, PoseKind, MAX_WORLD_EXTENT, MIN_NEAR};
 use crate::error::ApiError;
 
 /// Request limits (configurable, see config.rs).
@@ -297,16 +297,30 @@ pub struct JsonPose {
     axes: Axes,
 }
 
-/// `intrinsics` is either `{fx, fy, cx, cy}` or a 3x3 matrix.
+/// `intrinsics` is either `{fx, fy, cx, cy}` or a 3x3 matrix. Read straight from the document
+/// (not through `serde_json::Value`, whose maps keep the last of duplicate keys), so that a
+/// duplicate `fx` is refused like every other duplicate field.
 fn intrinsics_or_matrix<'de, D: Deserializer<'de>>(d: D) -> Result<Option<Intrinsics>, D::Error> {
-    use serde::de::Error;
-    let value = serde_json::Value::deserialize(d)?;
-    let parsed = if value.is_array() {
-        serde_json::from_value::<Mat3>(value).map(Intrinsics::Matrix)
-    } else {
-        serde_json::from_value::<JsonFocal>(value).map(|f| Intrinsics::Focal { fx: f.fx, fy: f.fy, cx: f.cx, cy: f.cy })
-    };
-    parsed.map(Some).map_err(|e| D::Error::custom(format!("expected {{fx, fy, cx, cy}} or a 3x3 matrix: {e}")))
+    use serde::de::value::{MapAccessDeserializer, SeqAccessDeserializer};
+    use serde::de::{MapAccess, SeqAccess, Visitor};
+    struct FocalOrMatrix;
+    impl<'de> Visitor<'de> for FocalOrMatrix {
+        type Value = Intrinsics;
+
+        fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+            f.write_str("{fx, fy, cx, cy} or a 3x3 matrix")
+        }
+
+        fn visit_seq<A: SeqAccess<'de>>(self, seq: A) -> Result<Intrinsics, A::Error> {
+            Mat3::deserialize(SeqAccessDeserializer::new(seq)).map(Intrinsics::Matrix)
+        }
+
+        fn visit_map<A: MapAccess<'de>>(self, map: A) -> Result<Intrinsics, A::Error> {
+            let f = JsonFocal::deserialize(MapAccessDeserializer::new(map))?;
+            Ok(Intrinsics::Focal { fx: f.fx, fy: f.fy, cx: f.cx, cy: f.cy })
+        }
+    }
+    d.deserialize_any(FocalOrMatrix).map(Some)
 }
 
 impl JsonCamera {
@@ -484,6 +498,7 @@ impl RenderRequest {
     /// Parses the protobuf form.
     pub fn from_protobuf(body: &[u8]) -> Result<RenderRequest, ApiError> {
         use prost::Message;
+        proto::check_repeated(body, &[proto::SOURCES, proto::OUTPUTS])?;
         let msg = scnerf_proto::v1::RenderRequest::decode(body).map_err(|e| {
             ApiError::malformed(Some("body".to_string()), format!("invalid protobuf RenderRequest: {e}"))
         })?;
@@ -513,6 +528,7 @@ impl SceneRequest {
 
     pub fn from_protobuf(body: &[u8]) -> Result<SceneRequest, ApiError> {
         use prost::Message;
+        proto::check_repeated(body, &[proto::SOURCES])?;
         let msg = scnerf_proto::v1::SceneRequest::decode(body).map_err(|e| {
             ApiError::malformed(Some("body".to_string()), format!("invalid protobuf SceneRequest: {e}"))
         })?;
@@ -577,6 +593,7 @@ impl TargetRequest {
 
     pub fn from_protobuf(body: &[u8]) -> Result<TargetRequest, ApiError> {
         use prost::Message;
+        proto::check_repeated(body, &[proto::OUTPUTS])?;
         let msg = scnerf_proto::v1::SceneRenderRequest::decode(body).map_err(|e| {
             ApiError::malformed(Some("body".to_string()), format!("invalid protobuf SceneRenderRequest: {e}"))
         })?;
@@ -607,8 +624,14 @@ fn check_depth_range(near: f64, far: f64) -> Result<(), ApiError> {
     if !near.is_finite() || near <= 0.0 {
         return Err(ApiError::invalid("near", "near must be a finite number > 0"));
     }
+    if near < MIN_NEAR {
+        return Err(ApiError::invalid("near", format!("near must be at least {MIN_NEAR:e}")));
+    }
     if !far.is_finite() {
         return Err(ApiError::invalid("far", "far must be a finite number"));
+    }
+    if far > MAX_WORLD_EXTENT {
+        return Err(ApiError::invalid("far", format!("far must be at most {MAX_WORLD_EXTENT:e}")));
     }
     if near >= far {
         return Err(ApiError::invalid("far", format!("near ({near}) must be smaller than far ({far})")));
@@ -635,10 +658,66 @@ pub fn decode_base64(s: &str, field: &str) -> Result<Bytes, ApiError> {
         .map_err(|e| ApiError::malformed(field.to_string(), format!("invalid base64: {e}")))
 }
 
+/// Most source views a request may carry, in any form (multipart parts `source_0..15`, protobuf
+/// `sources` entries); the model's own view count is checked after parsing.
+pub const MAX_SOURCES: usize = 16;
+
 /// Conversion from the protobuf messages.
 mod proto {
     use super::*;
     use scnerf_proto::v1 as pb;
+
+    /// A repeated field of the request messages: number, name, most entries a request can use.
+    pub type Bound = (u64, &'static str, usize);
+    /// Field numbers are shared by RenderRequest, SceneRequest and SceneRenderRequest.
+    pub const SOURCES: Bound = (1, "sources", MAX_SOURCES);
+    pub const OUTPUTS: Bound = (6, "outputs", 3);
+
+    /// Refuses a message whose repeated fields hold more entries than a request can use, before
+    /// prost materialises them: an empty `sources` entry is 2 bytes on the wire and a struct of
+    /// ~150 bytes in memory (63 MiB of them took 3.5 GB). One pass over the top-level fields in
+    /// constant memory; malformed wire data ends the pass and is left to prost to report.
+    pub fn check_repeated(body: &[u8], bounds: &[Bound]) -> Result<(), ApiError> {
+        let mut counts = vec![0usize; bounds.len()];
+        let mut buf = body;
+        while let Some(key) = varint(&mut buf) {
+            let skipped = match key & 7 {
+                0 => varint(&mut buf).map(drop),
+                1 => skip(&mut buf, 8),
+                2 => varint(&mut buf).and_then(|len| skip(&mut buf, usize::try_from(len).ok()?)),
+                5 => skip(&mut buf, 4),
+                _ => None,
+            };
+            if skipped.is_none() {
+                break;
+            }
+            let Some(i) = bounds.iter().position(|b| b.0 == key >> 3) else { continue };
+            counts[i] += 1;
+            if counts[i] > bounds[i].2 {
+                let (_, name, max) = bounds[i];
+                return Err(ApiError::invalid(name, format!("a request carries at most {max} {name} entries")));
+            }
+        }
+        Ok(())
+    }
+
+    /// A base-128 varint (at most 10 bytes), advancing `buf`.
+    fn varint(buf: &mut &[u8]) -> Option<u64> {
+        let mut value = 0u64;
+        for (i, &b) in buf.iter().take(10).enumerate() {
+            value |= u64::from(b & 0x7f) << (7 * i);
+            if b & 0x80 == 0 {
+                *buf = &buf[i + 1..];
+                return Some(value);
+            }
+        }
+        None
+    }
+
+    fn skip(buf: &mut &[u8], n: usize) -> Option<()> {
+        *buf = buf.get(n..)?;
+        Some(())
+    }
 
     pub fn request_from_proto(msg: pb::RenderRequest) -> Result<RenderRequest, ApiError> {
         let scene = SceneRequest {
@@ -759,6 +838,21 @@ mod tests {
         let deep = "[".repeat(100_000);
         let err = check_json_depth(deep.as_bytes(), 16, "request").unwrap_err();
         assert_eq!(err.field(), Some("request"));
+    }
+
+    #[test]
+    fn protobuf_repeated_fields_are_counted_before_decoding() {
+        let empty_sources = [0x0a, 0x00].repeat(17);
+        let err = RenderRequest::from_protobuf(&empty_sources).unwrap_err();
+        assert_eq!((err.status().as_u16(), err.field()), (422, Some("sources")));
+        // Other fields in between are skipped by wire type: varint, 64-bit, bytes, 32-bit.
+        let mut outputs = vec![0x18, 0x96, 0x01, 0x21, 0, 0, 0, 0, 0, 0, 0, 0, 0x2d, 0, 0, 0, 0];
+        outputs.extend([0x32, 0x03, b'r', b'g', b'b'].repeat(4));
+        let err = TargetRequest::from_protobuf(&outputs).unwrap_err();
+        assert_eq!(err.field(), Some("outputs"));
+        assert!(proto::check_repeated(&[0x0a, 0x00].repeat(16), &[proto::SOURCES]).is_ok());
+        // Truncated input is prost's to report.
+        assert!(proto::check_repeated(&[0x0a, 0x05, 0x00], &[proto::SOURCES]).is_ok());
     }
 
     #[test]

@@ -11,12 +11,14 @@ use crate::backend::{BackendHandle, Tensor};
 use crate::bundle::Bundle;
 use crate::camera::Camera;
 use crate::config::Config;
+use crate::http::serve::{ensure_file_limit, serve};
 use crate::http::{router, AppState};
 use crate::pipeline::{Pipeline, Timings};
 
 pub async fn run(config: Config) -> Result<(), String> {
     let signals = shutdown_signals()?;
-    let grace = Duration::from_secs(config.shutdown_grace_secs);
+    let serve_options = config.serve_options();
+    ensure_file_limit(serve_options.max_connections)?;
     // Before the slow part (loading the graphs): a bad token file fails the start at once.
     let options = config.service_options()?;
     if options.auth.enabled() {
@@ -71,15 +73,14 @@ pub async fn run(config: Config) -> Result<(), String> {
     }
 
     let warmup_error = Arc::new(std::sync::Mutex::new(None));
-    let signalled = Arc::new(tokio::sync::Notify::new());
+    let grace_secs = serve_options.shutdown_grace.as_secs();
     let shutdown = {
-        let (warmup_error, signalled, state) = (warmup_error.clone(), signalled.clone(), state.clone());
+        let (warmup_error, state) = (warmup_error.clone(), state.clone());
         async move {
             tokio::select! {
                 _ = signals => {
-                    tracing::info!(grace_secs = grace.as_secs(), "shutting down: no new connections; finishing requests in flight");
+                    tracing::info!(grace_secs, "shutting down");
                     state.set_draining();
-                    signalled.notify_one();
                 }
                 Ok(e) = failed_rx => {
                     *warmup_error.lock().unwrap_or_else(|p| p.into_inner()) = Some(e);
@@ -87,24 +88,16 @@ pub async fn run(config: Config) -> Result<(), String> {
             }
         }
     };
-    let serve = axum::serve(listener, router(state)).with_graceful_shutdown(shutdown);
-    // In-flight requests get `grace` after the signal; then the process exits regardless.
-    let grace_over = async move {
-        signalled.notified().await;
-        tokio::time::sleep(grace).await;
-    };
-    tokio::select! {
-        served = std::future::IntoFuture::into_future(serve) => served.map_err(|e| e.to_string())?,
-        _ = grace_over => tracing::warn!("grace period over with requests still in flight; exiting"),
-    }
+    let stopped = serve(listener, router(state), &serve_options, shutdown).await;
     let failure = warmup_error.lock().unwrap_or_else(|p| p.into_inner()).take();
-    match failure {
-        Some(e) => Err(format!("warm-up render failed: {e}")),
-        None => {
-            tracing::info!("shut down");
-            Ok(())
-        }
+    if let Some(e) = failure {
+        return Err(format!("warm-up render failed: {e}"));
     }
+    if stopped.cut > 0 {
+        return Err(format!("the shutdown grace period ran out: {} requests in flight were answered 503", stopped.cut));
+    }
+    tracing::info!("shut down");
+    Ok(())
 }
 
 /// Expired scenes are also dropped on every cache access; this frees their memory when the
@@ -142,13 +135,14 @@ pub async fn warm_up(pipeline: &Pipeline) -> Result<Duration, String> {
     let cameras = warmup_cameras(config.views, size as u32);
     let images = Tensor::new(vec![config.views, 3, size, size], vec![0.5; config.views * 3 * size * size]);
     let mut timings = Timings::default();
-    // Warm-up runs before readiness, alone on the executor; the deadline only bounds a hang.
-    let ticket = pipeline.admit(Instant::now() + Duration::from_secs(3600)).map_err(|e| e.to_string())?;
-    let scene =
-        pipeline.build_scene(&ticket, &cameras, images, 2.0, 6.0, &mut timings).await.map_err(|e| e.to_string())?;
     let mut target = cameras[0].clone();
     target.width = 4;
     target.height = 4;
+    // Warm-up runs before readiness, alone on the executor; the deadline only bounds a hang.
+    let work = pipeline.scene_work(&cameras).plus(pipeline.view_work(&target));
+    let ticket = pipeline.admit(Instant::now() + Duration::from_secs(3600), work).map_err(|e| e.to_string())?;
+    let scene =
+        pipeline.build_scene(&ticket, &cameras, images, 2.0, 6.0, &mut timings).await.map_err(|e| e.to_string())?;
     let view = pipeline
         .render_view(&ticket, &scene, &target, [0.0; 3], None, &mut timings)
         .await

@@ -41,6 +41,9 @@ async fn health_metrics_and_openapi_stay_public() {
     for path in ["/healthz", "/readyz", "/metrics", "/openapi.json"] {
         assert_eq!(send(app.clone(), get(path, &[])).await.0, 200, "{path}");
     }
+    // Public, so it names no model (/v1/model does, with a token).
+    let ready = send(app, get("/readyz", &[])).await;
+    assert_eq!(json_of(&ready), serde_json::json!({"status": "ready"}));
 }
 
 #[tokio::test]

@@ -150,31 +150,6 @@ impl Make {
     }
 }
 
-fn proto_camera(c: &Value) -> pb::Camera {
-    let i = &c["intrinsics"];
-    let f = |v: &Value| v.as_f64().unwrap();
-    pb::Camera {
-        width: c["width"].as_u64().unwrap() as u32,
-        height: c["height"].as_u64().unwrap() as u32,
-        intrinsics_kind: Some(pb::camera::IntrinsicsKind::Intrinsics(pb::Intrinsics {
-            fx: f(&i["fx"]),
-            fy: f(&i["fy"]),
-            cx: f(&i["cx"]),
-            cy: f(&i["cy"]),
-        })),
-        pose: Some(pb::Pose {
-            matrix: c["pose"]["matrix"]
-                .as_array()
-                .unwrap()
-                .iter()
-                .flat_map(|r| r.as_array().unwrap().iter().map(f))
-                .collect(),
-            kind: pb::PoseKind::WorldToCamera as i32,
-            axes: pb::Axes::Opencv as i32,
-        }),
-    }
-}
-
 fn proto_request(r: &Value, images: &[Vec<u8>]) -> pb::RenderRequest {
     pb::RenderRequest {
         sources: (0..3)
@@ -238,6 +213,18 @@ fn cases() -> Vec<Case> {
         ]);
         raw_to("POST", "/v1/render", &boundary_ct, body, &[("authorization", &m.auth), ("x-scnerf-deadline-ms", v)])
     };
+    let deadline_twice = {
+        let body = multipart_body(&[
+            ("request", &req_bytes),
+            ("source_0", &m.images[0]),
+            ("source_1", &m.images[1]),
+            ("source_2", &m.images[2]),
+        ]);
+        let headers =
+            [("authorization", m.auth.as_str()), ("x-scnerf-deadline-ms", "1"), ("x-scnerf-deadline-ms", "600000")];
+        raw_to("POST", "/v1/render", &boundary_ct, body, &headers)
+    };
+    let request_text = serde_json::to_string(&m.request).unwrap();
     let no_auth = |auth: Option<&str>| {
         let body = multipart_body(&[("request", &req_bytes), ("source_0", &m.images[0])]);
         let headers: Vec<(&str, &str)> = auth.map(|a| ("authorization", a)).into_iter().collect();
@@ -471,6 +458,81 @@ fn cases() -> Vec<Case> {
             BAD,
             "near",
         ),
+        case(
+            "duplicate fx in intrinsics",
+            m.parts(&[("request", request_text.replacen("\"fx\":", "\"fx\":1,\"fx\":", 1).as_bytes())]),
+            400,
+            BAD,
+            "sources[0].camera.intrinsics",
+        ),
+        case(
+            "focal length 1e-300",
+            m.multipart(&m.edited(|v| v["target"]["intrinsics"]["fx"] = json!(1e-300))),
+            422,
+            INVALID,
+            "target.intrinsics",
+        ),
+        case(
+            "principal point 1e300",
+            m.multipart(&m.edited(|v| v["sources"][1]["camera"]["intrinsics"]["cx"] = json!(1e300))),
+            422,
+            INVALID,
+            "sources[1].camera.intrinsics",
+        ),
+        case(
+            "translation 1e300",
+            m.multipart(&m.edited(|v| v["target"]["pose"]["matrix"][2][3] = json!(1e300))),
+            422,
+            INVALID,
+            "target.pose.matrix",
+        ),
+        case(
+            "near 1e-300, far 1e300",
+            m.multipart(&m.edited(|v| {
+                v["near"] = json!(1e-300);
+                v["far"] = json!(1e300);
+            })),
+            422,
+            INVALID,
+            "near",
+        ),
+        case("far 1e300", m.proto(|p| p.far = 1e300), 422, INVALID, "far"),
+        case(
+            "near 1e308 beyond far 1e307 (a 309-digit echo)",
+            m.multipart(&m.edited(|v| {
+                v["near"] = json!(1e308);
+                v["far"] = json!(1e307);
+            })),
+            422,
+            INVALID,
+            "far",
+        ),
+        case(
+            "a 309-digit width",
+            m.multipart(&m.edited(|v| v["target"]["width"] = json!(1e308))),
+            400,
+            BAD,
+            "target.width",
+        ),
+        case(
+            "protobuf with 100000 empty sources",
+            m.raw("POST", "/v1/render", "application/x-protobuf", [0x0a, 0x00].repeat(100_000)),
+            422,
+            INVALID,
+            "sources",
+        ),
+        case(
+            "protobuf scene with 17 sources",
+            m.raw("POST", "/v1/scenes", "application/x-protobuf", {
+                let mut msg = proto_request(&m.request, &m.images);
+                msg.sources = (0..17).map(|_| msg.sources[0].clone()).collect();
+                msg.encode_to_vec()
+            }),
+            422,
+            INVALID,
+            "sources",
+        ),
+        case("protobuf with 4 outputs", m.proto(|p| p.outputs = vec!["rgb".into(); 4]), 422, INVALID, "outputs"),
         case(
             "3x3 pose matrix",
             m.multipart(&m.edited(|v| v["target"]["pose"]["matrix"] = json!([[1, 0, 0], [0, 1, 0], [0, 0, 1]]))),
@@ -824,6 +886,7 @@ fn cases() -> Vec<Case> {
             "authorization",
         ),
         case("non-numeric deadline header", deadline_header("tomorrow"), 400, BAD, "x-scnerf-deadline-ms"),
+        case("deadline header sent twice", deadline_twice, 400, BAD, "x-scnerf-deadline-ms"),
         case("zero deadline header", deadline_header("0"), 400, BAD, "x-scnerf-deadline-ms"),
         case(
             "GET on the render route",
@@ -856,6 +919,9 @@ async fn hostile_requests_get_named_4xx_and_the_server_still_renders_correctly()
             && body["error"]["field"].as_str() == c.field
             && body["error"]["message"].as_str().is_some_and(|m| !m.is_empty());
         assert!(got.0.as_u16() < 500, "{}: server error {}: {}", c.name, got.0, String::from_utf8_lossy(&got.2));
+        let message = body["error"]["message"].as_str().unwrap_or_default();
+        let longest_number = message.split(|c: char| !c.is_ascii_digit()).map(str::len).max().unwrap_or(0);
+        assert!(longest_number <= 32, "{}: the message echoes a {longest_number}-digit number", c.name);
         if !ok {
             failures.push(format!(
                 "{}: expected {} {} {:?}, got {} {}",

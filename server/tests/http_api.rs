@@ -366,7 +366,7 @@ async fn unknown_fields_are_named() {
     render_multipart_error(req, 400, "malformed_request", Some("seed")).await;
     let mut req = request_json(32);
     req["target"]["intrinsics"]["skew"] = json!(0);
-    render_multipart_error(req, 400, "malformed_request", Some("target.intrinsics")).await;
+    render_multipart_error(req, 400, "malformed_request", Some("target.intrinsics.skew")).await;
 }
 
 #[tokio::test]

@@ -15,23 +15,35 @@ use scnerf_server::request::Limits;
 use scnerf_server::testing::{bundle, png_header, request_json, state_with, FakeRunner};
 use serde_json::json;
 
-/// Records the largest single allocation made while `TRACKING` is on.
+/// Records the largest single allocation, and the bytes allocated and not yet freed (live) with
+/// their peak.
 struct PeakAlloc;
 
 static LARGEST: AtomicUsize = AtomicUsize::new(0);
+static LIVE: AtomicUsize = AtomicUsize::new(0);
+static PEAK_LIVE: AtomicUsize = AtomicUsize::new(0);
+
+fn grew(by: usize) {
+    let live = LIVE.fetch_add(by, Ordering::Relaxed) + by;
+    PEAK_LIVE.fetch_max(live, Ordering::Relaxed);
+}
 
 unsafe impl GlobalAlloc for PeakAlloc {
     unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
         LARGEST.fetch_max(layout.size(), Ordering::Relaxed);
+        grew(layout.size());
         unsafe { System.alloc(layout) }
     }
 
     unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        LIVE.fetch_sub(layout.size(), Ordering::Relaxed);
         unsafe { System.dealloc(ptr, layout) }
     }
 
     unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
         LARGEST.fetch_max(new_size, Ordering::Relaxed);
+        LIVE.fetch_sub(layout.size(), Ordering::Relaxed);
+        grew(new_size);
         unsafe { System.realloc(ptr, layout, new_size) }
     }
 }
@@ -65,6 +77,25 @@ async fn decompression_bombs_are_refused_from_the_header_without_allocating() {
     assert_error(&got, 422, "invalid_request", Some("source_1"));
     let largest = LARGEST.load(Ordering::Relaxed);
     assert!(largest < 16 << 20, "the request allocated {largest} bytes at once");
+}
+
+/// 8 MiB of empty `sources` entries (`0a 00`, 4M of them) used to become 4M decoded structs
+/// (~600 MB, 3.5 GB for a 63 MiB body) before the view count was checked. Now the entries are
+/// counted on the wire first: the refusal costs about the body's own size. (Live bytes are
+/// process-wide: other tests of this binary allocate a few MB meanwhile; the margin covers them.)
+#[tokio::test]
+async fn protobuf_repeated_fields_cannot_amplify_memory() {
+    let app = app(Limits::default());
+    let body = [0x0a, 0x00].repeat(4 << 20);
+    for path in ["/v1/render", "/v1/scenes"] {
+        let before = LIVE.load(Ordering::Relaxed);
+        PEAK_LIVE.store(before, Ordering::Relaxed);
+        let got = send(app.clone(), raw_to("POST", path, "application/x-protobuf", body.clone(), &[])).await;
+        let grown = PEAK_LIVE.load(Ordering::Relaxed).saturating_sub(before);
+        eprintln!("{path}: refusing {} bytes of empty sources took {grown} bytes at peak", body.len());
+        assert!(grown < 5 * body.len(), "{path}: refusing {} bytes of protobuf took {grown} bytes", body.len());
+        assert_error(&got, 422, "invalid_request", Some("sources"));
+    }
 }
 
 #[tokio::test]

@@ -1,6 +1,7 @@
-//! Scheduling on the shared inference executor, over a slow fake runner: fair interleaving of
-//! concurrent requests, per-request deadlines (config and header) and dropping the remaining
-//! work of requests whose deadline passed or whose client disconnected.
+//! Scheduling on the shared inference executor, over a slow fake runner: earliest deadline
+//! first, admission by estimated finish time under overload, per-request deadlines (config and
+//! header) and dropping the remaining work of requests whose deadline passed or whose client
+//! disconnected.
 
 mod common;
 
@@ -46,23 +47,62 @@ async fn wait_for(what: &str, cond: impl Fn() -> bool) {
     }
 }
 
+/// Earliest deadline first: a small view due sooner overtakes a big view that arrived before it.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_small_view_is_not_starved_by_a_big_one() {
+async fn a_view_due_sooner_overtakes_a_big_one() {
     let (state, calls) = slow_state(Duration::from_millis(20), Duration::from_secs(60));
     let app = router(state);
-    // 100 x 80 = 80 chunks of 20 ms: 1.6 s of renderer work.
+    // 100 x 80 = 80 chunks of 20 ms: 1.6 s of renderer work, due in 60 s.
     let big = tokio::spawn(send(app.clone(), multipart_with("/v1/render", &request_with_target(100, 80), 32, &[])));
     wait_for("the big view's renderer runs", || renderer_runs(&calls) >= 5).await;
     let start = Instant::now();
-    let small = send(app.clone(), multipart_with("/v1/render", &request_json(32), 32, &[])).await;
+    let soon = [("x-scnerf-deadline-ms", "5000")];
+    let small = send(app.clone(), multipart_with("/v1/render", &request_json(32), 32, &soon)).await;
     let small_took = start.elapsed();
     assert_eq!(small.0, 200, "{}", String::from_utf8_lossy(&small.2));
     assert!(!big.is_finished(), "the small view should finish while the big one is still rendering");
-    // Three graph runs interleaved with the big view's chunks: ~6 x 20 ms, not 75 x 20 ms.
+    // Its three graph runs go before the big view's remaining chunks: ~4 x 20 ms, not 75 x 20 ms.
     assert!(small_took < Duration::from_millis(900), "small view took {small_took:?}");
     let big = big.await.unwrap();
     assert_eq!(big.0, 200);
     assert_eq!(renderer_runs(&calls), 80 + 1);
+}
+
+/// Sixteen concurrent renders of 10 graph runs of 20 ms (200 ms each) due in 1 s. Served round
+/// robin they all finished together, after ~3.2 s: sixteen 504s. Earliest deadline first, with
+/// admission by estimated finish time: the first few finish in time and the others are refused
+/// at once with 503 + Retry-After instead of failing late.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn overload_finishes_what_can_finish_and_refuses_the_rest_at_once() {
+    let b = bundle("scnerf", "near_far");
+    let mut runner = FakeRunner::new(&b);
+    runner.delay = Duration::from_millis(20);
+    let app = router(state_with_options(b, runner, Limits::default(), ServiceOptions::default(), 16));
+    let render = |headers: &[(&str, &str)]| multipart_with("/v1/render", &request_with_target(40, 20), 32, headers);
+    // One render first, so that the executor has measured its graphs.
+    assert_eq!(send(app.clone(), render(&[])).await.0, 200);
+    let due = [("x-scnerf-deadline-ms", "1000")];
+    let start = Instant::now();
+    let tasks: Vec<_> = (0..16)
+        .map(|_| {
+            let request = send(app.clone(), render(&due));
+            tokio::spawn(async move { (request.await, start.elapsed()) })
+        })
+        .collect();
+    let mut outcomes = Vec::new();
+    for t in tasks {
+        let (got, took) = t.await.unwrap();
+        if got.0 == 503 {
+            assert_error(&got, 503, "unavailable", None);
+            assert!(got.1.contains_key("retry-after"));
+            assert!(took < Duration::from_millis(500), "a refusal should come at once, came after {took:?}");
+        }
+        outcomes.push((got.0.as_u16(), took));
+    }
+    let count = |status: u16| outcomes.iter().filter(|(s, _)| *s == status).count();
+    assert!(count(200) >= 3, "too few finished in time: {outcomes:?}");
+    assert!(count(504) <= 2, "admitted requests should finish in time: {outcomes:?}");
+    assert_eq!(count(200) + count(503) + count(504), 16, "{outcomes:?}");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -130,8 +130,12 @@ pub fn multipart(parts: &[(&str, Option<&str>, &str, &[u8])]) -> (String, Vec<u8
 
 /// Builds the server binary with the same profile as the tests and returns its path.
 /// (Binaries of another package are not built for this one's tests; this is what `escargot`
-/// does, without the dependency.)
+/// does, without the dependency.) `SCNERF_SERVER_BIN=PATH` tests that binary instead (a
+/// release build, or an older build to see a test fail before a fix).
 pub fn server_binary() -> PathBuf {
+    if let Some(path) = std::env::var_os("SCNERF_SERVER_BIN") {
+        return PathBuf::from(path);
+    }
     let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
     let mut cmd = Command::new(cargo);
     cmd.current_dir(repo_root())
@@ -160,9 +164,15 @@ pub struct ServerProcess {
 impl ServerProcess {
     /// Starts the binary on an ephemeral loopback port and reads the bound address from stdout.
     pub fn start(binary: &Path, args: &[&str]) -> ServerProcess {
+        ServerProcess::start_with_env(binary, args, &[])
+    }
+
+    /// `start` with settings in the environment (`SCNERF_*`).
+    pub fn start_with_env(binary: &Path, args: &[&str], env: &[(&str, &str)]) -> ServerProcess {
         let mut child = Command::new(binary)
             .args(["--addr", "127.0.0.1:0"])
             .args(args)
+            .envs(env.iter().copied())
             .stdout(Stdio::piped())
             .stderr(Stdio::inherit())
             .spawn()
@@ -200,6 +210,27 @@ impl ServerProcess {
             std::thread::sleep(Duration::from_millis(200));
         }
         panic!("scnerf-server not ready after {timeout:?}");
+    }
+}
+
+impl ServerProcess {
+    /// Sends SIGTERM (what orchestrators send to stop a container).
+    pub fn terminate(&self) {
+        let pid = libc::pid_t::try_from(self.child.id()).expect("pid");
+        // SAFETY: kill(2) with a valid signal number on our own child process.
+        assert_eq!(unsafe { libc::kill(pid, libc::SIGTERM) }, 0);
+    }
+
+    /// Waits for the process to exit; panics after `timeout`.
+    pub fn wait_exit(&mut self, timeout: Duration) -> std::process::ExitStatus {
+        let start = Instant::now();
+        loop {
+            if let Some(status) = self.child.try_wait().expect("wait") {
+                return status;
+            }
+            assert!(start.elapsed() < timeout, "the server did not exit within {timeout:?}");
+            std::thread::sleep(Duration::from_millis(20));
+        }
     }
 }
 

@@ -26,9 +26,13 @@ pub struct Scenario {
     pub token: Option<String>,
     /// `/v1/scenes/{id}/render`.
     pub path: String,
-    /// The JSON `{"target", "outputs"}` body.
-    pub body: Vec<u8>,
+    /// JSON `{"target", "outputs"}` bodies, sent in turn (views of mixed sizes).
+    pub bodies: Vec<Vec<u8>>,
+    /// Sent as `x-scnerf-deadline-ms`.
+    pub deadline: Option<Duration>,
     pub timeout: Duration,
+    /// Requests started, to take the bodies in turn.
+    pub sent: Arc<AtomicUsize>,
 }
 
 #[derive(Debug, Clone, Copy)]
@@ -51,13 +55,19 @@ fn auth_header(token: &Option<String>) -> Option<String> {
 }
 
 impl Scenario {
-    fn send(&self) -> std::io::Result<HttpResponse> {
+    /// Sends the next body in turn.
+    pub fn send(&self) -> std::io::Result<HttpResponse> {
+        let body = &self.bodies[self.sent.fetch_add(1, Ordering::Relaxed) % self.bodies.len()];
         let auth = auth_header(&self.token);
+        let deadline = self.deadline.map(|d| d.as_millis().to_string());
         let mut headers = vec![("content-type", "application/json")];
         if let Some(a) = &auth {
             headers.push(("authorization", a.as_str()));
         }
-        http_request(self.addr, "POST", &self.path, &headers, &self.body, self.timeout)
+        if let Some(ms) = &deadline {
+            headers.push(("x-scnerf-deadline-ms", ms.as_str()));
+        }
+        http_request(self.addr, "POST", &self.path, &headers, body, self.timeout)
     }
 
     fn sample(&self, run_start: Instant) -> Sample {
@@ -167,6 +177,8 @@ pub struct Report {
     pub elapsed_s: f64,
     /// 200 answers per second.
     pub throughput_rps: f64,
+    /// 200 answers within the deadline (when one was sent) per second: views finished in time.
+    pub goodput_rps: f64,
     /// Status -> count; transport failures under "error".
     pub statuses: BTreeMap<String, usize>,
     pub skipped_starts: usize,
@@ -194,7 +206,7 @@ fn percentiles(mut latencies: Vec<Duration>) -> Percentiles {
 }
 
 impl Report {
-    pub fn new(outcome: &Outcome) -> Report {
+    pub fn new(outcome: &Outcome, deadline: Option<Duration>) -> Report {
         let mut statuses = BTreeMap::new();
         for s in &outcome.samples {
             let key = s.status.map_or("error".to_string(), |c| c.to_string());
@@ -202,10 +214,13 @@ impl Report {
         }
         let ok: Vec<Duration> = outcome.samples.iter().filter(|s| s.status == Some(200)).map(|s| s.latency).collect();
         let elapsed = outcome.elapsed.as_secs_f64();
+        let in_time = ok.iter().filter(|l| deadline.is_none_or(|d| **l <= d)).count();
+        let per_sec = |n: usize| ((n as f64 / elapsed.max(1e-9)) * 1000.0).round() / 1000.0;
         Report {
             requests: outcome.samples.len(),
             elapsed_s: (elapsed * 100.0).round() / 100.0,
-            throughput_rps: ((ok.len() as f64 / elapsed.max(1e-9)) * 1000.0).round() / 1000.0,
+            throughput_rps: per_sec(ok.len()),
+            goodput_rps: per_sec(in_time),
             statuses,
             skipped_starts: outcome.skipped,
             latency_ok_ms: percentiles(ok),
@@ -304,9 +319,11 @@ mod tests {
         let s = |status| Sample { started: Duration::ZERO, latency: Duration::from_millis(10), status };
         let outcome =
             Outcome { samples: vec![s(Some(200)), s(Some(503)), s(None)], skipped: 2, elapsed: Duration::from_secs(1) };
-        let r = Report::new(&outcome);
+        let r = Report::new(&outcome, None);
         assert_eq!(r.requests, 3);
         assert_eq!(r.throughput_rps, 1.0);
+        assert_eq!(r.goodput_rps, 1.0);
+        assert_eq!(Report::new(&outcome, Some(Duration::from_millis(5))).goodput_rps, 0.0);
         assert_eq!(r.statuses["error"], 1);
         assert_eq!(r.unexpected(&[200, 429, 503]), vec!["error".to_string()]);
     }

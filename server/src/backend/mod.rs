@@ -4,20 +4,28 @@
 //! Why a thread: `ort::Session::run` takes `&mut self` and blocks for seconds; keeping it off the
 //! async runtime keeps handlers, health checks and uploads responsive.
 //!
-//! Scheduling. A request is first *admitted* (`BackendHandle::admit` -> `Ticket`); at most
-//! `capacity` requests are admitted at once and the next one is refused at once (`QueueFull`,
-//! 503 + Retry-After) rather than piling up. One job is one graph run (the encoder, the volume
-//! net, or one renderer chunk). Each admitted request has its own job queue, and the executor
-//! takes jobs round-robin across requests, so the chunks of concurrent requests interleave and a
-//! large view does not starve a small one. Jobs whose request is gone (client disconnected:
-//! the handler future and its `Ticket` were dropped) or past its deadline are dropped unrun.
+//! Scheduling. A request is first *admitted* (`BackendHandle::admit` -> `Ticket`) with its
+//! deadline and an estimate of its work (`Work`: pixels for the encoder and the volume net, rays
+//! for the renderer). One job is one graph run (the encoder, the volume net, or one renderer
+//! chunk); each admitted request has its own job queue, and the executor always runs a job of
+//! the request with the earliest deadline. Round robin, the policy before, finished concurrent
+//! requests together: under overload all of them late. Earliest deadline first finishes as many
+//! as the executor's speed allows.
+//!
+//! Admission refuses (503 + Retry-After, at once rather than a 504 later) a request that cannot
+//! finish by its deadline given the work admitted before it, or whose work would make an
+//! admitted request miss its deadline. Work is turned into time with the executor's measured
+//! seconds per unit (a moving average per graph; before the first run of a graph, no estimate:
+//! admitted). At most `capacity` requests are admitted at once (`QueueFull`). Jobs whose request
+//! is gone (client disconnected: the handler future and its `Ticket` were dropped) or past its
+//! deadline are dropped unrun.
 
 pub mod ort;
 
 use std::collections::{HashMap, VecDeque};
 use std::future::Future;
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use tokio::sync::oneshot;
 use tracing::Span;
@@ -59,6 +67,8 @@ pub enum BackendError {
     BadOutput { graph: GraphKind, message: String },
     #[error("the inference queue is full")]
     QueueFull,
+    #[error("the request cannot finish before its deadline (about {ahead_secs:.1} s of work ahead of it)")]
+    WouldMissDeadline { ahead_secs: f64 },
     #[error("the request's deadline passed before its graph runs finished")]
     DeadlineExceeded,
     #[error("the inference thread has stopped")]
@@ -70,25 +80,80 @@ pub trait GraphRunner: Send + 'static {
     fn run(&mut self, graph: GraphKind, inputs: &NamedTensors) -> Result<NamedTensors, BackendError>;
 }
 
+/// Work of graph runs, in units per graph (`GraphKind::ALL` order): what a run's time grows
+/// with, source pixels (V·H·W of the padded images) for the encoder and the volume net, rays for
+/// the renderer.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Work(pub [f64; 3]);
+
+impl Work {
+    pub fn of(graph: GraphKind, units: f64) -> Work {
+        let mut work = Work::default();
+        work.0[slot(graph)] = units;
+        work
+    }
+
+    pub fn plus(self, other: Work) -> Work {
+        Work(std::array::from_fn(|i| self.0[i] + other.0[i]))
+    }
+
+    /// Estimated seconds at `rates` (unmeasured graphs count 0).
+    fn secs(&self, rates: &Rates) -> f64 {
+        self.0.iter().zip(&rates.0).map(|(units, rate)| units * rate.unwrap_or(0.0)).sum()
+    }
+}
+
+fn slot(graph: GraphKind) -> usize {
+    match graph {
+        GraphKind::Encoder => 0,
+        GraphKind::Volume => 1,
+        GraphKind::Renderer => 2,
+    }
+}
+
+/// Measured seconds per unit of work, per graph: an exponential moving average over runs.
+#[derive(Debug, Clone, Copy, Default)]
+struct Rates([Option<f64>; 3]);
+
+/// Weight of the latest run in the moving average: a few runs follow a change of load.
+const RATE_WEIGHT: f64 = 0.3;
+
+impl Rates {
+    fn record(&mut self, graph: GraphKind, units: f64, took: f64) {
+        if units <= 0.0 {
+            return;
+        }
+        let rate = &mut self.0[slot(graph)];
+        let latest = took / units;
+        *rate = Some(rate.map_or(latest, |r| r + RATE_WEIGHT * (latest - r)));
+    }
+}
+
 struct Job {
+    ticket: u64,
     graph: GraphKind,
+    units: f64,
     inputs: NamedTensors,
     reply: oneshot::Sender<Result<NamedTensors, BackendError>>,
     span: Span,
     deadline: Instant,
 }
 
+/// An admitted request: its deadline, the work it has not finished, its waiting jobs.
+struct Admitted {
+    deadline: Instant,
+    remaining: Work,
+    jobs: VecDeque<Job>,
+}
+
 /// Executor queue state, behind `Shared::queue`.
 #[derive(Default)]
 struct Queue {
-    /// Admitted requests that have jobs waiting, in service order (round robin).
-    ring: VecDeque<u64>,
-    /// Waiting jobs per admitted request.
-    jobs: HashMap<u64, VecDeque<Job>>,
     /// Requests admitted and not yet finished (running, waiting, or between jobs).
-    admitted: usize,
+    requests: HashMap<u64, Admitted>,
     queued_jobs: usize,
     next_ticket: u64,
+    rates: Rates,
     /// Every handle is gone: the executor finishes the queued jobs and stops.
     closed: bool,
     /// The executor thread has ended; new jobs fail with `Stopped`.
@@ -96,36 +161,63 @@ struct Queue {
 }
 
 impl Queue {
-    fn push(&mut self, ticket: u64, job: Job) {
-        let jobs = self.jobs.entry(ticket).or_default();
-        if jobs.is_empty() {
-            self.ring.push_back(ticket);
+    fn push(&mut self, job: Job) {
+        if let Some(request) = self.requests.get_mut(&job.ticket) {
+            request.jobs.push_back(job);
+            self.queued_jobs += 1;
         }
-        jobs.push_back(job);
-        self.queued_jobs += 1;
     }
 
-    /// The next job in round-robin order across requests.
+    /// The next job of the request with the earliest deadline (the earlier admitted on a tie).
     fn pop(&mut self) -> Option<Job> {
-        while let Some(ticket) = self.ring.pop_front() {
-            let Some(jobs) = self.jobs.get_mut(&ticket) else { continue };
-            let Some(job) = jobs.pop_front() else { continue };
-            if !jobs.is_empty() {
-                self.ring.push_back(ticket);
+        let (_, request) = self
+            .requests
+            .iter_mut()
+            .filter(|(_, r)| !r.jobs.is_empty())
+            .min_by_key(|(&ticket, r)| (r.deadline, ticket))?;
+        self.queued_jobs -= 1;
+        request.jobs.pop_front()
+    }
+
+    /// A job finished: its request has that much less to do, and the rates learn its time.
+    fn done(&mut self, job: &Job, took: f64) {
+        self.rates.record(job.graph, job.units, took);
+        if let Some(request) = self.requests.get_mut(&job.ticket) {
+            let left = &mut request.remaining.0[slot(job.graph)];
+            *left = (*left - job.units).max(0.0);
+        }
+    }
+
+    /// `Some(seconds of work ahead)` when a request due at `deadline` with `work` would miss
+    /// its deadline, or make an admitted request miss one that it would meet now.
+    fn would_miss(&self, now: Instant, deadline: Instant, work: Work) -> Option<f64> {
+        let cost = work.secs(&self.rates);
+        let mut queue: Vec<(Instant, f64)> =
+            self.requests.values().map(|r| (r.deadline, r.remaining.secs(&self.rates))).collect();
+        queue.sort_by_key(|&(due, _)| due);
+        let ahead: f64 = queue.iter().take_while(|(due, _)| *due <= deadline).map(|(_, secs)| secs).sum();
+        let misses = |finish: f64, due: Instant| {
+            let finish = Duration::try_from_secs_f64(finish).unwrap_or(Duration::MAX);
+            now.checked_add(finish).is_none_or(|at| at > due)
+        };
+        if misses(ahead + cost, deadline) {
+            return Some(ahead);
+        }
+        let mut finish = ahead;
+        for &(due, secs) in queue.iter().filter(|(due, _)| *due > deadline) {
+            finish += secs;
+            if misses(finish + cost, due) && !misses(finish, due) {
+                return Some(finish);
             }
-            self.queued_jobs -= 1;
-            return Some(job);
         }
         None
     }
 
     /// Forgets a finished request and drops the jobs it left behind.
     fn release(&mut self, ticket: u64) {
-        if let Some(jobs) = self.jobs.remove(&ticket) {
-            self.queued_jobs -= jobs.len();
+        if let Some(request) = self.requests.remove(&ticket) {
+            self.queued_jobs -= request.jobs.len();
         }
-        self.ring.retain(|&t| t != ticket);
-        self.admitted -= 1;
     }
 }
 
@@ -178,24 +270,30 @@ impl BackendHandle {
         Ok(BackendHandle { _closer: Arc::new(Closer(shared.clone())), shared })
     }
 
-    /// Admits a request whose graph runs must finish by `deadline`; `QueueFull` when `capacity`
-    /// requests are already admitted. The request leaves when the ticket is dropped.
-    pub fn admit(&self, deadline: Instant) -> Result<Ticket, BackendError> {
+    /// Admits a request whose graph runs, `work` in all, must finish by `deadline`:
+    /// `QueueFull` when `capacity` requests are already admitted, `WouldMissDeadline` when the
+    /// estimate says it cannot finish in time (see the module doc). The request leaves when the
+    /// ticket is dropped.
+    pub fn admit(&self, deadline: Instant, work: Work) -> Result<Ticket, BackendError> {
         let mut q = self.shared.lock();
         if q.stopped {
             return Err(BackendError::Stopped);
         }
-        if q.admitted >= self.shared.capacity {
+        if q.requests.len() >= self.shared.capacity {
             return Err(BackendError::QueueFull);
         }
-        q.admitted += 1;
+        if let Some(ahead_secs) = q.would_miss(Instant::now(), deadline, work) {
+            return Err(BackendError::WouldMissDeadline { ahead_secs });
+        }
         q.next_ticket += 1;
-        Ok(Ticket { id: q.next_ticket, deadline, shared: self.shared.clone() })
+        let id = q.next_ticket;
+        q.requests.insert(id, Admitted { deadline, remaining: work, jobs: VecDeque::new() });
+        Ok(Ticket { id, deadline, shared: self.shared.clone() })
     }
 
     pub fn stats(&self) -> QueueStats {
         let q = self.shared.lock();
-        QueueStats { admitted: q.admitted, queued_jobs: q.queued_jobs, capacity: self.shared.capacity }
+        QueueStats { admitted: q.requests.len(), queued_jobs: q.queued_jobs, capacity: self.shared.capacity }
     }
 }
 
@@ -212,22 +310,23 @@ impl Ticket {
         self.deadline
     }
 
-    /// Queues one graph run now and returns a future of its outputs. Queuing happens before the
-    /// future is first polled, so a caller can keep several runs in flight (see
-    /// `pipeline::chunks`).
+    /// Queues one graph run of `units` of work (see `Work`) now and returns a future of its
+    /// outputs. Queuing happens before the future is first polled, so a caller can keep several
+    /// runs in flight (see `pipeline::chunks`).
     pub fn run(
         &self,
         graph: GraphKind,
+        units: f64,
         inputs: NamedTensors,
     ) -> impl Future<Output = Result<Outputs, BackendError>> + Send + 'static {
         let (reply, rx) = oneshot::channel();
-        let job = Job { graph, inputs, reply, span: Span::current(), deadline: self.deadline };
+        let job = Job { ticket: self.id, graph, units, inputs, reply, span: Span::current(), deadline: self.deadline };
         let queued = {
             let mut q = self.shared.lock();
             if q.stopped {
                 Err(BackendError::Stopped)
             } else {
-                q.push(self.id, job);
+                q.push(job);
                 Ok(())
             }
         };
@@ -274,7 +373,9 @@ fn worker(mut runner: Box<dyn GraphRunner>, shared: Arc<Shared>) {
         let _entered = job.span.enter();
         let started = Instant::now();
         let result = run_guarded(runner.as_mut(), job.graph, &job.inputs);
-        tracing::debug!(graph = %job.graph, ms = started.elapsed().as_secs_f64() * 1e3, "graph run");
+        let took = started.elapsed().as_secs_f64();
+        tracing::debug!(graph = %job.graph, ms = took * 1e3, "graph run");
+        shared.lock().done(&job, took);
         let _ = job.reply.send(result);
     }
 }
@@ -328,10 +429,10 @@ impl Outputs {
 mod tests {
     use super::*;
     use std::sync::mpsc;
-    use std::time::Duration;
 
-    /// Records the tag (first input value) of every job it runs; the first job waits for a
-    /// signal so that a test can fill the queue before anything runs.
+    /// Records the tag (first input value) of every job it runs and sleeps that many
+    /// milliseconds; the first job waits for a signal so that a test can fill the queue before
+    /// anything runs.
     struct Recorder {
         order: Arc<Mutex<Vec<u32>>>,
         gate: Option<mpsc::Receiver<()>>,
@@ -342,7 +443,9 @@ mod tests {
             if let Some(gate) = self.gate.take() {
                 let _ = gate.recv();
             }
-            self.order.lock().unwrap().push(inputs[0].1.data[0] as u32);
+            let tag = inputs[0].1.data[0] as u32;
+            self.order.lock().unwrap().push(tag);
+            std::thread::sleep(Duration::from_millis(u64::from(tag)));
             Ok(vec![])
         }
     }
@@ -358,53 +461,94 @@ mod tests {
         (backend, order, open)
     }
 
-    fn far() -> Instant {
-        Instant::now() + Duration::from_secs(60)
+    fn in_secs(secs: u64) -> Instant {
+        Instant::now() + Duration::from_secs(secs)
     }
 
+    fn far() -> Instant {
+        in_secs(60)
+    }
+
+    const NONE: Work = Work([0.0; 3]);
+
     #[tokio::test]
-    async fn jobs_of_concurrent_requests_interleave_round_robin() {
+    async fn jobs_run_earliest_deadline_first() {
         let (backend, order, open) = recorder();
-        let blocker = backend.admit(far()).unwrap();
-        let first = blocker.run(GraphKind::Encoder, tagged(0)); // holds the executor at the gate
+        let blocker = backend.admit(far(), NONE).unwrap();
+        let first = blocker.run(GraphKind::Encoder, 0.0, tagged(0)); // holds the executor at the gate
         tokio::time::sleep(Duration::from_millis(50)).await;
-        let big = backend.admit(far()).unwrap();
-        let small = backend.admit(far()).unwrap();
-        let mut pending: Vec<_> = (0..6).map(|_| big.run(GraphKind::Renderer, tagged(1))).collect();
-        pending.extend((0..2).map(|_| small.run(GraphKind::Renderer, tagged(2))));
-        assert_eq!(backend.stats().queued_jobs, 8);
+        let late = backend.admit(in_secs(30), NONE).unwrap();
+        let soon = backend.admit(in_secs(10), NONE).unwrap();
+        let mut pending: Vec<_> = (0..3).map(|_| late.run(GraphKind::Renderer, 0.0, tagged(1))).collect();
+        pending.extend((0..2).map(|_| soon.run(GraphKind::Renderer, 0.0, tagged(2))));
+        assert_eq!(backend.stats().queued_jobs, 5);
         open.send(()).unwrap();
         first.await.unwrap();
         for p in pending {
             p.await.unwrap();
         }
-        assert_eq!(*order.lock().unwrap(), vec![0, 1, 2, 1, 2, 1, 1, 1, 1]);
+        assert_eq!(*order.lock().unwrap(), vec![0, 2, 2, 1, 1, 1]);
+    }
+
+    /// Jobs here take `units` milliseconds (the tag), so the measured rate is ~1 ms per unit.
+    #[tokio::test]
+    async fn admission_refuses_work_that_cannot_finish_by_its_deadline() {
+        let (backend, _order, open) = recorder();
+        open.send(()).unwrap();
+        let probe = backend.admit(far(), NONE).unwrap();
+        for _ in 0..3 {
+            probe.run(GraphKind::Renderer, 20.0, tagged(20)).await.unwrap();
+        }
+        drop(probe);
+        let ms = |ms: u64| Instant::now() + Duration::from_millis(ms);
+        let rays = |n: f64| Work::of(GraphKind::Renderer, n);
+        // Unmeasured graphs cost nothing yet.
+        assert!(backend.admit(ms(1), Work::of(GraphKind::Encoder, 1e9)).is_ok());
+        // 500 ms of work due in 200 ms: refused at once.
+        let refused = backend.admit(ms(200), rays(500.0));
+        assert!(matches!(refused, Err(BackendError::WouldMissDeadline { .. })), "{:?}", refused.err());
+        let a = backend.admit(ms(1000), rays(500.0)).unwrap();
+        // Fits before `a` but would push `a` past its deadline: refused to protect `a`.
+        let pushy = backend.admit(ms(600), rays(550.0));
+        assert!(matches!(pushy, Err(BackendError::WouldMissDeadline { .. })));
+        // Fits before `a`, and `a` still meets its deadline.
+        let b = backend.admit(ms(600), rays(300.0)).unwrap();
+        // After both: 800 ms of work ahead.
+        match backend.admit(ms(900), rays(200.0)) {
+            Err(BackendError::WouldMissDeadline { ahead_secs }) => {
+                assert!((0.7..1.0).contains(&ahead_secs), "{ahead_secs}")
+            }
+            other => panic!("{:?}", other.err()),
+        }
+        assert!(backend.admit(far(), rays(200.0)).is_ok());
+        drop((a, b));
     }
 
     #[tokio::test]
     async fn admission_is_bounded_and_released_on_drop() {
         let (backend, _order, _open) = recorder();
-        let tickets: Vec<Ticket> = (0..4).map(|_| backend.admit(far()).unwrap()).collect();
-        assert!(matches!(backend.admit(far()), Err(BackendError::QueueFull)));
+        let tickets: Vec<Ticket> = (0..4).map(|_| backend.admit(far(), NONE).unwrap()).collect();
+        assert!(matches!(backend.admit(far(), NONE), Err(BackendError::QueueFull)));
         assert_eq!(backend.stats().admitted, 4);
         drop(tickets);
         assert_eq!(backend.stats().admitted, 0);
-        assert!(backend.admit(far()).is_ok());
+        assert!(backend.admit(far(), NONE).is_ok());
     }
 
     #[tokio::test]
     async fn a_dropped_request_leaves_no_jobs_and_expired_jobs_do_not_run() {
         let (backend, order, open) = recorder();
-        let blocker = backend.admit(far()).unwrap();
-        let first = blocker.run(GraphKind::Encoder, tagged(0));
+        let blocker = backend.admit(far(), NONE).unwrap();
+        let first = blocker.run(GraphKind::Encoder, 0.0, tagged(0));
         tokio::time::sleep(Duration::from_millis(50)).await;
-        let gone = backend.admit(far()).unwrap();
-        let abandoned: Vec<_> = (0..5).map(|_| gone.run(GraphKind::Renderer, tagged(1))).collect();
+        let gone = backend.admit(far(), NONE).unwrap();
+        let abandoned: Vec<_> = (0..5).map(|_| gone.run(GraphKind::Renderer, 0.0, tagged(1))).collect();
         drop(abandoned);
         drop(gone); // its five jobs leave the queue
-        let late = backend.admit(Instant::now()).unwrap();
-        let expired = late.run(GraphKind::Renderer, tagged(2));
+        let late = backend.admit(Instant::now() + Duration::from_millis(20), NONE).unwrap();
+        let expired = late.run(GraphKind::Renderer, 0.0, tagged(2));
         assert_eq!(backend.stats().queued_jobs, 1);
+        tokio::time::sleep(Duration::from_millis(40)).await;
         open.send(()).unwrap();
         first.await.unwrap();
         assert!(matches!(expired.await, Err(BackendError::DeadlineExceeded)));

@@ -1,18 +1,23 @@
 //! Reading a render request body in any of the accepted forms.
 
 use std::collections::BTreeMap;
+use std::future::Future;
+use std::pin::Pin;
+use std::task::{Context, Poll};
+use std::time::Duration;
 
-use axum::body::Body;
+use axum::body::{Body, HttpBody};
 use axum::extract::{FromRequest, Multipart, Request};
 use axum::http::StatusCode;
 use bytes::Bytes;
+use futures_util::StreamExt;
+use http_body::{Frame, SizeHint};
 
 use super::negotiate::RequestFormat;
 use crate::error::ApiError;
-use crate::request::{check_json_size, HasSources, ImageMode, Limits, RenderRequest, SceneRequest, TargetRequest};
-
-/// Largest number of `source_i` parts we look at; more is an error, not a loop.
-const MAX_SOURCE_PARTS: usize = 16;
+use crate::request::{
+    check_json_size, HasSources, ImageMode, Limits, RenderRequest, SceneRequest, TargetRequest, MAX_SOURCES,
+};
 
 /// `POST /v1/render` in any of the three forms.
 pub async fn read_render_request(
@@ -21,11 +26,16 @@ pub async fn read_render_request(
     limits: &Limits,
 ) -> Result<RenderRequest, ApiError> {
     let limit = limits.max_body_bytes;
+    let owned = limits.clone();
     match format {
         RequestFormat::Json => {
-            RenderRequest::from_json(&read_bytes(req.into_body(), limit).await?, ImageMode::Inline, limits)
+            let body = read_bytes(req.into_body(), limit).await?;
+            parse_blocking(move || RenderRequest::from_json(&body, ImageMode::Inline, &owned)).await
         }
-        RequestFormat::Protobuf => RenderRequest::from_protobuf(&read_bytes(req.into_body(), limit).await?),
+        RequestFormat::Protobuf => {
+            let body = read_bytes(req.into_body(), limit).await?;
+            parse_blocking(move || RenderRequest::from_protobuf(&body)).await
+        }
         RequestFormat::Multipart => {
             read_multipart(req, limits, |json| RenderRequest::from_json(json, ImageMode::Parts, limits)).await
         }
@@ -39,15 +49,30 @@ pub async fn read_scene_request(
     limits: &Limits,
 ) -> Result<SceneRequest, ApiError> {
     let limit = limits.max_body_bytes;
+    let owned = limits.clone();
     match format {
         RequestFormat::Json => {
-            SceneRequest::from_json(&read_bytes(req.into_body(), limit).await?, ImageMode::Inline, limits)
+            let body = read_bytes(req.into_body(), limit).await?;
+            parse_blocking(move || SceneRequest::from_json(&body, ImageMode::Inline, &owned)).await
         }
-        RequestFormat::Protobuf => SceneRequest::from_protobuf(&read_bytes(req.into_body(), limit).await?),
+        RequestFormat::Protobuf => {
+            let body = read_bytes(req.into_body(), limit).await?;
+            parse_blocking(move || SceneRequest::from_protobuf(&body)).await
+        }
         RequestFormat::Multipart => {
             read_multipart(req, limits, |json| SceneRequest::from_json(json, ImageMode::Parts, limits)).await
         }
     }
+}
+
+/// A body of up to `--max-body-bytes` (base64 images, protobuf) takes CPU time to parse in
+/// proportion: off the async workers, so that health checks and other connections stay served.
+async fn parse_blocking<T: Send + 'static>(
+    parse: impl FnOnce() -> Result<T, ApiError> + Send + 'static,
+) -> Result<T, ApiError> {
+    tokio::task::spawn_blocking(parse)
+        .await
+        .map_err(|e| ApiError::Internal(format!("request parsing task failed: {e}")))?
 }
 
 /// `POST /v1/scenes/{id}/render`: a small JSON or protobuf document (no images).
@@ -67,26 +92,42 @@ pub async fn read_target_request(
     }
 }
 
-/// Reads the whole body, refusing more than `limit` bytes with 413.
+/// Reads the whole body, refusing more than `limit` bytes with 413. The bytes go into one
+/// buffer of the declared size rather than a list of the frames as they came: no copy at the
+/// end, and an abandoned upload frees one large block, which the allocator returns to the
+/// system at once, instead of thousands of frames that stay in its heap.
 pub async fn read_bytes(body: Body, limit: usize) -> Result<Bytes, ApiError> {
-    axum::body::to_bytes(body, limit).await.map_err(|e| {
-        if is_length_limit(&e) {
-            too_large("body", limit)
-        } else {
-            ApiError::malformed(Some("body".to_string()), format!("cannot read request body: {e}"))
+    refuse_declared_length(&body, limit)?;
+    let mut buf = Vec::with_capacity(body.size_hint().lower() as usize);
+    let mut frames = body.into_data_stream();
+    while let Some(frame) = frames.next().await {
+        let frame = frame.map_err(|e| body_error(&e, "body"))?;
+        if buf.len() + frame.len() > limit {
+            return Err(too_large("body", limit));
         }
-    })
+        buf.extend_from_slice(&frame);
+    }
+    Ok(Bytes::from(buf))
 }
 
-fn is_length_limit(e: &(dyn std::error::Error + 'static)) -> bool {
+/// A body whose Content-Length exceeds `limit` is refused before any of it is read.
+pub fn refuse_declared_length(body: &Body, limit: usize) -> Result<(), ApiError> {
+    if body.size_hint().lower() > limit as u64 {
+        return Err(too_large("body", limit));
+    }
+    Ok(())
+}
+
+/// A failure while reading the body: too slow (408), or broken off or malformed (400).
+fn body_error(e: &(dyn std::error::Error + 'static), field: &str) -> ApiError {
     let mut cur: Option<&(dyn std::error::Error + 'static)> = Some(e);
     while let Some(err) = cur {
-        if err.is::<http_body_util::LengthLimitError>() {
-            return true;
+        if let Some(slow) = err.downcast_ref::<TooSlow>() {
+            return ApiError::BodyTimeout { message: slow.to_string() };
         }
         cur = err.source();
     }
-    false
+    ApiError::malformed(Some(field.to_string()), format!("cannot read request body: {e}"))
 }
 
 fn too_large(field: &str, limit: usize) -> ApiError {
@@ -104,6 +145,7 @@ async fn read_multipart<T: HasSources>(
     parse: impl FnOnce(&[u8]) -> Result<T, ApiError>,
 ) -> Result<T, ApiError> {
     let limit = limits.max_body_bytes;
+    refuse_declared_length(req.body(), limit)?;
     let mut multipart = Multipart::from_request(req, &()).await.map_err(|e| {
         ApiError::malformed(Some("content-type".to_string()), format!("invalid multipart request: {}", e.body_text()))
     })?;
@@ -154,15 +196,108 @@ fn source_index(name: &str) -> Option<usize> {
     if digits.is_empty() || digits.len() > 2 || !digits.bytes().all(|b| b.is_ascii_digit()) {
         return None;
     }
-    digits.parse().ok().filter(|&i| i < MAX_SOURCE_PARTS)
+    digits.parse().ok().filter(|&i| i < MAX_SOURCES)
 }
 
 /// `field`: the part being read, or `body` between parts.
 fn multipart_error(e: axum::extract::multipart::MultipartError, field: &str, limit: usize) -> ApiError {
     if e.status() == StatusCode::PAYLOAD_TOO_LARGE {
-        too_large(field, limit)
-    } else {
-        ApiError::malformed(Some(field.to_string()), format!("invalid multipart body: {}", e.body_text()))
+        return too_large(field, limit);
+    }
+    match body_error(&e, field) {
+        slow @ ApiError::BodyTimeout { .. } => slow,
+        _ => ApiError::malformed(Some(field.to_string()), format!("invalid multipart body: {}", e.body_text())),
+    }
+}
+
+/// How slowly a request body may arrive: any rate for `grace`, then on average at least
+/// `min_bytes_per_sec` (each byte received buys 1/min_bytes_per_sec s more). Separate from the
+/// render deadline: a trickling upload would otherwise hold its slot, and the bytes it sent,
+/// until the deadline (900 s by default).
+#[derive(Debug, Clone, Copy)]
+pub struct UploadPolicy {
+    pub grace: Duration,
+    pub min_bytes_per_sec: u64,
+}
+
+impl Default for UploadPolicy {
+    fn default() -> Self {
+        UploadPolicy { grace: Duration::from_secs(30), min_bytes_per_sec: 32 * 1024 }
+    }
+}
+
+impl UploadPolicy {
+    /// `body`, failing with `TooSlow` once it falls behind the policy.
+    pub fn apply(self, body: Body) -> Body {
+        let started = tokio::time::Instant::now();
+        Body::new(MinRateBody {
+            inner: body,
+            policy: self,
+            started,
+            received: 0,
+            timer: Box::pin(tokio::time::sleep_until(started + self.grace)),
+        })
+    }
+
+    fn allowed(&self, received: u64) -> Duration {
+        self.grace + Duration::from_secs_f64(received as f64 / self.min_bytes_per_sec as f64)
+    }
+}
+
+struct MinRateBody {
+    inner: Body,
+    policy: UploadPolicy,
+    started: tokio::time::Instant,
+    received: u64,
+    /// Fires when the body, at `received` bytes, falls behind the policy.
+    timer: Pin<Box<tokio::time::Sleep>>,
+}
+
+/// The error a too slow body fails with (found again in the error chain by `body_error`).
+#[derive(Debug, thiserror::Error)]
+#[error(
+    "the request body arrived too slowly: {received} bytes in {secs} s (any rate for the first {grace} s, then at least {rate} bytes/s)"
+)]
+struct TooSlow {
+    received: u64,
+    secs: u64,
+    grace: u64,
+    rate: u64,
+}
+
+impl HttpBody for MinRateBody {
+    type Data = Bytes;
+    type Error = axum::Error;
+
+    fn poll_frame(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<Option<Result<Frame<Bytes>, axum::Error>>> {
+        let this = &mut *self;
+        match Pin::new(&mut this.inner).poll_frame(cx) {
+            Poll::Ready(Some(Ok(frame))) => {
+                if let Some(data) = frame.data_ref() {
+                    this.received += data.len() as u64;
+                    let until = this.started + this.policy.allowed(this.received);
+                    this.timer.as_mut().reset(until);
+                }
+                Poll::Ready(Some(Ok(frame)))
+            }
+            Poll::Pending if this.timer.as_mut().poll(cx).is_ready() => {
+                Poll::Ready(Some(Err(axum::Error::new(TooSlow {
+                    received: this.received,
+                    secs: this.started.elapsed().as_secs(),
+                    grace: this.policy.grace.as_secs(),
+                    rate: this.policy.min_bytes_per_sec,
+                }))))
+            }
+            other => other,
+        }
+    }
+
+    fn is_end_stream(&self) -> bool {
+        self.inner.is_end_stream()
+    }
+
+    fn size_hint(&self) -> SizeHint {
+        self.inner.size_hint()
     }
 }
 

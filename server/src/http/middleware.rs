@@ -1,12 +1,18 @@
 //! Cross-cutting layers: request ids, tracing spans, panics, metrics and the in-flight limit.
 
+use std::collections::HashMap;
+use std::net::{IpAddr, SocketAddr};
+use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
-use axum::extract::{MatchedPath, Request, State};
+use axum::extract::{ConnectInfo, MatchedPath, Request, State};
 use axum::http::{HeaderValue, Method};
 use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
 
+use tokio::sync::{OwnedSemaphorePermit, Semaphore};
+
+use super::body::refuse_declared_length;
 use super::AppState;
 use crate::error::ApiError;
 
@@ -47,18 +53,85 @@ pub async fn record_metrics(State(state): State<AppState>, req: Request, next: N
     response
 }
 
-/// Bounds the POST requests handled at once (their bodies are held in memory while they wait
-/// for the executor): beyond it, 503 before the body is read.
+/// Bounds the POST requests handled at once, in all and per client (their bodies are held in
+/// memory while they wait for the executor), and holds each upload to the minimum rate. A body
+/// declared larger than the limit is refused at once: 413 before anything is read.
 pub async fn limit_in_flight(State(state): State<AppState>, req: Request, next: Next) -> Response {
     if req.method() != Method::POST {
         return next.run(req).await;
     }
-    let Ok(_permit) = state.in_flight.clone().try_acquire_owned() else {
-        return ApiError::Unavailable {
+    if let Err(e) = refuse_declared_length(req.body(), state.pipeline.limits.max_body_bytes) {
+        return e.into_response();
+    }
+    let client = req.extensions().get::<ConnectInfo<SocketAddr>>().map(|c| c.0.ip());
+    let _slot = match state.in_flight.acquire(client) {
+        Ok(slot) => slot,
+        Err(e) => return e.into_response(),
+    };
+    let policy = state.uploads;
+    next.run(req.map(|body| policy.apply(body))).await
+}
+
+/// Slots for requests being handled: `total` in all, `per_client` (0: any) per peer address.
+pub struct Slots {
+    total: Arc<Semaphore>,
+    per_client: usize,
+    clients: Arc<Mutex<HashMap<IpAddr, usize>>>,
+}
+
+/// A taken slot, given back when dropped.
+pub struct Slot {
+    _total: OwnedSemaphorePermit,
+    _client: Option<ClientSlot>,
+}
+
+struct ClientSlot {
+    ip: IpAddr,
+    clients: Arc<Mutex<HashMap<IpAddr, usize>>>,
+}
+
+impl Drop for ClientSlot {
+    fn drop(&mut self) {
+        let mut clients = self.clients.lock().unwrap_or_else(|p| p.into_inner());
+        if let Some(held) = clients.get_mut(&self.ip) {
+            *held -= 1;
+            if *held == 0 {
+                clients.remove(&self.ip);
+            }
+        }
+    }
+}
+
+impl Slots {
+    pub fn new(total: usize, per_client: usize) -> Slots {
+        Slots { total: Arc::new(Semaphore::new(total.max(1))), per_client, clients: Arc::default() }
+    }
+
+    /// `client`: the peer address (`None` in-process, where there is no peer to tell apart).
+    /// The client's own cap is checked first, so that the client holding many slots is the one
+    /// told (429), not the others (503).
+    pub fn acquire(&self, client: Option<IpAddr>) -> Result<Slot, ApiError> {
+        let client = match client.filter(|_| self.per_client > 0) {
+            Some(ip) => Some(self.client_slot(ip)?),
+            None => None,
+        };
+        let total = self.total.clone().try_acquire_owned().map_err(|_| ApiError::Unavailable {
             message: "server busy: too many requests in flight".into(),
             retry_after_secs: 1,
+        })?;
+        Ok(Slot { _total: total, _client: client })
+    }
+
+    fn client_slot(&self, ip: IpAddr) -> Result<ClientSlot, ApiError> {
+        let mut clients = self.clients.lock().unwrap_or_else(|p| p.into_inner());
+        let held = clients.entry(ip).or_default();
+        if *held >= self.per_client {
+            return Err(ApiError::TooManyRequests {
+                message: format!("this client already has {} requests in flight", self.per_client),
+                retry_after_secs: 1,
+            });
         }
-        .into_response();
-    };
-    next.run(req).await
+        *held += 1;
+        Ok(ClientSlot { ip, clients: self.clients.clone() })
+    }
 }

@@ -6,6 +6,7 @@ pub mod negotiate;
 pub mod openapi;
 pub mod render;
 pub mod scenes;
+pub mod serve;
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -17,7 +18,6 @@ use axum::response::{IntoResponse, Response};
 use axum::routing::{delete, get, post};
 use axum::{Json, Router};
 use serde_json::json;
-use tokio::sync::Semaphore;
 use tower_http::catch_panic::CatchPanicLayer;
 use tower_http::request_id::{MakeRequestUuid, PropagateRequestIdLayer, SetRequestIdLayer};
 use tower_http::trace::TraceLayer;
@@ -38,8 +38,10 @@ pub struct AppState {
     pub scenes: Arc<SceneCache>,
     pub metrics: Arc<Metrics>,
     pub auth: Arc<Auth>,
-    /// Permits for POST requests being handled at once (bodies in memory included).
-    pub in_flight: Arc<Semaphore>,
+    /// Slots for POST requests being handled at once (bodies in memory included).
+    pub in_flight: Arc<middleware::Slots>,
+    /// How slowly a request body may arrive.
+    pub uploads: body::UploadPolicy,
 }
 
 /// Service settings besides the pipeline (from the command line, or set by tests).
@@ -49,6 +51,9 @@ pub struct ServiceOptions {
     pub cache: CacheConfig,
     /// POST requests handled at once; beyond it 503 before the body is read.
     pub max_concurrent_requests: usize,
+    /// POST requests handled at once from one peer address (0: no cap); beyond it 429.
+    pub max_requests_per_client: usize,
+    pub uploads: body::UploadPolicy,
     pub auth: Auth,
 }
 
@@ -58,6 +63,8 @@ impl Default for ServiceOptions {
             request_timeout: Duration::from_secs(900),
             cache: CacheConfig::default(),
             max_concurrent_requests: 256,
+            max_requests_per_client: 32,
+            uploads: body::UploadPolicy::default(),
             auth: Auth::disabled(),
         }
     }
@@ -75,7 +82,11 @@ impl AppState {
             scenes,
             metrics,
             auth: Arc::new(options.auth),
-            in_flight: Arc::new(Semaphore::new(options.max_concurrent_requests.max(1))),
+            in_flight: Arc::new(middleware::Slots::new(
+                options.max_concurrent_requests,
+                options.max_requests_per_client,
+            )),
+            uploads: options.uploads,
         }
     }
 
@@ -137,13 +148,14 @@ async fn healthz() -> Json<serde_json::Value> {
 }
 
 /// Readiness: bundle loaded and warm-up render done (503 while warming up or shutting down).
+/// Public for orchestrators, so it names no model: `/v1/model` does, behind the token.
 #[utoipa::path(get, path = "/readyz", tag = "service", operation_id = "readyz", responses(
     (status = 200, description = "Ready"),
     (status = 503, description = "Warming up or shutting down", body = crate::error::ErrorBody),
 ))]
 async fn readyz(State(state): State<AppState>) -> Result<Json<serde_json::Value>, ApiError> {
     state.check_ready()?;
-    Ok(Json(json!({"status": "ready", "model_id": state.pipeline.bundle.manifest.model_id})))
+    Ok(Json(json!({"status": "ready"})))
 }
 
 /// Prometheus metrics (OpenMetrics text).

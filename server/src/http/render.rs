@@ -38,10 +38,12 @@ use crate::request::OutputSet;
         (status = 400, description = "Malformed request", body = crate::error::ErrorBody),
         (status = 401, description = "Missing or wrong bearer token", body = crate::error::ErrorBody),
         (status = 406, description = "Accept cannot be satisfied", body = crate::error::ErrorBody),
+        (status = 408, description = "The body arrived too slowly", body = crate::error::ErrorBody),
         (status = 413, description = "Body or JSON document too large", body = crate::error::ErrorBody),
         (status = 415, description = "Unsupported content type or image format", body = crate::error::ErrorBody),
         (status = 422, description = "Semantically invalid (camera, view count, sizes, near/far...)", body = crate::error::ErrorBody),
-        (status = 503, description = "Warming up or overloaded (Retry-After)", body = crate::error::ErrorBody),
+        (status = 429, description = "This client has too many requests in flight (Retry-After)", body = crate::error::ErrorBody),
+        (status = 503, description = "Warming up, overloaded, or the request cannot finish by its deadline (Retry-After)", body = crate::error::ErrorBody),
         (status = 504, description = "Deadline exceeded", body = crate::error::ErrorBody),
     ),
     security((), ("bearer" = [])),
@@ -66,7 +68,8 @@ async fn render_within(
     let valid = parsed.validate(&pipeline.bundle.config, &pipeline.limits)?;
     let out_format = response_format(&headers, valid.view.outputs)?;
 
-    let ticket = pipeline.admit(deadline)?;
+    let work = pipeline.scene_work(&valid.scene.cameras()).plus(pipeline.view_work(&valid.view.target));
+    let ticket = pipeline.admit(deadline, work)?;
     let mut timings = Timings::default();
     let view = pipeline.render(&ticket, &valid, &mut timings).await?;
     drop(ticket); // encoding needs no inference: let the next request in
@@ -77,11 +80,20 @@ async fn render_within(
 pub const DEADLINE_HEADER: &str = "x-scnerf-deadline-ms";
 
 /// The request's time budget: the configured timeout, or less when the client asks for less.
+/// The header sent twice is refused rather than one of its values picked.
 pub(super) fn deadline_of(headers: &HeaderMap, default: Duration) -> Result<Duration, ApiError> {
-    let Some(value) = headers.get(DEADLINE_HEADER) else { return Ok(default) };
-    let ms = value.to_str().ok().and_then(|v| v.trim().parse::<u64>().ok()).filter(|&ms| ms > 0).ok_or_else(|| {
-        ApiError::malformed(Some(DEADLINE_HEADER.to_string()), "expected a whole number of milliseconds > 0")
-    })?;
+    let malformed = |message| ApiError::malformed(Some(DEADLINE_HEADER.to_string()), message);
+    let mut values = headers.get_all(DEADLINE_HEADER).iter();
+    let Some(value) = values.next() else { return Ok(default) };
+    if values.next().is_some() {
+        return Err(malformed("sent more than once"));
+    }
+    let ms = value
+        .to_str()
+        .ok()
+        .and_then(|v| v.trim().parse::<u64>().ok())
+        .filter(|&ms| ms > 0)
+        .ok_or_else(|| malformed("expected a whole number of milliseconds > 0"))?;
     Ok(default.min(Duration::from_millis(ms)))
 }
 

@@ -61,10 +61,12 @@ fn scene_id(path: Result<Path<String>, PathRejection>) -> Result<String, ApiErro
          )),
         (status = 400, description = "Malformed request", body = crate::error::ErrorBody),
         (status = 401, description = "Missing or wrong bearer token", body = crate::error::ErrorBody),
+        (status = 408, description = "The body arrived too slowly", body = crate::error::ErrorBody),
         (status = 413, description = "Body or JSON document too large", body = crate::error::ErrorBody),
         (status = 415, description = "Unsupported content type or image format", body = crate::error::ErrorBody),
         (status = 422, description = "Semantically invalid", body = crate::error::ErrorBody),
-        (status = 503, description = "Warming up or overloaded (Retry-After)", body = crate::error::ErrorBody),
+        (status = 429, description = "This client has too many requests in flight (Retry-After)", body = crate::error::ErrorBody),
+        (status = 503, description = "Warming up, overloaded, or the request cannot finish by its deadline (Retry-After)", body = crate::error::ErrorBody),
         (status = 504, description = "Deadline exceeded", body = crate::error::ErrorBody),
     ),
     security((), ("bearer" = [])),
@@ -88,7 +90,7 @@ async fn create_within(
     let parsed = read_scene_request(format, req, &pipeline.limits).await?;
     let valid = parsed.validate(&pipeline.bundle.config, &pipeline.limits)?;
 
-    let ticket = pipeline.admit(deadline)?;
+    let ticket = pipeline.admit(deadline, pipeline.scene_work(&valid.cameras()))?;
     let mut timings = Timings::default();
     let scene = pipeline.prepare_scene(&ticket, &valid, &mut timings).await?;
     drop(ticket);
@@ -132,10 +134,12 @@ async fn create_within(
         (status = 401, description = "Missing or wrong bearer token", body = crate::error::ErrorBody),
         (status = 404, description = "No such scene (unknown, expired, evicted, or another token's)", body = crate::error::ErrorBody),
         (status = 406, description = "Accept cannot be satisfied", body = crate::error::ErrorBody),
+        (status = 408, description = "The body arrived too slowly", body = crate::error::ErrorBody),
         (status = 413, description = "JSON document too large", body = crate::error::ErrorBody),
         (status = 415, description = "Unsupported content type", body = crate::error::ErrorBody),
         (status = 422, description = "Semantically invalid target", body = crate::error::ErrorBody),
-        (status = 503, description = "Warming up or overloaded (Retry-After)", body = crate::error::ErrorBody),
+        (status = 429, description = "This client has too many requests in flight (Retry-After)", body = crate::error::ErrorBody),
+        (status = 503, description = "Warming up, overloaded, or the request cannot finish by its deadline (Retry-After)", body = crate::error::ErrorBody),
         (status = 504, description = "Deadline exceeded", body = crate::error::ErrorBody),
     ),
     security((), ("bearer" = [])),
@@ -168,7 +172,7 @@ async fn render_within(
     let out_format = response_format(&headers, valid.outputs)?;
     let hit = state.scenes.get(&id, &owner, Instant::now()).ok_or(ApiError::SceneNotFound { id })?;
 
-    let ticket = pipeline.admit(deadline)?;
+    let ticket = pipeline.admit(deadline, pipeline.view_work(&valid.target))?;
     let mut timings = Timings::default();
     let cached = &hit.scene;
     let view =

@@ -50,8 +50,8 @@ pub struct RawView {
 }
 
 /// Renderer runs of one request queued at once. Two keep the executor busy while the previous
-/// chunk's outputs are copied out; more would only hold memory (the executor interleaves the
-/// chunks of concurrent requests round-robin, so queuing more does not buy a larger share).
+/// chunk's outputs are copied out; more would only hold memory (the executor picks requests by
+/// deadline, so queuing more does not buy a larger share).
 const CHUNKS_IN_FLIGHT: usize = 2;
 
 /// Runs the renderer over all rays, `chunk` rays at a time, and concatenates the outputs.
@@ -69,7 +69,8 @@ pub async fn render_rays(
     let ranges = (0..n).step_by(chunk.max(1)).map(|start| (start, (start + chunk).min(n)));
     let mut runs = stream::iter(ranges)
         .map(|(start, end)| {
-            let run = ticket.run(GraphKind::Renderer, chunk_inputs(scene, inputs, rays, start, end, depth_range));
+            let inputs = chunk_inputs(scene, inputs, rays, start, end, depth_range);
+            let run = ticket.run(GraphKind::Renderer, (end - start) as f64, inputs);
             async move { run.await.map(|outputs| (end - start, outputs)) }
         })
         .buffered(CHUNKS_IN_FLIGHT);

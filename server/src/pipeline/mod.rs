@@ -15,7 +15,7 @@ pub mod volume;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use crate::backend::{BackendError, BackendHandle, Tensor, Ticket};
+use crate::backend::{BackendError, BackendHandle, Tensor, Ticket, Work};
 use crate::bundle::{Bundle, DepthNorm, GraphKind};
 use crate::camera::Camera;
 use crate::error::ApiError;
@@ -100,6 +100,10 @@ impl From<BackendError> for ApiError {
             BackendError::QueueFull => {
                 ApiError::Unavailable { message: "server busy: inference queue is full".into(), retry_after_secs: 2 }
             }
+            BackendError::WouldMissDeadline { ahead_secs } => ApiError::Unavailable {
+                message: format!("server busy: {e}"),
+                retry_after_secs: ahead_secs.ceil().max(1.0) as u64,
+            },
             // The handler's own timer normally fires first and knows the deadline; this is the
             // executor noticing it between two graph runs.
             BackendError::DeadlineExceeded => ApiError::DeadlineExceeded { ms: 0 },
@@ -108,10 +112,38 @@ impl From<BackendError> for ApiError {
     }
 }
 
+/// Work units of an encoder or volume run over `images` (V, 3, H, W): its pixels.
+pub fn pixel_units(images: &Tensor) -> f64 {
+    (images.len() / 3) as f64
+}
+
 impl Pipeline {
-    /// Admits a request to the inference executor until `deadline` (503 when it is full).
-    pub fn admit(&self, deadline: Instant) -> Result<Ticket, ApiError> {
-        Ok(self.backend.admit(deadline)?)
+    /// Admits a request with `work` to the inference executor until `deadline` (503 when it is
+    /// full or the request could not finish in time).
+    pub fn admit(&self, deadline: Instant, work: Work) -> Result<Ticket, ApiError> {
+        Ok(self.backend.admit(deadline, work)?)
+    }
+
+    /// The work of building a scene from `sources` (the encoder and the volume net over the
+    /// padded images).
+    pub fn scene_work(&self, sources: &[Camera]) -> Work {
+        let multiple = self.bundle.config.image_multiple;
+        let pixels: f64 = sources
+            .iter()
+            .map(|c| {
+                (c.width as usize).div_ceil(multiple) * (c.height as usize).div_ceil(multiple) * multiple * multiple
+            })
+            .sum::<usize>() as f64;
+        Work::of(GraphKind::Encoder, pixels).plus(Work::of(GraphKind::Volume, pixels))
+    }
+
+    /// The work of rendering `target` (one renderer pass over its rays, two for image_minmax).
+    pub fn view_work(&self, target: &Camera) -> Work {
+        let passes = match self.bundle.config.depth_norm {
+            DepthNorm::NearFar => 1.0,
+            DepthNorm::ImageMinmax => 2.0,
+        };
+        Work::of(GraphKind::Renderer, passes * f64::from(target.width) * f64::from(target.height))
     }
 
     fn inputs(&self) -> SceneInputs {

@@ -48,7 +48,7 @@ pub async fn run(
         ("projections".to_string(), projections(cameras)),
         ("depth_planes".to_string(), depth_planes(near, far, config.depth_planes)),
     ];
-    let mut out = ticket.run(GraphKind::Volume, inputs).await?;
+    let mut out = ticket.run(GraphKind::Volume, super::pixel_units(images), inputs).await?;
     let shape = [
         Some(1),
         Some(config.volume_channels),

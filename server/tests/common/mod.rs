@@ -142,3 +142,36 @@ pub fn two_token_app() -> Router {
 pub fn bearer(token: &str) -> String {
     format!("Bearer {token}")
 }
+
+/// A camera of DESIGN.md's JSON form (`{fx, fy, cx, cy}` intrinsics) as a protobuf message.
+pub fn proto_camera(c: &Value) -> scnerf_proto::v1::Camera {
+    use scnerf_proto::v1 as pb;
+    let f = |v: &Value| v.as_f64().unwrap();
+    let i = &c["intrinsics"];
+    let pose = &c["pose"];
+    let kind = match pose["kind"].as_str() {
+        Some("camera_to_world") => pb::PoseKind::CameraToWorld,
+        _ => pb::PoseKind::WorldToCamera,
+    };
+    let axes = if pose["axes"] == "opengl" { pb::Axes::Opengl } else { pb::Axes::Opencv };
+    pb::Camera {
+        width: c["width"].as_u64().unwrap() as u32,
+        height: c["height"].as_u64().unwrap() as u32,
+        intrinsics_kind: Some(pb::camera::IntrinsicsKind::Intrinsics(pb::Intrinsics {
+            fx: f(&i["fx"]),
+            fy: f(&i["fy"]),
+            cx: f(&i["cx"]),
+            cy: f(&i["cy"]),
+        })),
+        pose: Some(pb::Pose {
+            matrix: pose["matrix"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .flat_map(|r| r.as_array().unwrap().iter().map(f))
+                .collect(),
+            kind: kind as i32,
+            axes: axes as i32,
+        }),
+    }
+}

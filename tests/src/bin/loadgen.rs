@@ -8,6 +8,7 @@
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use clap::Parser;
@@ -27,9 +28,12 @@ struct Args {
     /// Case directory (request.json + source_0..2.png). Default: the first parity fixture.
     #[arg(long)]
     case: Option<PathBuf>,
-    /// Target views are SIZE x SIZE pixels.
-    #[arg(long, default_value_t = 64)]
-    size: u32,
+    /// Target views are SIZE x SIZE pixels; a list (32,64,96) sends the sizes in turn.
+    #[arg(long = "size", value_delimiter = ',', default_value = "64")]
+    sizes: Vec<u32>,
+    /// Send `x-scnerf-deadline-ms: N` and count the views finished within it (goodput).
+    #[arg(long)]
+    deadline_ms: Option<u64>,
     #[arg(long, default_value_t = 60)]
     duration_secs: u64,
     /// Closed loop with this many workers (the default mode, 1 worker).
@@ -108,13 +112,7 @@ fn recover(scenario: &Scenario) -> Result<f64, String> {
     }
     let drained = start.elapsed().as_secs_f64();
     for i in 0..3 {
-        let auth = scenario.token.as_ref().map(|t| format!("Bearer {t}"));
-        let mut headers = vec![("content-type", "application/json")];
-        if let Some(a) = &auth {
-            headers.push(("authorization", a.as_str()));
-        }
-        let r = http_request(scenario.addr, "POST", &scenario.path, &headers, &scenario.body, scenario.timeout)
-            .map_err(|e| format!("recovery render {i}: {e}"))?;
+        let r = scenario.send().map_err(|e| format!("recovery render {i}: {e}"))?;
         if r.status != 200 {
             return Err(format!("recovery render {i}: {} {}", r.status, String::from_utf8_lossy(&r.body)));
         }
@@ -131,8 +129,10 @@ fn main() {
         addr: args.addr,
         token: args.token.clone(),
         path: format!("/v1/scenes/{scene_id}/render"),
-        body: case.view_body(args.size),
+        bodies: args.sizes.iter().map(|&size| case.view_body(size)).collect(),
+        deadline: args.deadline_ms.map(Duration::from_millis),
         timeout: Duration::from_secs(args.timeout_secs),
+        sent: Arc::default(),
     };
     let mode = match (args.rate, args.concurrency) {
         (Some(rate), _) => Mode::Open { rate, max_in_flight: args.max_in_flight },
@@ -147,7 +147,7 @@ fn main() {
     let machine = machine();
 
     let outcome = run(&scenario, mode, duration);
-    let report = Report::new(&outcome);
+    let report = Report::new(&outcome, scenario.deadline);
     let memory_after = args.server_pid.and_then(memory_kib);
     let rss_series = sampler.and_then(|s| s.join().ok());
     let recovery = args.recover.then(|| recover(&scenario));
@@ -159,7 +159,8 @@ fn main() {
     };
     let mut out = json!({
         "mode": mode_json,
-        "target": format!("{0}x{0}", args.size),
+        "targets": args.sizes.iter().map(|s| format!("{s}x{s}")).collect::<Vec<_>>(),
+        "deadline_ms": args.deadline_ms,
         "duration_s": args.duration_secs,
         "report": report,
         "server_memory_kib": {

@@ -1,0 +1,212 @@
+//! Hostile clients against the real binary over real sockets: trickling and stalled uploads,
+//! declared lengths over the limit, abandoned uploads, partial headers, idle keep-alive
+//! connections, oversized headers, the connection cap and a shutdown with idle connections.
+//! Settings go through the environment (`SCNERF_*`), so each test also runs against a build
+//! that predates them (`SCNERF_SERVER_BIN`), where it fails.
+
+use std::io::{Read, Write};
+use std::net::{SocketAddr, TcpStream};
+use std::time::{Duration, Instant};
+
+use scnerf_e2e::load::memory_kib;
+use scnerf_e2e::{http_request, repo_root, server_binary, ServerProcess};
+
+fn start(env: &[(&str, &str)]) -> ServerProcess {
+    let bundle = repo_root().join("tests/fixtures/parity/bundle");
+    let args = ["--bundle", bundle.to_str().unwrap(), "--skip-warmup"];
+    let mut server = ServerProcess::start_with_env(&server_binary(), &args, env);
+    server.wait_ready(Duration::from_secs(120));
+    server
+}
+
+/// A connection from `ip` (any 127.x.y.z is this machine): how a test plays several clients.
+fn connect_from(ip: &str, server: SocketAddr) -> TcpStream {
+    let runtime = tokio::runtime::Builder::new_current_thread().enable_io().build().unwrap();
+    let stream = runtime.block_on(async {
+        let socket = tokio::net::TcpSocket::new_v4().unwrap();
+        socket.bind(format!("{ip}:0").parse().unwrap()).unwrap();
+        socket.connect(server).await.unwrap()
+    });
+    let stream = stream.into_std().unwrap();
+    stream.set_nonblocking(false).unwrap();
+    stream
+}
+
+fn post_head(path: &str, content_type: &str, length: u64) -> String {
+    format!("POST {path} HTTP/1.1\r\nHost: test\r\nContent-Type: {content_type}\r\nContent-Length: {length}\r\n\r\n")
+}
+
+/// The status of the response on `stream`, if one arrives within `timeout`.
+fn status_within(stream: &mut TcpStream, timeout: Duration) -> Option<u16> {
+    stream.set_read_timeout(Some(timeout)).unwrap();
+    let mut buf = [0u8; 4096];
+    let n = stream.read(&mut buf).ok()?;
+    let head = String::from_utf8_lossy(&buf[..n]);
+    head.split_whitespace().nth(1)?.parse().ok()
+}
+
+/// Whether the server closes `stream` within `timeout` (reading what it sends first).
+fn closed_within(stream: &mut TcpStream, timeout: Duration) -> bool {
+    let start = Instant::now();
+    let mut buf = [0u8; 4096];
+    while start.elapsed() < timeout {
+        stream.set_read_timeout(Some(timeout.saturating_sub(start.elapsed()).max(Duration::from_millis(1)))).unwrap();
+        match stream.read(&mut buf) {
+            Ok(0) => return true,
+            Ok(_) => continue,
+            Err(e) if e.kind() == std::io::ErrorKind::ConnectionReset => return true,
+            Err(_) => return false,
+        }
+    }
+    false
+}
+
+/// Sends the head of a 10 kB upload, then 2 bytes every 200 ms, until an answer comes (its
+/// status and when) or 10 s pass (`None`).
+fn trickle(from: &'static str, server: SocketAddr) -> std::thread::JoinHandle<Option<(u16, Duration)>> {
+    std::thread::spawn(move || {
+        let mut stream = connect_from(from, server);
+        let start = Instant::now();
+        stream.write_all(post_head("/v1/render", "application/json", 10_000).as_bytes()).ok()?;
+        while start.elapsed() < Duration::from_secs(10) {
+            if let Some(status) = status_within(&mut stream, Duration::from_millis(200)) {
+                return Some((status, start.elapsed()));
+            }
+            stream.write_all(b"  ").ok()?;
+        }
+        None
+    })
+}
+
+#[test]
+fn trickling_uploads_get_408_and_one_client_cannot_hold_every_post_slot() {
+    let server = start(&[
+        ("SCNERF_MAX_CONCURRENT_REQUESTS", "4"),
+        ("SCNERF_MAX_REQUESTS_PER_CLIENT", "2"),
+        ("SCNERF_BODY_TIMEOUT_SECS", "1"),
+        ("SCNERF_MIN_BODY_BYTES_PER_SEC", "1000"),
+    ]);
+    let uploads: Vec<_> = (0..4).map(|_| trickle("127.0.0.2", server.addr)).collect();
+    std::thread::sleep(Duration::from_millis(300));
+    // Another client still gets a slot: its POST reaches the handler (400: `{}` is no view).
+    let path = "/v1/scenes/0123456789abcdef0123456789abcdef/render";
+    let other = http_request(
+        server.addr,
+        "POST",
+        path,
+        &[("content-type", "application/json")],
+        b"{}",
+        Duration::from_secs(10),
+    )
+    .unwrap();
+    assert_eq!(other.status, 400, "{}", String::from_utf8_lossy(&other.body));
+    let mut statuses: Vec<_> = uploads.into_iter().map(|u| u.join().unwrap()).collect();
+    statuses.sort();
+    let codes: Vec<_> = statuses.iter().map(|s| s.map(|(code, _)| code)).collect();
+    assert_eq!(codes, [Some(408), Some(408), Some(429), Some(429)], "{statuses:?}");
+    // 1 s at any rate, then 1000 bytes/s: the few bytes sent buy almost nothing more.
+    assert!(statuses.iter().flatten().all(|(_, t)| *t < Duration::from_secs(4)), "{statuses:?}");
+}
+
+#[test]
+fn a_declared_length_over_the_limit_is_413_before_any_byte_is_read() {
+    let server = start(&[]);
+    let mut stream = TcpStream::connect(server.addr).unwrap();
+    stream.write_all(post_head("/v1/render", "application/x-protobuf", 1_000_000_000_000).as_bytes()).unwrap();
+    assert_eq!(status_within(&mut stream, Duration::from_secs(5)), Some(413));
+}
+
+#[test]
+fn abandoned_uploads_give_their_memory_back() {
+    let server = start(&[("SCNERF_MAX_REQUESTS_PER_CLIENT", "0")]);
+    let pid = server.child.id();
+    let rss_mib = || memory_kib(pid).expect("/proc").1 / 1024;
+    let baseline = rss_mib();
+    let (uploads, sent_mib) = (8, 48);
+    let clients: Vec<_> = (0..uploads)
+        .map(|_| {
+            let addr = server.addr;
+            std::thread::spawn(move || {
+                let mut stream = TcpStream::connect(addr).unwrap();
+                stream.write_all(post_head("/v1/render", "application/json", 60 << 20).as_bytes()).unwrap();
+                stream.write_all(&vec![b' '; sent_mib << 20]).unwrap();
+                stream // stalls here, then is dropped: the client went away mid-upload
+            })
+        })
+        .collect();
+    let streams: Vec<_> = clients.into_iter().map(|c| c.join().unwrap()).collect();
+    std::thread::sleep(Duration::from_millis(500));
+    let holding = rss_mib();
+    drop(streams);
+    let start = Instant::now();
+    let mut after = rss_mib();
+    while after > baseline + 64 && start.elapsed() < Duration::from_secs(5) {
+        std::thread::sleep(Duration::from_millis(100));
+        after = rss_mib();
+    }
+    eprintln!("RSS MiB: {baseline} before, {holding} holding {uploads} x {sent_mib} MiB, {after} after they left");
+    assert!(holding > baseline + (uploads * sent_mib / 2) as u64, "the uploads were not held: {holding} MiB");
+    assert!(after <= baseline + 64, "RSS stayed at {after} MiB after the uploads were abandoned ({baseline} before)");
+}
+
+#[test]
+fn partial_headers_and_idle_keep_alive_connections_are_closed() {
+    let server = start(&[("SCNERF_HEADER_READ_TIMEOUT_SECS", "1")]);
+    let mut partial = TcpStream::connect(server.addr).unwrap();
+    partial.write_all(b"GET /healthz HTTP/1.1\r\nHost: test\r\n").unwrap();
+    let mut idle = TcpStream::connect(server.addr).unwrap();
+    idle.write_all(b"GET /healthz HTTP/1.1\r\nHost: test\r\n\r\n").unwrap();
+    assert_eq!(status_within(&mut idle, Duration::from_secs(5)), Some(200));
+    assert!(closed_within(&mut partial, Duration::from_secs(5)), "a partial request head kept its connection");
+    assert!(closed_within(&mut idle, Duration::from_secs(5)), "an idle keep-alive connection stayed open");
+}
+
+#[test]
+fn an_oversized_request_head_is_431() {
+    let server = start(&[("SCNERF_MAX_HEADER_BYTES", "16384")]);
+    let mut stream = TcpStream::connect(server.addr).unwrap();
+    let big = "a".repeat(200 << 10);
+    stream.write_all(format!("GET /healthz HTTP/1.1\r\nHost: test\r\nx-padding: {big}\r\n\r\n").as_bytes()).unwrap();
+    assert_eq!(status_within(&mut stream, Duration::from_secs(5)), Some(431));
+}
+
+#[test]
+fn the_connection_cap_must_fit_the_file_limit_and_slots_come_back() {
+    let mut child = std::process::Command::new(server_binary())
+        .args(["--addr", "127.0.0.1:0", "--skip-warmup"])
+        .env("SCNERF_MAX_CONNECTIONS", "4000000000")
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let began = Instant::now();
+    while child.try_wait().unwrap().is_none() && began.elapsed() < Duration::from_secs(20) {
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let _ = child.kill();
+    let out = child.wait_with_output().unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && (stderr.contains("open-file limit") || stderr.contains("open files")), "{stderr}");
+
+    // At the cap, idle connections time out and give their slots to new clients.
+    let server = start(&[("SCNERF_MAX_CONNECTIONS", "8"), ("SCNERF_HEADER_READ_TIMEOUT_SECS", "1")]);
+    let _idle: Vec<_> = (0..8).map(|_| TcpStream::connect(server.addr).unwrap()).collect();
+    let health = http_request(server.addr, "GET", "/healthz", &[], b"", Duration::from_secs(10)).unwrap();
+    assert_eq!(health.status, 200);
+}
+
+#[test]
+fn sigterm_does_not_wait_for_connections_without_a_request() {
+    let mut server = start(&[("SCNERF_SHUTDOWN_GRACE_SECS", "30")]);
+    let mut idle = TcpStream::connect(server.addr).unwrap();
+    idle.write_all(b"GET /healthz HTTP/1.1\r\nHost: test\r\n\r\n").unwrap();
+    assert_eq!(status_within(&mut idle, Duration::from_secs(5)), Some(200));
+    let mut partial = TcpStream::connect(server.addr).unwrap();
+    partial.write_all(b"POST /v1/render HTTP/1.1\r\nHost: te").unwrap();
+    std::thread::sleep(Duration::from_millis(200));
+    let signalled = Instant::now();
+    server.terminate();
+    let status = server.wait_exit(Duration::from_secs(25));
+    assert_eq!(status.code(), Some(0), "{status}");
+    assert!(signalled.elapsed() < Duration::from_secs(5), "exit took {:?}", signalled.elapsed());
+}
