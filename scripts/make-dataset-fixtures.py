@@ -38,12 +38,13 @@ W, H = 8, 6
 GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
-def ring(n: int, radius: float, seed: int) -> list[np.ndarray]:
-    """World-to-camera matrices (OpenCV) of n cameras around the origin, looking near it."""
+def ring(n: int, radius: float, seed: int, arc: float = 2 * math.pi) -> list[np.ndarray]:
+    """World-to-camera matrices (OpenCV) of n cameras spread over ``arc`` radians of a ring around
+    the origin, looking near it."""
     rng = np.random.default_rng(seed)
     poses = []
     for i in range(n):
-        a = 2 * math.pi * i / n + rng.uniform(-0.2, 0.2)
+        a = arc * i / n + rng.uniform(-0.2, 0.2)
         eye = [radius * math.cos(a), radius * math.sin(a), radius * rng.uniform(0.2, 0.5)]
         poses.append(look_at(eye, rng.normal(scale=0.05 * radius, size=3)))
     return poses
@@ -149,7 +150,10 @@ def make_nerfstudio() -> dict[str, str]:
 
 def make_llff() -> dict[str, str]:
     d = fresh("llff")
-    poses = ring(4, 2.0, seed=3)
+    # forward-facing, as LLFF captures are: cameras in a plane, looking along +y
+    rng = np.random.default_rng(3)
+    eyes = [np.array([x, 0.0, z]) for x, z in [(-0.3, 0.1), (0.25, 0.05), (0.0, -0.2), (0.3, -0.1)]]
+    poses = [look_at(e, e * 0.2 + [0.0, 10.0, 0.0] + rng.normal(scale=0.1, size=3)) for e in eyes]
     rows, images = [], {}
     for i, w2c in enumerate(poses):
         c2w = np.linalg.inv(w2c)
@@ -244,7 +248,7 @@ def make_colmap_binary() -> None:
 
 def make_dtu() -> dict[str, str]:
     d = fresh("dtu")
-    poses = ring(5, 800.0, seed=5)  # millimetres
+    poses = ring(5, 800.0, seed=5, arc=math.pi / 2)  # millimetres, on one side as DTU's cameras
     images = {}
     for vid, w2c in zip([0, 1, 2, 3, 9], poses):
         depth = "425.0 2.5" if vid != 2 else "400.0 2.6"
