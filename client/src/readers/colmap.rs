@@ -23,6 +23,7 @@ use super::{
 };
 use crate::camera::{Camera, Intrinsics, Pose};
 use crate::error::{read_bytes, read_text, Error, Result};
+use crate::metrics::percentile;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Encoding {
@@ -219,14 +220,6 @@ fn points_near_far(points: &Points, images: &[ImageRecord]) -> Option<(f64, f64)
     }
     depths.sort_by(f64::total_cmp);
     Some((0.9 * percentile(&depths, 1.0), 1.1 * percentile(&depths, 99.0)))
-}
-
-/// numpy's default (linear) percentile of sorted values.
-fn percentile(sorted: &[f64], q: f64) -> f64 {
-    let pos = q / 100.0 * (sorted.len() - 1) as f64;
-    let lo = pos.floor() as usize;
-    let hi = (lo + 1).min(sorted.len() - 1);
-    sorted[lo] + (sorted[hi] - sorted[lo]) * (pos - lo as f64)
 }
 
 mod text {
@@ -480,18 +473,5 @@ mod binary {
             points.tracks.push(track);
         }
         Ok(points)
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::percentile;
-
-    #[test]
-    fn percentile_is_numpys_linear_rule() {
-        // np.percentile([1, 2, 3, 4, 10], [1, 99]) = [1.04, 9.76]
-        let v = [1.0, 2.0, 3.0, 4.0, 10.0];
-        assert!((percentile(&v, 1.0) - 1.04).abs() < 1e-12);
-        assert!((percentile(&v, 99.0) - 9.76).abs() < 1e-12);
     }
 }
