@@ -89,13 +89,30 @@ impl Client {
             parts.push(Part { name: format!("source_{i}"), file: Some(path.clone()), bytes: read_bytes(path)? });
         }
         let (content_type, body) = multipart(&parts);
-        let response = self.post("/v1/scenes", &content_type, &body)?;
+        let response = match self.post("/v1/scenes", &content_type, &body) {
+            Err(Error::Http { url, message }) => return Err(self.refusal_during_upload(&parts[0], url, message)),
+            other => other?,
+        };
         #[derive(Deserialize)]
         struct Created {
             scene_id: String,
         }
         let created: Created = parse_json(&response.body, "/v1/scenes")?;
         Ok(created.scene_id)
+    }
+
+    /// A server that refuses an upload from its `request` part (too many views, say) answers and
+    /// closes the connection while the images are still being sent, so the answer is lost. The
+    /// `request` part alone gets the same refusal back; anything else about it (its images are
+    /// missing, of course) keeps the network error.
+    fn refusal_during_upload(&self, request: &Part, url: String, message: String) -> Error {
+        let (content_type, body) = multipart(std::slice::from_ref(request));
+        match self.post("/v1/scenes", &content_type, &body) {
+            Err(e @ Error::Server { .. }) if !matches!(&e, Error::Server { field: Some(f), .. } if f.starts_with("source_")) => {
+                e
+            }
+            _ => Error::Http { url, message },
+        }
     }
 
     /// Renders `target`; `depth` asks for the depth map too.

@@ -114,6 +114,25 @@ fn errors_are_plain_words() {
     let err = client.render(&mut scene, &target.resized(5000, 10), false).unwrap_err().to_string();
     assert_eq!(err, "the server refused the request (422 invalid): target too large [field: target.width]");
 
+    // refused from the request part while 9 x 4 MB of images are still on their way: the
+    // server's answer, not a broken pipe, whether or not the connection closed mid-upload
+    let big = tempfile::tempdir().unwrap();
+    let (mut upload, _) = fixture_upload();
+    let noise: Vec<u8> = (0..4u32 << 20).map(|i| (i.wrapping_mul(2654435761) >> 24) as u8).collect();
+    let camera = upload.sources[0].0.clone();
+    upload.sources = (0..9)
+        .map(|i| {
+            let path = big.path().join(format!("{i}.png"));
+            std::fs::write(&path, &noise).unwrap();
+            (camera.clone(), path)
+        })
+        .collect();
+    let err = client.create_scene(upload).unwrap_err().to_string();
+    assert_eq!(
+        err,
+        "the server refused the request (422 invalid_request): a scene takes at most 8 views, got 9 [field: sources]"
+    );
+
     let (upload, _) = fixture_upload();
     let err = Client::new("http://127.0.0.1:9", None).create_scene(upload).unwrap_err().to_string();
     assert!(err.starts_with("cannot reach the server at http://127.0.0.1:9/v1/scenes: "), "{err}");

@@ -2,7 +2,8 @@
 //! `POST /v1/scenes` (multipart: `request` JSON + `source_i` images) and
 //! `POST /v1/scenes/{id}/render` (JSON), answering like the real server, plus scripted failures:
 //! the next renders can answer 503 with Retry-After, or 404 `scene_not_found` (the scene is
-//! forgotten, as after expiry), or 422 for a target wider than 4096.
+//! forgotten, as after expiry), or 422 for a target wider than 4096; a scene of more than
+//! `MAX_VIEWS` views is refused from its `request` part, before the images are read.
 
 #![allow(dead_code)] // each test binary uses part of it
 
@@ -19,6 +20,9 @@ use axum::{Json, Router};
 use base64::Engine;
 use serde::Deserialize;
 use serde_json::{json, Value};
+
+/// Most views per scene.
+pub const MAX_VIEWS: usize = 8;
 
 #[derive(Default)]
 pub struct FakeState {
@@ -130,7 +134,12 @@ async fn create(State(state): State<Arc<FakeState>>, mut multipart: Multipart) -
         let name = field.name().unwrap_or_default().to_string();
         let bytes = field.bytes().await.unwrap();
         if name == "request" {
-            match serde_json::from_slice(&bytes) {
+            match serde_json::from_slice::<SceneRequest>(&bytes) {
+                // refused before the images are read, as the real server does
+                Ok(r) if r.sources.len() > MAX_VIEWS => {
+                    let message = format!("a scene takes at most {MAX_VIEWS} views, got {}", r.sources.len());
+                    return error(StatusCode::UNPROCESSABLE_ENTITY, "invalid_request", &message, Some("sources"));
+                }
                 Ok(r) => request = Some(r),
                 Err(e) => return error(StatusCode::BAD_REQUEST, "malformed", &e.to_string(), Some("request")),
             }
