@@ -247,10 +247,10 @@ pub(crate) fn source_views<'a>(capture: &'a Capture, names: &[String]) -> Result
     names.iter().map(|n| capture.view(n)).collect()
 }
 
-/// At most `max` views, evenly spread over the capture order.
+/// At most `max` (>= 2) views, evenly spread over the capture order, first and last included.
 fn thin(views: &[CapturedView], max: usize) -> Vec<&CapturedView> {
-    if views.len() <= max || max < 2 {
-        return views.iter().take(max.max(1)).collect();
+    if views.len() <= max {
+        return views.iter().collect();
     }
     (0..max).map(|i| &views[(i * (views.len() - 1) + (max - 1) / 2) / (max - 1)]).collect()
 }
@@ -265,7 +265,10 @@ fn upload_of(capture: &Capture, views: &[&CapturedView]) -> Upload {
 }
 
 /// The capture's views to upload, thinned to the server's limit with a warning.
-fn scene_views(capture: &Capture, max: usize) -> Vec<&CapturedView> {
+fn scene_views(capture: &Capture, max: usize) -> Result<Vec<&CapturedView>> {
+    if max < 3 {
+        return Err(Error::Usage(format!("--max-views must be at least 3, got {max}")));
+    }
     let views = thin(&capture.views, max);
     if views.len() < capture.views.len() {
         eprintln!(
@@ -274,7 +277,7 @@ fn scene_views(capture: &Capture, max: usize) -> Vec<&CapturedView> {
             views.len()
         );
     }
-    views
+    Ok(views)
 }
 
 fn path_cameras(capture: &Capture, args: &RenderArgs) -> Result<Vec<Camera>> {
@@ -311,16 +314,25 @@ fn progress_bar() -> ProgressBar {
     bar
 }
 
+/// A line above the progress bar, or on stderr when the bar is hidden (not a terminal).
+fn notify(bar: &ProgressBar, message: &str) {
+    if bar.is_hidden() {
+        eprintln!("{message}");
+    } else {
+        bar.println(message);
+    }
+}
+
 fn render(client: Client, args: &RenderArgs) -> Result<()> {
     let capture = load(&args.data)?;
     let cameras = path_cameras(&capture, args)?;
     let started = Instant::now();
     let bar = progress_bar();
     let notices = bar.clone();
-    let client = client.with_notice(move |m| notices.println(m));
-    let views = scene_views(&capture, args.upload.max_views);
+    let client = client.with_notice(move |m| notify(&notices, m));
+    let views = scene_views(&capture, args.upload.max_views)?;
     let mut scene = client.create_scene(upload_of(&capture, &views))?;
-    bar.println(format!("uploaded {} views as scene {}", views.len(), scene.id));
+    notify(&bar, &format!("uploaded {} views as scene {}", views.len(), scene.id));
     let done = render_frames(&client, &mut scene, &cameras, &args.out, !args.no_depth, &bar)?;
     bar.finish_and_clear();
     say!(
@@ -358,7 +370,7 @@ fn view(client: &Client, args: &ViewArgs) -> Result<()> {
     };
     let views = match &args.sources {
         Some(names) => source_views(&capture, names)?,
-        None => scene_views(&capture, args.upload.max_views),
+        None => scene_views(&capture, args.upload.max_views)?,
     };
     let mut scene = client.create_scene(upload_of(&capture, &views))?;
     let rendered = client.render(&mut scene, &camera, true)?;
@@ -372,4 +384,34 @@ fn view(client: &Client, args: &ViewArgs) -> Result<()> {
     say!("wrote {} ({}x{}) and {}", args.out.display(), rendered.width, rendered.height, depth.display());
     say!("{}{}", server_summary(&rendered), names.map(|n| format!(" ({})", n.join(","))).unwrap_or_default());
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn thinning_keeps_the_ends_and_spreads_the_rest() {
+        let view = |i: usize| CapturedView {
+            name: i.to_string(),
+            image_path: PathBuf::new(),
+            camera: Camera {
+                width: 1,
+                height: 1,
+                intrinsics: crate::camera::Intrinsics { fx: 1.0, fy: 1.0, cx: 0.0, cy: 0.0 },
+                w2c: crate::camera::Pose::identity(),
+            },
+        };
+        let views: Vec<CapturedView> = (0..20).map(view).collect();
+        let names = |max| thin(&views, max).iter().map(|v| v.name.clone()).collect::<Vec<_>>().join(",");
+        assert_eq!(names(3), "0,10,19");
+        assert_eq!(names(5), "0,5,10,14,19");
+        assert_eq!(thin(&views, 64).len(), 20);
+    }
+
+    #[test]
+    fn sizes_parse_as_width_x_height() {
+        assert_eq!(parse_size("200x100"), Ok((200, 100)));
+        assert!(parse_size("0x100").is_err() && parse_size("200").is_err());
+    }
 }

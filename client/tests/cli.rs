@@ -49,6 +49,7 @@ fn render_writes_frames_depth_and_a_gif_then_resumes() {
     let (stdout, stderr) = text(&first);
     assert!(first.status.success(), "{stdout}\n{stderr}");
     assert!(stderr.contains("warning: ") && stderr.contains("2 of 7 frames have no image file; skipped"), "{stderr}");
+    assert!(stderr.contains("uploaded 5 views as scene "), "{stderr}");
     assert!(stdout.contains("6 frames in") && stdout.contains("6 rendered, 0 already there"), "{stdout}");
     assert!(stdout.contains("video.gif") && stdout.contains("note: ffmpeg is not on PATH"), "{stdout}");
     for i in 0..6 {
