@@ -14,6 +14,7 @@ use serde_json::{json, Value};
 
 use crate::camera::Camera;
 use crate::error::{read_bytes, Error, Result};
+use crate::readers::{Capture, CapturedView};
 
 /// Header in which the server names the sources it chose for a view ("i,j,k", capture order).
 pub const SOURCES_HEADER: &str = "x-scnerf-sources";
@@ -25,6 +26,18 @@ pub struct Upload {
     pub near: f64,
     pub far: f64,
     pub background: [f64; 3],
+}
+
+impl Upload {
+    /// `views` of `capture`, in that order (the first is the reference when there are 3).
+    pub fn new(capture: &Capture, views: &[&CapturedView]) -> Upload {
+        Upload {
+            sources: views.iter().map(|v| (v.camera.clone(), v.image_path.clone())).collect(),
+            near: capture.near,
+            far: capture.far,
+            background: capture.background,
+        }
+    }
 }
 
 #[derive(Debug)]

@@ -255,15 +255,6 @@ fn thin(views: &[CapturedView], max: usize) -> Vec<&CapturedView> {
     (0..max).map(|i| &views[(i * (views.len() - 1) + (max - 1) / 2) / (max - 1)]).collect()
 }
 
-fn upload_of(capture: &Capture, views: &[&CapturedView]) -> Upload {
-    Upload {
-        sources: views.iter().map(|v| (v.camera.clone(), v.image_path.clone())).collect(),
-        near: capture.near,
-        far: capture.far,
-        background: capture.background,
-    }
-}
-
 /// The capture's views to upload, thinned to the server's limit with a warning.
 fn scene_views(capture: &Capture, max: usize) -> Result<Vec<&CapturedView>> {
     if max < 3 {
@@ -331,7 +322,7 @@ fn render(client: Client, args: &RenderArgs) -> Result<()> {
     let notices = bar.clone();
     let client = client.with_notice(move |m| notify(&notices, m));
     let views = scene_views(&capture, args.upload.max_views)?;
-    let mut scene = client.create_scene(upload_of(&capture, &views))?;
+    let mut scene = client.create_scene(Upload::new(&capture, &views))?;
     notify(&bar, &format!("uploaded {} views as scene {}", views.len(), scene.id));
     let done = render_frames(&client, &mut scene, &cameras, &args.out, !args.no_depth, &bar)?;
     bar.finish_and_clear();
@@ -372,7 +363,7 @@ fn view(client: &Client, args: &ViewArgs) -> Result<()> {
         Some(names) => source_views(&capture, names)?,
         None => scene_views(&capture, args.upload.max_views)?,
     };
-    let mut scene = client.create_scene(upload_of(&capture, &views))?;
+    let mut scene = client.create_scene(Upload::new(&capture, &views))?;
     let rendered = client.render(&mut scene, &camera, true)?;
     write_atomically(&args.out, &rendered.rgb_png)?;
     let depth = args.out.with_extension("depth.npy");

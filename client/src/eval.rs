@@ -41,13 +41,7 @@ pub fn run(client: &Client, capture: &Capture, args: &EvalArgs) -> Result<()> {
     }
     let mut rows = Vec::new();
     for (sources, group) in &groups {
-        let upload = Upload {
-            sources: sources.iter().map(|v| (v.camera.clone(), v.image_path.clone())).collect(),
-            near: capture.near,
-            far: capture.far,
-            background: capture.background,
-        };
-        let mut scene = client.create_scene(upload)?;
+        let mut scene = client.create_scene(Upload::new(capture, sources))?;
         for target in group {
             let (w, h) = (target.camera.width, target.camera.height);
             if w % n != 0 || h % n != 0 {

@@ -15,13 +15,8 @@ use scnerf_client::readers::{self, ReadOptions};
 fn fixture_upload() -> (Upload, scnerf_client::camera::Camera) {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/fixtures/datasets/blender");
     let capture = readers::load(&dir, None, ReadOptions::default()).unwrap();
-    let upload = Upload {
-        sources: capture.views.iter().map(|v| (v.camera.clone(), v.image_path.clone())).collect(),
-        near: capture.near,
-        far: capture.far,
-        background: capture.background,
-    };
-    (upload, capture.views[0].camera.resized(16, 12))
+    let views: Vec<_> = capture.views.iter().collect();
+    (Upload::new(&capture, &views), capture.views[0].camera.resized(16, 12))
 }
 
 /// A client whose notices are kept for the test to read.

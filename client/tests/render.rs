@@ -21,13 +21,8 @@ fn capture_and_path(frames: usize) -> (Upload, Vec<Camera>) {
     let path = scnerf_client::paths::orbit(&cams, frames).unwrap();
     let template = cams[0].resized(16, 12);
     let cameras = path.into_iter().map(|w2c| Camera { w2c, ..template.clone() }).collect();
-    let upload = Upload {
-        sources: capture.views.iter().map(|v| (v.camera.clone(), v.image_path.clone())).collect(),
-        near: capture.near,
-        far: capture.far,
-        background: capture.background,
-    };
-    (upload, cameras)
+    let views: Vec<_> = capture.views.iter().collect();
+    (Upload::new(&capture, &views), cameras)
 }
 
 #[test]

@@ -77,12 +77,6 @@ impl Format {
             Format::Dtu => "dtu",
         }
     }
-
-    pub fn from_name(name: &str) -> Option<Format> {
-        [Format::Colmap, Format::Nerfstudio, Format::Blender, Format::Llff, Format::Dtu]
-            .into_iter()
-            .find(|f| f.name() == name)
-    }
 }
 
 /// Which layout a folder holds. The order matters: LLFF and nerfstudio folders often carry the
