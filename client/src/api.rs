@@ -236,7 +236,7 @@ fn parse_rendered(reply: &Reply, path: &str) -> Result<Rendered> {
     let decode = |d: &Data| {
         base64::engine::general_purpose::STANDARD
             .decode(&d.data)
-            .map_err(|e| Error::Http { url: path.into(), message: format!("bad base64 in the answer: {e}") })
+            .map_err(|e| Error::Response { context: path.into(), message: format!("bad base64: {e}") })
     };
     let rgb_png = decode(
         body.rgb

@@ -141,7 +141,7 @@ pub struct EvalArgs {
     #[arg(long, value_delimiter = ',')]
     pub sources: Option<Vec<String>>,
     /// Render targets at 1/N of their size, against box-averaged ground truth.
-    #[arg(long, default_value_t = 1)]
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..))]
     pub downscale: u32,
     /// Save the rendered views here.
     #[arg(long)]

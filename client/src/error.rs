@@ -19,6 +19,10 @@ pub enum Error {
     #[error("cannot reach the server at {url}: {message}")]
     Http { url: String, message: String },
 
+    /// A 2xx answer the client cannot use.
+    #[error("unexpected answer from the server ({context}): {message}")]
+    Response { context: String, message: String },
+
     /// The server's own `{"error": {"code", "message", "field"}}`.
     #[error("the server refused the request ({status} {code}): {message}{}", field_suffix(.field))]
     Server { status: u16, code: String, message: String, field: Option<String> },

@@ -26,10 +26,14 @@ struct Row {
 pub fn run(client: &Client, capture: &Capture, args: &EvalArgs) -> Result<()> {
     let targets = targets(capture, args)?;
     let pool: Vec<&CapturedView> = capture.views.iter().filter(|v| !targets.iter().any(|t| t.name == v.name)).collect();
-    let n = args.downscale.max(1);
+    let n = args.downscale;
     // (source triple, its targets), triples in order of first use
     let mut groups: Vec<(Vec<&CapturedView>, Vec<&CapturedView>)> = Vec::new();
     for target in &targets {
+        let (w, h) = (target.camera.width, target.camera.height);
+        if w % n != 0 || h % n != 0 {
+            return Err(Error::Usage(format!("--downscale {n} does not divide {}'s size {w}x{h}", target.name)));
+        }
         let sources = match &args.sources {
             Some(names) => source_views(capture, names)?,
             None => nearest(target, &pool)?,
@@ -44,18 +48,15 @@ pub fn run(client: &Client, capture: &Capture, args: &EvalArgs) -> Result<()> {
         let mut scene = client.create_scene(Upload::new(capture, sources))?;
         for target in group {
             let (w, h) = (target.camera.width, target.camera.height);
-            if w % n != 0 || h % n != 0 {
-                return Err(Error::Usage(format!("--downscale {n} does not divide {}'s size {w}x{h}", target.name)));
-            }
             let started = Instant::now();
             let rendered = client.render(&mut scene, &target.camera.resized(w / n, h / n), false)?;
             let seconds = started.elapsed().as_secs_f64();
-            let image_error =
-                |what: &str, e: image::ImageError| Error::dataset(&target.image_path, format!("{what}: {e}"));
-            let pred =
-                Image::decode(&rendered.rgb_png, capture.background).map_err(|e| image_error("rendered PNG", e))?;
+            let pred = Image::decode(&rendered.rgb_png, capture.background).map_err(|e| Error::Response {
+                context: format!("the image of {}", target.name),
+                message: e.to_string(),
+            })?;
             let gt = Image::decode(&read_bytes(&target.image_path)?, capture.background)
-                .map_err(|e| image_error("cannot decode", e))?
+                .map_err(|e| Error::dataset(&target.image_path, format!("cannot decode: {e}")))?
                 .downscaled(n as usize);
             if let Some(dir) = &args.out {
                 std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
