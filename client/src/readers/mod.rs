@@ -234,9 +234,9 @@ fn without_extension(path: &str) -> String {
     Path::new(path).with_extension("").to_string_lossy().into_owned()
 }
 
-/// Python's `Path(path).stem` of a relative path string.
-fn stem(path: &str) -> String {
-    Path::new(path).file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default()
+/// Python's `Path(path).name`: the last component.
+fn base_name(path: &str) -> String {
+    Path::new(path).file_name().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default()
 }
 
 /// Natural order ("img2" before "img10"), datasets.py `_natural_key`: runs of digits compare by
@@ -325,7 +325,8 @@ mod tests {
     fn python_style_path_helpers() {
         assert_eq!(without_extension("./images/frame_00001.png"), "./images/frame_00001");
         assert_eq!(without_extension("a.tar.gz"), "a.tar");
-        assert_eq!(stem("images/frame_00001.png"), "frame_00001");
-        assert_eq!(stem("./train/r_6"), "r_6");
+        // nerfstudio view names: the base name of the path without its extension
+        assert_eq!(base_name(&without_extension("images/frame_00001.png")), "frame_00001");
+        assert_eq!(base_name(&without_extension("./images/frame.v2.png")), "frame.v2");
     }
 }

@@ -14,7 +14,7 @@ use serde_json::Value;
 
 use super::blender::{all_unique, frame_file_path, frames_of};
 use super::{
-    check_distortion, depth_range, image_size, json_f64, json_matrix4, resolve_image, skipped_warning, stem,
+    base_name, check_distortion, depth_range, image_size, json_f64, json_matrix4, resolve_image, skipped_warning,
     without_extension, Capture, CapturedView, Format, ReadOptions,
 };
 use crate::camera::{w2c_from_opengl_c2w, Camera, Intrinsics};
@@ -77,7 +77,7 @@ pub fn load(path: &Path, opts: ReadOptions) -> Result<Capture> {
     if entries.is_empty() {
         return Err(Error::dataset(&file, "none of the listed frames has an image file"));
     }
-    let stems: Vec<String> = entries.iter().map(|(rel, _)| stem(rel)).collect();
+    let stems: Vec<String> = entries.iter().map(|(rel, _)| base_name(rel)).collect();
     let unique = all_unique(&stems);
     let views = entries
         .into_iter()
