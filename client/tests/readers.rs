@@ -129,6 +129,19 @@ fn near_far_flags_override_the_dataset() {
     let bad = ReadOptions { near: Some(7.0), ..Default::default() };
     let err = readers::load(&fixtures().join("blender"), None, bad).unwrap_err().to_string();
     assert!(err.contains("invalid near/far 7/6"), "{err}");
+
+    // each bound on its own, as the Python loaders take them: a file with far only and --near
+    let dir = copy_fixture("nerfstudio");
+    let file = dir.path().join("transforms.json");
+    let mut data: Value = serde_json::from_str(&std::fs::read_to_string(&file).unwrap()).unwrap();
+    data.as_object_mut().unwrap().remove("near_far");
+    data["far"] = 9.5.into();
+    std::fs::write(&file, data.to_string()).unwrap();
+    let err = error_of(dir.path());
+    assert!(err.contains("transforms.json: no near/far in the dataset"), "{err}");
+    assert!(err.contains("pass --near and --far"), "{err}");
+    let c = readers::load(dir.path(), None, ReadOptions { near: Some(0.1), ..Default::default() }).unwrap();
+    assert_eq!((c.near, c.far), (0.1, 9.5));
 }
 
 /// A copy of a fixture folder to break.

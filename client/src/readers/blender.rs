@@ -53,7 +53,7 @@ pub fn load(path: &Path, opts: ReadOptions) -> Result<Capture> {
     }
     let file_names: Vec<String> = files.iter().map(|f| f.display().to_string()).collect();
     let warnings = skipped_warning(&file_names.join(", "), skipped, listed).into_iter().collect();
-    let (near, far) = depth_range(opts, Ok(NEAR_FAR), path)?;
+    let (near, far) = depth_range(opts, (Some(NEAR_FAR.0), Some(NEAR_FAR.1)), path)?;
     Ok(Capture { format: Format::Blender, views, near, far, background: [1.0; 3], warnings })
 }
 

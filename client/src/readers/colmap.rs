@@ -122,7 +122,7 @@ pub fn load(path: &Path, opts: ReadOptions) -> Result<Capture> {
     } else {
         None
     };
-    let (near, far) = depth_range(opts, from_points.ok_or("no usable points3D file to derive near/far from"), &dir)?;
+    let (near, far) = depth_range(opts, (from_points.map(|p| p.0), from_points.map(|p| p.1)), &dir)?;
     Ok(Capture { format: Format::Colmap, views, near, far, background: [0.0; 3], warnings })
 }
 

@@ -54,7 +54,7 @@ pub fn load(path: &Path, opts: ReadOptions) -> Result<Capture> {
         .collect();
     let near = nears.iter().copied().fold(f64::INFINITY, f64::min);
     let far = fars.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-    let (near, far) = depth_range(opts, Ok((near, far)), path)?;
+    let (near, far) = depth_range(opts, (Some(near), Some(far)), path)?;
     Ok(Capture { format: Format::Dtu, views, near, far, background: [0.0; 3], warnings })
 }
 

@@ -48,7 +48,7 @@ pub fn load(path: &Path, opts: ReadOptions) -> Result<Capture> {
     }
     let near = rows.iter().map(|r| r[15]).fold(f64::INFINITY, f64::min);
     let far = rows.iter().map(|r| r[16]).fold(f64::NEG_INFINITY, f64::max);
-    let (near, far) = depth_range(opts, Ok((near, far)), &npy)?;
+    let (near, far) = depth_range(opts, (Some(near), Some(far)), &npy)?;
     Ok(Capture { format: Format::Llff, views, near, far, background: [0.0; 3], warnings: Vec::new() })
 }
 

@@ -166,13 +166,14 @@ pub fn read_json(path: &Path) -> Result<serde_json::Value> {
     serde_json::from_str(&text).map_err(|e| Error::dataset(path, format!("invalid JSON: {e}")))
 }
 
-/// `near`/`far`, each from the command line if given, else from the dataset (`Err` says why the
-/// dataset has none); checked as the Python loaders do (`_check_near_far`).
-fn depth_range(opts: ReadOptions, from_data: Result<(f64, f64), &str>, source: &Path) -> Result<(f64, f64)> {
-    let (near, far) = match (opts.near, opts.far, from_data) {
-        (Some(n), Some(f), _) => (n, f),
-        (n, f, Ok((dn, df))) => (n.unwrap_or(dn), f.unwrap_or(df)),
-        (_, _, Err(why)) => return Err(Error::dataset(source, format!("{why}; pass --near and --far"))),
+/// `near`/`far`, each from the command line if given, else from the dataset; checked as the
+/// Python loaders do (`_check_near_far`).
+fn depth_range(opts: ReadOptions, from_data: (Option<f64>, Option<f64>), source: &Path) -> Result<(f64, f64)> {
+    let (Some(near), Some(far)) = (opts.near.or(from_data.0), opts.far.or(from_data.1)) else {
+        return Err(Error::dataset(
+            source,
+            "no near/far in the dataset (COLMAP: from points3D; nerfstudio: near/far keys); pass --near and --far",
+        ));
     };
     if !(near.is_finite() && far.is_finite() && 0.0 <= near && near < far) {
         return Err(Error::dataset(source, format!("invalid near/far {near}/{far}: need 0 <= near < far")));

@@ -85,12 +85,12 @@ pub fn load(path: &Path, opts: ReadOptions) -> Result<Capture> {
         .map(|((rel, view), stem)| CapturedView { name: if unique { stem } else { rel }, ..view })
         .collect::<Vec<_>>();
     warnings.extend(skipped_warning(&file.display().to_string(), frames.len() - views.len(), frames.len()));
-    let (near, far) = depth_range(opts, near_far(&data, &file)?.ok_or("no near/far in the file"), &file)?;
+    let (near, far) = depth_range(opts, near_far(&data, &file)?, &file)?;
     Ok(Capture { format: Format::Nerfstudio, views, near, far, background: [0.0; 3], warnings })
 }
 
 /// `near`/`far` keys, each falling back to the matching element of `near_far`.
-fn near_far(data: &Value, file: &Path) -> Result<Option<(f64, f64)>> {
+fn near_far(data: &Value, file: &Path) -> Result<(Option<f64>, Option<f64>)> {
     let pair = data.get("near_far").and_then(Value::as_array).filter(|a| a.len() == 2);
     let pick = |key: &str, idx: usize| -> Result<Option<f64>> {
         match data.get(key).or_else(|| pair.map(|p| &p[idx])) {
@@ -98,5 +98,5 @@ fn near_far(data: &Value, file: &Path) -> Result<Option<(f64, f64)>> {
             None => Ok(None),
         }
     };
-    Ok(pick("near", 0)?.zip(pick("far", 1)?))
+    Ok((pick("near", 0)?, pick("far", 1)?))
 }
