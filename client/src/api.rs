@@ -121,9 +121,8 @@ impl Client {
     fn refusal_during_upload(&self, request: &Part, url: String, message: String) -> Error {
         let (content_type, body) = multipart(std::slice::from_ref(request));
         match self.post("/v1/scenes", &content_type, &body) {
-            Err(e @ Error::Server { .. }) if !matches!(&e, Error::Server { field: Some(f), .. } if f.starts_with("source_")) => {
-                e
-            }
+            Err(Error::Server { field: Some(f), .. }) if f.starts_with("source_") => Error::Http { url, message },
+            Err(refusal @ Error::Server { .. }) => refusal,
             _ => Error::Http { url, message },
         }
     }
