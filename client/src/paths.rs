@@ -2,8 +2,9 @@
 //!
 //! * `interpolate`: through the captured poses in capture order, rotations by slerp and centres
 //!   by a Catmull-Rom spline (it passes through every captured centre);
-//! * `orbit`: a circle around the point the cameras look at, at their mean height and horizontal
-//!   distance, starting at the first view, for object captures (Blender, DTU, turntables);
+//! * `orbit`: a horizontal circle around the point the cameras look at, at their mean height and
+//!   horizontal distance, starting at the first view, for object captures (Blender, DTU,
+//!   turntables); "horizontal" as level cameras define it (orthogonal to their right axes);
 //! * `spiral`: LLFF's `render_path_spiral` for forward-facing captures: two turns of an ellipse
 //!   around the mean camera, looking at a point at the capture's focus depth;
 //! * a JSON file of cameras in the API's form.
@@ -54,19 +55,24 @@ fn mean_up(cameras: &[Camera]) -> Result<Vector3<f64>> {
         .ok_or_else(|| Error::Usage("the cameras have no common up direction".into()))
 }
 
-/// The normal of the plane that fits the camera centres best (an orbit capture's rings), on the
-/// side of the cameras' mean up; the mean up itself when the centres do not span a plane.
-fn orbit_axis(cameras: &[Camera]) -> Result<Vector3<f64>> {
+/// The world's vertical as level cameras see it (held without roll, on a turntable, rendered):
+/// the direction orthogonal to every camera's right axis, on the side of their mean up; their
+/// mean up when the right axes share no normal (rolled cameras).
+fn vertical(cameras: &[Camera]) -> Result<Vector3<f64>> {
     let up = mean_up(cameras)?;
-    let mean = cameras.iter().map(|c| c.center().coords).sum::<Vector3<f64>>() / cameras.len() as f64;
-    let cov: Matrix3<f64> =
-        cameras.iter().map(|c| (c.center().coords - mean) * (c.center().coords - mean).transpose()).sum();
-    let eigen = cov.symmetric_eigen();
+    let rights: Matrix3<f64> = cameras
+        .iter()
+        .map(|c| {
+            let right = c.w2c.rotation.matrix().row(0).transpose();
+            right * right.transpose()
+        })
+        .sum();
+    let eigen = rights.symmetric_eigen();
     let mut order = [0, 1, 2];
     order.sort_by(|a, b| eigen.eigenvalues[*a].total_cmp(&eigen.eigenvalues[*b]));
     let (smallest, middle) = (eigen.eigenvalues[order[0]], eigen.eigenvalues[order[1]]);
-    if middle <= 0.0 || smallest > 0.5 * middle {
-        return Ok(up); // a line of cameras, or a cloud with no flat direction
+    if smallest > 0.05 * middle {
+        return Ok(up);
     }
     let normal = eigen.eigenvectors.column(order[0]).into_owned();
     Ok(if normal.dot(&up) < 0.0 { -normal } else { normal })
@@ -101,12 +107,12 @@ fn look_at_point(cameras: &[Camera]) -> Result<Point3<f64>> {
     Ok(point)
 }
 
-/// A circle of `frames` poses (seamless: the last frame is one step before the first) around the
-/// point the cameras look at, parallel to the plane of the camera centres, at their mean height
-/// and mean horizontal distance, starting above the first captured view.
+/// A horizontal circle of `frames` poses (seamless: the last frame is one step before the first)
+/// around the point the cameras look at, at their mean height and mean horizontal distance,
+/// starting at the first captured view's azimuth.
 pub fn orbit(cameras: &[Camera], frames: usize) -> Result<Vec<Pose>> {
     let centre = look_at_point(cameras)?;
-    let up = orbit_axis(cameras)?;
+    let up = vertical(cameras)?;
     let offsets: Vec<Vector3<f64>> = cameras.iter().map(|c| c.center() - centre).collect();
     let height = offsets.iter().map(|o| o.dot(&up)).sum::<f64>() / offsets.len() as f64;
     let horizontal = |o: &Vector3<f64>| o - up * o.dot(&up);
@@ -239,13 +245,14 @@ mod tests {
         }
     }
 
-    /// Six cameras on part of a ring of radius 4, 1.5 above (0.1, -0.2, 0.3), looking at it.
+    /// Six level cameras on part of a ring of radius 4 around (0.1, -0.2, 0.3), 1 to 2 above it
+    /// (mean 1.5), looking at it.
     fn object_capture() -> Vec<Camera> {
         let target = Point3::new(0.1, -0.2, 0.3);
         (0..6)
             .map(|i| {
                 let a = i as f64 * 0.9;
-                camera(Point3::new(4.0 * a.cos(), 4.0 * a.sin(), 1.5) + target.coords, target)
+                camera(Point3::new(4.0 * a.cos(), 4.0 * a.sin(), 1.0 + 0.2 * i as f64) + target.coords, target)
             })
             .collect()
     }
