@@ -1,0 +1,316 @@
+//! The HTTP side: upload a capture once as a scene (`POST /v1/scenes`, multipart), render views
+//! of it (`POST /v1/scenes/{id}/render`, JSON). 503/429 are retried after their `Retry-After`;
+//! a scene the server no longer has (404 `scene_not_found`: expired, evicted, restarted server)
+//! is uploaded again once and the render retried. Server errors come back as
+//! [`Error::Server`] with the server's own code, message and field.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use base64::Engine;
+use serde::Deserialize;
+use serde_json::{json, Value};
+
+use crate::camera::Camera;
+use crate::error::{read_bytes, Error, Result};
+use crate::readers::{Capture, CapturedView};
+
+/// Header in which the server names the sources it chose for a view ("i,j,k", capture order).
+pub const SOURCES_HEADER: &str = "x-scnerf-sources";
+
+/// The views of a scene and what the server needs with them; kept to upload again.
+#[derive(Debug, Clone)]
+pub struct Upload {
+    pub sources: Vec<(Camera, PathBuf)>,
+    pub near: f64,
+    pub far: f64,
+    pub background: [f64; 3],
+}
+
+impl Upload {
+    /// `views` of `capture`, in that order (the first is the reference when there are 3).
+    pub fn new(capture: &Capture, views: &[&CapturedView]) -> Upload {
+        Upload {
+            sources: views.iter().map(|v| (v.camera.clone(), v.image_path.clone())).collect(),
+            near: capture.near,
+            far: capture.far,
+            background: capture.background,
+        }
+    }
+}
+
+#[derive(Debug)]
+pub struct Scene {
+    pub id: String,
+    upload: Upload,
+}
+
+#[derive(Debug)]
+pub struct Rendered {
+    pub width: u32,
+    pub height: u32,
+    pub rgb_png: Vec<u8>,
+    /// Row-major z-depth, when asked for.
+    pub depth: Option<Vec<f32>>,
+    /// The server's own stage timings ("renderer", "total", ...).
+    pub timings_ms: BTreeMap<String, f64>,
+    /// Indices into the scene's sources, when the server names them.
+    pub sources: Option<Vec<usize>>,
+}
+
+pub struct Client {
+    agent: ureq::Agent,
+    base: String,
+    token: Option<String>,
+    /// 503/429 answers retried per request before giving up.
+    pub max_retries: u32,
+    notice: Box<dyn Fn(&str) + Send + Sync>,
+}
+
+impl Client {
+    pub fn new(base: &str, token: Option<String>) -> Client {
+        // Status codes are handled here, with the server's error body.
+        let agent = ureq::Agent::config_builder().http_status_as_error(false).build().into();
+        Client {
+            agent,
+            base: base.trim_end_matches('/').to_string(),
+            token,
+            max_retries: 30,
+            notice: Box::new(|m| eprintln!("{m}")),
+        }
+    }
+
+    /// Where waits and re-uploads are reported (stderr by default; the progress bar's line).
+    pub fn with_notice(mut self, notice: impl Fn(&str) + Send + Sync + 'static) -> Client {
+        self.notice = Box::new(notice);
+        self
+    }
+
+    pub fn create_scene(&self, upload: Upload) -> Result<Scene> {
+        let id = self.upload(&upload)?;
+        Ok(Scene { id, upload })
+    }
+
+    fn upload(&self, upload: &Upload) -> Result<String> {
+        let sources: Vec<Value> = upload.sources.iter().map(|(c, _)| json!({ "camera": camera_json(c) })).collect();
+        let request = json!({
+            "sources": sources, "near": upload.near, "far": upload.far, "background": upload.background,
+        });
+        let mut parts = vec![Part { name: "request".into(), file: None, bytes: request.to_string().into_bytes() }];
+        for (i, (_, path)) in upload.sources.iter().enumerate() {
+            parts.push(Part { name: format!("source_{i}"), file: Some(path.clone()), bytes: read_bytes(path)? });
+        }
+        let (content_type, body) = multipart(&parts);
+        let response = match self.post("/v1/scenes", &content_type, &body) {
+            Err(Error::Http { url, message }) => return Err(self.refusal_during_upload(&parts[0], url, message)),
+            other => other?,
+        };
+        #[derive(Deserialize)]
+        struct Created {
+            scene_id: String,
+        }
+        let created: Created = parse_json(&response.body, "/v1/scenes")?;
+        Ok(created.scene_id)
+    }
+
+    /// A server that refuses an upload from its `request` part (too many views, say) answers and
+    /// closes the connection while the images are still being sent, so the answer is lost. The
+    /// `request` part alone gets the same refusal back; anything else about it (its images are
+    /// missing, of course) keeps the network error.
+    fn refusal_during_upload(&self, request: &Part, url: String, message: String) -> Error {
+        let (content_type, body) = multipart(std::slice::from_ref(request));
+        match self.post("/v1/scenes", &content_type, &body) {
+            Err(Error::Server { field: Some(f), .. }) if f.starts_with("source_") => Error::Http { url, message },
+            Err(refusal @ Error::Server { .. }) => refusal,
+            _ => Error::Http { url, message },
+        }
+    }
+
+    /// Renders `target`; `depth` asks for the depth map too.
+    pub fn render(&self, scene: &mut Scene, target: &Camera, depth: bool) -> Result<Rendered> {
+        let outputs: &[&str] = if depth { &["rgb", "depth"] } else { &["rgb"] };
+        let body = json!({ "target": camera_json(target), "outputs": outputs }).to_string();
+        let mut uploaded_again = false;
+        loop {
+            let path = format!("/v1/scenes/{}/render", scene.id);
+            match self.post(&path, "application/json", body.as_bytes()) {
+                Err(Error::Server { status: 404, code, .. }) if code == "scene_not_found" && !uploaded_again => {
+                    (self.notice)("the server no longer has the scene: uploading the capture again");
+                    scene.id = self.upload(&scene.upload)?;
+                    uploaded_again = true;
+                }
+                Err(e) => return Err(e),
+                Ok(response) => return parse_rendered(&response, &path),
+            }
+        }
+    }
+
+    /// POSTs `body`, waiting out 503/429 answers; any other error status becomes
+    /// [`Error::Server`].
+    fn post(&self, path: &str, content_type: &str, body: &[u8]) -> Result<Reply> {
+        let url = format!("{}{path}", self.base);
+        let mut retries = 0;
+        loop {
+            let mut request =
+                self.agent.post(&url).header("content-type", content_type).header("accept", "application/json");
+            if let Some(token) = &self.token {
+                request = request.header("authorization", format!("Bearer {token}"));
+            }
+            let mut response =
+                request.send(body).map_err(|e| Error::Http { url: url.clone(), message: e.to_string() })?;
+            let status = response.status().as_u16();
+            let header = |name: &str| response.headers().get(name).and_then(|v| v.to_str().ok()).map(str::to_string);
+            let (retry_after, sources) = (header("retry-after"), header(SOURCES_HEADER));
+            let bytes = response
+                .body_mut()
+                .with_config()
+                .limit(u64::MAX)
+                .read_to_vec()
+                .map_err(|e| Error::Http { url: url.clone(), message: format!("reading the response: {e}") })?;
+            if status < 400 {
+                return Ok(Reply { body: bytes, sources });
+            }
+            let error = server_error(status, &bytes);
+            if (status == 503 || status == 429) && retries < self.max_retries {
+                retries += 1;
+                // Retry-After in seconds (the server's form); an HTTP date or nothing: 1 s
+                let wait = retry_after.and_then(|v| v.trim().parse::<u64>().ok()).unwrap_or(1);
+                (self.notice)(&format!("{error}; retrying in {wait} s ({retries}/{})", self.max_retries));
+                std::thread::sleep(Duration::from_secs(wait));
+                continue;
+            }
+            return Err(error);
+        }
+    }
+}
+
+struct Reply {
+    body: Vec<u8>,
+    sources: Option<String>,
+}
+
+/// The server's `{"error": {"code", "message", "field"}}`, or the status and start of the body.
+fn server_error(status: u16, body: &[u8]) -> Error {
+    #[derive(Deserialize)]
+    struct Body {
+        error: Detail,
+    }
+    #[derive(Deserialize)]
+    struct Detail {
+        code: String,
+        message: String,
+        field: Option<String>,
+    }
+    match serde_json::from_slice::<Body>(body) {
+        Ok(Body { error }) => Error::Server { status, code: error.code, message: error.message, field: error.field },
+        Err(_) => {
+            let text: String = String::from_utf8_lossy(body).chars().take(200).collect();
+            Error::Server { status, code: format!("http_{status}"), message: text, field: None }
+        }
+    }
+}
+
+fn parse_json<T: serde::de::DeserializeOwned>(body: &[u8], what: &str) -> Result<T> {
+    serde_json::from_slice(body)
+        .map_err(|e| Error::Http { url: what.into(), message: format!("unexpected answer: {e}") })
+}
+
+fn parse_rendered(reply: &Reply, path: &str) -> Result<Rendered> {
+    #[derive(Deserialize)]
+    struct Body {
+        width: u32,
+        height: u32,
+        rgb: Option<Data>,
+        depth: Option<Data>,
+        #[serde(default)]
+        timings_ms: BTreeMap<String, f64>,
+        sources: Option<Vec<usize>>,
+    }
+    #[derive(Deserialize)]
+    struct Data {
+        data: String,
+    }
+    let body: Body = parse_json(&reply.body, path)?;
+    let decode = |d: &Data| {
+        base64::engine::general_purpose::STANDARD
+            .decode(&d.data)
+            .map_err(|e| Error::Response { context: path.into(), message: format!("bad base64: {e}") })
+    };
+    let rgb_png = decode(
+        body.rgb
+            .as_ref()
+            .ok_or_else(|| Error::Http { url: path.into(), message: "the answer has no rgb image".into() })?,
+    )?;
+    let depth = match &body.depth {
+        Some(d) => Some(decode(d)?.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect()),
+        None => None,
+    };
+    let from_header =
+        reply.sources.as_deref().and_then(|s| s.split(',').map(|i| i.trim().parse().ok()).collect::<Option<Vec<_>>>());
+    Ok(Rendered {
+        width: body.width,
+        height: body.height,
+        rgb_png,
+        depth,
+        timings_ms: body.timings_ms,
+        sources: from_header.or(body.sources),
+    })
+}
+
+/// A camera in the API's canonical form (world-to-camera, OpenCV axes).
+pub fn camera_json(c: &Camera) -> Value {
+    let m = c.w2c.to_homogeneous();
+    let rows: Vec<[f64; 4]> = (0..4).map(|r| [m[(r, 0)], m[(r, 1)], m[(r, 2)], m[(r, 3)]]).collect();
+    let i = c.intrinsics;
+    json!({
+        "width": c.width,
+        "height": c.height,
+        "intrinsics": {"fx": i.fx, "fy": i.fy, "cx": i.cx, "cy": i.cy},
+        "pose": {"matrix": rows, "kind": "world_to_camera", "axes": "opencv"},
+    })
+}
+
+struct Part {
+    name: String,
+    file: Option<PathBuf>,
+    bytes: Vec<u8>,
+}
+
+/// multipart/form-data with a boundary that occurs in no part.
+fn multipart(parts: &[Part]) -> (String, Vec<u8>) {
+    let mut n: u64 = 0x5c0e_12f0;
+    let boundary = loop {
+        let b = format!("scnerf-{n:016x}");
+        if !parts.iter().any(|p| p.bytes.windows(b.len()).any(|w| w == b.as_bytes())) {
+            break b;
+        }
+        n = n.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+    };
+    let mut body = Vec::new();
+    for p in parts {
+        body.extend_from_slice(
+            format!("--{boundary}\r\nContent-Disposition: form-data; name=\"{}\"", p.name).as_bytes(),
+        );
+        let content_type = match &p.file {
+            Some(file) => {
+                let name = file.file_name().map(|n| n.to_string_lossy().replace('"', "")).unwrap_or_default();
+                body.extend_from_slice(format!("; filename=\"{name}\"").as_bytes());
+                image_type(file)
+            }
+            None => "application/json",
+        };
+        body.extend_from_slice(format!("\r\nContent-Type: {content_type}\r\n\r\n").as_bytes());
+        body.extend_from_slice(&p.bytes);
+        body.extend_from_slice(b"\r\n");
+    }
+    body.extend_from_slice(format!("--{boundary}--\r\n").as_bytes());
+    (format!("multipart/form-data; boundary={boundary}"), body)
+}
+
+fn image_type(path: &Path) -> &'static str {
+    match path.extension().and_then(|e| e.to_str()).map(str::to_ascii_lowercase).as_deref() {
+        Some("jpg" | "jpeg") => "image/jpeg",
+        _ => "image/png",
+    }
+}

@@ -1,0 +1,230 @@
+//! Cameras in the project's canonical form, in one place (DESIGN.md, "HTTP API"; the reference
+//! implementation is `exporter/scnerf_export/datasets.py` and `cameras.py`):
+//!
+//! * OpenCV axes: x right, y down, z forward;
+//! * world-to-camera poses;
+//! * intrinsics in which the centre of pixel (u, v) is at image coordinates (u, v). Formats whose
+//!   first pixel centre is at (0.5, 0.5) (COLMAP, nerfstudio) are shifted by -0.5 when read.
+//!
+//! Every reader converts its cameras to this form once; paths, the API and the metrics see
+//! nothing else. Written so that the server could share it (nalgebra only).
+
+use nalgebra::{Matrix3, Matrix4, Point3, Rotation3, Translation3, Unit, Vector3};
+
+/// A rigid world-to-camera transform. Kept as a rotation *matrix* (not a quaternion) so that a
+/// pose read from a file is carried bit for bit to the request.
+pub type Pose = nalgebra::IsometryMatrix3<f64>;
+
+/// Pinhole intrinsics (no skew: the server refuses it).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Intrinsics {
+    pub fx: f64,
+    pub fy: f64,
+    pub cx: f64,
+    pub cy: f64,
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct Camera {
+    pub width: u32,
+    pub height: u32,
+    pub intrinsics: Intrinsics,
+    pub w2c: Pose,
+}
+
+/// Whether datasets.py `_invert_rigid` inverts a matrix by transposing its rotation:
+/// `np.allclose(R Rᵀ, I, atol=1e-6)` and `np.allclose(last row, [0, 0, 0, 1])`, with numpy's
+/// default rtol of 1e-5. Mirrored exactly so both sides give the same numbers.
+fn python_treats_as_rigid(m: &Matrix4<f64>) -> bool {
+    let allclose = |a: f64, b: f64| (a - b).abs() <= 1e-6 + 1e-5 * b.abs();
+    let r = m.fixed_view::<3, 3>(0, 0);
+    let rrt = r * r.transpose();
+    let identity = Matrix3::<f64>::identity();
+    rrt.iter().zip(identity.iter()).all(|(a, b)| allclose(*a, *b))
+        && m.row(3).iter().zip([0.0, 0.0, 0.0, 1.0]).all(|(a, b)| allclose(*a, b))
+}
+
+/// Largest |R Rᵀ - I| the server accepts (server/src/camera.rs ROTATION_TOLERANCE): refusing
+/// worse poses here names the file instead of a request field.
+pub const ROTATION_TOLERANCE: f64 = 1e-3;
+
+impl Camera {
+    /// Camera centre in world coordinates.
+    pub fn center(&self) -> Point3<f64> {
+        self.w2c.inverse_transform_point(&Point3::origin())
+    }
+
+    /// Unit optical axis in world coordinates (the third row of the rotation).
+    pub fn forward(&self) -> Vector3<f64> {
+        self.w2c.rotation.matrix().row(2).transpose()
+    }
+
+    /// The same view resampled to `width` x `height`: f' = f s, c' = (c + 0.5) s - 0.5, so that
+    /// pixel centres stay at integers (datasets.py `resize_camera`).
+    pub fn resized(&self, width: u32, height: u32) -> Camera {
+        let sx = f64::from(width) / f64::from(self.width);
+        let sy = f64::from(height) / f64::from(self.height);
+        let i = self.intrinsics;
+        Camera {
+            width,
+            height,
+            intrinsics: Intrinsics {
+                fx: i.fx * sx,
+                fy: i.fy * sy,
+                cx: (i.cx + 0.5) * sx - 0.5,
+                cy: (i.cy + 0.5) * sy - 0.5,
+            },
+            w2c: self.w2c,
+        }
+    }
+
+    pub fn k(&self) -> Matrix3<f64> {
+        let i = self.intrinsics;
+        Matrix3::new(i.fx, 0.0, i.cx, 0.0, i.fy, i.cy, 0.0, 0.0, 1.0)
+    }
+}
+
+/// OpenGL camera axes (x right, y up, z back) to OpenCV's: flip y and z.
+fn gl_to_cv() -> Matrix4<f64> {
+    Matrix4::from_diagonal(&nalgebra::Vector4::new(1.0, -1.0, -1.0, 1.0))
+}
+
+/// max |R Rᵀ - I| of the upper-left 3x3 block.
+fn orthonormality_error(m: &Matrix4<f64>) -> f64 {
+    let r = m.fixed_view::<3, 3>(0, 0);
+    (r * r.transpose() - Matrix3::identity()).amax()
+}
+
+/// A 4x4 matrix as a pose, unchanged; `None` unless its last row is [0, 0, 0, 1], its values are
+/// finite and its rotation block is a proper rotation within the server's tolerance.
+pub fn pose_from_matrix(m: &Matrix4<f64>) -> Option<Pose> {
+    let last_row_ok = (m.row(3) - nalgebra::RowVector4::new(0.0, 0.0, 0.0, 1.0)).amax() <= 1e-9;
+    let r: Matrix3<f64> = m.fixed_view::<3, 3>(0, 0).into_owned();
+    let usable = m.iter().all(|v| v.is_finite())
+        && last_row_ok
+        && orthonormality_error(m) <= ROTATION_TOLERANCE
+        && r.determinant() > 0.0;
+    usable.then(|| {
+        Pose::from_parts(
+            Translation3::from(m.fixed_view::<3, 1>(0, 3).into_owned()),
+            Rotation3::from_matrix_unchecked(r),
+        )
+    })
+}
+
+/// Inverse of a rigid 4x4 [R|t]: the transpose when R is orthonormal (by Python's test), else a
+/// general inverse (datasets.py `_invert_rigid`).
+fn invert_rigid(m: &Matrix4<f64>) -> Option<Matrix4<f64>> {
+    if python_treats_as_rigid(m) {
+        pose_from_matrix(m).map(|p| p.inverse().to_homogeneous())
+    } else {
+        m.try_inverse()
+    }
+}
+
+/// Camera-to-world in OpenGL axes (nerfstudio, Blender) -> canonical world-to-camera.
+pub fn w2c_from_opengl_c2w(c2w: &Matrix4<f64>) -> Option<Pose> {
+    invert_rigid(&(c2w * gl_to_cv())).as_ref().and_then(pose_from_matrix)
+}
+
+/// Camera-to-world in OpenCV axes (LLFF after its column swap) -> world-to-camera.
+pub fn w2c_from_c2w(c2w: &Matrix4<f64>) -> Option<Pose> {
+    invert_rigid(c2w).as_ref().and_then(pose_from_matrix)
+}
+
+/// Any of the API's pose conventions -> canonical world-to-camera (cameras.py `Camera.from_pose`).
+pub fn w2c_from_api(matrix: &Matrix4<f64>, camera_to_world: bool, opengl: bool) -> Option<Pose> {
+    let pose = pose_from_matrix(matrix)?;
+    let c2w = if camera_to_world { pose } else { pose.inverse() };
+    let c2w = if opengl { c2w.to_homogeneous() * gl_to_cv() } else { c2w.to_homogeneous() };
+    pose_from_matrix(&c2w).map(|p| p.inverse())
+}
+
+/// World-to-camera of a camera at `eye` looking at `target`, with `up` pointing up in the image
+/// (cameras.py `look_at`: x = forward x up, y = forward x right).
+pub fn look_at(eye: &Point3<f64>, target: &Point3<f64>, up: &Vector3<f64>) -> Pose {
+    // face_towards maps z to the direction and y towards the given vector: OpenCV's y is down.
+    let rotation = Rotation3::face_towards(&(target - eye), &-up);
+    Pose::from_parts(Translation3::from(eye.coords), rotation).inverse()
+}
+
+/// Unit vector, or `None` for a zero or non-finite one.
+pub fn unit(v: Vector3<f64>) -> Option<Vector3<f64>> {
+    Unit::try_new(v, 1e-12).map(Unit::into_inner)
+}
+
+/// Source ranking, MVSNeRF's rule (cameras.py `rank_sources`): candidates by the distance of
+/// their centre to the target's, nearest first, ties to the lower index; a candidate whose
+/// optical axis makes 90 degrees or more with the target's sees the other side and is left out.
+pub fn rank_sources(target: &Camera, candidates: &[&Camera]) -> Vec<usize> {
+    let (centre, forward) = (target.center(), target.forward());
+    let mut ranked: Vec<(f64, usize)> = candidates
+        .iter()
+        .enumerate()
+        .filter(|(_, c)| c.forward().dot(&forward) > 0.0)
+        .map(|(i, c)| ((c.center() - centre).norm(), i))
+        .collect();
+    ranked.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+    ranked.into_iter().map(|(_, i)| i).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn camera_at(eye: [f64; 3], target: [f64; 3]) -> Camera {
+        Camera {
+            width: 8,
+            height: 6,
+            intrinsics: Intrinsics { fx: 10.0, fy: 10.0, cx: 4.0, cy: 3.0 },
+            w2c: look_at(&Point3::from(eye), &Point3::from(target), &Vector3::z()),
+        }
+    }
+
+    #[test]
+    fn look_at_matches_the_python_convention() {
+        let c = camera_at([4.0, 0.0, 1.0], [0.0, 0.0, 1.0]);
+        assert!((c.center() - Point3::new(4.0, 0.0, 1.0)).norm() < 1e-12);
+        assert!((c.forward() - Vector3::new(-1.0, 0.0, 0.0)).norm() < 1e-12);
+        // x = forward x up, y (down) = forward x right
+        let r = c.w2c.rotation.matrix();
+        assert!((r.row(0).transpose() - Vector3::new(0.0, 1.0, 0.0)).norm() < 1e-12);
+        assert!((r.row(1).transpose() - Vector3::new(0.0, 0.0, -1.0)).norm() < 1e-12);
+    }
+
+    #[test]
+    fn opengl_round_trip() {
+        let c = camera_at([1.0, 2.0, 3.0], [0.0, 0.5, 0.0]);
+        let c2w_gl = c.w2c.inverse().to_homogeneous() * gl_to_cv();
+        let back = w2c_from_opengl_c2w(&c2w_gl).unwrap();
+        assert!((back.to_homogeneous() - c.w2c.to_homogeneous()).amax() < 1e-12);
+        let api = w2c_from_api(&c2w_gl, true, true).unwrap();
+        assert!((api.to_homogeneous() - c.w2c.to_homogeneous()).amax() < 1e-12);
+    }
+
+    #[test]
+    fn resize_keeps_pixel_centres_at_integers() {
+        let c = camera_at([1.0, 0.0, 0.0], [0.0, 0.0, 0.0]).resized(4, 3);
+        assert_eq!(c.intrinsics, Intrinsics { fx: 5.0, fy: 5.0, cx: 1.75, cy: 1.25 });
+    }
+
+    #[test]
+    fn non_rotations_are_refused() {
+        let mut m = Matrix4::identity();
+        m[(0, 0)] = 1.01;
+        assert!(pose_from_matrix(&m).is_none());
+        m[(0, 0)] = -1.0; // a reflection
+        assert!(pose_from_matrix(&m).is_none());
+    }
+
+    #[test]
+    fn ranking_is_by_distance_then_index_and_skips_opposite_views() {
+        let target = camera_at([4.0, 0.0, 0.0], [0.0, 0.0, 0.0]);
+        let a = camera_at([1.0, 4.0, 0.0], [0.0, 0.0, 0.0]);
+        let b = camera_at([1.0, -4.0, 0.0], [0.0, 0.0, 0.0]); // as far as a: after it
+        let near = camera_at([4.0, 1.0, 0.0], [0.0, 0.0, 0.0]);
+        let behind = camera_at([-4.0, 0.0, 0.0], [0.0, 0.0, 0.0]); // faces the target
+        let side = camera_at([0.0, 4.0, 0.0], [0.0, 0.0, 0.0]); // exactly 90 degrees: left out
+        assert_eq!(rank_sources(&target, &[&a, &b, &near, &behind, &side]), vec![2, 0, 1]);
+    }
+}

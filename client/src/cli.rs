@@ -1,0 +1,408 @@
+//! The `scnerf` command line: `info`, `render`, `view`, `eval`.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use clap::{Args, Parser, Subcommand, ValueEnum};
+use indicatif::{ProgressBar, ProgressStyle};
+
+use crate::api::{Client, Upload};
+use crate::camera::Camera;
+use crate::error::{Error, Result};
+use crate::readers::{self, Capture, CapturedView, Format, ReadOptions};
+use crate::render::{frame_digits, render_frames, server_summary, write_atomically, write_npy};
+use crate::{eval, paths, video};
+
+#[derive(Parser)]
+#[command(name = "scnerf", version, about = "Render posed photo captures through scnerf-serve")]
+pub struct Cli {
+    /// The scnerf-server to use.
+    #[arg(long, global = true, env = "SCNERF_SERVER", default_value = "http://127.0.0.1:8080")]
+    server: String,
+    /// Bearer token, for a server started with --auth-token.
+    #[arg(long, global = true, env = "SCNERF_TOKEN", hide_env_values = true)]
+    token: Option<String>,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Print what the reader makes of a dataset: format, views, cameras, near/far.
+    Info {
+        #[command(flatten)]
+        data: DataArgs,
+        /// Every camera in the API's JSON form.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Render a camera path through the capture to PNG frames, depth maps and a video.
+    Render(RenderArgs),
+    /// Render one view.
+    View(ViewArgs),
+    /// Render held-out captured views from the others and score them (PSNR, SSIM).
+    Eval(EvalArgs),
+}
+
+#[derive(Args)]
+struct DataArgs {
+    /// Dataset folder (COLMAP, nerfstudio, Blender, LLFF or DTU), or a transforms JSON file.
+    data: PathBuf,
+    #[arg(long, value_enum, default_value_t = FormatArg::Auto)]
+    format: FormatArg,
+    /// Near depth, overriding the dataset's.
+    #[arg(long)]
+    near: Option<f64>,
+    /// Far depth, overriding the dataset's.
+    #[arg(long)]
+    far: Option<f64>,
+    /// Use cameras with lens distortion as pinhole instead of refusing them.
+    #[arg(long)]
+    ignore_distortion: bool,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum FormatArg {
+    Auto,
+    Colmap,
+    Nerfstudio,
+    Blender,
+    Llff,
+    Dtu,
+}
+
+#[derive(Args)]
+struct UploadArgs {
+    /// Most views to upload (the server's scene limit): a larger capture is thinned evenly.
+    #[arg(long, default_value_t = 64)]
+    max_views: usize,
+}
+
+#[derive(Args)]
+struct RenderArgs {
+    #[command(flatten)]
+    data: DataArgs,
+    #[command(flatten)]
+    upload: UploadArgs,
+    /// interpolate, orbit, spiral, or a JSON file of cameras (API form).
+    #[arg(long)]
+    path: String,
+    /// Number of frames (ignored for a camera file).
+    #[arg(long, default_value_t = 48)]
+    frames: usize,
+    /// Frame size WxH (default: the first view's).
+    #[arg(long, value_parser = parse_size)]
+    size: Option<(u32, u32)>,
+    /// Output folder; frames already in it are not rendered again.
+    #[arg(long, default_value = "render")]
+    out: PathBuf,
+    /// Frames per second of the video.
+    #[arg(long, default_value_t = 24)]
+    fps: u32,
+    /// Skip the depth maps.
+    #[arg(long)]
+    no_depth: bool,
+    /// Skip the video.
+    #[arg(long)]
+    no_video: bool,
+}
+
+#[derive(Args)]
+struct ViewArgs {
+    #[command(flatten)]
+    data: DataArgs,
+    #[command(flatten)]
+    upload: UploadArgs,
+    /// A view name of the capture, or a JSON file with one camera (API form).
+    #[arg(long)]
+    pose: String,
+    /// Output size WxH (default: the camera's).
+    #[arg(long, value_parser = parse_size)]
+    size: Option<(u32, u32)>,
+    /// Render from these three views (reference first) instead of letting the server choose.
+    #[arg(long, value_delimiter = ',')]
+    sources: Option<Vec<String>>,
+    /// Output PNG; the depth map goes next to it as <name>.depth.npy.
+    #[arg(long, default_value = "view.png")]
+    out: PathBuf,
+}
+
+#[derive(Args)]
+pub struct EvalArgs {
+    #[command(flatten)]
+    data: DataArgs,
+    /// Hold out every K-th view (0, K, 2K, ...; LLFF's convention).
+    #[arg(long, required_unless_present = "targets", conflicts_with = "targets")]
+    pub holdout: Option<usize>,
+    /// Hold out these views.
+    #[arg(long, value_delimiter = ',')]
+    pub targets: Option<Vec<String>>,
+    /// The same three sources for every target (default: per target, the 3 nearest others).
+    #[arg(long, value_delimiter = ',')]
+    pub sources: Option<Vec<String>>,
+    /// Render targets at 1/N of their size, against box-averaged ground truth.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..))]
+    pub downscale: u32,
+    /// Save the rendered views here.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+}
+
+fn parse_size(s: &str) -> std::result::Result<(u32, u32), String> {
+    let (w, h) = s.split_once(['x', 'X']).ok_or_else(|| format!("expected WxH, got {s:?}"))?;
+    match (w.parse::<u32>(), h.parse::<u32>()) {
+        (Ok(w), Ok(h)) if w > 0 && h > 0 => Ok((w, h)),
+        _ => Err(format!("expected WxH with positive whole numbers, got {s:?}")),
+    }
+}
+
+/// `println!` that stops quietly when stdout is closed (`scnerf info DATA | head`).
+macro_rules! say {
+    ($($arg:tt)*) => {{
+        use std::io::Write;
+        let _ = writeln!(std::io::stdout(), $($arg)*);
+    }};
+}
+pub(crate) use say;
+
+pub fn run(cli: Cli) -> Result<()> {
+    let client = Client::new(&cli.server, cli.token);
+    match cli.command {
+        Command::Info { data, json } => info(&data, json),
+        Command::Render(args) => render(client, &args),
+        Command::View(args) => view(&client, &args),
+        Command::Eval(args) => {
+            let capture = load(&args.data)?;
+            eval::run(&client, &capture, &args)
+        }
+    }
+}
+
+/// Reads the capture and prints its warnings.
+fn load(data: &DataArgs) -> Result<Capture> {
+    let format = match data.format {
+        FormatArg::Auto => None,
+        FormatArg::Colmap => Some(Format::Colmap),
+        FormatArg::Nerfstudio => Some(Format::Nerfstudio),
+        FormatArg::Blender => Some(Format::Blender),
+        FormatArg::Llff => Some(Format::Llff),
+        FormatArg::Dtu => Some(Format::Dtu),
+    };
+    let opts = ReadOptions { near: data.near, far: data.far, ignore_distortion: data.ignore_distortion };
+    let capture = readers::load(&data.data, format, opts)?;
+    for w in &capture.warnings {
+        eprintln!("warning: {w}");
+    }
+    Ok(capture)
+}
+
+fn info(data: &DataArgs, json: bool) -> Result<()> {
+    let capture = load(data)?;
+    if json {
+        let views: Vec<serde_json::Value> = capture
+            .views
+            .iter()
+            .map(|v| serde_json::json!({"name": v.name, "image": v.image_path, "camera": crate::api::camera_json(&v.camera)}))
+            .collect();
+        let out = serde_json::json!({
+            "format": capture.format.name(), "near": capture.near, "far": capture.far,
+            "background": capture.background, "views": views,
+        });
+        say!("{}", serde_json::to_string_pretty(&out).expect("serializable"));
+        return Ok(());
+    }
+    say!(
+        "{}: {} views, near {} far {}, background {:?}",
+        capture.format.name(),
+        capture.views.len(),
+        capture.near,
+        capture.far,
+        capture.background
+    );
+    for v in &capture.views {
+        let (c, i) = (&v.camera, v.camera.intrinsics);
+        let p = c.center();
+        say!(
+            "  {:<12} {}x{}  f {:.2},{:.2}  c {:.2},{:.2}  centre ({:.3}, {:.3}, {:.3})",
+            v.name,
+            c.width,
+            c.height,
+            i.fx,
+            i.fy,
+            i.cx,
+            i.cy,
+            p.x,
+            p.y,
+            p.z
+        );
+    }
+    Ok(())
+}
+
+/// The views `--sources` names: exactly three, the first the reference.
+pub(crate) fn source_views<'a>(capture: &'a Capture, names: &[String]) -> Result<Vec<&'a CapturedView>> {
+    if names.len() != 3 {
+        return Err(Error::Usage(format!("--sources needs 3 view names, got {}", names.len())));
+    }
+    names.iter().map(|n| capture.view(n)).collect()
+}
+
+/// At most `max` (>= 2) views, evenly spread over the capture order, first and last included.
+fn thin(views: &[CapturedView], max: usize) -> Vec<&CapturedView> {
+    if views.len() <= max {
+        return views.iter().collect();
+    }
+    (0..max).map(|i| &views[(i * (views.len() - 1) + (max - 1) / 2) / (max - 1)]).collect()
+}
+
+/// The capture's views to upload, thinned to the server's limit with a warning.
+fn scene_views(capture: &Capture, max: usize) -> Result<Vec<&CapturedView>> {
+    if max < 3 {
+        return Err(Error::Usage(format!("--max-views must be at least 3, got {max}")));
+    }
+    let views = thin(&capture.views, max);
+    if views.len() < capture.views.len() {
+        eprintln!(
+            "warning: the capture has {} views; uploading {} of them (--max-views)",
+            capture.views.len(),
+            views.len()
+        );
+    }
+    Ok(views)
+}
+
+fn path_cameras(capture: &Capture, args: &RenderArgs) -> Result<Vec<Camera>> {
+    if args.frames == 0 {
+        return Err(Error::Usage("--frames must be at least 1".into()));
+    }
+    let resize = |c: Camera| match args.size {
+        Some((w, h)) => c.resized(w, h),
+        None => c,
+    };
+    let cameras: Vec<Camera> = capture.views.iter().map(|v| v.camera.clone()).collect();
+    let poses = match args.path.as_str() {
+        "interpolate" => paths::interpolate(&cameras.iter().map(|c| c.w2c).collect::<Vec<_>>(), args.frames),
+        "orbit" => paths::orbit(&cameras, args.frames)?,
+        "spiral" => paths::spiral(&cameras, capture.near, capture.far, args.frames)?,
+        file if Path::new(file).is_file() => {
+            return Ok(paths::from_file(Path::new(file))?.into_iter().map(resize).collect())
+        }
+        other => {
+            return Err(Error::Usage(format!(
+                "--path {other:?}: expected interpolate, orbit, spiral or a camera JSON file"
+            )))
+        }
+    };
+    let template = resize(cameras[0].clone());
+    Ok(poses.into_iter().map(|w2c| Camera { w2c, ..template.clone() }).collect())
+}
+
+fn progress_bar() -> ProgressBar {
+    let bar = ProgressBar::new(0);
+    let style = ProgressStyle::with_template("{bar:30} {pos}/{len} frames  {elapsed} elapsed, ETA {eta}  {msg}")
+        .expect("valid template");
+    bar.set_style(style);
+    bar
+}
+
+/// A line above the progress bar, or on stderr when the bar is hidden (not a terminal).
+fn notify(bar: &ProgressBar, message: &str) {
+    if bar.is_hidden() {
+        eprintln!("{message}");
+    } else {
+        bar.println(message);
+    }
+}
+
+fn render(client: Client, args: &RenderArgs) -> Result<()> {
+    let capture = load(&args.data)?;
+    let cameras = path_cameras(&capture, args)?;
+    let started = Instant::now();
+    let bar = progress_bar();
+    let notices = bar.clone();
+    let client = client.with_notice(move |m| notify(&notices, m));
+    let views = scene_views(&capture, args.upload.max_views)?;
+    let mut scene = client.create_scene(Upload::new(&capture, &views))?;
+    notify(&bar, &format!("uploaded {} views as scene {}", views.len(), scene.id));
+    let done = render_frames(&client, &mut scene, &cameras, &args.out, !args.no_depth, &bar)?;
+    bar.finish_and_clear();
+    say!(
+        "{} frames in {}: {} rendered, {} already there ({:.1} s)",
+        cameras.len(),
+        args.out.join("frames").display(),
+        done.rendered,
+        done.skipped,
+        started.elapsed().as_secs_f64()
+    );
+    if args.no_video {
+        return Ok(());
+    }
+    let ffmpeg = video::find_ffmpeg(std::env::var_os("PATH").as_deref());
+    let digits = frame_digits(cameras.len());
+    let v = video::write(&args.out.join("frames"), cameras.len(), digits, args.fps, &args.out, ffmpeg.as_deref())?;
+    say!("video: {}", v.path.display());
+    if let Some(note) = v.note {
+        say!("note: {note}");
+    }
+    Ok(())
+}
+
+fn view(client: &Client, args: &ViewArgs) -> Result<()> {
+    let capture = load(&args.data)?;
+    let pose = Path::new(&args.pose);
+    let camera = if pose.is_file() {
+        paths::camera_from_json(&readers::read_json(pose)?, pose, "camera")?
+    } else {
+        capture.view(&args.pose)?.camera.clone()
+    };
+    let camera = match args.size {
+        Some((w, h)) => camera.resized(w, h),
+        None => camera,
+    };
+    let views = match &args.sources {
+        Some(names) => source_views(&capture, names)?,
+        None => scene_views(&capture, args.upload.max_views)?,
+    };
+    let mut scene = client.create_scene(Upload::new(&capture, &views))?;
+    let rendered = client.render(&mut scene, &camera, true)?;
+    write_atomically(&args.out, &rendered.rgb_png)?;
+    let depth = args.out.with_extension("depth.npy");
+    if let Some(d) = &rendered.depth {
+        write_npy(&depth, d, rendered.height, rendered.width)?;
+    }
+    let names: Option<Vec<&str>> =
+        rendered.sources.as_ref().map(|s| s.iter().filter_map(|&i| views.get(i).map(|v| v.name.as_str())).collect());
+    say!("wrote {} ({}x{}) and {}", args.out.display(), rendered.width, rendered.height, depth.display());
+    say!("{}{}", server_summary(&rendered), names.map(|n| format!(" ({})", n.join(","))).unwrap_or_default());
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn thinning_keeps_the_ends_and_spreads_the_rest() {
+        let view = |i: usize| CapturedView {
+            name: i.to_string(),
+            image_path: PathBuf::new(),
+            camera: Camera {
+                width: 1,
+                height: 1,
+                intrinsics: crate::camera::Intrinsics { fx: 1.0, fy: 1.0, cx: 0.0, cy: 0.0 },
+                w2c: crate::camera::Pose::identity(),
+            },
+        };
+        let views: Vec<CapturedView> = (0..20).map(view).collect();
+        let names = |max| thin(&views, max).iter().map(|v| v.name.clone()).collect::<Vec<_>>().join(",");
+        assert_eq!(names(3), "0,10,19");
+        assert_eq!(names(5), "0,5,10,14,19");
+        assert_eq!(thin(&views, 64).len(), 20);
+    }
+
+    #[test]
+    fn sizes_parse_as_width_x_height() {
+        assert_eq!(parse_size("200x100"), Ok((200, 100)));
+        assert!(parse_size("0x100").is_err() && parse_size("200").is_err());
+    }
+}

@@ -1,0 +1,58 @@
+//! The one error type of the client. Every variant names what it is about (a file and field, a
+//! URL, a flag) so that `main` can print it as is.
+
+use std::path::{Path, PathBuf};
+
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    #[error("cannot read {path}: {source}")]
+    Io { path: PathBuf, source: std::io::Error },
+
+    /// A dataset file that is malformed or not usable; the message names the field or line.
+    #[error("{path}: {message}")]
+    Dataset { path: PathBuf, message: String },
+
+    /// Bad command-line input that clap cannot check by itself.
+    #[error("{0}")]
+    Usage(String),
+
+    #[error("cannot reach the server at {url}: {message}")]
+    Http { url: String, message: String },
+
+    /// A 2xx answer the client cannot use.
+    #[error("unexpected answer from the server ({context}): {message}")]
+    Response { context: String, message: String },
+
+    /// The server's own `{"error": {"code", "message", "field"}}`.
+    #[error("the server refused the request ({status} {code}): {message}{}", field_suffix(.field))]
+    Server { status: u16, code: String, message: String, field: Option<String> },
+
+    #[error("video: {0}")]
+    Video(String),
+}
+
+fn field_suffix(field: &Option<String>) -> String {
+    field.as_ref().map(|f| format!(" [field: {f}]")).unwrap_or_default()
+}
+
+pub type Result<T, E = Error> = std::result::Result<T, E>;
+
+impl Error {
+    pub fn dataset(path: impl AsRef<Path>, message: impl Into<String>) -> Self {
+        Error::Dataset { path: path.as_ref().to_path_buf(), message: message.into() }
+    }
+
+    pub fn io(path: impl AsRef<Path>, source: std::io::Error) -> Self {
+        Error::Io { path: path.as_ref().to_path_buf(), source }
+    }
+}
+
+/// `std::fs::read_to_string` whose error names the file.
+pub fn read_text(path: &Path) -> Result<String> {
+    std::fs::read_to_string(path).map_err(|e| Error::io(path, e))
+}
+
+/// `std::fs::read` whose error names the file.
+pub fn read_bytes(path: &Path) -> Result<Vec<u8>> {
+    std::fs::read(path).map_err(|e| Error::io(path, e))
+}

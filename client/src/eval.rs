@@ -1,0 +1,126 @@
+//! `scnerf eval`: held-out captured views rendered from the others and scored, with the protocol
+//! of `scnerf-export eval` so the figures compare: per target, the 3 views of the source pool
+//! (every view that is not a target) nearest by camera-centre distance
+//! ([`crate::camera::rank_sources`]), or fixed `--sources`; each source triple is uploaded once
+//! as a scene of exactly those three views (reference first); targets may be rendered at 1/n of
+//! their size against the box-averaged ground truth; PSNR and SSIM as metrics.py.
+
+use std::time::Instant;
+
+use crate::api::{Client, Upload};
+use crate::camera::rank_sources;
+use crate::cli::{say, source_views, EvalArgs};
+use crate::error::{read_bytes, Error, Result};
+use crate::metrics::{psnr, ssim, Image};
+use crate::readers::{Capture, CapturedView};
+use crate::render::write_atomically;
+
+struct Row {
+    view: String,
+    sources: Vec<String>,
+    psnr: f64,
+    ssim: f64,
+    seconds: f64,
+}
+
+pub fn run(client: &Client, capture: &Capture, args: &EvalArgs) -> Result<()> {
+    let targets = targets(capture, args)?;
+    let pool: Vec<&CapturedView> = capture.views.iter().filter(|v| !targets.iter().any(|t| t.name == v.name)).collect();
+    let n = args.downscale;
+    // (source triple, its targets), triples in order of first use
+    let mut groups: Vec<(Vec<&CapturedView>, Vec<&CapturedView>)> = Vec::new();
+    for target in &targets {
+        let (w, h) = (target.camera.width, target.camera.height);
+        if w % n != 0 || h % n != 0 {
+            return Err(Error::Usage(format!("--downscale {n} does not divide {}'s size {w}x{h}", target.name)));
+        }
+        let sources = match &args.sources {
+            Some(names) => source_views(capture, names)?,
+            None => nearest(target, &pool)?,
+        };
+        match groups.iter_mut().find(|(s, _)| names(s) == names(&sources)) {
+            Some((_, ts)) => ts.push(target),
+            None => groups.push((sources, vec![target])),
+        }
+    }
+    let mut rows = Vec::new();
+    for (sources, group) in &groups {
+        let mut scene = client.create_scene(Upload::new(capture, sources))?;
+        for target in group {
+            let (w, h) = (target.camera.width, target.camera.height);
+            let started = Instant::now();
+            let rendered = client.render(&mut scene, &target.camera.resized(w / n, h / n), false)?;
+            let seconds = started.elapsed().as_secs_f64();
+            let pred = Image::decode(&rendered.rgb_png, capture.background).map_err(|e| Error::Response {
+                context: format!("the image of {}", target.name),
+                message: e.to_string(),
+            })?;
+            let gt = Image::decode(&read_bytes(&target.image_path)?, capture.background)
+                .map_err(|e| Error::dataset(&target.image_path, format!("cannot decode: {e}")))?
+                .downscaled(n as usize);
+            if let Some(dir) = &args.out {
+                std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+                write_atomically(&dir.join(format!("{}.png", target.name.replace('/', "_"))), &rendered.rgb_png)?;
+            }
+            let row = Row {
+                view: target.name.clone(),
+                sources: names(sources),
+                psnr: psnr(&pred, &gt)?,
+                ssim: ssim(&pred, &gt)?,
+                seconds,
+            };
+            say!("{}", format_row(&row));
+            rows.push(row);
+        }
+    }
+    let count = rows.len() as f64;
+    let mean = Row {
+        view: "mean".into(),
+        sources: Vec::new(),
+        psnr: rows.iter().map(|r| r.psnr).sum::<f64>() / count,
+        ssim: rows.iter().map(|r| r.ssim).sum::<f64>() / count,
+        seconds: rows.iter().map(|r| r.seconds).sum::<f64>() / count,
+    };
+    say!("{}", format_row(&mean));
+    Ok(())
+}
+
+fn names(views: &[&CapturedView]) -> Vec<String> {
+    views.iter().map(|v| v.name.clone()).collect()
+}
+
+/// `--targets`, or every `--holdout`-th view.
+fn targets<'a>(capture: &'a Capture, args: &EvalArgs) -> Result<Vec<&'a CapturedView>> {
+    let targets: Vec<&CapturedView> = match (&args.targets, args.holdout) {
+        (Some(names), _) => names.iter().map(|n| capture.view(n)).collect::<Result<_>>()?,
+        (None, Some(k)) if k >= 1 => capture.views.iter().step_by(k).collect(),
+        _ => return Err(Error::Usage("--holdout must be at least 1 (or give --targets)".into())),
+    };
+    if capture.views.len() - targets.len() < 3 {
+        return Err(Error::Usage(format!(
+            "{} of {} views held out: fewer than 3 are left as sources",
+            targets.len(),
+            capture.views.len()
+        )));
+    }
+    Ok(targets)
+}
+
+/// The 3 pool views nearest the target that face its way, nearest first.
+fn nearest<'a>(target: &CapturedView, pool: &[&'a CapturedView]) -> Result<Vec<&'a CapturedView>> {
+    let cameras: Vec<_> = pool.iter().map(|v| &v.camera).collect();
+    let ranked = rank_sources(&target.camera, &cameras);
+    if ranked.len() < 3 {
+        return Err(Error::Usage(format!(
+            "view {}: only {} source views face its way, 3 needed",
+            target.name,
+            ranked.len()
+        )));
+    }
+    Ok(ranked[..3].iter().map(|&i| pool[i]).collect())
+}
+
+/// As evaluate.py `format_row`.
+fn format_row(r: &Row) -> String {
+    format!("{:>8}  {:>12}  PSNR {:6.2}  SSIM {:.3}  {:.1} s", r.view, r.sources.join(","), r.psnr, r.ssim, r.seconds)
+}

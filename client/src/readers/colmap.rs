@@ -1,0 +1,477 @@
+//! COLMAP sparse models, text (`cameras.txt`, `images.txt`, `points3D.txt`) or binary (`.bin`),
+//! with the images in `<scene>/images/`.
+//!
+//! Convention (datasets.py `load_colmap`; Python reads the text form only, the binary form here
+//! gives the same cameras): the model is looked for in `<scene>`, `<scene>/sparse/0`,
+//! `<scene>/sparse` (text first, then binary). Poses are world-to-camera in OpenCV axes already
+//! (qw qx qy qz tx ty tz). COLMAP's first pixel centre is at (0.5, 0.5): cx, cy are shifted by
+//! -0.5. PINHOLE and SIMPLE_PINHOLE are used as they are; SIMPLE_RADIAL, RADIAL, OPENCV and
+//! FULL_OPENCV only when their distortion is zero (or with `--ignore-distortion`); fisheye models
+//! are refused. Intrinsics are rescaled when the image on disk has another size than the camera.
+//! near/far: 0.9 x the 1st and 1.1 x the 99th percentile of the z-depths of the 3D points in the
+//! views that observe them (every view for a point without a track). Views are in natural
+//! order of their image names; names drop the extension.
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+
+use nalgebra::{Point3, Quaternion, Translation3, UnitQuaternion};
+
+use super::{
+    check_distortion, depth_range, image_size, natural_cmp, without_extension, Capture, CapturedView, Format,
+    ReadOptions,
+};
+use crate::camera::{Camera, Intrinsics, Pose};
+use crate::error::{read_bytes, read_text, Error, Result};
+use crate::metrics::percentile;
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Encoding {
+    Text,
+    Binary,
+}
+
+/// The folder and encoding of the model: text anywhere first (the Python loader's rule), then
+/// binary.
+pub fn find_model(root: &Path) -> Option<(PathBuf, Encoding)> {
+    let dirs = [root.to_path_buf(), root.join("sparse").join("0"), root.join("sparse")];
+    [(Encoding::Text, "txt"), (Encoding::Binary, "bin")].into_iter().find_map(|(encoding, ext)| {
+        dirs.iter()
+            .find(|d| d.join(format!("cameras.{ext}")).is_file() && d.join(format!("images.{ext}")).is_file())
+            .map(|d| (d.clone(), encoding))
+    })
+}
+
+struct CameraModel {
+    model: String,
+    width: u64,
+    height: u64,
+    params: Vec<f64>,
+}
+
+struct ImageRecord {
+    id: i64,
+    name: String,
+    w2c: Pose,
+    camera_id: i64,
+}
+
+/// Point positions and, per point, the ids of the images that observe it.
+struct Points {
+    xyz: Vec<Point3<f64>>,
+    tracks: Vec<Vec<i64>>,
+}
+
+pub fn load(path: &Path, opts: ReadOptions) -> Result<Capture> {
+    let (dir, encoding) = find_model(path).ok_or_else(|| {
+        Error::dataset(path, "no COLMAP model (cameras + images, .txt or .bin) in ., sparse/0 or sparse")
+    })?;
+    let ext = if encoding == Encoding::Text { "txt" } else { "bin" };
+    let (cameras_file, images_file) = (dir.join(format!("cameras.{ext}")), dir.join(format!("images.{ext}")));
+    let (cameras, mut images) = match encoding {
+        Encoding::Text => (text::cameras(&cameras_file)?, text::images(&images_file)?),
+        Encoding::Binary => (binary::cameras(&cameras_file)?, binary::images(&images_file)?),
+    };
+    let image_dir = path.join("images");
+    if !image_dir.is_dir() {
+        return Err(Error::dataset(&image_dir, "COLMAP images folder not found"));
+    }
+    let mut warnings = Vec::new();
+    let mut intrinsics = HashMap::new();
+    for (id, cam) in &cameras {
+        let intr = pinhole(cam, *id, opts, &cameras_file, &mut warnings)?;
+        intrinsics.insert(*id, intr);
+    }
+    images.sort_by(|a, b| natural_cmp(&a.name, &b.name));
+    let mut views = Vec::new();
+    for img in &images {
+        let (cam, declared) = intrinsics.get(&img.camera_id).ok_or_else(|| {
+            Error::dataset(&images_file, format!("image {} uses unknown camera {}", img.name, img.camera_id))
+        })?;
+        let image_path = image_dir.join(&img.name);
+        if !image_path.exists() {
+            continue;
+        }
+        let declared = Camera { width: declared.0, height: declared.1, intrinsics: *cam, w2c: img.w2c };
+        let (w, h) = image_size(&image_path)?;
+        let camera = if (w, h) == (declared.width, declared.height) { declared } else { declared.resized(w, h) };
+        views.push(CapturedView { name: without_extension(&img.name), image_path, camera });
+    }
+    let missing = images.len() - views.len();
+    if missing > 0 {
+        warnings.push(format!(
+            "{}: {missing} of {} images are missing from {}; skipped",
+            images_file.display(),
+            images.len(),
+            image_dir.display()
+        ));
+    }
+    if views.is_empty() {
+        return Err(Error::dataset(
+            &images_file,
+            format!("none of the listed images exists in {}", image_dir.display()),
+        ));
+    }
+    let points_file = dir.join(format!("points3D.{ext}"));
+    let from_points = if points_file.is_file() {
+        let points = match encoding {
+            Encoding::Text => text::points(&points_file)?,
+            Encoding::Binary => binary::points(&points_file)?,
+        };
+        points_near_far(&points, &images)
+    } else {
+        None
+    };
+    let (near, far) = depth_range(opts, (from_points.map(|p| p.0), from_points.map(|p| p.1)), &dir)?;
+    Ok(Capture { format: Format::Colmap, views, near, far, background: [0.0; 3], warnings })
+}
+
+/// Pinhole intrinsics (shifted to integer pixel centres) and the declared size of a camera.
+fn pinhole(
+    cam: &CameraModel,
+    id: i64,
+    opts: ReadOptions,
+    file: &Path,
+    warnings: &mut Vec<String>,
+) -> Result<(Intrinsics, (u32, u32))> {
+    let p = &cam.params;
+    let (fx, fy, cx, cy, distortion): (f64, f64, f64, f64, &[f64]) = match cam.model.as_str() {
+        "SIMPLE_PINHOLE" | "SIMPLE_RADIAL" | "RADIAL" => (p[0], p[0], p[1], p[2], &p[3..]),
+        "PINHOLE" | "OPENCV" | "FULL_OPENCV" => (p[0], p[1], p[2], p[3], &p[4..]),
+        other => {
+            return Err(Error::dataset(
+                file,
+                format!(
+                    "camera {id} uses the {other} model, which cannot be used as a pinhole: undistort the \
+                     images first (`colmap image_undistorter` writes PINHOLE cameras)"
+                ),
+            ))
+        }
+    };
+    let nonzero: Vec<(&str, f64)> = distortion.iter().filter(|d| **d != 0.0).map(|d| ("distortion", *d)).collect();
+    check_distortion(opts, &nonzero, &format!("camera {id} ({})", cam.model), file, warnings)?;
+    let size = (u32::try_from(cam.width).ok(), u32::try_from(cam.height).ok());
+    match size {
+        (Some(w), Some(h)) if fx > 0.0 && fy > 0.0 && w > 0 && h > 0 => {
+            Ok((Intrinsics { fx, fy, cx: cx - 0.5, cy: cy - 0.5 }, (w, h)))
+        }
+        _ => Err(Error::dataset(file, format!("camera {id}: non-positive focal length or image size"))),
+    }
+}
+
+/// Number of parameters of each COLMAP camera model (colmap/src/colmap/sensor/models.h), by
+/// binary model id.
+const MODELS: [(&str, usize); 11] = [
+    ("SIMPLE_PINHOLE", 3),
+    ("PINHOLE", 4),
+    ("SIMPLE_RADIAL", 4),
+    ("RADIAL", 5),
+    ("OPENCV", 8),
+    ("OPENCV_FISHEYE", 8),
+    ("FULL_OPENCV", 12),
+    ("FOV", 5),
+    ("SIMPLE_RADIAL_FISHEYE", 4),
+    ("RADIAL_FISHEYE", 5),
+    ("THIN_PRISM_FISHEYE", 12),
+];
+
+fn param_count(model: &str) -> Option<usize> {
+    MODELS.iter().find(|(m, _)| *m == model).map(|(_, n)| *n)
+}
+
+fn pose(q: [f64; 4], t: [f64; 3]) -> Option<Pose> {
+    let q = Quaternion::new(q[0], q[1], q[2], q[3]);
+    let n = q.norm();
+    if !(n.is_finite() && n >= 1e-12 && t.iter().all(|v| v.is_finite())) {
+        return None;
+    }
+    let rotation = UnitQuaternion::from_quaternion(q).to_rotation_matrix();
+    Some(Pose::from_parts(Translation3::new(t[0], t[1], t[2]), rotation))
+}
+
+/// near = 0.9 x the 1st, far = 1.1 x the 99th percentile of the positive z-depths of each point
+/// in the images that observe it (in every image for a point without a track);
+/// datasets.py `_colmap_points_near_far`. Images whose file is missing still count.
+fn points_near_far(points: &Points, images: &[ImageRecord]) -> Option<(f64, f64)> {
+    // Python keeps the last record of a repeated image id
+    let poses: HashMap<i64, &Pose> = images.iter().map(|i| (i.id, &i.w2c)).collect();
+    let mut observed: HashMap<i64, Vec<usize>> = HashMap::new();
+    let mut untracked = Vec::new();
+    for (k, track) in points.tracks.iter().enumerate() {
+        if track.is_empty() {
+            untracked.push(k);
+        }
+        for id in track {
+            observed.entry(*id).or_default().push(k);
+        }
+    }
+    let mut depths = Vec::new();
+    for (id, w2c) in &poses {
+        let own = observed.get(id).map(Vec::as_slice).unwrap_or_default();
+        for &k in own.iter().chain(&untracked) {
+            let z = (*w2c * points.xyz[k]).z;
+            if z > 1e-9 {
+                depths.push(z);
+            }
+        }
+    }
+    if depths.is_empty() {
+        return None;
+    }
+    depths.sort_by(f64::total_cmp);
+    Some((0.9 * percentile(&depths, 1.0), 1.1 * percentile(&depths, 99.0)))
+}
+
+mod text {
+    use super::*;
+
+    /// Lines with their 1-based numbers, comments and blank lines kept (images.txt needs them).
+    fn lines(path: &Path) -> Result<Vec<String>> {
+        Ok(read_text(path)?.lines().map(str::to_string).collect())
+    }
+
+    fn malformed(path: &Path, line: usize, what: &str, text: &str) -> Error {
+        Error::dataset(path, format!("line {line}: malformed {what} line: {text:?}"))
+    }
+
+    pub(super) fn cameras(path: &Path) -> Result<Vec<(i64, CameraModel)>> {
+        let mut out = Vec::new();
+        for (i, line) in lines(path)?.iter().enumerate() {
+            let s = line.trim();
+            if s.is_empty() || s.starts_with('#') {
+                continue;
+            }
+            let t: Vec<&str> = s.split_whitespace().collect();
+            let parse = || -> Option<(i64, CameraModel)> {
+                let params = t.get(4..)?.iter().map(|x| x.parse().ok()).collect::<Option<Vec<f64>>>()?;
+                let model = t.get(1)?.to_uppercase();
+                Some((
+                    t[0].parse().ok()?,
+                    CameraModel { model, width: t[2].parse().ok()?, height: t[3].parse().ok()?, params },
+                ))
+            };
+            let (id, cam) = parse().ok_or_else(|| malformed(path, i + 1, "camera", s))?;
+            check_params(&cam, path, &format!("line {}", i + 1))?;
+            out.push((id, cam));
+        }
+        if out.is_empty() {
+            return Err(Error::dataset(path, "no cameras"));
+        }
+        Ok(out)
+    }
+
+    /// Every image takes two lines; the second (its 2D points) may be empty, so records are read
+    /// in pairs instead of filtering blank lines.
+    pub(super) fn images(path: &Path) -> Result<Vec<ImageRecord>> {
+        let lines = lines(path)?;
+        let mut out = Vec::new();
+        let mut i = 0;
+        while i < lines.len() {
+            let s = lines[i].trim();
+            if s.is_empty() || s.starts_with('#') {
+                i += 1;
+                continue;
+            }
+            let t: Vec<&str> = s.split_whitespace().collect();
+            let parse = || -> Option<([f64; 4], [f64; 3], i64, i64)> {
+                let n: Vec<f64> = t.get(1..8)?.iter().map(|x| x.parse().ok()).collect::<Option<_>>()?;
+                Some(([n[0], n[1], n[2], n[3]], [n[4], n[5], n[6]], t[0].parse().ok()?, t.get(8)?.parse().ok()?))
+            };
+            let (q, tv, id, camera_id) = parse().ok_or_else(|| malformed(path, i + 1, "image", s))?;
+            let name = t[9..].join(" ");
+            if name.is_empty() {
+                return Err(malformed(path, i + 1, "image", s));
+            }
+            let w2c =
+                pose(q, tv).ok_or_else(|| Error::dataset(path, format!("line {}: zero or non-finite pose", i + 1)))?;
+            out.push(ImageRecord { id, name, w2c, camera_id });
+            i += 2;
+        }
+        if out.is_empty() {
+            return Err(Error::dataset(path, "no images"));
+        }
+        Ok(out)
+    }
+
+    pub(super) fn points(path: &Path) -> Result<Points> {
+        let mut points = Points { xyz: Vec::new(), tracks: Vec::new() };
+        for (i, line) in lines(path)?.iter().enumerate() {
+            let s = line.trim();
+            if s.is_empty() || s.starts_with('#') {
+                continue;
+            }
+            let t: Vec<&str> = s.split_whitespace().collect();
+            let parse = || -> Option<(Point3<f64>, Vec<i64>)> {
+                let xyz: Vec<f64> = t.get(1..4)?.iter().map(|x| x.parse().ok()).collect::<Option<_>>()?;
+                let track = t.iter().skip(8).step_by(2).map(|x| x.parse().ok()).collect::<Option<_>>()?;
+                Some((Point3::new(xyz[0], xyz[1], xyz[2]), track))
+            };
+            let (xyz, track) = parse().ok_or_else(|| malformed(path, i + 1, "point", s))?;
+            points.xyz.push(xyz);
+            points.tracks.push(track);
+        }
+        Ok(points)
+    }
+}
+
+/// A known model with the right number of parameters (any model is parsed; `pinhole` decides
+/// what is usable).
+fn check_params(cam: &CameraModel, path: &Path, at: &str) -> Result<()> {
+    let names: Vec<&str> = MODELS.iter().map(|(m, _)| *m).collect();
+    match param_count(&cam.model) {
+        None => {
+            Err(Error::dataset(path, format!("{at}: unknown camera model {} (known: {})", cam.model, names.join(", "))))
+        }
+        Some(n) if n != cam.params.len() => {
+            Err(Error::dataset(path, format!("{at}: {} needs {n} parameters, got {}", cam.model, cam.params.len())))
+        }
+        Some(_) => Ok(()),
+    }
+}
+
+/// The binary model as COLMAP writes it (colmap/src/colmap/scene/reconstruction_io.cc):
+/// little-endian, counts as u64, ids as u32, names NUL-terminated.
+mod binary {
+    use super::*;
+
+    struct Reader<'a> {
+        path: &'a Path,
+        bytes: Vec<u8>,
+        at: usize,
+    }
+
+    impl<'a> Reader<'a> {
+        fn open(path: &'a Path) -> Result<Self> {
+            Ok(Reader { path, bytes: read_bytes(path)?, at: 0 })
+        }
+
+        fn take<const N: usize>(&mut self) -> Result<[u8; N]> {
+            let end = self.at + N;
+            let chunk = self.bytes.get(self.at..end).ok_or_else(|| {
+                Error::dataset(self.path, format!("truncated binary model (wanted {N} bytes at offset {})", self.at))
+            })?;
+            self.at = end;
+            Ok(chunk.try_into().expect("slice of length N"))
+        }
+
+        fn u64(&mut self) -> Result<u64> {
+            self.take().map(u64::from_le_bytes)
+        }
+
+        fn u32(&mut self) -> Result<u32> {
+            self.take().map(u32::from_le_bytes)
+        }
+
+        fn i32(&mut self) -> Result<i32> {
+            self.take().map(i32::from_le_bytes)
+        }
+
+        fn f64(&mut self) -> Result<f64> {
+            self.take().map(f64::from_le_bytes)
+        }
+
+        fn f64s<const N: usize>(&mut self) -> Result<[f64; N]> {
+            let mut out = [0.0; N];
+            for v in &mut out {
+                *v = self.f64()?;
+            }
+            Ok(out)
+        }
+
+        /// A count of records, refused when the file cannot hold that many of `min_size` bytes.
+        fn count(&mut self, min_size: usize) -> Result<usize> {
+            let n = self.u64()?;
+            let room = (self.bytes.len() - self.at) / min_size.max(1);
+            usize::try_from(n).ok().filter(|n| *n <= room).ok_or_else(|| {
+                Error::dataset(
+                    self.path,
+                    format!("truncated binary model (record count {n} at offset {})", self.at - 8),
+                )
+            })
+        }
+
+        fn name(&mut self) -> Result<String> {
+            let rest = &self.bytes[self.at..];
+            let len = rest
+                .iter()
+                .position(|b| *b == 0)
+                .ok_or_else(|| Error::dataset(self.path, "truncated binary model (unterminated image name)"))?;
+            let name = String::from_utf8_lossy(&rest[..len]).into_owned();
+            self.at += len + 1;
+            Ok(name)
+        }
+
+        fn skip(&mut self, n: usize, size: usize) -> Result<()> {
+            let end = n.checked_mul(size).and_then(|b| b.checked_add(self.at)).filter(|e| *e <= self.bytes.len());
+            self.at = end.ok_or_else(|| Error::dataset(self.path, "truncated binary model"))?;
+            Ok(())
+        }
+    }
+
+    pub(super) fn cameras(path: &Path) -> Result<Vec<(i64, CameraModel)>> {
+        let mut r = Reader::open(path)?;
+        let n = r.count(24)?;
+        let mut out = Vec::with_capacity(n);
+        for k in 0..n {
+            let id = i64::from(r.u32()?);
+            let model_id = r.i32()?;
+            let (model, count) = usize::try_from(model_id)
+                .ok()
+                .and_then(|m| MODELS.get(m))
+                .ok_or_else(|| Error::dataset(path, format!("camera {id}: unknown camera model id {model_id}")))?;
+            let (width, height) = (r.u64()?, r.u64()?);
+            let params = (0..*count).map(|_| r.f64()).collect::<Result<Vec<_>>>()?;
+            let cam = CameraModel { model: model.to_string(), width, height, params };
+            check_params(&cam, path, &format!("camera record {k}"))?;
+            out.push((id, cam));
+        }
+        if out.is_empty() {
+            return Err(Error::dataset(path, "no cameras"));
+        }
+        Ok(out)
+    }
+
+    pub(super) fn images(path: &Path) -> Result<Vec<ImageRecord>> {
+        let mut r = Reader::open(path)?;
+        let n = r.count(73)?;
+        let mut out = Vec::with_capacity(n);
+        for _ in 0..n {
+            let id = i64::from(r.u32()?);
+            let (q, t) = (r.f64s::<4>()?, r.f64s::<3>()?);
+            let camera_id = i64::from(r.u32()?);
+            let name = r.name()?;
+            let points2d = r.count(24)?;
+            r.skip(points2d, 24)?; // x, y (f64) and point3D id (i64) each
+            let w2c =
+                pose(q, t).ok_or_else(|| Error::dataset(path, format!("image {name}: zero or non-finite pose")))?;
+            out.push(ImageRecord { id, name, w2c, camera_id });
+        }
+        if out.is_empty() {
+            return Err(Error::dataset(path, "no images"));
+        }
+        Ok(out)
+    }
+
+    pub(super) fn points(path: &Path) -> Result<Points> {
+        let mut r = Reader::open(path)?;
+        let n = r.count(51)?;
+        let mut points = Points { xyz: Vec::with_capacity(n), tracks: Vec::with_capacity(n) };
+        for _ in 0..n {
+            r.u64()?; // point id
+            let xyz = r.f64s::<3>()?;
+            r.take::<3>()?; // colour
+            r.f64()?; // reprojection error
+            let len = r.count(8)?;
+            let track = (0..len)
+                .map(|_| {
+                    let image = r.u32()?;
+                    r.u32()?; // index of the 2D point in that image
+                    Ok(i64::from(image))
+                })
+                .collect::<Result<Vec<_>>>()?;
+            points.xyz.push(Point3::from(xyz));
+            points.tracks.push(track);
+        }
+        Ok(points)
+    }
+}

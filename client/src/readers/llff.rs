@@ -1,0 +1,96 @@
+//! LLFF: `poses_bounds.npy` (N x 17) and `images/` (file names sorted, one per row).
+//!
+//! Convention (datasets.py `load_llff`): each row is a 3x5 matrix [R | t | hwf] then the view's
+//! near and far bounds. R is camera-to-world with columns in LLFF's [down, right, back] axes, so
+//! OpenCV's [right, down, forward] = [col1, col0, -col2]. hwf is the full-resolution height,
+//! width and focal: f = focal W_image / W_hwf, and the principal point is the image centre
+//! (W/2, H/2), as in LLFF's and MVSNeRF's code. The world stays in LLFF's units (no NeRF
+//! bd_factor rescale). near = smallest near bound, far = largest far bound.
+
+use std::path::{Path, PathBuf};
+
+use nalgebra::{Matrix4, Vector3};
+
+use super::{depth_range, has_image_extension, image_size, Capture, CapturedView, Format, ReadOptions};
+use crate::camera::{w2c_from_c2w, Camera, Intrinsics};
+use crate::error::{read_bytes, Error, Result};
+
+pub fn load(path: &Path, opts: ReadOptions) -> Result<Capture> {
+    let npy = path.join("poses_bounds.npy");
+    let rows = read_rows(&npy)?;
+    let images = list_images(&path.join("images"))?;
+    if images.len() != rows.len() {
+        return Err(Error::dataset(
+            &npy,
+            format!("{} poses but {} images in {}", rows.len(), images.len(), path.join("images").display()),
+        ));
+    }
+    let mut views = Vec::with_capacity(rows.len());
+    for (i, (row, image)) in rows.iter().zip(images).enumerate() {
+        let at = |r: usize, c: usize| row[r * 5 + c];
+        let (h0, w0, focal) = (at(0, 4), at(1, 4), at(2, 4));
+        if w0 <= 0.0 || h0 <= 0.0 || focal <= 0.0 {
+            return Err(Error::dataset(&npy, format!("row {i} has an invalid hwf ({h0}, {w0}, {focal})")));
+        }
+        let column = |c: usize| Vector3::new(at(0, c), at(1, c), at(2, c));
+        let mut c2w = Matrix4::identity();
+        c2w.fixed_view_mut::<3, 1>(0, 0).copy_from(&column(1));
+        c2w.fixed_view_mut::<3, 1>(0, 1).copy_from(&column(0));
+        c2w.fixed_view_mut::<3, 1>(0, 2).copy_from(&-column(2));
+        c2w.fixed_view_mut::<3, 1>(0, 3).copy_from(&column(3));
+        let w2c = w2c_from_c2w(&c2w)
+            .ok_or_else(|| Error::dataset(&npy, format!("row {i}: the pose is not a rigid transform")))?;
+        let (w, h) = image_size(&image)?;
+        let f = focal * f64::from(w) / w0;
+        let intrinsics = Intrinsics { fx: f, fy: f, cx: f64::from(w) / 2.0, cy: f64::from(h) / 2.0 };
+        let name = image.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
+        views.push(CapturedView { name, image_path: image, camera: Camera { width: w, height: h, intrinsics, w2c } });
+    }
+    let near = rows.iter().map(|r| r[15]).fold(f64::INFINITY, f64::min);
+    let far = rows.iter().map(|r| r[16]).fold(f64::NEG_INFINITY, f64::max);
+    let (near, far) = depth_range(opts, (Some(near), Some(far)), &npy)?;
+    Ok(Capture { format: Format::Llff, views, near, far, background: [0.0; 3], warnings: Vec::new() })
+}
+
+/// The N rows of 17 finite numbers (float64 or float32, either byte or memory order).
+fn read_rows(npy: &Path) -> Result<Vec<[f64; 17]>> {
+    let bytes = read_bytes(npy)?;
+    let bad = |what: String| Error::dataset(npy, what);
+    let file = npyz::NpyFile::new(&bytes[..]).map_err(|e| bad(format!("not a .npy file ({e})")))?;
+    let shape = file.shape().to_vec();
+    let order = file.order();
+    if shape.len() != 2 || shape[1] != 17 || shape[0] == 0 {
+        return Err(bad(format!("expected an N x 17 array, got shape {shape:?}")));
+    }
+    let dtype = match file.dtype() {
+        npyz::DType::Plain(ty) => ty.to_string(),
+        other => other.descr(),
+    };
+    let values: Vec<f64> = match dtype.get(1..) {
+        Some("f8") => file.into_vec::<f64>(),
+        Some("f4") => file.into_vec::<f32>().map(|v| v.into_iter().map(f64::from).collect()),
+        _ => return Err(bad(format!("expected float64 values, got dtype {dtype}"))),
+    }
+    .map_err(|e| bad(format!("cannot read the array ({e})")))?;
+    if values.iter().any(|v| !v.is_finite()) {
+        return Err(bad("non-finite values".into()));
+    }
+    let n = shape[0] as usize;
+    let index = |i: usize, j: usize| match order {
+        npyz::Order::C => i * 17 + j,
+        npyz::Order::Fortran => j * n + i,
+    };
+    Ok((0..n).map(|i| std::array::from_fn(|j| values[index(i, j)])).collect())
+}
+
+/// Image files of a folder, sorted by name, hidden files left out (datasets.py `_list_images`).
+pub(super) fn list_images(dir: &Path) -> Result<Vec<PathBuf>> {
+    let entries = std::fs::read_dir(dir).map_err(|e| Error::io(dir, e))?;
+    let mut files: Vec<PathBuf> = entries
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.is_file() && has_image_extension(p))
+        .filter(|p| !p.file_name().is_some_and(|n| n.to_string_lossy().starts_with('.')))
+        .collect();
+    files.sort();
+    Ok(files)
+}

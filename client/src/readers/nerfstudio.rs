@@ -1,0 +1,102 @@
+//! nerfstudio `transforms.json`: fl_x, fl_y, cx, cy, w, h at the top level and/or per frame,
+//! `file_path` per frame, `transform_matrix` camera-to-world in OpenGL axes.
+//!
+//! Convention (datasets.py `load_nerfstudio`): nerfstudio puts the first pixel's centre at
+//! (0.5, 0.5), so cx, cy are shifted by -0.5; if the image on disk has another size than w x h the
+//! intrinsics are rescaled to it (pixel centres kept at integers). Lens distortion (k1..k4, p1,
+//! p2) is refused unless `--ignore-distortion`. near/far from the flags, else the file's
+//! `near`/`far` (or `near_far`) keys. View names are the file stems, or the file paths without
+//! extension when stems repeat.
+
+use std::path::Path;
+
+use serde_json::Value;
+
+use super::blender::{all_unique, frame_file_path, frames_of};
+use super::{
+    base_name, check_distortion, depth_range, image_size, json_f64, json_matrix4, resolve_image, skipped_warning,
+    without_extension, Capture, CapturedView, Format, ReadOptions,
+};
+use crate::camera::{w2c_from_opengl_c2w, Camera, Intrinsics};
+use crate::error::{Error, Result};
+
+const DISTORTION: [&str; 6] = ["k1", "k2", "k3", "k4", "p1", "p2"];
+const MODELS: [&str; 3] = ["OPENCV", "PINHOLE", "SIMPLE_PINHOLE"];
+
+pub fn load(path: &Path, opts: ReadOptions) -> Result<Capture> {
+    let file = if path.is_dir() { path.join("transforms.json") } else { path.to_path_buf() };
+    if !file.exists() {
+        return Err(Error::dataset(&file, "nerfstudio transforms.json not found"));
+    }
+    let (data, frames) = frames_of(&file)?;
+    let model = data.get("camera_model").and_then(Value::as_str).unwrap_or("OPENCV").to_uppercase();
+    if !MODELS.contains(&model.as_str()) {
+        return Err(Error::dataset(&file, format!("camera_model {model} is not supported (pinhole/OpenCV only)")));
+    }
+    let base = file.parent().unwrap_or(Path::new("."));
+    let mut warnings = Vec::new();
+    let mut entries = Vec::new(); // (path without extension, view)
+    for (i, frame) in frames.iter().enumerate() {
+        let file_path = frame_file_path(frame, &file, i)?;
+        let Some(image) = resolve_image(base, file_path) else { continue };
+        let param = |key: &str| -> Result<f64> {
+            let value = frame.get(key).or_else(|| data.get(key)).ok_or_else(|| {
+                Error::dataset(&file, format!("frames[{i}] has no '{key}' (neither per frame nor at the top level)"))
+            })?;
+            json_f64(value, &file, &format!("frames[{i}].{key}"))
+        };
+        let fx = param("fl_x")?;
+        let has_fy = frame.get("fl_y").is_some() || data.get("fl_y").is_some();
+        let fy = if has_fy { param("fl_y")? } else { fx };
+        let (cx, cy) = (param("cx")?, param("cy")?);
+        // Python's int() of the declared size
+        let (w, h) = (param("w")?.trunc(), param("h")?.trunc());
+        if fx <= 0.0 || fy <= 0.0 || w <= 0.0 || h <= 0.0 || w > f64::from(u32::MAX) || h > f64::from(u32::MAX) {
+            return Err(Error::dataset(&file, format!("frames[{i}] has a non-positive focal length or size")));
+        }
+        let nonzero: Vec<(&str, f64)> = DISTORTION
+            .iter()
+            .filter_map(|&k| frame.get(k).or_else(|| data.get(k)).and_then(Value::as_f64).map(|v| (k, v)))
+            .filter(|(_, v)| *v != 0.0)
+            .collect();
+        check_distortion(opts, &nonzero, &format!("frames[{i}]"), &file, &mut warnings)?;
+        let matrix = json_matrix4(&frame["transform_matrix"], &file, &format!("frames[{i}].transform_matrix"))?;
+        let w2c = w2c_from_opengl_c2w(&matrix).ok_or_else(|| {
+            Error::dataset(&file, format!("frames[{i}].transform_matrix is not a rigid camera-to-world transform"))
+        })?;
+        let declared = Camera {
+            width: w as u32,
+            height: h as u32,
+            intrinsics: Intrinsics { fx, fy, cx: cx - 0.5, cy: cy - 0.5 },
+            w2c,
+        };
+        let (aw, ah) = image_size(&image)?;
+        let camera = if (aw, ah) == (declared.width, declared.height) { declared } else { declared.resized(aw, ah) };
+        entries.push((without_extension(file_path), CapturedView { name: String::new(), image_path: image, camera }));
+    }
+    if entries.is_empty() {
+        return Err(Error::dataset(&file, "none of the listed frames has an image file"));
+    }
+    let stems: Vec<String> = entries.iter().map(|(rel, _)| base_name(rel)).collect();
+    let unique = all_unique(&stems);
+    let views = entries
+        .into_iter()
+        .zip(stems)
+        .map(|((rel, view), stem)| CapturedView { name: if unique { stem } else { rel }, ..view })
+        .collect::<Vec<_>>();
+    warnings.extend(skipped_warning(&file.display().to_string(), frames.len() - views.len(), frames.len()));
+    let (near, far) = depth_range(opts, near_far(&data, &file)?, &file)?;
+    Ok(Capture { format: Format::Nerfstudio, views, near, far, background: [0.0; 3], warnings })
+}
+
+/// `near`/`far` keys, each falling back to the matching element of `near_far`.
+fn near_far(data: &Value, file: &Path) -> Result<(Option<f64>, Option<f64>)> {
+    let pair = data.get("near_far").and_then(Value::as_array).filter(|a| a.len() == 2);
+    let pick = |key: &str, idx: usize| -> Result<Option<f64>> {
+        match data.get(key).or_else(|| pair.map(|p| &p[idx])) {
+            Some(v) => json_f64(v, file, key).map(Some),
+            None => Ok(None),
+        }
+    };
+    Ok((pick("near", 0)?, pick("far", 1)?))
+}

@@ -1,0 +1,167 @@
+//! The `scnerf` binary end to end against the fake server: what a user runs and reads.
+
+mod common;
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+use common::FakeServer;
+
+fn fixture(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/fixtures/datasets").join(name)
+}
+
+/// Runs `scnerf` with a PATH that has no ffmpeg.
+fn scnerf(args: &[&str]) -> Output {
+    let no_tools = tempfile::tempdir().unwrap();
+    Command::new(env!("CARGO_BIN_EXE_scnerf"))
+        .args(args)
+        .env("PATH", no_tools.path())
+        .env_remove("SCNERF_SERVER")
+        .output()
+        .unwrap()
+}
+
+fn text(out: &Output) -> (String, String) {
+    (String::from_utf8_lossy(&out.stdout).into_owned(), String::from_utf8_lossy(&out.stderr).into_owned())
+}
+
+#[test]
+fn render_writes_frames_depth_and_a_gif_then_resumes() {
+    let server = FakeServer::start();
+    let out = tempfile::tempdir().unwrap();
+    let data = fixture("blender");
+    let args = [
+        "render",
+        data.to_str().unwrap(),
+        "--server",
+        &server.url,
+        "--path",
+        "orbit",
+        "--frames",
+        "6",
+        "--size",
+        "16x12",
+        "--out",
+        out.path().to_str().unwrap(),
+    ];
+    let first = scnerf(&args);
+    let (stdout, stderr) = text(&first);
+    assert!(first.status.success(), "{stdout}\n{stderr}");
+    assert!(stderr.contains("warning: ") && stderr.contains("2 of 7 frames have no image file; skipped"), "{stderr}");
+    assert!(stderr.contains("uploaded 5 views as scene "), "{stderr}");
+    assert!(stdout.contains("6 frames in") && stdout.contains("6 rendered, 0 already there"), "{stdout}");
+    assert!(stdout.contains("video.gif") && stdout.contains("note: ffmpeg is not on PATH"), "{stdout}");
+    for i in 0..6 {
+        assert!(out.path().join(format!("frames/frame_{i:04}.png")).is_file());
+        assert!(out.path().join(format!("depth/frame_{i:04}.npy")).is_file());
+    }
+    assert!(out.path().join("video.gif").is_file());
+    assert_eq!(server.uploads(), vec![5]);
+
+    let again = scnerf(&args);
+    let (stdout, _) = text(&again);
+    assert!(stdout.contains("0 rendered, 6 already there"), "{stdout}");
+    assert_eq!(server.renders(), 6);
+}
+
+#[test]
+fn view_renders_one_named_view_from_three_sources() {
+    let server = FakeServer::start();
+    let dir = tempfile::tempdir().unwrap();
+    let png = dir.path().join("v.png");
+    let data = fixture("blender");
+    let out = scnerf(&[
+        "view",
+        data.to_str().unwrap(),
+        "--server",
+        &server.url,
+        "--pose",
+        "train/r_1",
+        "--size",
+        "16x12",
+        "--sources",
+        "train/r_0,train/r_2,val/r_0",
+        "--out",
+        png.to_str().unwrap(),
+    ]);
+    let (stdout, stderr) = text(&out);
+    assert!(out.status.success(), "{stdout}\n{stderr}");
+    assert!(
+        stdout.contains("(16x12)")
+            && stdout.contains("server: renderer 12 ms, total 13 ms; sources 0,1,2 (train/r_0,train/r_2,val/r_0)"),
+        "{stdout}"
+    );
+    assert_eq!(image::image_dimensions(&png).unwrap(), (16, 12));
+    assert!(dir.path().join("v.depth.npy").is_file());
+    assert_eq!(server.uploads(), vec![3]);
+}
+
+#[test]
+fn eval_scores_held_out_views_against_the_nearest_sources() {
+    let server = FakeServer::start();
+    let data = fixture("dtu");
+    let out =
+        scnerf(&["eval", data.to_str().unwrap(), "--server", &server.url, "--targets", "0,3", "--downscale", "32"]);
+    let (stdout, stderr) = text(&out);
+    // views 1 and 2 are all that is left: not enough sources
+    assert!(!out.status.success());
+    assert!(stderr.contains("error: 2 of 4 views held out: fewer than 3 are left as sources"), "{stderr}");
+
+    let out = scnerf(&["eval", data.to_str().unwrap(), "--server", &server.url, "--holdout", "4", "--downscale", "32"]);
+    let (stdout2, stderr2) = text(&out);
+    assert!(out.status.success(), "{stdout}{stdout2}\n{stderr2}");
+    let lines: Vec<&str> = stdout2.lines().collect();
+    assert_eq!(lines.len(), 2, "{stdout2}");
+    assert!(
+        lines[0].trim_start().starts_with("0  ") && lines[0].contains("1,2,3") && lines[0].contains("PSNR"),
+        "{stdout2}"
+    );
+    assert!(lines[1].trim_start().starts_with("mean"), "{stdout2}");
+    assert_eq!(server.uploads(), vec![3]);
+}
+
+#[test]
+fn info_and_bad_input_in_plain_words() {
+    let out = scnerf(&["info", fixture("colmap_binary").to_str().unwrap()]);
+    let (stdout, _) = text(&out);
+    assert!(stdout.starts_with("colmap: 4 views, near 1.6393846850976874 far 4.9899239451399096"), "{stdout}");
+
+    let out = scnerf(&["info", "/no/such/capture"]);
+    let (_, stderr) = text(&out);
+    assert_eq!(out.status.code(), Some(1));
+    assert_eq!(stderr.trim(), "error: /no/such/capture: no such dataset folder");
+
+    let out =
+        scnerf(&["render", fixture("llff").to_str().unwrap(), "--path", "orbit", "--server", "http://127.0.0.1:9"]);
+    let (_, stderr) = text(&out);
+    assert!(
+        stderr.contains(
+            "error: the cameras do not look at a common point (a forward-facing capture?): use --path spiral"
+        ),
+        "{stderr}"
+    );
+
+    let out = scnerf(&[
+        "render",
+        fixture("llff").to_str().unwrap(),
+        "--path",
+        "spiral",
+        "--frames",
+        "2",
+        "--server",
+        "http://127.0.0.1:9",
+    ]);
+    let (_, stderr) = text(&out);
+    assert!(stderr.contains("error: cannot reach the server at http://127.0.0.1:9/v1/scenes"), "{stderr}");
+
+    let out = scnerf(&["render", fixture("llff").to_str().unwrap(), "--path", "zigzag"]);
+    let (_, stderr) = text(&out);
+    assert!(
+        stderr.contains("--path \"zigzag\": expected interpolate, orbit, spiral or a camera JSON file"),
+        "{stderr}"
+    );
+
+    let out = scnerf(&["render", fixture("llff").to_str().unwrap(), "--path", "orbit", "--size", "16by12"]);
+    assert!(text(&out).1.contains("expected WxH"), "{}", text(&out).1);
+}

@@ -1,0 +1,240 @@
+//! Every reader against the fixtures of tests/fixtures/datasets/, whose expected.json the Python
+//! loader wrote (scripts/make-dataset-fixtures.py; exporter/tests/test_dataset_fixtures.py checks
+//! the Python side), so Rust and Python read the same files into the same cameras.
+
+use std::path::{Path, PathBuf};
+
+use scnerf_client::readers::{self, Capture, Format, ReadOptions};
+use serde_json::Value;
+
+fn fixtures() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/fixtures/datasets")
+}
+
+fn close(a: f64, b: f64) -> bool {
+    (a - b).abs() <= 1e-9 * a.abs().max(b.abs()).max(1e-3)
+}
+
+/// The capture equals expected.json: names and order, image files, sizes, K, w2c, near/far,
+/// background.
+fn assert_matches(capture: &Capture, folder: &Path, expected_folder: &str) {
+    let expected: Value =
+        serde_json::from_str(&std::fs::read_to_string(fixtures().join(expected_folder).join("expected.json")).unwrap())
+            .unwrap();
+    assert_eq!(capture.format.name(), expected["format"]);
+    assert!(close(capture.near, expected["near"].as_f64().unwrap()), "near {}", capture.near);
+    assert!(close(capture.far, expected["far"].as_f64().unwrap()), "far {}", capture.far);
+    let bg: Vec<f64> = serde_json::from_value(expected["background"].clone()).unwrap();
+    assert_eq!(capture.background.to_vec(), bg);
+    let views = expected["views"].as_array().unwrap();
+    let names: Vec<&str> = capture.views.iter().map(|v| v.name.as_str()).collect();
+    let want: Vec<&str> = views.iter().map(|v| v["name"].as_str().unwrap()).collect();
+    assert_eq!(names, want);
+    for (view, want) in capture.views.iter().zip(views) {
+        let at = &view.name;
+        assert_eq!(
+            view.image_path.canonicalize().unwrap(),
+            folder.join(want["image"].as_str().unwrap()).canonicalize().unwrap()
+        );
+        let cam = &view.camera;
+        assert_eq!(
+            (u64::from(cam.width), u64::from(cam.height)),
+            (want["width"].as_u64().unwrap(), want["height"].as_u64().unwrap())
+        );
+        let k: [[f64; 3]; 3] = serde_json::from_value(want["K"].clone()).unwrap();
+        let k_rust = cam.k();
+        for r in 0..3 {
+            for c in 0..3 {
+                assert!(close(k_rust[(r, c)], k[r][c]), "{at}: K[{r}][{c}] {} vs {}", k_rust[(r, c)], k[r][c]);
+            }
+        }
+        let w2c: [[f64; 4]; 4] = serde_json::from_value(want["w2c"].clone()).unwrap();
+        let m = cam.w2c.to_homogeneous();
+        for r in 0..4 {
+            for c in 0..4 {
+                assert!(close(m[(r, c)], w2c[r][c]), "{at}: w2c[{r}][{c}] {} vs {}", m[(r, c)], w2c[r][c]);
+            }
+        }
+    }
+}
+
+fn load(folder: &str, format: Option<Format>) -> Capture {
+    readers::load(&fixtures().join(folder), format, ReadOptions::default()).unwrap()
+}
+
+#[test]
+fn blender_matches_python() {
+    let c = load("blender", Some(Format::Blender));
+    assert_matches(&c, &fixtures().join("blender"), "blender");
+    // two frames of transforms_train.json have no image: one warning that counts them
+    assert_eq!(c.warnings.len(), 1, "{:?}", c.warnings);
+    assert!(c.warnings[0].contains("2 of 7 frames have no image file; skipped"), "{}", c.warnings[0]);
+}
+
+#[test]
+fn nerfstudio_matches_python() {
+    let c = load("nerfstudio", Some(Format::Nerfstudio));
+    assert_matches(&c, &fixtures().join("nerfstudio"), "nerfstudio");
+    assert!(c.warnings[0].contains("1 of 5 frames"), "{:?}", c.warnings);
+}
+
+#[test]
+fn llff_matches_python() {
+    let c = load("llff", Some(Format::Llff));
+    assert_matches(&c, &fixtures().join("llff"), "llff");
+}
+
+#[test]
+fn colmap_text_matches_python() {
+    let c = load("colmap", Some(Format::Colmap));
+    assert_matches(&c, &fixtures().join("colmap"), "colmap");
+    assert!(c.warnings[0].contains("1 of 5 images are missing"), "{:?}", c.warnings);
+}
+
+#[test]
+fn colmap_binary_gives_the_same_cameras_as_text() {
+    let c = load("colmap_binary", Some(Format::Colmap));
+    assert_matches(&c, &fixtures().join("colmap_binary"), "colmap");
+}
+
+#[test]
+fn dtu_matches_python() {
+    let c = load("dtu", Some(Format::Dtu));
+    assert_matches(&c, &fixtures().join("dtu"), "dtu");
+    assert!(c.warnings[0].contains("1 of 5 cameras have no image"), "{:?}", c.warnings);
+}
+
+#[test]
+fn auto_detects_every_format() {
+    for (folder, format) in [
+        ("blender", Format::Blender),
+        ("nerfstudio", Format::Nerfstudio),
+        ("llff", Format::Llff),
+        ("colmap", Format::Colmap),
+        ("colmap_binary", Format::Colmap),
+        ("dtu", Format::Dtu),
+    ] {
+        assert_eq!(readers::detect(&fixtures().join(folder)).unwrap(), format, "{folder}");
+        assert_eq!(load(folder, None).format, format);
+    }
+    let file = fixtures().join("nerfstudio/transforms.json");
+    assert_eq!(readers::detect(&file).unwrap(), Format::Nerfstudio);
+}
+
+#[test]
+fn near_far_flags_override_the_dataset() {
+    let opts = ReadOptions { near: Some(0.25), far: None, ..Default::default() };
+    let c = readers::load(&fixtures().join("blender"), None, opts).unwrap();
+    assert_eq!((c.near, c.far), (0.25, 6.0));
+    let bad = ReadOptions { near: Some(7.0), ..Default::default() };
+    let err = readers::load(&fixtures().join("blender"), None, bad).unwrap_err().to_string();
+    assert!(err.contains("invalid near/far 7/6"), "{err}");
+
+    // each bound on its own, as the Python loaders take them: a file with far only and --near
+    let dir = copy_fixture("nerfstudio");
+    let file = dir.path().join("transforms.json");
+    let mut data: Value = serde_json::from_str(&std::fs::read_to_string(&file).unwrap()).unwrap();
+    data.as_object_mut().unwrap().remove("near_far");
+    data["far"] = 9.5.into();
+    std::fs::write(&file, data.to_string()).unwrap();
+    let err = error_of(dir.path());
+    assert!(err.contains("transforms.json: no near/far in the dataset"), "{err}");
+    assert!(err.contains("pass --near and --far"), "{err}");
+    let c = readers::load(dir.path(), None, ReadOptions { near: Some(0.1), ..Default::default() }).unwrap();
+    assert_eq!((c.near, c.far), (0.1, 9.5));
+}
+
+/// A copy of a fixture folder to break.
+fn copy_fixture(folder: &str) -> tempfile::TempDir {
+    let dir = tempfile::tempdir().unwrap();
+    copy_dir(&fixtures().join(folder), dir.path());
+    dir
+}
+
+fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for entry in std::fs::read_dir(from).unwrap() {
+        let entry = entry.unwrap();
+        let target = to.join(entry.file_name());
+        if entry.path().is_dir() {
+            copy_dir(&entry.path(), &target);
+        } else {
+            std::fs::copy(entry.path(), target).unwrap();
+        }
+    }
+}
+
+fn error_of(dir: &Path) -> String {
+    readers::load(dir, None, ReadOptions::default()).unwrap_err().to_string()
+}
+
+#[test]
+fn distorted_colmap_camera_is_refused_by_name_unless_ignored() {
+    let dir = copy_fixture("colmap");
+    let cameras = dir.path().join("sparse/0/cameras.txt");
+    let text = std::fs::read_to_string(&cameras)
+        .unwrap()
+        .replace("SIMPLE_RADIAL 8 6 9.5 4.0 3.0 0.0", "SIMPLE_RADIAL 8 6 9.5 4.0 3.0 0.02");
+    std::fs::write(&cameras, text).unwrap();
+    let err = error_of(dir.path());
+    assert!(err.contains("cameras.txt: camera 3 (SIMPLE_RADIAL) has lens distortion (distortion=0.02)"), "{err}");
+    assert!(err.contains("colmap image_undistorter"), "{err}");
+    let opts = ReadOptions { ignore_distortion: true, ..Default::default() };
+    let c = readers::load(dir.path(), None, opts).unwrap();
+    assert!(c.warnings.iter().any(|w| w.contains("lens distortion ignored")), "{:?}", c.warnings);
+
+    let fisheye = std::fs::read_to_string(&cameras)
+        .unwrap()
+        .replace("SIMPLE_RADIAL 8 6 9.5 4.0 3.0 0.02", "OPENCV_FISHEYE 8 6 9 9 4 3 0 0 0 0");
+    std::fs::write(&cameras, fisheye).unwrap();
+    let err = error_of(dir.path());
+    assert!(err.contains("camera 3 uses the OPENCV_FISHEYE model, which cannot be used as a pinhole"), "{err}");
+}
+
+#[test]
+fn distorted_nerfstudio_frames_are_refused() {
+    let dir = copy_fixture("nerfstudio");
+    let file = dir.path().join("transforms.json");
+    let text = std::fs::read_to_string(&file).unwrap().replacen("\"k1\": 0.0", "\"k1\": -0.1", 1);
+    std::fs::write(&file, text).unwrap();
+    let err = error_of(dir.path());
+    assert!(err.contains("transforms.json: frames[0] has lens distortion (k1=-0.1)"), "{err}");
+}
+
+#[test]
+fn fewer_than_three_images_is_an_error() {
+    let dir = copy_fixture("blender");
+    for i in 0..3 {
+        std::fs::remove_file(dir.path().join(format!("train/r_{i}.png"))).unwrap();
+    }
+    let err = error_of(dir.path());
+    assert!(err.contains("only 2 view(s) have an image; a capture needs at least 3"), "{err}");
+}
+
+#[test]
+fn malformed_files_name_the_file_and_field() {
+    let dir = copy_fixture("blender");
+    let file = dir.path().join("transforms_val.json");
+    std::fs::write(
+        &file,
+        r#"{"camera_angle_x": 0.7, "frames": [{"file_path": "./val/r_0.png", "transform_matrix": [[1, 0]]}]}"#,
+    )
+    .unwrap();
+    let err = error_of(dir.path());
+    assert!(err.contains("transforms_val.json: frames[0].transform_matrix must be a finite 4x4"), "{err}");
+
+    let dir = copy_fixture("dtu");
+    std::fs::write(dir.path().join("Cameras/train/00000001_cam.txt"), "extrinsic\n1 0 0\nintrinsic\n").unwrap();
+    let err = error_of(dir.path());
+    assert!(err.contains("00000001_cam.txt: extrinsic must have 16 numbers, found 3"), "{err}");
+
+    let dir = copy_fixture("colmap_binary");
+    let images = dir.path().join("sparse/0/images.bin");
+    let bytes = std::fs::read(&images).unwrap();
+    std::fs::write(&images, &bytes[..bytes.len() / 2]).unwrap();
+    let err = error_of(dir.path());
+    assert!(err.contains("images.bin: truncated binary model"), "{err}");
+
+    let err = error_of(&fixtures().join("no-such-folder"));
+    assert!(err.contains("no such dataset folder"), "{err}");
+}
