@@ -26,7 +26,7 @@ from bench import renderer_run_feeds  # bench/bench.py, beside this script
 from scnerf_export.onnx_pipeline import OnnxBundle, session_options
 
 REPO = Path(__file__).resolve().parent.parent
-EXAMPLE = REPO / "examples" / "procedural-object"
+EXAMPLE = REPO / "examples" / "tabletop"
 
 
 def renderer_run(spec: str, threads: int, spin: bool, first_ray: int, rays: int):

@@ -5,7 +5,7 @@
 # (compose `pid: service:server`), passes the server's pid so the report includes its peak RSS.
 # Every argument is passed on to loadgen (`loadgen --help` for the list).
 #   SCNERF_LOADGEN_TARGET  HOST:PORT of the server (default server:8080)
-#   SCNERF_LOADGEN_CASE    request.json + source_0..2.png (default /opt/scnerf/examples/procedural-object)
+#   SCNERF_LOADGEN_CASE    request.json + source_0..2.png (default /opt/scnerf/examples/tabletop)
 set -euo pipefail
 
 args=()
@@ -26,7 +26,7 @@ if [[ " $* " != *" --addr "* ]]; then
   args+=(--addr "${ip}:${port}")
 fi
 if [[ " $* " != *" --case "* ]]; then
-  args+=(--case "${SCNERF_LOADGEN_CASE:-/opt/scnerf/examples/procedural-object}")
+  args+=(--case "${SCNERF_LOADGEN_CASE:-/opt/scnerf/examples/tabletop}")
 fi
 if [[ " $* " != *" --server-pid "* ]]; then
   for comm in /proc/[0-9]*/comm; do

@@ -15,7 +15,7 @@
 #      binary instead of the in-image Rust build (no Rust image can be pulled here);
 #   6. checks the image config (USER non-root, HEALTHCHECK, tini ENTRYPOINT, SCNERF_* env, port);
 #   7. starts the image's entrypoint with `buildah run` (host network, image user), waits for /readyz,
-#      runs the image's HEALTHCHECK command, GETs /v1/model, POSTs examples/procedural-object as
+#      runs the image's HEALTHCHECK command, GETs /v1/model, POSTs examples/tabletop as
 #      multipart and checks the PNG that comes back; starts it again with the bundle mounted as a
 #      volume (-v DIR:/bundle -e SCNERF_BUNDLE=/bundle); stops both with SIGTERM to tini and checks
 #      that the server exits 0; when the load generator (tests crate, `loadgen`) exists, builds the
@@ -42,7 +42,7 @@
 #   SCNERF_VERIFY_LOADGEN  the same for the load generator (default: built with cargo when
 #                          tests/src/bin/loadgen.rs exists and SCNERF_VERIFY_BINARY is not set)
 #   SCNERF_VERIFY_TARGET_SCALE  size of the rendered example view relative to the 320x256 target of
-#                          examples/procedural-object (default 0.25: 80x64; full size takes ~1 min of CPU)
+#                          examples/tabletop (default 0.25: 80x64; full size takes ~1 min of CPU)
 #   SCNERF_VERIFY_BUNDLE   bundle baked into the image, relative to the repo (default bundles/default,
 #                          else the committed test bundle tests/fixtures/parity/bundle)
 #   DEBIAN_MIRROR          debootstrap mirror (default http://deb.debian.org/debian)
@@ -476,10 +476,10 @@ model_matches_bundle() {
   [[ ${got} == "${want}" ]]
 }
 
-# render_example ACCEPT OUTPUTS: POST examples/procedural-object (multipart, curl) with the request's
+# render_example ACCEPT OUTPUTS: POST examples/tabletop (multipart, curl) with the request's
 # `outputs` replaced by OUTPUTS (a JSON list; "" keeps the committed request as it is).
 render_example() {
-  local accept=$1 outputs=$2 ex=${repo}/examples/procedural-object code t0=${SECONDS}
+  local accept=$1 outputs=$2 ex=${repo}/examples/tabletop code t0=${SECONDS}
   python3 - "${ex}/request.json" "${outputs}" "${target_scale}" >"${work}/request.json" <<'PY'
 import json, sys
 req = json.load(open(sys.argv[1]))
@@ -586,8 +586,8 @@ check "healthcheck /readyz (compose's readiness test): ready" healthcheck_ok /re
 check "HEALTHCHECK command: unhealthy when nothing listens" healthcheck_detects_down
 check "GET /v1/model = the baked bundle" model_matches_bundle
 t0=${SECONDS}
-check "POST /v1/render examples/procedural-object (JSON: rgb PNG, depth, opacity)" render_example application/json '["rgb", "depth", "opacity"]'
-check "POST /v1/render examples/procedural-object (image/png)" render_example image/png '["rgb"]'
+check "POST /v1/render examples/tabletop (JSON: rgb PNG, depth, opacity)" render_example application/json '["rgb", "depth", "opacity"]'
+check "POST /v1/render examples/tabletop (image/png)" render_example image/png '["rgb"]'
 timings+=("$(printf '%-44s %5ds' "  (two renders of the example)" "$((SECONDS - t0))")")
 if [[ -n ${loadgen} ]]; then
   t0=${SECONDS}

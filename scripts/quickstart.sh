@@ -6,7 +6,7 @@ set -euo pipefail
 repo=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 cd "${repo}"
 addr=${SCNERF_ADDR:-127.0.0.1:8080}
-example=${EXAMPLE:-examples/procedural-object}
+example=${EXAMPLE:-examples/tabletop}
 out=${OUT:-${repo}/target/quickstart}
 mkdir -p "${out}"
 

@@ -57,6 +57,12 @@ class RayBank:
     def __len__(self) -> int:
         return self.truth.shape[0]
 
+    def storable(self) -> "RayBank":
+        """The bank without rays whose F_r overflows float16 storage (a few rays of thousands, with
+        trunk outputs beyond 65504): left in, they make every step that draws them NaN."""
+        keep = torch.isfinite(self.radiance).flatten(1).all(dim=1)
+        return RayBank(**{name: value[keep] for name, value in self.__dict__.items()})
+
     def points(self, idx: torch.Tensor) -> RadiancePoints:
         rays = idx.shape[0]
 
@@ -195,8 +201,8 @@ def backbone_digest(model: SCNeRF) -> str:
 def cached(path: Path, build) -> RayBank:
     """A bank read from ``path`` if an earlier run wrote it, else built and written there."""
     if path.is_file():
-        return RayBank(**torch.load(path, weights_only=True))
-    bank = build()
+        return RayBank(**torch.load(path, weights_only=True)).storable()
+    bank = build().storable()
     path.parent.mkdir(parents=True, exist_ok=True)
     torch.save(bank.__dict__, path.with_suffix(".tmp"))
     path.with_suffix(".tmp").replace(path)
@@ -313,6 +319,7 @@ def finetune(init: str | Path, out_dir: str | Path, shared: str | Path, recipe: 
         value = float(loss.detach())
         bar.set_postfix(loss=f"{value:.5f}")
         log.write(json.dumps({"step": step + 1, "loss": value, "seconds": seconds}) + "\n")
+        log.flush()
         if (step + 1) % recipe.validate_every == 0 or step + 1 == recipe.steps:
             scores = validate(step + 1)
             gains = [scores[k] - initial[k] for k in initial]

@@ -1,6 +1,7 @@
 //! Regression: the real binary with no `--bundle` serves the committed default bundle, and its
-//! render of the committed example (a held-out procedural scene) stays above the PSNR floor in
-//! examples/procedural-object/regression.json (shared with the exporter's pytest twin).
+//! render of the committed example (a photo-like procedural tabletop scene from a validation
+//! seed) stays above the PSNR floor in examples/tabletop/regression.json (shared with the
+//! exporter's pytest twin).
 
 use std::time::Duration;
 
@@ -9,7 +10,7 @@ use serde_json::Value;
 
 #[test]
 fn default_bundle_renders_the_example_above_its_floor() {
-    let example = repo_root().join("examples/procedural-object");
+    let example = repo_root().join("examples/tabletop");
     let read = |name: &str| std::fs::read(example.join(name)).unwrap_or_else(|e| panic!("{name}: {e}"));
     let expected: Value = serde_json::from_slice(&read("regression.json")).unwrap();
     let (request, s0, s1, s2) =

@@ -1,0 +1,78 @@
+#!/usr/bin/env python3
+"""The quality table of docs/results.md: bundles side by side on the real validation scenes,
+rendered through the real server (its scene API), scored the paper's way.
+
+For every bundle, a fresh server; lego's val views and DTU scan37's test views at half size, with
+per-target nearest sources (the paper's protocol) and with each scene's fixed triple. Writes one
+`scnerf-export eval` JSON per bundle, scene and protocol into OUT and prints the markdown table.
+
+    .venv/bin/python scripts/quality.py --out results/quality \\
+        default=bundles/default mvsnerf=bundles/mvsnerf-public procedural=bundles/procedural-only
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from scnerf_export.evaluate import evaluate, write_json
+from scnerf_export.serving import ServerProcess, find_server_binary
+
+SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+SCENES = {"lego": ("nerf_synthetic_lego", "blender"), "scan37": ("dtu_scan37", "dtu")}
+PROTOCOLS = {"nearest": None, "fixed": ["fixed"]}
+
+
+def measure(name: str, bundle: str, out: Path, target_scale: float, threads: int | None) -> None:
+    binary = find_server_binary()
+    if binary is None:
+        sys.exit("no target/release/scnerf-server: cargo build --release -p scnerf-server")
+    with ServerProcess(binary, bundle, threads=threads) as server:
+        for scene, (folder, fmt) in SCENES.items():
+            for protocol, sources in PROTOCOLS.items():
+                path = out / f"{name}-{scene}-{protocol}.json"
+                if path.is_file():
+                    continue
+                print(f"{name}: {scene}, {protocol} sources", flush=True)
+                summary = evaluate(None, SHARED / folder, fmt, sources=sources, target_scale=target_scale,
+                                   server=server.url)
+                write_json(summary, path)
+
+
+def table(names: list[str], out: Path) -> str:
+    lines = ["| scene, sources | view | " + " | ".join(names) + " |", "|---|---|" + "---|" * len(names)]
+    for scene in SCENES:
+        for protocol in PROTOCOLS:
+            runs = [json.loads((out / f"{n}-{scene}-{protocol}.json").read_text()) for n in names]
+            for view in [*runs[0]["views"], "mean"]:
+                cells = []
+                for run in runs:
+                    row = run["mean"] if view == "mean" else run["views"][view]
+                    cell = f"{row['psnr']:.2f} / {row['ssim']:.3f}"
+                    if "psnr_masked" in row:
+                        cell += f" (masked {row['psnr_masked']:.2f} / {row['ssim_masked']:.3f})"
+                    cells.append(cell)
+                label = f"**{view}**" if view == "mean" else view
+                lines.append(f"| {scene}, {protocol} | {label} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("bundles", nargs="+", help="NAME=DIR")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--target-scale", type=float, default=0.5)
+    p.add_argument("--threads", type=int)
+    args = p.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    pairs = [item.partition("=")[::2] for item in args.bundles]
+    for name, bundle in pairs:
+        measure(name, bundle, args.out, args.target_scale, args.threads)
+    print(table([name for name, _ in pairs], args.out))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
