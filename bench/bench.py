@@ -331,7 +331,7 @@ def load_torch_model(bundle_dir: str, checkpoint: str):
     """The PyTorch model behind a bundle: a checkpoint (project or public MVSNeRF), or
     ``random:SEED`` (the parity fixtures' random weights), or ``auto`` (the manifest's provenance:
     random weights with their seed, or ``source_checkpoint`` looked up by name and sha256)."""
-    from scnerf_export.checkpoint import load_checkpoint, sha256_file
+    from scnerf_export.model.checkpoint import load_checkpoint, sha256_file
     from scnerf_export.config import ModelConfig
     from scnerf_export.export import read_manifest
     from scnerf_export.fixtures import random_model
@@ -357,7 +357,7 @@ def load_torch_model(bundle_dir: str, checkpoint: str):
 
 
 def find_checkpoint(bundle_dir: str, prov: dict) -> str:
-    from scnerf_export.checkpoint import sha256_file
+    from scnerf_export.model.checkpoint import sha256_file
 
     name, want = prov.get("source_checkpoint"), prov.get("source_sha256")
     if not name:

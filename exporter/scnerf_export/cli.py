@@ -7,13 +7,13 @@ import json
 import sys
 from pathlib import Path
 
-from .checkpoint import CheckpointError
+from .model.checkpoint import CheckpointError
 from .finetune import Recipe
 from .onnx_pipeline import DEFAULT_CHUNK
 
 
 def cmd_convert(args) -> None:
-    from .checkpoint import load_mvsnerf
+    from .model.checkpoint import load_mvsnerf
     from .export import export_bundle
 
     model, provenance = load_mvsnerf(args.ckpt)
@@ -22,13 +22,13 @@ def cmd_convert(args) -> None:
 
 
 def cmd_init_scnerf(args) -> None:
-    from .checkpoint import init_scnerf
+    from .model.checkpoint import init_scnerf
 
     print(f"wrote {init_scnerf(args.from_mvsnerf, args.out, seed=args.seed)}")
 
 
 def cmd_export(args) -> None:
-    from .checkpoint import load_checkpoint
+    from .model.checkpoint import load_checkpoint
     from .export import export_bundle
 
     model, provenance = load_checkpoint(args.checkpoint)

@@ -15,8 +15,8 @@ from torch import nn
 from torch.export import Dim
 
 from . import __version__
-from .checkpoint import sha256_file
-from .model import SCNeRF
+from .model.checkpoint import sha256_file
+from .model.network import SCNeRF
 from .ray_groups import attention_cores_in_ray_groups
 
 FORMAT_VERSION = 1

@@ -26,9 +26,10 @@ from tqdm import tqdm
 
 from . import datasets
 from . import cameras as cams
-from .checkpoint import load_checkpoint, save_checkpoint
+from .model.checkpoint import load_checkpoint, save_checkpoint
 from .evaluate import downscale_target, source_pool
-from .model import RadiancePoints, SCNeRF
+from .model.network import SCNeRF
+from .model.renderer import RadiancePoints
 from .procedural import TRAIN_SEED0, load_scene, pick_sources
 from .procedural.dataset import build_dataset
 from .render import encode_scene

@@ -14,7 +14,7 @@ from . import cameras as cams
 from .cameras import Camera
 from .config import ModelConfig, small_config
 from .export import export_bundle
-from .model import SCNeRF
+from .model.network import SCNeRF
 from .render import encode_scene, render_view
 
 

@@ -37,7 +37,7 @@ import onnx
 from onnx import helper, numpy_helper
 
 from . import onnx_graph
-from .checkpoint import sha256_file
+from .model.checkpoint import sha256_file
 from .export import read_manifest, write_manifest
 from .onnx_pipeline import DEFAULT_CHUNK, OnnxBundle
 

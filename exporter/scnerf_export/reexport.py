@@ -28,11 +28,11 @@ import torch
 from onnx import numpy_helper
 
 from . import __version__, onnx_graph
-from .checkpoint import sha256_file
+from .model.checkpoint import sha256_file
 from .config import ModelConfig
 from .export import (CHECK_BLOCKS, CHECK_RAYS, RendererGraph, _export_graph, _io_spec, example_inputs,
                      graph_signatures, read_manifest, validate_graph, write_manifest)
-from .model import SCNeRF
+from .model.network import SCNeRF
 
 AGREEMENT_TOLERANCE = 1e-4
 READABLE_EXPORTER_VERSION = "0.1.0"

@@ -10,7 +10,7 @@ import torch
 
 from . import cameras as cams
 from .cameras import Camera
-from .model import SCNeRF
+from .model.network import SCNeRF
 
 
 @dataclass

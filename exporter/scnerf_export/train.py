@@ -16,9 +16,9 @@ from PIL import Image
 from tqdm import tqdm
 
 from . import cameras as cams
-from .checkpoint import PROJECT_FORMAT, load_checkpoint, save_checkpoint
+from .model.checkpoint import PROJECT_FORMAT, load_checkpoint, save_checkpoint
 from .config import ModelConfig
-from .model import SCNeRF
+from .model.network import SCNeRF
 from .procedural import ProceduralDataset
 from .render import render_view
 

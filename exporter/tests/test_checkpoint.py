@@ -5,7 +5,7 @@ import zipfile
 import pytest
 import torch
 
-from scnerf_export.checkpoint import CheckpointError, load_checkpoint, load_mvsnerf, save_checkpoint
+from scnerf_export.model.checkpoint import CheckpointError, load_checkpoint, load_mvsnerf, save_checkpoint
 from scnerf_export.cli import main
 from scnerf_export.config import ModelConfig, small_config
 from scnerf_export.fixtures import random_model

@@ -8,7 +8,7 @@ import torch
 
 from scnerf_export import datasets
 from scnerf_export.cameras import target_rays
-from scnerf_export.checkpoint import init_scnerf, load_checkpoint, load_mvsnerf, scnerf_from_mvsnerf
+from scnerf_export.model.checkpoint import init_scnerf, load_checkpoint, load_mvsnerf, scnerf_from_mvsnerf
 from scnerf_export.config import small_config
 from scnerf_export.evaluate import downscale_target
 from scnerf_export.export import export_bundle

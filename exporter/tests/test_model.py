@@ -7,7 +7,8 @@ import torch
 from scnerf_export import cameras as cams
 from scnerf_export.config import ModelConfig, small_config
 from scnerf_export.fixtures import random_model, rig_cameras, smooth_pattern
-from scnerf_export.model import affine_inverse, composite_weights
+from scnerf_export.model.layers import affine_inverse
+from scnerf_export.model.renderer import composite_weights
 from scnerf_export.render import render_view
 
 
@@ -108,7 +109,7 @@ def test_config_round_trips_and_rejects_bad_values():
 def test_positional_encoding_uses_the_reference_channel_order():
     """[x, sin(2^k x) for k, cos(2^k x) for k], coordinates fastest: the public checkpoint's trunk
     reads its 63 inputs in this order (MVSNeRF's Embedder.embed), not NeRF's interleaved one."""
-    from scnerf_export.model import frequency_encoding
+    from scnerf_export.model.layers import frequency_encoding
 
     x = torch.tensor([[0.1, 0.2, 0.3]])
     got = frequency_encoding(x, 2)[0]
@@ -120,7 +121,7 @@ def test_positional_encoding_uses_the_reference_channel_order():
 def test_rectifier_equals_textbook_multihead_attention():
     """The rectifier's folded form (rank-2 queries, W_k folded into the two score terms) computes
     paper Eq. (ss) as written: tokens are the C channels, each embedded by its S values."""
-    from scnerf_export.model import SampleAxisAttention
+    from scnerf_export.model.rectifiers import SampleAxisAttention
 
     cfg = small_config()
     torch.manual_seed(0)
@@ -154,7 +155,7 @@ def test_rectifier_equals_textbook_multihead_attention():
 def test_trunk_skip_layer_reads_the_concatenation():
     """M1's layer after the skip reads [E(x), h]; it is computed as two products, so check it
     against the concatenation written out (float64)."""
-    from scnerf_export.model import TrunkM1
+    from scnerf_export.model.trunk import TrunkM1
 
     cfg = small_config()
     torch.manual_seed(0)
@@ -174,7 +175,7 @@ def test_trunk_skip_layer_reads_the_concatenation():
 def test_colours_are_the_border_padded_samples():
     """The colour taps go through grid_sample's align_corners=False path on a clamped grid; they
     must read what border padding with align_corners=True reads, at and beyond the image edges."""
-    from scnerf_export.model import sample_views, view_grid
+    from scnerf_export.model.points import sample_views, view_grid
 
     images, sources, *_ = scene(height=12, width=16)
     images = torch.from_numpy(images).permute(0, 3, 1, 2).double()

@@ -11,7 +11,7 @@ import onnxruntime as ort
 import pytest
 
 from scnerf_export import onnx_graph
-from scnerf_export.checkpoint import sha256_file
+from scnerf_export.model.checkpoint import sha256_file
 from scnerf_export.cli import main
 from scnerf_export.export import read_manifest
 from scnerf_export.metrics import psnr

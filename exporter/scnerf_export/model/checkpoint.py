@@ -10,8 +10,8 @@ from pathlib import Path
 
 import torch
 
-from .config import ModelConfig
-from .model import SCNeRF
+from ..config import ModelConfig
+from .network import SCNeRF
 
 PROJECT_FORMAT = "scnerf-checkpoint-v1"
 MVSNERF_LICENCE_FILE = "LICENSE.mvsnerf"
