@@ -21,7 +21,7 @@ import onnxruntime as ort
 from onnx import TensorProto, helper
 
 from scnerf_export.onnx_pipeline import session_options
-from scnerf_export.ray_groups import attention_cores_in_ray_groups
+from scnerf_export.export.ray_groups import attention_cores_in_ray_groups
 
 HEADS, HEAD_DIM, TOKENS = 4, 8, 64  # the default bundle's h, d_k and width C
 
@@ -46,7 +46,7 @@ def chain(prefix: str, qa: str, so: str, vt: str, out: str) -> list:
 
 
 def in_ray_groups(graph: onnx.ModelProto, group: int) -> onnx.ModelProto:
-    """The chain as the exporter writes it into the renderer (scnerf_export.ray_groups)."""
+    """The chain as the exporter writes it into the renderer (scnerf_export.export.ray_groups)."""
     attention_cores_in_ray_groups(graph, rays_per_group=group)
     return graph
 

@@ -333,8 +333,8 @@ def load_torch_model(bundle_dir: str, checkpoint: str):
     random weights with their seed, or ``source_checkpoint`` looked up by name and sha256)."""
     from scnerf_export.model.checkpoint import load_checkpoint, sha256_file
     from scnerf_export.config import ModelConfig
-    from scnerf_export.export import read_manifest
-    from scnerf_export.fixtures import random_model
+    from scnerf_export.export.manifest import read_manifest
+    from scnerf_export.rigs import random_model
 
     manifest = read_manifest(bundle_dir)
     cfg = ModelConfig.from_dict(manifest["config"])
@@ -473,7 +473,7 @@ def renderer_gemm_flops(onnx_path: Path, rays: int, hw: tuple[int, int], pad: in
     import numpy as np
     import onnx
     from onnx import shape_inference
-    from scnerf_export.ray_groups import plain_attention_cores
+    from scnerf_export.export.ray_groups import plain_attention_cores
 
     model = onnx.load(str(onnx_path))
     plain_attention_cores(model)
@@ -636,7 +636,7 @@ def main(argv=None) -> int:
 def orchestrate(args) -> int:
     import numpy as np
 
-    from scnerf_export.export import read_manifest
+    from scnerf_export.export.manifest import read_manifest
     from scnerf_export.serving import find_server_binary
 
     started = dt.datetime.now(dt.timezone.utc)

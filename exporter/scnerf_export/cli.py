@@ -14,7 +14,7 @@ from .onnx_pipeline import DEFAULT_CHUNK
 
 def cmd_convert(args) -> None:
     from .model.checkpoint import load_mvsnerf
-    from .export import export_bundle
+    from .export.bundle import export_bundle
 
     model, provenance = load_mvsnerf(args.ckpt)
     manifest = export_bundle(model, args.out, provenance)
@@ -29,7 +29,7 @@ def cmd_init_scnerf(args) -> None:
 
 def cmd_export(args) -> None:
     from .model.checkpoint import load_checkpoint
-    from .export import export_bundle
+    from .export.bundle import export_bundle
 
     model, provenance = load_checkpoint(args.checkpoint)
     if args.metrics:
@@ -39,7 +39,7 @@ def cmd_export(args) -> None:
 
 
 def cmd_fixtures(args) -> None:
-    from .fixtures import write_fixtures
+    from .export.fixtures import write_fixtures
 
     print(f"wrote {write_fixtures(args.out, variant=args.variant, seed=args.seed)}")
 
@@ -96,7 +96,7 @@ def cmd_finetune(args) -> None:
 def cmd_quantize(args) -> None:
     import json
 
-    from .precision import compare_bundles, procedural_cases, quantize_bundle
+    from .export.precision import compare_bundles, procedural_cases, quantize_bundle
 
     graphs = tuple(g.strip() for g in args.graphs.split(",") if g.strip())
     manifest = quantize_bundle(args.bundle, args.out, args.precision, graphs=graphs, min_inner=args.min_inner)
@@ -119,7 +119,7 @@ def cmd_quantize(args) -> None:
 
 
 def cmd_reexport(args) -> None:
-    from .reexport import reexport_bundle
+    from .export.reexport import reexport_bundle
 
     manifest = reexport_bundle(args.bundle, args.out)
     diff = manifest["provenance"]["reexport"]["renderer_max_abs_difference"]

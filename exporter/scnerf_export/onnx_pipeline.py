@@ -12,7 +12,7 @@ import onnxruntime as ort
 from . import cameras as cams
 from .cameras import Camera
 from .config import ModelConfig
-from .export import read_manifest
+from .export.manifest import read_manifest
 from .render import Rendering, pad_images
 
 

@@ -8,7 +8,7 @@ import torch
 from scnerf_export.model.checkpoint import CheckpointError, load_checkpoint, load_mvsnerf, save_checkpoint
 from scnerf_export.cli import main
 from scnerf_export.config import ModelConfig, small_config
-from scnerf_export.fixtures import random_model
+from scnerf_export.rigs import random_model
 
 
 def test_public_checkpoint_maps_every_tensor(public_checkpoint):

@@ -1,4 +1,4 @@
-"""scnerf_export.onnx_graph: producers and readers by position (names may be empty), what a Loop's
+"""scnerf_export.export.onnx_graph: producers and readers by position (names may be empty), what a Loop's
 body reads from outside, and a topological sort that counts those reads."""
 
 import numpy as np
@@ -6,8 +6,8 @@ import onnx
 import onnxruntime as ort
 from onnx import TensorProto, helper, numpy_helper
 
-from scnerf_export import onnx_graph
-from scnerf_export.precision import products_feeding_softmax
+from scnerf_export.export import onnx_graph
+from scnerf_export.export.precision import products_feeding_softmax
 
 
 def loop_reading(outer: str, output: str) -> onnx.NodeProto:

@@ -12,9 +12,9 @@ from PIL import Image
 
 from scnerf_export.cameras import Camera
 from scnerf_export.config import small_config
-from scnerf_export.export import EncoderGraph, RendererGraph, VolumeGraph, renderer_input_names
-from scnerf_export.export import export_bundle
-from scnerf_export.fixtures import _k, random_model, synthetic_rig
+from scnerf_export.export.bundle import EncoderGraph, RendererGraph, VolumeGraph, export_bundle, renderer_input_names
+from scnerf_export.export.fixtures import _k
+from scnerf_export.rigs import random_model, synthetic_rig
 from scnerf_export.onnx_pipeline import OnnxBundle
 from scnerf_export.render import render_view
 
@@ -63,7 +63,7 @@ def test_each_subgraph_matches_pytorch(exported, height, width):
 def test_full_render_matches_pytorch(exported, height, width):
     model, out, _ = exported
     rng = np.random.default_rng(0)
-    from scnerf_export.fixtures import rig_cameras, smooth_pattern
+    from scnerf_export.rigs import rig_cameras, smooth_pattern
 
     sources, target, near, far = rig_cameras(height, width)
     images = np.stack([smooth_pattern(rng, height, width) for _ in sources])
@@ -110,9 +110,9 @@ def test_committed_fixtures_match_the_committed_bundle(parity_fixtures):
 
 
 def test_the_renderer_runs_its_attention_cores_in_ray_groups(exported):
-    """scnerf renderers carry one Loop per rectifier (scnerf_export.ray_groups) and match PyTorch
+    """scnerf renderers carry one Loop per rectifier (scnerf_export.export.ray_groups) and match PyTorch
     for a single ray, a whole group and a group plus one (the Loop, the rest, both)."""
-    from scnerf_export.ray_groups import RAYS_PER_GROUP
+    from scnerf_export.export.ray_groups import RAYS_PER_GROUP
 
     model, out, _ = exported
     proto = onnx.load(out / "renderer.onnx")

@@ -1,4 +1,4 @@
-"""scnerf_export.ray_groups: the attention core in a Loop over ray groups computes exactly what
+"""scnerf_export.export.ray_groups: the attention core in a Loop over ray groups computes exactly what
 the plain chain computes, for every ray count, and nothing else in a graph is touched."""
 
 import numpy as np
@@ -7,7 +7,7 @@ import onnxruntime as ort
 import pytest
 from onnx import TensorProto, helper
 
-from scnerf_export.ray_groups import attention_cores_in_ray_groups, plain_attention_cores
+from scnerf_export.export.ray_groups import attention_cores_in_ray_groups, plain_attention_cores
 
 HEADS, HEAD_DIM, TOKENS = 2, 3, 5
 

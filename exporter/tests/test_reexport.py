@@ -12,8 +12,8 @@ import pytest
 
 from scnerf_export import __version__
 from scnerf_export.cli import main
-from scnerf_export.export import read_manifest
-from scnerf_export.reexport import ReexportError, reexport_bundle
+from scnerf_export.export.manifest import read_manifest
+from scnerf_export.export.reexport import ReexportError, reexport_bundle
 
 from conftest import REPO
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import datetime as _dt
-import json
 import warnings
 from pathlib import Path
 
@@ -14,9 +13,11 @@ import torch
 from torch import nn
 from torch.export import Dim
 
-from . import __version__
-from .model.checkpoint import sha256_file
-from .model.network import SCNeRF
+from .. import __version__
+from ..model.checkpoint import sha256_file
+from ..model.network import SCNeRF
+from ..rigs import synthetic_rig
+from .manifest import write_manifest
 from .ray_groups import attention_cores_in_ray_groups
 
 FORMAT_VERSION = 1
@@ -101,8 +102,6 @@ def example_inputs(model: SCNeRF, seed: int = 0, blocks: tuple[int, int] = (_EXA
                    rays: int = _EXAMPLE_RAYS) -> dict[str, dict[str, torch.Tensor]]:
     """Plausible tensors for tracing and validation: a small scene with real camera geometry,
     images of ``blocks`` x 32 pixels, ``rays`` target rays."""
-    from .fixtures import synthetic_rig  # local import: fixtures imports this module
-
     cfg = model.cfg
     rig = synthetic_rig(cfg, 32 * blocks[0], 32 * blocks[1], seed=seed)
     with torch.no_grad():
@@ -154,7 +153,7 @@ def _strip_debug_metadata(proto: onnx.ModelProto) -> None:
         node.doc_string = ""
 
 
-def _export_graph(module: nn.Module, inputs: dict[str, torch.Tensor], model: SCNeRF, graph: str,
+def export_graph(module: nn.Module, inputs: dict[str, torch.Tensor], model: SCNeRF, graph: str,
                   path: Path) -> None:
     signature = graph_signatures(model)[graph]
     dynamic = tuple(_dynamic_shapes(model, graph).values())
@@ -177,7 +176,7 @@ def _export_graph(module: nn.Module, inputs: dict[str, torch.Tensor], model: SCN
     onnx.save(proto, path)
 
 
-def _io_spec(names_shapes: dict[str, list]) -> list[dict]:
+def io_spec(names_shapes: dict[str, list]) -> list[dict]:
     return [{"name": n, "shape": s, "dtype": "float32"} for n, s in names_shapes.items()]
 
 
@@ -206,11 +205,11 @@ def export_bundle(model: SCNeRF, out_dir: str | Path, provenance: dict) -> dict:
     graphs, errors = {}, {}
     for name, module in modules.items():
         path = out / f"{name}.onnx"
-        _export_graph(module, inputs[name], model, name, path)
+        export_graph(module, inputs[name], model, name, path)
         errors[name] = max(validate_graph(path, module, example[name], tolerance=1e-4) for example in (inputs, checks))
         graphs[name] = {
             "file": path.name, "sha256": sha256_file(path),
-            "inputs": _io_spec(signatures[name]["inputs"]), "outputs": _io_spec(signatures[name]["outputs"]),
+            "inputs": io_spec(signatures[name]["inputs"]), "outputs": io_spec(signatures[name]["outputs"]),
         }
     provenance = write_licences(out, provenance)
     manifest = {
@@ -243,11 +242,3 @@ def write_licences(bundle_dir: Path, provenance: dict) -> dict:
         if isinstance(holder, dict) and holder.get("licence_text"):
             (bundle_dir / holder["licence_file"]).write_text(holder.pop("licence_text"))
     return provenance
-
-
-def write_manifest(bundle_dir: Path, manifest: dict) -> None:
-    (Path(bundle_dir) / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
-
-
-def read_manifest(bundle_dir: str | Path) -> dict:
-    return json.loads((Path(bundle_dir) / "manifest.json").read_text())

@@ -36,10 +36,10 @@ import numpy as np
 import onnx
 from onnx import helper, numpy_helper
 
+from ..model.checkpoint import sha256_file
+from ..onnx_pipeline import DEFAULT_CHUNK, OnnxBundle
 from . import onnx_graph
-from .model.checkpoint import sha256_file
-from .export import read_manifest, write_manifest
-from .onnx_pipeline import DEFAULT_CHUNK, OnnxBundle
+from .manifest import read_manifest, write_manifest
 
 PRECISIONS = ("fp32", "int8", "fp16")
 MAX_PSNR_DROP_DB = 0.1
@@ -249,11 +249,11 @@ def verify_bundle_hashes(bundle_dir: str | Path) -> None:
 def procedural_cases(count: int = 4, width: int = 160, height: int = 128, seed_offset: int = 5000) -> list[dict]:
     """Held-out procedural views (validation seeds), one per scene, layouts in turn: images,
     cameras, target camera, near/far and the ray-traced ground truth."""
-    from .procedural import LAYOUTS, pick_sources
-    from .procedural.core import Scene, View
-    from .procedural.dataset import VAL_SEED0
-    from .procedural.layouts import build_layout
-    from .procedural.render import render_view
+    from ..procedural import LAYOUTS, pick_sources
+    from ..procedural.core import Scene, View
+    from ..procedural.dataset import VAL_SEED0
+    from ..procedural.layouts import build_layout
+    from ..procedural.render import render_view
 
     cases = []
     for i in range(count):
@@ -272,7 +272,7 @@ def compare_bundles(reference_dir: str | Path, candidate_dir: str | Path, cases:
                     threads: int | None = None, chunk: int = DEFAULT_CHUNK) -> dict:
     import time
 
-    from .metrics import psnr
+    from ..metrics import psnr
 
     ref, cand = OnnxBundle(reference_dir, threads), OnnxBundle(candidate_dir, threads)
     rows = []

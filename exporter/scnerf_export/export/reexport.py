@@ -27,12 +27,14 @@ import onnxruntime as ort
 import torch
 from onnx import numpy_helper
 
-from . import __version__, onnx_graph
-from .model.checkpoint import sha256_file
-from .config import ModelConfig
-from .export import (CHECK_BLOCKS, CHECK_RAYS, RendererGraph, _export_graph, _io_spec, example_inputs,
-                     graph_signatures, read_manifest, validate_graph, write_manifest)
-from .model.network import SCNeRF
+from .. import __version__
+from ..config import ModelConfig
+from ..model.checkpoint import sha256_file
+from ..model.network import SCNeRF
+from . import onnx_graph
+from .bundle import (CHECK_BLOCKS, CHECK_RAYS, RendererGraph, example_inputs, export_graph, graph_signatures,
+                     io_spec, validate_graph)
+from .manifest import read_manifest, write_manifest
 
 AGREEMENT_TOLERANCE = 1e-4
 READABLE_EXPORTER_VERSION = "0.1.0"
@@ -135,7 +137,7 @@ def reexport_bundle(bundle_dir: str | Path, out_dir: str | Path) -> dict:
         shutil.copyfile(src / manifest["graphs"][name]["file"], out / manifest["graphs"][name]["file"])
     renderer_path = out / "renderer.onnx"
     inputs = example_inputs(model)["renderer"]
-    _export_graph(RendererGraph(model), inputs, model, "renderer", renderer_path)
+    export_graph(RendererGraph(model), inputs, model, "renderer", renderer_path)
     validate_graph(renderer_path, RendererGraph(model), inputs, tolerance=AGREEMENT_TOLERANCE)
     agreement = graphs_agree(src, src / manifest["graphs"]["renderer"]["file"], renderer_path, model)
     if not agreement <= AGREEMENT_TOLERANCE:
@@ -145,7 +147,7 @@ def reexport_bundle(bundle_dir: str | Path, out_dir: str | Path) -> dict:
     signature = graph_signatures(model)["renderer"]
     renderer = manifest["graphs"]["renderer"]
     renderer.update(file=renderer_path.name, sha256=sha256_file(renderer_path),
-                    inputs=_io_spec(signature["inputs"]), outputs=_io_spec(signature["outputs"]))
+                    inputs=io_spec(signature["inputs"]), outputs=io_spec(signature["outputs"]))
     previous_id = manifest["model_id"]
     manifest["model_id"] = f"scnerf-{model.cfg.variant}-{renderer['sha256'][:12]}"
     manifest["provenance"]["reexport"] = {
