@@ -23,7 +23,7 @@ import numpy as np
 import onnxruntime as ort
 
 from bench import renderer_run_feeds  # bench/bench.py, beside this script
-from scnerf_export.onnx_pipeline import OnnxBundle, session_options
+from scnerf_export.runtime.onnx_pipeline import OnnxBundle, session_options
 
 REPO = Path(__file__).resolve().parent.parent
 EXAMPLE = REPO / "examples" / "procedural-object"

@@ -20,7 +20,7 @@ import onnx
 import onnxruntime as ort
 from onnx import TensorProto, helper
 
-from scnerf_export.onnx_pipeline import session_options
+from scnerf_export.runtime.onnx_pipeline import session_options
 from scnerf_export.export.ray_groups import attention_cores_in_ray_groups
 
 HEADS, HEAD_DIM, TOKENS = 4, 8, 64  # the default bundle's h, d_k and width C

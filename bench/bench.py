@@ -172,12 +172,12 @@ def read_scene(scene_dir: Path):
 
 
 def worker_torch(args) -> dict:
-    """PyTorch eager: scnerf_export.render (encode_scene split into its two graphs for stage times)."""
+    """PyTorch eager: scnerf_export.runtime.reference (encode_scene split into its two graphs for stage times)."""
     import numpy as np
     import torch
 
     from scnerf_export import cameras as cams
-    from scnerf_export.render import pad_images, render_rays
+    from scnerf_export.runtime.reference import pad_images, render_rays
 
     torch.set_num_threads(args.threads)
     torch.set_num_interop_threads(1)
@@ -224,10 +224,10 @@ def worker_torch(args) -> dict:
 
 
 def worker_ort(args) -> dict:
-    """ONNX Runtime from Python: scnerf_export.onnx_pipeline.OnnxBundle.render_view as is."""
+    """ONNX Runtime from Python: scnerf_export.runtime.onnx_pipeline.OnnxBundle.render_view as is."""
     import numpy as np
 
-    from scnerf_export.onnx_pipeline import OnnxBundle
+    from scnerf_export.runtime.onnx_pipeline import OnnxBundle
 
     t0 = time.perf_counter()
     bundle = OnnxBundle(args.bundle, threads=args.threads)
@@ -272,7 +272,7 @@ def worker_profile(args) -> dict:
 
     import onnxruntime as ort
 
-    from scnerf_export.onnx_pipeline import OnnxBundle, session_options
+    from scnerf_export.runtime.onnx_pipeline import OnnxBundle, session_options
 
     bundle = OnnxBundle(args.bundle, threads=args.threads)
     feeds = renderer_run_feeds(bundle, Path(args.scene_dir), slice(0, args.chunk))

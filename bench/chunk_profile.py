@@ -20,7 +20,7 @@ import numpy as np
 import onnxruntime as ort
 
 from bench import REPO, kernel_events_by_run, make_scene_dir, parse_sizes, renderer_run_feeds
-from scnerf_export.onnx_pipeline import OnnxBundle, session_options
+from scnerf_export.runtime.onnx_pipeline import OnnxBundle, session_options
 
 PRODUCTS = ("Gemm", "MatMul", "FusedGemm", "FusedMatMul")
 

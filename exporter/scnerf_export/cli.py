@@ -9,7 +9,7 @@ from pathlib import Path
 
 from .model.checkpoint import CheckpointError
 from .finetune import Recipe
-from .onnx_pipeline import DEFAULT_CHUNK
+from .runtime.onnx_pipeline import DEFAULT_CHUNK
 
 
 def cmd_convert(args) -> None:

@@ -11,7 +11,7 @@ import numpy as np
 from PIL import Image
 
 from . import datasets, metrics
-from .onnx_pipeline import DEFAULT_CHUNK, OnnxBundle
+from .runtime.onnx_pipeline import DEFAULT_CHUNK, OnnxBundle
 from .serving import ServedBundle
 
 

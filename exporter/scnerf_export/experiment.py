@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from . import metrics
-from .onnx_pipeline import OnnxBundle
+from .runtime.onnx_pipeline import OnnxBundle
 from .procedural import LAYOUTS, ProceduralDataset
 from .procedural.scenes import GAPS
 

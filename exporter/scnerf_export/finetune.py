@@ -32,7 +32,7 @@ from .model.network import SCNeRF
 from .model.renderer import RadiancePoints
 from .procedural import TRAIN_SEED0, load_scene, pick_sources
 from .procedural.dataset import build_dataset
-from .render import encode_scene
+from .runtime.reference import encode_scene
 from .train import hardware, psnr_from_mse
 
 HEADS = ("m2", "geometry", "appearance", "colour_head")

@@ -19,7 +19,7 @@ import numpy as np
 from PIL import Image
 
 from .cameras import Camera
-from .render import Rendering
+from .runtime.view import Rendering
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -103,7 +103,7 @@ def http_request(url: str, method: str, path: str, body: bytes | None = None, he
 
 
 class ServedBundle:
-    """The bundle a running server serves, used like :class:`onnx_pipeline.OnnxBundle`: a scene is
+    """The bundle a running server serves, used like :class:`runtime.onnx_pipeline.OnnxBundle`: a scene is
     encoded once (``POST /v1/scenes``) and each target rendered from it (``/v1/scenes/{id}/render``)."""
 
     def __init__(self, url: str):

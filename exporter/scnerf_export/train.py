@@ -20,7 +20,7 @@ from .model.checkpoint import PROJECT_FORMAT, load_checkpoint, save_checkpoint
 from .config import ModelConfig
 from .model.network import SCNeRF
 from .procedural import ProceduralDataset
-from .render import render_view
+from .runtime.reference import render_view
 
 
 @dataclass(frozen=True)

@@ -13,8 +13,8 @@ from scnerf_export.config import small_config
 from scnerf_export.evaluate import downscale_target
 from scnerf_export.export.bundle import export_bundle
 from scnerf_export.rigs import random_model, rig_cameras, synthetic_rig
-from scnerf_export.onnx_pipeline import OnnxBundle
-from scnerf_export.render import encode_scene, render_rays
+from scnerf_export.runtime.onnx_pipeline import OnnxBundle
+from scnerf_export.runtime.reference import encode_scene, render_rays
 
 from conftest import shared_dir
 

@@ -9,7 +9,7 @@ from scnerf_export.config import ModelConfig, small_config
 from scnerf_export.rigs import random_model, rig_cameras, smooth_pattern
 from scnerf_export.model.layers import affine_inverse
 from scnerf_export.model.renderer import composite_weights
-from scnerf_export.render import render_view
+from scnerf_export.runtime.reference import render_view
 
 
 def scene(height=64, width=96, seed=0):

@@ -15,8 +15,8 @@ from scnerf_export.config import small_config
 from scnerf_export.export.bundle import EncoderGraph, RendererGraph, VolumeGraph, export_bundle, renderer_input_names
 from scnerf_export.export.fixtures import _k
 from scnerf_export.rigs import random_model, synthetic_rig
-from scnerf_export.onnx_pipeline import OnnxBundle
-from scnerf_export.render import render_view
+from scnerf_export.runtime.onnx_pipeline import OnnxBundle
+from scnerf_export.runtime.reference import render_view
 
 SIZES = [(64, 96), (128, 64)]
 

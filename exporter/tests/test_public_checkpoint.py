@@ -8,7 +8,7 @@ import torch
 from scnerf_export import datasets, metrics
 from scnerf_export.cameras import target_rays
 from scnerf_export.model.checkpoint import load_mvsnerf
-from scnerf_export.render import encode_scene, render_rays
+from scnerf_export.runtime.reference import encode_scene, render_rays
 
 from conftest import shared_dir
 

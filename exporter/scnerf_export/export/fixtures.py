@@ -14,7 +14,7 @@ from .. import cameras as cams
 from ..cameras import Camera
 from ..config import small_config
 from ..model.network import SCNeRF
-from ..render import encode_scene, render_view
+from ..runtime.reference import encode_scene, render_view
 from ..rigs import random_model, rig_cameras, smooth_pattern
 from .bundle import export_bundle
 

@@ -37,7 +37,7 @@ import onnx
 from onnx import helper, numpy_helper
 
 from ..model.checkpoint import sha256_file
-from ..onnx_pipeline import DEFAULT_CHUNK, OnnxBundle
+from ..runtime.onnx_pipeline import DEFAULT_CHUNK, OnnxBundle
 from . import onnx_graph
 from .manifest import read_manifest, write_manifest
 

@@ -9,11 +9,11 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
-from . import cameras as cams
-from .cameras import Camera
-from .config import ModelConfig
-from .export.manifest import read_manifest
-from .render import Rendering, pad_images
+from .. import cameras as cams
+from ..cameras import Camera
+from ..config import ModelConfig
+from ..export.manifest import read_manifest
+from .view import Rendering, pad_images
 
 
 # Rays per renderer run, the server's default (DEFAULT_MAX_RAYS in server/src/pipeline/chunks.rs): small
