@@ -76,16 +76,6 @@ def encode_png(rgb) -> bytes:
     return buf.getvalue()
 
 
-def camera_from_json(c: dict):
-    import numpy as np
-    from scnerf_export.cameras import Camera
-
-    i = c["intrinsics"]
-    K = np.array([[i["fx"], 0.0, i["cx"]], [0.0, i["fy"], i["cy"]], [0.0, 0.0, 1.0]])
-    assert c["pose"]["kind"] == "world_to_camera" and c["pose"]["axes"] == "opencv"
-    return Camera(K, np.array(c["pose"]["matrix"], dtype=np.float64), int(c["width"]), int(c["height"]))
-
-
 # ---------------------------------------------------------------------------------------------
 # scenes
 
@@ -94,7 +84,7 @@ def make_scene_dir(root: Path, width: int, height: int) -> Path:
     """Sources, request.json and ground truth of the benchmark scene at one size (cached on disk)."""
     from PIL import Image
 
-    from scnerf_export.serving import camera_json
+    from scnerf_export.cameras import camera_json
     from scnerf_export.procedural import pick_sources
     from scnerf_export.procedural.core import Scene, View
     from scnerf_export.procedural.dataset import VAL_SEED0
@@ -162,6 +152,7 @@ def _timed(fn) -> float:
 def read_scene(scene_dir: Path):
     """Decode the source PNGs (timed: the 'decode' stage) and the cameras."""
     import numpy as np
+    from scnerf_export.cameras import camera_from_json
 
     request = json.loads((scene_dir / "request.json").read_text())
     start = time.perf_counter()

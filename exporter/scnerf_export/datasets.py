@@ -6,10 +6,10 @@ Every loader returns a :class:`SceneData` whose cameras are in the canonical for
 in which the centre of pixel (u, v) is at image coordinates (u, v). Formats whose convention puts
 the first pixel's centre at (0.5, 0.5) (COLMAP, nerfstudio) are shifted by -0.5 in cx, cy.
 
-Image resizing (``scale``) keeps that convention: for a resize factor s (new = old * s) along an
-axis, f' = f * s and c' = (c + 0.5) * s - 0.5, where s is the exact ratio of the new to the old
-size in pixels along that axis. LLFF is the one exception: its principal point is by definition
-the image centre (W/2, H/2) at whatever resolution is used, as in LLFF's and MVSNeRF's code.
+Image resizing (``scale``) keeps that convention (:meth:`cameras.Camera.resized`: f' = f s and
+c' = (c + 0.5) s - 0.5 for the exact ratio s of the new to the old size). LLFF is the one
+exception: its principal point is by definition the image centre (W/2, H/2) at whatever
+resolution is used, as in LLFF's and MVSNeRF's code.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from .cameras import Camera, rank_sources
+from .cameras import Camera, invert_rigid, opengl_c2w_to_opencv_w2c, rank_sources, scaled_size
 
 __all__ = [
     "Camera",
@@ -40,11 +40,8 @@ __all__ = [
     "load_colmap",
     "get_views",
     "nearest_sources",
-    "resize_camera",
     "resize_view",
     "crop_view",
-    "opengl_c2w_to_opencv_w2c",
-    "opencv_w2c_to_opengl_c2w",
     "read_pfm",
     "DTU_SCALE",
     "DTU_DEFAULT_SOURCES",
@@ -66,8 +63,6 @@ BLENDER_NEAR_FAR = (2.0, 6.0)
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
 
-_GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
-
 
 @dataclass
 class View:
@@ -88,50 +83,7 @@ class SceneData:
     default_targets: list[str] | None
 
 
-# ----------------------------------------------------------------------------- camera helpers
-
-
-def opengl_c2w_to_opencv_w2c(c2w_gl: np.ndarray) -> np.ndarray:
-    """Camera-to-world in OpenGL axes (x right, y up, z back) -> world-to-camera in OpenCV axes."""
-    c2w_gl = np.asarray(c2w_gl, dtype=np.float64)
-    if c2w_gl.shape == (3, 4):
-        c2w_gl = np.vstack([c2w_gl, [0.0, 0.0, 0.0, 1.0]])
-    if c2w_gl.shape != (4, 4):
-        raise ValueError(f"expected a 4x4 (or 3x4) pose matrix, got shape {c2w_gl.shape}")
-    return _invert_rigid(c2w_gl @ _GL_TO_CV)
-
-
-def opencv_w2c_to_opengl_c2w(w2c_cv: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`opengl_c2w_to_opencv_w2c`."""
-    return _invert_rigid(np.asarray(w2c_cv, dtype=np.float64)) @ _GL_TO_CV
-
-
-def _invert_rigid(m: np.ndarray) -> np.ndarray:
-    """Inverse of a 4x4 [R|t] matrix (exact for rotations, falls back to a general inverse)."""
-    r = m[:3, :3]
-    if np.allclose(r @ r.T, np.eye(3), atol=1e-6) and np.allclose(m[3], [0, 0, 0, 1]):
-        out = np.eye(4)
-        out[:3, :3] = r.T
-        out[:3, 3] = -r.T @ m[:3, 3]
-        return out
-    return np.linalg.inv(m)
-
-
-def resize_camera(camera: Camera, width: int, height: int) -> Camera:
-    """The camera of the same view resampled to width x height (pixel centres at integers)."""
-    sx = width / camera.width
-    sy = height / camera.height
-    K = np.asarray(camera.K, dtype=np.float64).copy()
-    K[0, 0] *= sx
-    K[0, 1] *= sx
-    K[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
-    K[1, 1] *= sy
-    K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
-    return Camera(K, np.asarray(camera.w2c, dtype=np.float64).copy(), int(width), int(height))
-
-
-def _scaled_size(width: int, height: int, scale: float) -> tuple[int, int]:
-    return max(1, int(round(width * scale))), max(1, int(round(height * scale)))
+# ----------------------------------------------------------------------------- resizing
 
 
 def _resize_float(arr: np.ndarray, width: int, height: int, resample) -> np.ndarray:
@@ -165,7 +117,7 @@ def resize_view(view: View, width: int, height: int) -> View:
     mask = None
     if view.mask is not None:
         mask = _resize_float(view.mask.astype(np.float32), width, height, Image.BILINEAR) > 0.5
-    return View(view.name, image, resize_camera(view.camera, width, height), depth, mask)
+    return View(view.name, image, view.camera.resized(width, height), depth, mask)
 
 
 def crop_view(view: View, x0: int, y0: int, width: int, height: int) -> View:
@@ -257,7 +209,7 @@ def _make_view(name: str, image_path: Path, K: np.ndarray, w2c: np.ndarray, back
     cam = Camera(np.asarray(K, dtype=np.float64), np.asarray(w2c, dtype=np.float64), w, h)
     if declared_size is not None and tuple(declared_size) != (w, h):
         # intrinsics given for another resolution of the same image: rescale them
-        cam = resize_camera(Camera(cam.K, cam.w2c, int(declared_size[0]), int(declared_size[1])), w, h)
+        cam = Camera(cam.K, cam.w2c, int(declared_size[0]), int(declared_size[1])).resized(w, h)
     view = View(name, image, cam, depth, mask)
     return _apply_scale(view, scale)
 
@@ -265,7 +217,7 @@ def _make_view(name: str, image_path: Path, K: np.ndarray, w2c: np.ndarray, back
 def _apply_scale(view: View, scale: float) -> View:
     if scale == 1.0:
         return view
-    w, h = _scaled_size(view.camera.width, view.camera.height, scale)
+    w, h = scaled_size(view.camera.width, view.camera.height, scale)
     return resize_view(view, w, h)
 
 
@@ -687,7 +639,7 @@ def load_llff(path, scale: float = 1.0, background=None, near=None, far=None) ->
     for i, f in enumerate(files):
         image = _read_image(f, bg)
         if resize_needed:
-            w, h = _scaled_size(image.shape[1], image.shape[0], scale)
+            w, h = scaled_size(image.shape[1], image.shape[0], scale)
             image = np.clip(_resize_float(image, w, h, Image.BILINEAR), 0.0, 1.0)
         h, w = image.shape[:2]
         H0, W0, focal = poses[i, :, 4]
@@ -700,7 +652,7 @@ def load_llff(path, scale: float = 1.0, background=None, near=None, far=None) ->
         c2w[:3, :3] = np.stack([r[:, 1], r[:, 0], -r[:, 2]], axis=1)
         c2w[:3, 3] = poses[i, :, 3]
         name = full_files[i].stem
-        views[name] = View(name, image.astype(np.float32), Camera(K, _invert_rigid(c2w), w, h))
+        views[name] = View(name, image.astype(np.float32), Camera(K, invert_rigid(c2w), w, h))
     n = float(bounds[:, 0].min()) if near is None else near
     fa = float(bounds[:, 1].max()) if far is None else far
     n, fa = _check_near_far(n, fa, str(pb))

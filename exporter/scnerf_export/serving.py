@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from .cameras import Camera
+from .cameras import Camera, camera_json
 from .runtime.view import Rendering
 
 REPO = Path(__file__).resolve().parents[2]
@@ -154,14 +154,6 @@ def multipart(fields: list[tuple[str, str, bytes, str]]) -> tuple[bytes, str]:
         parts.append(f"--{boundary}\r\nContent-Disposition: {disp}\r\nContent-Type: {ctype}\r\n\r\n".encode()
                      + data + b"\r\n")
     return b"".join(parts) + f"--{boundary}--\r\n".encode(), f"multipart/form-data; boundary={boundary}"
-
-
-def camera_json(camera: Camera) -> dict:
-    """A camera in the API's canonical form (OpenCV axes, world-to-camera)."""
-    K = camera.K
-    return {"width": int(camera.width), "height": int(camera.height),
-            "intrinsics": {"fx": float(K[0, 0]), "fy": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2])},
-            "pose": {"matrix": camera.w2c.tolist(), "kind": "world_to_camera", "axes": "opencv"}}
 
 
 def render_request(sources: list[tuple[Camera, bytes]], target: Camera, near: float, far: float,

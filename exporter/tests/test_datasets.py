@@ -13,8 +13,8 @@ import pytest
 from PIL import Image
 
 from scnerf_export import datasets as D
-from scnerf_export.cameras import look_at
-from scnerf_export.datasets import Camera, load_scene
+from scnerf_export.cameras import Camera, look_at, opencv_w2c_to_opengl_c2w, opengl_c2w_to_opencv_w2c
+from scnerf_export.datasets import load_scene
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
@@ -201,8 +201,8 @@ def test_opengl_opencv_conversions_are_inverse():
     w2c = np.eye(4)
     w2c[:3, :3] = rot(rng)
     w2c[:3, 3] = rng.normal(size=3)
-    gl = D.opencv_w2c_to_opengl_c2w(w2c)
-    np.testing.assert_allclose(D.opengl_c2w_to_opencv_w2c(gl), w2c, atol=1e-12)
+    gl = opencv_w2c_to_opengl_c2w(w2c)
+    np.testing.assert_allclose(opengl_c2w_to_opencv_w2c(gl), w2c, atol=1e-12)
     # OpenGL camera looks down -z: a point in front of an OpenCV camera has negative z in GL
     p_cam_gl = np.linalg.inv(gl) @ np.array([*np.linalg.inv(w2c)[:3, :3] @ [0, 0, 2.0] + np.linalg.inv(w2c)[:3, 3], 1])
     assert p_cam_gl[2] == pytest.approx(-2.0)
@@ -266,7 +266,7 @@ def test_nerfstudio_needs_near_far(tmp_path):
 def test_nerfstudio_intrinsics_follow_the_image_size(tmp_path):
     """w/h in the file describe a 2x larger image than the one on disk: K is rescaled."""
     cams = make_cameras(2)
-    big = [Camera(D.resize_camera(c, 2 * W, 2 * H).K, c.w2c, 2 * W, 2 * H) for c in cams]
+    big = [Camera(c.resized(2 * W, 2 * H).K, c.w2c, 2 * W, 2 * H) for c in cams]
     write_nerfstudio(tmp_path, big, rand_images(2), extra={"near": 1, "far": 5})
     scene = load_scene(tmp_path, "nerfstudio")
     assert_cam_equal(scene.views["frame_00000"].camera, cams[0], tol=1e-9)

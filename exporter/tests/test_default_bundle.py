@@ -8,7 +8,7 @@ from PIL import Image
 
 from scnerf_export import metrics
 from scnerf_export.cameras import Camera
-from scnerf_export.export.fixtures import _k
+from scnerf_export.cameras import intrinsics_from_json as _k
 from scnerf_export.runtime.onnx_pipeline import OnnxBundle
 
 from conftest import REPO

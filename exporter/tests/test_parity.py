@@ -10,10 +10,9 @@ import pytest
 import torch
 from PIL import Image
 
-from scnerf_export.cameras import Camera
+from scnerf_export.cameras import camera_from_json
 from scnerf_export.config import small_config
 from scnerf_export.export.bundle import EncoderGraph, RendererGraph, VolumeGraph, export_bundle, renderer_input_names
-from scnerf_export.export.fixtures import _k
 from scnerf_export.rigs import random_model, synthetic_rig
 from scnerf_export.runtime.onnx_pipeline import OnnxBundle
 from scnerf_export.runtime.reference import render_view
@@ -99,9 +98,8 @@ def test_committed_fixtures_match_the_committed_bundle(parity_fixtures):
         expected = json.loads((case / "expected.json").read_text())
         images = np.stack([np.asarray(Image.open(case / f"source_{i}.png").convert("RGB"), np.float32) / 255
                            for i in range(len(request["sources"]))])
-        def camera(c):
-            return Camera.from_pose(_k(c), c["pose"]["matrix"], c["width"], c["height"], c["pose"]["kind"], c["pose"]["axes"])
-        got = bundle.render_view(images, [camera(s["camera"]) for s in request["sources"]], camera(request["target"]),
+        got = bundle.render_view(images, [camera_from_json(s["camera"]) for s in request["sources"]],
+                                 camera_from_json(request["target"]),
                                  request["near"], request["far"], tuple(request["background"]), chunk=1000)
         read = lambda n: np.fromfile(case / expected["files"][n], dtype="<f4").reshape(expected["shapes"][n])  # noqa: E731
         assert np.abs(got.rgb - read("rgb")).max() <= expected["tolerances"]["rgb_max_abs"]

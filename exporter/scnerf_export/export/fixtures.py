@@ -10,24 +10,12 @@ import numpy as np
 import torch
 from PIL import Image
 
-from .. import cameras as cams
-from ..cameras import Camera
+from ..cameras import camera_from_json, camera_json
 from ..config import small_config
 from ..model.network import SCNeRF
 from ..runtime.reference import encode_scene, render_view
 from ..rigs import random_model, rig_cameras, smooth_pattern
 from .bundle import export_bundle
-
-
-def _camera_json(camera: Camera, style: str) -> dict:
-    """The API's camera object, in OpenCV/w2c or OpenGL/c2w form (both must reach one canonical form)."""
-    K = camera.K
-    if style == "opengl_c2w":
-        pose = {"matrix": (camera.c2w @ cams.OPENGL_TO_OPENCV).tolist(), "kind": "camera_to_world", "axes": "opengl"}
-    else:
-        pose = {"matrix": camera.w2c.tolist(), "kind": "world_to_camera", "axes": "opencv"}
-    return {"width": camera.width, "height": camera.height,
-            "intrinsics": {"fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2]}, "pose": pose}
 
 
 def _write_f32(path: Path, array) -> None:
@@ -48,18 +36,15 @@ def write_case(out: Path, model: SCNeRF, name: str, height: int, width: int, tar
         images.append(np.asarray(Image.open(case / f"source_{i}.png"), dtype=np.float32) / 255.0)
     images = np.stack(images)
     request = {
-        "sources": [{"camera": _camera_json(c, style)} for c in sources],
-        "target": _camera_json(target, style),
+        "sources": [{"camera": camera_json(c, style)} for c in sources],
+        "target": camera_json(target, style),
         "near": near, "far": far, "background": list(background),
         "outputs": ["rgb", "depth", "opacity"],
     }
     (case / "request.json").write_text(json.dumps(request, indent=2) + "\n")
     # Decode the request the way the server does, so the fixture tests the conversions too.
-    parsed = [Camera.from_pose(_k(s["camera"]), s["camera"]["pose"]["matrix"], width, height,
-                               s["camera"]["pose"]["kind"], s["camera"]["pose"]["axes"]) for s in request["sources"]]
-    t = request["target"]
-    parsed_target = Camera.from_pose(_k(t), t["pose"]["matrix"], t["width"], t["height"],
-                                     t["pose"]["kind"], t["pose"]["axes"])
+    parsed = [camera_from_json(s["camera"]) for s in request["sources"]]
+    parsed_target = camera_from_json(request["target"])
     result = render_view(model, images, parsed, parsed_target, near, far, background, chunk=97)
     with torch.no_grad():
         scene = encode_scene(model, images, parsed, near, far, background)
@@ -81,11 +66,6 @@ def write_case(out: Path, model: SCNeRF, name: str, height: int, width: int, tar
         "stats": {"opacity_mean": float(result.opacity.mean()), "rgb_std": float(result.rgb.std())},
     }
     (case / "expected.json").write_text(json.dumps(expected, indent=2) + "\n")
-
-
-def _k(camera_json: dict) -> np.ndarray:
-    i = camera_json["intrinsics"]
-    return np.array([[i["fx"], 0, i["cx"]], [0, i["fy"], i["cy"]], [0, 0, 1]], dtype=np.float64)
 
 
 def write_fixtures(out_dir: str | Path, variant: str = "scnerf", seed: int = 7) -> Path:

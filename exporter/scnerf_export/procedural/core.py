@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..cameras import Camera, look_at  # noqa: F401  (re-exported: one camera type for the package)
+from ..cameras import Camera, look_at, pinhole
 
 # The three scene families of the procedural training mix (object: DTU-like, forward: LLFF-like,
 # outdoor: Spaces-like), and the photo-like tabletop (DTU's framing at DTU's resolution).
@@ -62,8 +62,7 @@ def intrinsics(width: int, height: int, hfov_deg: float) -> np.ndarray:
     The field of view, not the focal length in pixels, is the scene parameter, so the same seed renders
     the same picture at any resolution.
     """
-    fx = width / (2.0 * np.tan(np.radians(hfov_deg) / 2.0))
-    return np.array([[fx, 0.0, (width - 1) / 2.0], [0.0, fx, (height - 1) / 2.0], [0.0, 0.0, 1.0]])
+    return pinhole(width / (2.0 * np.tan(np.radians(hfov_deg) / 2.0)), width, height)
 
 
 def yaw_pitch_w2c(eye: np.ndarray, yaw: float, pitch: float) -> np.ndarray:
