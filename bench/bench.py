@@ -85,11 +85,11 @@ def make_scene_dir(root: Path, width: int, height: int) -> Path:
     from PIL import Image
 
     from scnerf_export.cameras import camera_json
-    from scnerf_export.procedural import pick_sources
-    from scnerf_export.procedural.core import Scene, View
-    from scnerf_export.procedural.dataset import VAL_SEED0
-    from scnerf_export.procedural.layouts import build_layout
-    from scnerf_export.procedural.render import render_view
+    from scnerf_export.data.procedural import pick_sources
+    from scnerf_export.data.procedural.core import Scene, View
+    from scnerf_export.data.procedural.dataset import VAL_SEED0
+    from scnerf_export.data.procedural.layouts import build_layout
+    from scnerf_export.data.procedural.raytrace import render_view
 
     seed = VAL_SEED0 + SCENE_SEED_OFFSET
     out = root / f"{SCENE_LAYOUT}-{seed}-{width}x{height}"

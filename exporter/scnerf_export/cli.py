@@ -60,7 +60,7 @@ def cmd_eval(args) -> None:
 
 
 def cmd_example(args) -> None:
-    from .example import write_example
+    from .data.example import write_example
 
     print(f"wrote {write_example(args.out)}")
 

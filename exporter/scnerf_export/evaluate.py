@@ -10,7 +10,8 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from . import datasets, metrics
+from . import metrics
+from .data import datasets
 from .runtime.onnx_pipeline import DEFAULT_CHUNK, OnnxBundle
 from .serving import ServedBundle
 

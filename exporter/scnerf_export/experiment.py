@@ -11,8 +11,8 @@ import numpy as np
 
 from . import metrics
 from .runtime.onnx_pipeline import OnnxBundle
-from .procedural import LAYOUTS, ProceduralDataset
-from .procedural.scenes import GAPS
+from .data.procedural import LAYOUTS, ProceduralDataset
+from .data.procedural.scenes import GAPS
 
 
 def depth_relative_error(depth: np.ndarray, truth: np.ndarray, alpha: np.ndarray) -> float:

@@ -24,14 +24,14 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from . import datasets
+from .data import datasets
 from . import cameras as cams
 from .model.checkpoint import load_checkpoint, save_checkpoint
 from .evaluate import downscale_target, source_pool
 from .model.network import SCNeRF
 from .model.renderer import RadiancePoints
-from .procedural import TRAIN_SEED0, load_scene, pick_sources
-from .procedural.dataset import build_dataset
+from .data.procedural import TRAIN_SEED0, load_scene, pick_sources
+from .data.procedural.dataset import build_dataset
 from .runtime.reference import encode_scene
 from .train import hardware, psnr_from_mse
 

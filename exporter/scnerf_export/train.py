@@ -19,7 +19,7 @@ from . import cameras as cams
 from .model.checkpoint import PROJECT_FORMAT, load_checkpoint, save_checkpoint
 from .config import ModelConfig
 from .model.network import SCNeRF
-from .procedural import ProceduralDataset
+from .data.procedural import ProceduralDataset
 from .runtime.reference import render_view
 
 

@@ -12,9 +12,11 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from scnerf_export import datasets as D
+from scnerf_export.data import datasets as D
 from scnerf_export.cameras import Camera, look_at, opencv_w2c_to_opengl_c2w, opengl_c2w_to_opencv_w2c
-from scnerf_export.datasets import load_scene
+from scnerf_export.data.dataparsers.dtu import DTU_SCALE
+from scnerf_export.data.datasets import load_scene
+from scnerf_export.data.scene import View, crop_view, resize_view
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
@@ -173,7 +175,7 @@ def write_dtu(root: Path, cams, images, depth_line="425.0 2.5"):
         vid = 3 * i + 2
         ids.append(str(vid))
         w2c = c.w2c.copy()
-        w2c[:3, 3] /= D.DTU_SCALE
+        w2c[:3, 3] /= DTU_SCALE
         K = c.K.copy()
         K[:2] /= 4.0
         txt = "extrinsic\n" + "\n".join(" ".join(f"{x:.17g}" for x in r) for r in w2c)
@@ -432,17 +434,17 @@ def test_scale_resamples_the_image_consistently(tmp_path):
 
 def test_crop_and_resize_view_helpers():
     cams = make_cameras(1)
-    view = D.View("a", np.random.default_rng(0).random((H, W, 3), dtype=np.float32), cams[0],
+    view = View("a", np.random.default_rng(0).random((H, W, 3), dtype=np.float32), cams[0],
                   mask=np.ones((H, W), bool))
-    c = D.crop_view(view, 4, 6, 32, 32)
+    c = crop_view(view, 4, 6, 32, 32)
     assert c.image.shape == (32, 32, 3) and c.mask.shape == (32, 32)
     uv, _ = view.camera.project(POINTS)
     uvc, _ = c.camera.project(POINTS)
     np.testing.assert_allclose(uvc, uv - [4, 6], atol=1e-9)
     np.testing.assert_array_equal(c.image, view.image[6:38, 4:36])
     with pytest.raises(ValueError, match="outside"):
-        D.crop_view(view, 40, 0, 32, 32)
-    r = D.resize_view(view, 32, 24)
+        crop_view(view, 40, 0, 32, 32)
+    r = resize_view(view, 32, 24)
     assert r.image.shape == (24, 32, 3) and r.mask.all()
 
 
@@ -602,7 +604,7 @@ def test_real_dtu_matches_idr_cameras(dtu_scene):
     X = pc @ c2w[:3, :3].T + c2w[:3, 3]
     for name, v in dtu_scene.views.items():
         P = cams[f"world_mat_{int(name)}"]
-        q = np.concatenate([X / D.DTU_SCALE, np.ones((len(X), 1))], 1) @ P[:3].T
+        q = np.concatenate([X / DTU_SCALE, np.ones((len(X), 1))], 1) @ P[:3].T
         expect = q[:, :2] / q[:, 2:] / 2 - [80, 44]
         got, zz = v.camera.project(X)
         assert np.all(zz > 0)

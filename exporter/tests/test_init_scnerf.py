@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from scnerf_export import datasets
+from scnerf_export.data import datasets
 from scnerf_export.cameras import target_rays
 from scnerf_export.model.checkpoint import init_scnerf, load_checkpoint, load_mvsnerf, scnerf_from_mvsnerf
 from scnerf_export.config import small_config

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from scnerf_export.procedural import (
+from scnerf_export.data.procedural import (
     GAPS,
     LAYOUTS,
     VAL_SEED0,
@@ -27,7 +27,7 @@ from scnerf_export.procedural import (
     save_scene,
     split_seed,
 )
-from scnerf_export.procedural.layouts import OBJECT_TARGET
+from scnerf_export.data.procedural.layouts import OBJECT_TARGET
 
 W, H = 80, 64  # small but not square, so a swapped axis shows up
 

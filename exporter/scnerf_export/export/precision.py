@@ -249,11 +249,11 @@ def verify_bundle_hashes(bundle_dir: str | Path) -> None:
 def procedural_cases(count: int = 4, width: int = 160, height: int = 128, seed_offset: int = 5000) -> list[dict]:
     """Held-out procedural views (validation seeds), one per scene, layouts in turn: images,
     cameras, target camera, near/far and the ray-traced ground truth."""
-    from ..procedural import LAYOUTS, pick_sources
-    from ..procedural.core import Scene, View
-    from ..procedural.dataset import VAL_SEED0
-    from ..procedural.layouts import build_layout
-    from ..procedural.render import render_view
+    from ..data.procedural import LAYOUTS, pick_sources
+    from ..data.procedural.core import Scene, View
+    from ..data.procedural.dataset import VAL_SEED0
+    from ..data.procedural.layouts import build_layout
+    from ..data.procedural.raytrace import render_view
 
     cases = []
     for i in range(count):

@@ -30,7 +30,7 @@ from .dataset import (
     split_seed,
 )
 from .geometry import Box, Cylinder, Plane, SkyDome, Sphere
-from .render import Haze, Light, World, render_view, trace
+from .raytrace import Haze, Light, World, render_view, trace
 from .scenes import GAPS, make_scene, pick_sources, source_ranking
 from .textures import Material
 

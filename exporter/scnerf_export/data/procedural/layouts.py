@@ -28,7 +28,7 @@ import numpy as np
 
 from .core import ALL_LAYOUTS, Camera, intrinsics, look_at, yaw_pitch_w2c
 from .geometry import Box, Cylinder, Plane, Primitive, SkyDome, Sphere, rotation_from_euler
-from .render import Haze, Light, World, trace_depth
+from .raytrace import Haze, Light, World, trace_depth
 from .textures import Material, random_color, random_material
 
 OBJECT_BALL_RADIUS = 1.2

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..cameras import Camera, look_at, pinhole
+from ...cameras import Camera, look_at, pinhole
 
 # The three scene families of the procedural training mix (object: DTU-like, forward: LLFF-like,
 # outdoor: Spaces-like), and the photo-like tabletop (DTU's framing at DTU's resolution).

@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-from ..cameras import rank_sources
+from ...cameras import rank_sources
 from .core import Scene
 from .layouts import build_layout
-from .render import render_view
+from .raytrace import render_view
 
 GAPS: tuple[str, ...] = ("small", "medium", "large")
 

@@ -13,11 +13,11 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from .cameras import camera_json
+from ..cameras import camera_json
 from .procedural import make_scene, pick_sources
 from .procedural.dataset import VAL_SEED0
 from .procedural.layouts import build_layout
-from .procedural.render import render_view
+from .procedural.raytrace import render_view
 
 EXAMPLE_SEED = VAL_SEED0 + 4242
 
