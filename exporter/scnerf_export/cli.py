@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 
 from .model.checkpoint import CheckpointError
-from .finetune import Recipe
+from .train.finetune import Recipe
 from .runtime.onnx_pipeline import DEFAULT_CHUNK
 
 
@@ -45,7 +45,7 @@ def cmd_fixtures(args) -> None:
 
 
 def cmd_eval(args) -> None:
-    from .evaluate import evaluate, split_names, write_json
+    from .evaluate.eval import evaluate, split_names, write_json
 
     if (args.bundle is None) == (args.server is None):
         raise ValueError("eval takes exactly one of --bundle DIR and --server URL")
@@ -66,7 +66,7 @@ def cmd_example(args) -> None:
 
 
 def cmd_experiment(args) -> None:
-    from .experiment import run
+    from .evaluate.experiment import run
 
     bundles = {}
     for item in args.bundle:
@@ -78,7 +78,7 @@ def cmd_experiment(args) -> None:
 
 
 def cmd_train(args) -> None:
-    from .train import train
+    from .train.from_scratch import train
 
     last = train(args.variant, args.preset, args.out, resume=args.resume, steps=args.steps, seed=args.seed,
                  cache_dir=args.cache, threads=args.threads)
@@ -86,7 +86,7 @@ def cmd_train(args) -> None:
 
 
 def cmd_finetune(args) -> None:
-    from .finetune import finetune
+    from .train.finetune import finetune
 
     recipe = Recipe(steps=args.steps, rays=args.rays, lr=args.lr, pretrained_lr_scale=args.pretrained_lr_scale,
                     scenes=args.scenes, seed=args.seed, validate_every=args.validate_every)

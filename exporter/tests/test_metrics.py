@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from scnerf_export import metrics as M
+from scnerf_export.evaluate import metrics as M
 
 
 def rand_img(seed=0, shape=(48, 64, 3)):

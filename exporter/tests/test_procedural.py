@@ -1,4 +1,4 @@
-"""Tests of the procedural multi-view data generator (scnerf_export.procedural)."""
+"""Tests of the procedural multi-view data generator (scnerf_export.data.procedural)."""
 
 from __future__ import annotations
 

@@ -272,7 +272,7 @@ def compare_bundles(reference_dir: str | Path, candidate_dir: str | Path, cases:
                     threads: int | None = None, chunk: int = DEFAULT_CHUNK) -> dict:
     import time
 
-    from ..metrics import psnr
+    from ..evaluate.metrics import psnr
 
     ref, cand = OnnxBundle(reference_dir, threads), OnnxBundle(candidate_dir, threads)
     rows = []

@@ -15,12 +15,12 @@ import torch
 from PIL import Image
 from tqdm import tqdm
 
-from . import cameras as cams
-from .model.checkpoint import PROJECT_FORMAT, load_checkpoint, save_checkpoint
-from .config import ModelConfig
-from .model.network import SCNeRF
-from .data.procedural import ProceduralDataset
-from .runtime.reference import render_view
+from .. import cameras as cams
+from ..config import ModelConfig
+from ..data.procedural import ProceduralDataset
+from ..model.checkpoint import PROJECT_FORMAT, load_checkpoint, save_checkpoint
+from ..model.network import SCNeRF
+from ..runtime.reference import render_view
 
 
 @dataclass(frozen=True)
@@ -145,7 +145,7 @@ def train(variant: str, preset_name: str, out_dir: str | Path, resume: bool = Fa
         return {"preset": preset_name, "variant": variant, "steps": step, "data_seed": seed,
                 "train_scenes": p.train_scenes, "image_size": [p.width, p.height], "rays_per_step": p.rays,
                 "gaps": list(p.gaps), "lr": p.lr, "hardware": hardware(), "seconds": seconds,
-                "data": "procedural scenes (scnerf_export.procedural), object/forward/outdoor layouts"}
+                "data": "procedural scenes (scnerf_export.data.procedural), object/forward/outdoor layouts"}
 
     def save(step: int) -> None:
         tmp = out / "last.pt.tmp"

@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from ..data import datasets
+from ..runtime.onnx_pipeline import DEFAULT_CHUNK, OnnxBundle
+from ..serving import ServedBundle
 from . import metrics
-from .data import datasets
-from .runtime.onnx_pipeline import DEFAULT_CHUNK, OnnxBundle
-from .serving import ServedBundle
 
 
 def split_names(value: str | None) -> list[str] | None:

@@ -9,10 +9,10 @@ from pathlib import Path
 
 import numpy as np
 
+from ..data.procedural import LAYOUTS, ProceduralDataset
+from ..data.procedural.scenes import GAPS
+from ..runtime.onnx_pipeline import OnnxBundle
 from . import metrics
-from .runtime.onnx_pipeline import OnnxBundle
-from .data.procedural import LAYOUTS, ProceduralDataset
-from .data.procedural.scenes import GAPS
 
 
 def depth_relative_error(depth: np.ndarray, truth: np.ndarray, alpha: np.ndarray) -> float:

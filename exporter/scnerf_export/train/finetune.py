@@ -24,16 +24,16 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from .data import datasets
-from . import cameras as cams
-from .model.checkpoint import load_checkpoint, save_checkpoint
-from .evaluate import downscale_target, source_pool
-from .model.network import SCNeRF
-from .model.renderer import RadiancePoints
-from .data.procedural import TRAIN_SEED0, load_scene, pick_sources
-from .data.procedural.dataset import build_dataset
-from .runtime.reference import encode_scene
-from .train import hardware, psnr_from_mse
+from .. import cameras as cams
+from ..data import datasets
+from ..data.procedural import TRAIN_SEED0, load_scene, pick_sources
+from ..data.procedural.dataset import build_dataset
+from ..evaluate.eval import downscale_target, source_pool
+from ..model.checkpoint import load_checkpoint, save_checkpoint
+from ..model.network import SCNeRF
+from ..model.renderer import RadiancePoints
+from ..runtime.reference import encode_scene
+from .from_scratch import hardware, psnr_from_mse
 
 HEADS = ("m2", "geometry", "appearance", "colour_head")
 RECTIFIERS = ("geometry", "appearance")
