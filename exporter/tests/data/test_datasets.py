@@ -18,7 +18,8 @@ from scnerf_export.data.dataparsers.dtu import DTU_SCALE
 from scnerf_export.data.datasets import load_scene
 from scnerf_export.data.scene import View, crop_view, resize_view
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
+from conftest import REPO
+
 
 
 def shared_data_dir() -> Path | None:
@@ -27,7 +28,7 @@ def shared_data_dir() -> Path | None:
     env = os.environ.get("SCNERF_SHARED")
     if env:
         cands += [Path(env) / "data", Path(env)]
-    cands.append(REPO_ROOT.parent / "shared" / "data")
+    cands.append(REPO.parent / "shared" / "data")
     for c in cands:
         if (c / "dtu_scan37").is_dir() or (c / "nerf_synthetic_lego").is_dir():
             return c
