@@ -55,11 +55,6 @@ def psnr(a, b) -> float:
     return float("inf") if mse == 0 else 10.0 * np.log10(1.0 / mse)
 
 
-def server_chunk(samples: int, budget_mb: int = 1024, max_rays: int = 512) -> int:
-    """The server's default rays per renderer run (server/src/pipeline/chunks.rs: budget / (S x 18 KiB))."""
-    return max(1, min(max_rays, budget_mb * 1024 * 1024 // (samples * 18 * 1024)))
-
-
 def load_png(path: Path):
     import numpy as np
     from PIL import Image
@@ -168,7 +163,8 @@ def worker_torch(args) -> dict:
     import torch
 
     from scnerf_export import cameras as cams
-    from scnerf_export.runtime.reference import pad_images, render_rays
+    from scnerf_export.runtime.reference import SceneTensors, render_rays
+    from scnerf_export.runtime.view import pad_images, render_in_passes
 
     torch.set_num_threads(args.threads)
     torch.set_num_interop_threads(1)
@@ -190,28 +186,17 @@ def worker_torch(args) -> dict:
         volume = model.build_volume(features, imgs, torch.from_numpy(cams.feature_projections(cameras)),
                                     torch.from_numpy(cams.depth_planes(near, far, cfg.depth_planes)))
         stages["volume"] = time.perf_counter() - start
-
-        class _Scene:  # render.SceneTensors without the import dance
-            pass
-
-        scene = _Scene()
-        scene.images, scene.features, scene.volume = imgs, features, volume
-        scene.intrinsics = torch.from_numpy(cams.stack_intrinsics(cameras))
-        scene.extrinsics = torch.from_numpy(cams.stack_extrinsics(cameras))
+        scene = SceneTensors(imgs, features, volume, torch.from_numpy(cams.stack_intrinsics(cameras)),
+                             torch.from_numpy(cams.stack_extrinsics(cameras)))
         start = time.perf_counter()
-        origins, directions = cams.target_rays(target)
-        depth_range = (near, far)
-        if cfg.depth_norm == "image_minmax" and cfg.variant != "mvsnerf":
-            _, d, _ = render_rays(model, scene, origins, directions, near, far, depth_range, args.chunk)
-            depth_range = (float(d.min()), float(d.max()))
-        rgb, depth, opacity = render_rays(model, scene, origins, directions, near, far, depth_range, args.chunk)
+        result = render_in_passes(cfg, target, near, far, bg, lambda o, d, depth_range: render_rays(
+            model, scene, o, d, near, far, depth_range, args.chunk))
         stages["renderer"] = time.perf_counter() - start
     start = time.perf_counter()
-    rgb = (rgb + (1.0 - opacity[:, None]) * np.asarray(bg, np.float32)).reshape(target.height, target.width, 3)
-    png = encode_png(rgb)
+    png = encode_png(result.rgb)
     stages["encode"] = time.perf_counter() - start
     total = time.perf_counter() - total0 + decode
-    return _finish(args, "torch", stages, total, rgb, load_s, {"weights": weights_note, "png_bytes": len(png)})
+    return _finish(args, "torch", stages, total, result.rgb, load_s, {"weights": weights_note, "png_bytes": len(png)})
 
 
 def worker_ort(args) -> dict:
@@ -241,19 +226,13 @@ CONTAINER_OPS = ("Loop", "If", "Scan")
 
 def renderer_run_feeds(bundle, scene_dir: Path, rays) -> dict:
     """The renderer's inputs for the target view's rays ``rays`` (a slice or pixel indices, row-major)."""
-    import numpy as np
-
     from scnerf_export import cameras as cams
 
     request, images, cameras, target, _ = read_scene(scene_dir)
     near, far = request["near"], request["far"]
     scene = bundle.encode_scene(images, cameras, near, far, tuple(request["background"]))
     origins, directions = cams.target_rays(target)
-    span = np.array([near, far], np.float32)
-    fixed = {**scene, "near_far": span, "depth_range": span,
-             "ray_origins": np.ascontiguousarray(origins[rays]),
-             "ray_directions": np.ascontiguousarray(directions[rays])}
-    return {n: fixed[n] for n in bundle.renderer_inputs}
+    return bundle.renderer_feeds(scene, origins[rays], directions[rays], near, far, (near, far))
 
 
 def worker_profile(args) -> dict:
@@ -627,7 +606,10 @@ def main(argv=None) -> int:
 def orchestrate(args) -> int:
     import numpy as np
 
+    from scnerf_export.config import ModelConfig
     from scnerf_export.export.manifest import read_manifest
+    from scnerf_export.runtime.chunks import rays_per_run
+    from scnerf_export.runtime.view import renderer_passes
     from scnerf_export.serving import find_server_binary
 
     started = dt.datetime.now(dt.timezone.utc)
@@ -635,7 +617,7 @@ def orchestrate(args) -> int:
     sizes = parse_sizes(args.sizes)
     manifest = read_manifest(args.bundle)
     cfg = manifest["config"]
-    chunk = args.chunk or server_chunk(cfg["samples"])
+    chunk = args.chunk or rays_per_run(cfg["samples"])
     variants = dict(v.split("=", 1) for v in args.variant)
     variant_sizes = {f"{w}x{h}" for w, h in parse_sizes(args.variant_sizes or args.sizes)}
     cached_sizes = {f"{w}x{h}" for w, h in parse_sizes(args.cached_sizes or args.sizes)}
@@ -675,8 +657,7 @@ def orchestrate(args) -> int:
         padded = (-(-height // multiple) * multiple, -(-width // multiple) * multiple)
         flops = renderer_flops_for(Path(args.bundle) / manifest["graphs"]["renderer"]["file"],
                                    width * height, padded, cfg["pad"])
-        if cfg["depth_norm"] == "image_minmax" and manifest["variant"] != "mvsnerf":
-            flops["flops"] *= 2  # two renderer passes
+        flops["flops"] *= renderer_passes(ModelConfig.from_dict(cfg))
         entry: dict = {"rays": width * height, "renderer_gemm_flops": flops, "methods": {}}
         results["sizes"][key] = entry
         jobs = [(m, m, args.bundle) for m in methods]

@@ -9,7 +9,6 @@ from pathlib import Path
 
 from .model.checkpoint import CheckpointError
 from .train.finetune import Recipe
-from .runtime.onnx_pipeline import DEFAULT_CHUNK
 
 
 def cmd_convert(args) -> None:
@@ -168,7 +167,7 @@ def parser() -> argparse.ArgumentParser:
     v.add_argument("--near", type=float)
     v.add_argument("--far", type=float)
     v.add_argument("--threads", type=int)
-    v.add_argument("--chunk", type=int, default=DEFAULT_CHUNK, help="rays per renderer call")
+    v.add_argument("--chunk", type=int, help="rays per renderer call (default: the server's for the bundle)")
     v.add_argument("--json", type=Path, help="write the results here")
     v.add_argument("--save-renders", type=Path, help="write rendered PNGs here")
     v.set_defaults(func=cmd_eval)

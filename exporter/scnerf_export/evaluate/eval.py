@@ -11,7 +11,8 @@ import numpy as np
 from PIL import Image
 
 from ..data import datasets
-from ..runtime.onnx_pipeline import DEFAULT_CHUNK, OnnxBundle
+from ..runtime.chunks import DEFAULT_MAX_RAYS as DEFAULT_CHUNK
+from ..runtime.onnx_pipeline import OnnxBundle
 from ..serving import ServedBundle
 from . import metrics
 

@@ -37,7 +37,7 @@ import onnx
 from onnx import helper, numpy_helper
 
 from ..model.checkpoint import sha256_file
-from ..runtime.onnx_pipeline import DEFAULT_CHUNK, OnnxBundle
+from ..runtime.onnx_pipeline import OnnxBundle
 from . import onnx_graph
 from .manifest import read_manifest, write_manifest
 
@@ -269,7 +269,7 @@ def procedural_cases(count: int = 4, width: int = 160, height: int = 128, seed_o
 
 
 def compare_bundles(reference_dir: str | Path, candidate_dir: str | Path, cases: list[dict],
-                    threads: int | None = None, chunk: int = DEFAULT_CHUNK) -> dict:
+                    threads: int | None = None, chunk: int | None = None) -> dict:
     import time
 
     from ..evaluate.metrics import psnr

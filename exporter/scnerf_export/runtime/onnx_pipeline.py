@@ -13,12 +13,8 @@ from .. import cameras as cams
 from ..cameras import Camera
 from ..config import ModelConfig
 from ..export.manifest import read_manifest
-from .view import Rendering, pad_images
-
-
-# Rays per renderer run, the server's default (DEFAULT_MAX_RAYS in server/src/pipeline/chunks.rs): small
-# runs keep the renderer's activations in cache.
-DEFAULT_CHUNK = 512
+from .chunks import rays_per_run
+from .view import Rendering, pad_images, render_in_passes
 
 
 def session_options(threads: int | None) -> ort.SessionOptions:
@@ -59,33 +55,33 @@ class OnnxBundle:
         return {"images": imgs, "features": features, "volume": volume,
                 "intrinsics": cams.stack_intrinsics(cameras), "extrinsics": cams.stack_extrinsics(cameras)}
 
+    def renderer_feeds(self, scene: dict, origins: np.ndarray, directions: np.ndarray, near: float, far: float,
+                       depth_range: tuple[float, float]) -> dict[str, np.ndarray]:
+        """The renderer's inputs for one run of rays of an encoded scene."""
+        given = {**scene, "near_far": np.array([near, far], np.float32),
+                 "depth_range": np.array(depth_range, np.float32),
+                 "ray_origins": np.ascontiguousarray(origins), "ray_directions": np.ascontiguousarray(directions)}
+        return {name: given[name] for name in self.renderer_inputs}
+
     def render_rays(self, scene: dict, origins: np.ndarray, directions: np.ndarray, near: float, far: float,
-                    depth_range: tuple[float, float], chunk: int):
-        fixed = {**scene, "near_far": np.array([near, far], np.float32),
-                 "depth_range": np.array(depth_range, np.float32)}
+                    depth_range: tuple[float, float], chunk: int | None = None):
+        """Raw rgb, depth, opacity of the rays, ``chunk`` rays per run (default: the server's)."""
+        chunk = chunk or rays_per_run(self.cfg.samples)
         outs = []
         for start in range(0, origins.shape[0], chunk):
-            feeds = {name: fixed[name] for name in self.renderer_inputs if name in fixed}
-            feeds["ray_origins"] = np.ascontiguousarray(origins[start : start + chunk])
-            feeds["ray_directions"] = np.ascontiguousarray(directions[start : start + chunk])
+            rays = slice(start, start + chunk)
+            feeds = self.renderer_feeds(scene, origins[rays], directions[rays], near, far, depth_range)
             outs.append(self._timed("renderer", "renderer", feeds))
         return tuple(np.concatenate([o[i] for o in outs]) for i in range(3))
 
     def render_view(self, images: np.ndarray, cameras: list[Camera], target: Camera, near: float, far: float,
-                    background=(0.0, 0.0, 0.0), chunk: int = DEFAULT_CHUNK) -> Rendering:
+                    background=(0.0, 0.0, 0.0), chunk: int | None = None) -> Rendering:
         self.timings = {}
         scene = self.encode_scene(images, cameras, near, far, background)
         return self.render_target(scene, target, near, far, background, chunk)
 
     def render_target(self, scene: dict, target: Camera, near: float, far: float, background=(0.0, 0.0, 0.0),
-                      chunk: int = DEFAULT_CHUNK) -> Rendering:
+                      chunk: int | None = None) -> Rendering:
         """One target view of an encoded scene (what a cached scene costs per view)."""
-        origins, directions = cams.target_rays(target)
-        depth_range = (near, far)
-        if self.cfg.depth_norm == "image_minmax" and "depth_range" in self.renderer_inputs:
-            _, depth, _ = self.render_rays(scene, origins, directions, near, far, depth_range, chunk)
-            depth_range = (float(depth.min()), float(depth.max()))
-        rgb, depth, opacity = self.render_rays(scene, origins, directions, near, far, depth_range, chunk)
-        rgb = rgb + (1.0 - opacity[:, None]) * np.asarray(background, dtype=np.float32)
-        shape = (target.height, target.width)
-        return Rendering(rgb.reshape(*shape, 3), depth.reshape(shape), opacity.reshape(shape))
+        return render_in_passes(self.cfg, target, near, far, background,
+                                lambda o, d, depth_range: self.render_rays(scene, o, d, near, far, depth_range, chunk))

@@ -11,7 +11,7 @@ import torch
 from .. import cameras as cams
 from ..cameras import Camera
 from ..model.network import SCNeRF
-from .view import Rendering, pad_images
+from .view import Rendering, pad_images, render_in_passes
 
 
 @dataclass
@@ -59,12 +59,5 @@ def render_view(model: SCNeRF, images: np.ndarray, cameras: list[Camera], target
     """images: (V,H,W,3) float32 in [0,1] (alpha already composited on ``background``)."""
     model.eval()
     scene = encode_scene(model, images, cameras, near, far, background)
-    origins, directions = cams.target_rays(target)
-    depth_range = (near, far)
-    if model.cfg.depth_norm == "image_minmax" and model.cfg.variant != "mvsnerf":
-        _, depth, _ = render_rays(model, scene, origins, directions, near, far, depth_range, chunk)
-        depth_range = (float(depth.min()), float(depth.max()))
-    rgb, depth, opacity = render_rays(model, scene, origins, directions, near, far, depth_range, chunk)
-    rgb = rgb + (1.0 - opacity[:, None]) * np.asarray(background, dtype=np.float32)
-    shape = (target.height, target.width)
-    return Rendering(rgb.reshape(*shape, 3), depth.reshape(shape), opacity.reshape(shape))
+    return render_in_passes(model.cfg, target, near, far, background,
+                            lambda o, d, depth_range: render_rays(model, scene, o, d, near, far, depth_range, chunk))
