@@ -1,6 +1,6 @@
 """Interleaved A/B of renderer graphs: the sessions take turns, one renderer run each per round.
 
-bench.py times whole views one after another, so a drift of the machine's speed between them
+The benchmark (python -m bench) times whole views one after another, so a drift of the machine's speed between them
 (10-30 % within minutes on a shared KVM guest) is as large as most graph changes. Here every
 round runs each bundle's renderer once on the same rays, so a drift shifts all of them alike.
 
@@ -8,8 +8,8 @@ Each session has its own intra-op thread pool (Python's onnxruntime cannot share
 server's sessions do), so spinning is off by default: a pool whose workers spin after its run
 takes a core from the next session's run, which made medians 3-5x the fastest round on 2 cores.
 
-    .venv/bin/python bench/ab.py bundles/default /tmp/candidate --rounds 40
-    .venv/bin/python bench/ab.py bundles/default bundles/default@session.set_denormal_as_zero=1
+    .venv/bin/python -m bench.ab bundles/default /tmp/candidate --rounds 40
+    .venv/bin/python -m bench.ab bundles/default bundles/default@session.set_denormal_as_zero=1
 
 A bundle may carry ONNX Runtime session config entries after '@' (key=value, '@'-separated).
 """
@@ -22,10 +22,11 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
-from bench import renderer_run_feeds  # bench/bench.py, beside this script
 from scnerf_export.runtime.onnx_pipeline import OnnxBundle, session_options
 
-REPO = Path(__file__).resolve().parent.parent
+from . import REPO
+from .scene import renderer_run_feeds
+
 EXAMPLE = REPO / "examples" / "procedural-object"
 
 

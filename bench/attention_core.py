@@ -8,7 +8,7 @@ com.microsoft's MultiHeadAttention, and the chain inside a Loop over groups of r
 exporter writes it (each group's scores small enough for the cache). Every variant is checked
 against the chain.
 
-    .venv/bin/python bench/attention_core.py --rays 512 --rounds 30 --groups 16,32,64
+    .venv/bin/python -m bench.attention_core --rays 512 --rounds 30 --groups 16,32,64
 """
 from __future__ import annotations
 

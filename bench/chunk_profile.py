@@ -1,13 +1,13 @@
 """Where one renderer run's time goes, node by node, and whether the order of its rays matters.
 
-ONNX Runtime's profiler on renderer runs of the benchmark scene (bench.py's, at any size): the
+ONNX Runtime's profiler on renderer runs of the benchmark scene (bench/scene.py, at any size): the
 kernel time per op type and the slowest nodes with their shapes. Each ``--tiles`` entry is a ray
 order: a run takes the pixels of an R x C tile (rows x columns; 1x512 is a piece of a row, as the
 server cuts them) at every ``--at`` position; the orders take turns within each round, so a
 drift of the machine's speed shifts all of them alike.
 
-    .venv/bin/python bench/chunk_profile.py --size 640x512
-    .venv/bin/python bench/chunk_profile.py --size 640x512 --tiles 1x512,16x32,32x16 \\
+    .venv/bin/python -m bench.chunk_profile --size 640x512
+    .venv/bin/python -m bench.chunk_profile --size 640x512 --tiles 1x512,16x32,32x16 \\
         --at 250,64 --at 200,100 --at 300,100 --at 260,40 --rounds 10
 """
 from __future__ import annotations
@@ -19,8 +19,11 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
-from bench import REPO, kernel_events_by_run, make_scene_dir, parse_sizes, renderer_run_feeds
 from scnerf_export.runtime.onnx_pipeline import OnnxBundle, session_options
+
+from . import REPO
+from .profile import kernel_events_by_run
+from .scene import make_scene_dir, parse_sizes, renderer_run_feeds
 
 PRODUCTS = ("Gemm", "MatMul", "FusedGemm", "FusedMatMul")
 

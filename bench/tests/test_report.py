@@ -1,17 +1,8 @@
-"""bench/bench.py keeps, per method, the fastest of several interleaved rounds, and checks the
-issue's targets against the right rows."""
+"""The benchmark's report keeps, per method, the fastest of several interleaved rounds, and checks
+the issue's targets against the right rows, on the figures themselves."""
 
-import importlib.util
-from pathlib import Path
-
-BENCH = Path(__file__).resolve().parents[2] / "bench" / "bench.py"
-
-
-def _bench():
-    spec = importlib.util.spec_from_file_location("bench", BENCH)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+from bench import report
+from bench.profile import kernel_shares
 
 
 def _run(total_ms: float, tag: str) -> dict:
@@ -19,24 +10,22 @@ def _run(total_ms: float, tag: str) -> dict:
 
 
 def test_fastest_round_is_kept_and_every_round_recorded():
-    bench = _bench()
     results: dict = {}
     for total, tag in [(500.0, "first"), (300.0, "second"), (400.0, "third")]:
-        bench.keep_fastest(results, "server", _run(total, tag))
+        report.keep_fastest(results, "server", _run(total, tag))
     assert results["server"]["tag"] == "second"
     assert results["server"]["round_totals_ms"] == [500.0, 300.0, 400.0]
 
 
 def test_a_round_that_ran_replaces_an_earlier_failure():
-    bench = _bench()
     results = {"ort": {"error": "worker died"}}
-    bench.keep_fastest(results, "ort", _run(700.0, "ran"))
+    report.keep_fastest(results, "ort", _run(700.0, "ran"))
     assert results["ort"]["tag"] == "ran"
     assert results["ort"]["round_totals_ms"] == [700.0]
 
 
 def _reduced_precision_line(res: dict) -> str:
-    return next(line for line in _bench().targets(res) if line.startswith("* reduced-precision"))
+    return next(line for line in report.targets(res) if line.startswith("* reduced-precision"))
 
 
 def test_reduced_precision_target_reads_only_reduced_precision_variants():
@@ -53,8 +42,14 @@ def test_reduced_precision_target_reads_only_reduced_precision_variants():
 
 def test_profile_shares_leave_container_ops_out():
     """A Loop's kernel time is its body's nodes', which the profile lists too: counted once."""
-    shares = _bench().kernel_shares({"Gemm": 30.0, "Loop": 25.0, "Softmax": 20.0, "MatMul": 10.0})
+    shares = kernel_shares({"Gemm": 30.0, "Loop": 25.0, "Softmax": 20.0, "MatMul": 10.0})
     assert shares["kernel_ms"] == 60.0
     assert "Loop" not in shares["by_op_ms"] and "Loop" not in shares["by_op_share"]
     assert list(shares["by_op_share"]) == ["Gemm", "Softmax", "MatMul"]
     assert abs(sum(shares["by_op_share"].values()) - 1.0) < 1e-12
+
+
+def test_targets_are_checked_on_the_figures_not_on_their_rounded_text():
+    res = {"sizes": {"160x128": {"methods": {"server": {**_run(1000.0, "server"), "ratio_to_torch": {"total": 0.504}}}}}}
+    line = next(line for line in report.targets(res) if line.startswith("* end-to-end"))
+    assert line == "* end-to-end fp32 view <= 0.5x PyTorch eager: NOT met (160x128 0.50x)"
