@@ -11,11 +11,10 @@ import numpy as np
 from PIL import Image
 from scnerf_export import cameras as cams
 from scnerf_export.cameras import camera_from_json, camera_json
-from scnerf_export.data.procedural import pick_sources
-from scnerf_export.data.procedural.core import Scene, View
 from scnerf_export.data.procedural.dataset import VAL_SEED0
 from scnerf_export.data.procedural.layouts import build_layout
 from scnerf_export.data.procedural.raytrace import render_view
+from scnerf_export.data.procedural.scenes import pick_camera_sources
 
 # The cameras of a layout do not depend on the image size, so every size shows the same view.
 SCENE_SEED_OFFSET, SCENE_LAYOUT, SCENE_VIEWS, SCENE_TARGET = 4242, "tabletop", 16, 7
@@ -34,9 +33,7 @@ def make_scene_dir(root: Path, width: int, height: int) -> Path:
         return out
     out.mkdir(parents=True, exist_ok=True)
     world, cameras, near, far = build_layout(seed, SCENE_LAYOUT, SCENE_VIEWS, width, height)
-    # pick_sources ranks cameras by centre distance only: no rendering needed for it.
-    stub = Scene([View(None, None, None, c) for c in cameras], near, far, SCENE_LAYOUT, seed)
-    sources = pick_sources(stub, SCENE_TARGET, gap="small")
+    sources = pick_camera_sources(cameras, SCENE_TARGET, gap="small")
     for k, index in enumerate(sources + [SCENE_TARGET]):
         view = render_view(world, cameras[index], supersample=2)
         name = f"source_{k}.png" if k < len(sources) else "target_truth.png"

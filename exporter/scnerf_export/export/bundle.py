@@ -17,7 +17,7 @@ from .. import __version__
 from ..model.checkpoint import sha256_file
 from ..model.network import SCNeRF
 from ..rigs import synthetic_rig
-from .manifest import write_manifest
+from .manifest import model_id, write_manifest
 from .ray_groups import attention_cores_in_ray_groups
 
 FORMAT_VERSION = 1
@@ -214,7 +214,7 @@ def export_bundle(model: SCNeRF, out_dir: str | Path, provenance: dict) -> dict:
     provenance = write_licences(out, provenance)
     manifest = {
         "format_version": FORMAT_VERSION,
-        "model_id": f"scnerf-{model.cfg.variant}-{graphs['renderer']['sha256'][:12]}",
+        "model_id": model_id(model.cfg.variant, graphs["renderer"]["sha256"]),
         "variant": model.cfg.variant,
         "config": model.cfg.to_dict(),
         "graphs": graphs,

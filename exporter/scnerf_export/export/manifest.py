@@ -13,3 +13,9 @@ def write_manifest(bundle_dir: Path, manifest: dict) -> None:
 
 def read_manifest(bundle_dir: str | Path) -> dict:
     return json.loads((Path(bundle_dir) / "manifest.json").read_text())
+
+
+def model_id(variant: str, renderer_sha256: str) -> str:
+    """A bundle's id: its variant and the start of its renderer graph's sha256 (docs/bundle.md), so a
+    changed renderer is a new model."""
+    return f"scnerf-{variant}-{renderer_sha256[:12]}"

@@ -39,7 +39,7 @@ from onnx import helper, numpy_helper
 from ..model.checkpoint import sha256_file
 from ..runtime.onnx_pipeline import OnnxBundle
 from . import onnx_graph
-from .manifest import read_manifest, write_manifest
+from .manifest import model_id, read_manifest, write_manifest
 
 PRECISIONS = ("fp32", "int8", "fp16")
 MAX_PSNR_DROP_DB = 0.1
@@ -222,7 +222,7 @@ def quantize_bundle(src_dir: str | Path, out_dir: str | Path, precision: str, gr
         else:
             shutil.copyfile(source_file, target_file)
         entry["sha256"] = sha256_file(target_file)
-    manifest["model_id"] = f"scnerf-{manifest['variant']}-{manifest['graphs']['renderer']['sha256'][:12]}"
+    manifest["model_id"] = model_id(manifest["variant"], manifest["graphs"]["renderer"]["sha256"])
     manifest["precision"] = precision
     manifest.setdefault("provenance", {})["quantization"] = {
         "precision": precision, "source_model_id": read_manifest(src)["model_id"], "graphs": details,
@@ -237,7 +237,7 @@ def verify_bundle_hashes(bundle_dir: str | Path) -> None:
     for name, entry in manifest["graphs"].items():
         if sha256_file(Path(bundle_dir) / entry["file"]) != entry["sha256"]:
             raise ValueError(f"{bundle_dir}: graphs.{name} sha256 mismatch")
-    expected = f"scnerf-{manifest['variant']}-{manifest['graphs']['renderer']['sha256'][:12]}"
+    expected = model_id(manifest["variant"], manifest["graphs"]["renderer"]["sha256"])
     if manifest["model_id"] != expected:
         raise ValueError(f"{bundle_dir}: model_id {manifest['model_id']} != {expected}")
 
@@ -249,18 +249,17 @@ def verify_bundle_hashes(bundle_dir: str | Path) -> None:
 def procedural_cases(count: int = 4, width: int = 160, height: int = 128, seed_offset: int = 5000) -> list[dict]:
     """Held-out procedural views (validation seeds), one per scene, layouts in turn: images,
     cameras, target camera, near/far and the ray-traced ground truth."""
-    from ..data.procedural import LAYOUTS, pick_sources
-    from ..data.procedural.core import Scene, View
+    from ..data.procedural import LAYOUTS
     from ..data.procedural.dataset import VAL_SEED0
     from ..data.procedural.layouts import build_layout
     from ..data.procedural.raytrace import render_view
+    from ..data.procedural.scenes import pick_camera_sources
 
     cases = []
     for i in range(count):
         layout, seed, target = LAYOUTS[i % len(LAYOUTS)], VAL_SEED0 + seed_offset + i, 5
         world, cameras, near, far = build_layout(seed, layout, 12, width, height)
-        stub = Scene([View(None, None, None, c) for c in cameras], near, far, layout, seed)
-        sources = pick_sources(stub, target, gap="small")
+        sources = pick_camera_sources(cameras, target, gap="small")
         views = [render_view(world, cameras[k], supersample=2) for k in sources + [target]]
         cases.append({"name": f"{layout}-{seed}", "images": np.stack([v.image for v in views[:3]]),
                       "cameras": [cameras[k] for k in sources], "target": cameras[target],

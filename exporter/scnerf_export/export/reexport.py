@@ -34,7 +34,7 @@ from ..model.network import SCNeRF
 from . import onnx_graph
 from .bundle import (CHECK_BLOCKS, CHECK_RAYS, RendererGraph, example_inputs, export_graph, graph_signatures,
                      io_spec, validate_graph)
-from .manifest import read_manifest, write_manifest
+from .manifest import model_id, read_manifest, write_manifest
 
 AGREEMENT_TOLERANCE = 1e-4
 READABLE_EXPORTER_VERSION = "0.1.0"
@@ -149,7 +149,7 @@ def reexport_bundle(bundle_dir: str | Path, out_dir: str | Path) -> dict:
     renderer.update(file=renderer_path.name, sha256=sha256_file(renderer_path),
                     inputs=io_spec(signature["inputs"]), outputs=io_spec(signature["outputs"]))
     previous_id = manifest["model_id"]
-    manifest["model_id"] = f"scnerf-{model.cfg.variant}-{renderer['sha256'][:12]}"
+    manifest["model_id"] = model_id(model.cfg.variant, renderer["sha256"])
     manifest["provenance"]["reexport"] = {
         "exporter_version": __version__,
         "source_model_id": previous_id,

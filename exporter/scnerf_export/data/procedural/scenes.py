@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from ...cameras import rank_sources
+from ...cameras import Camera, rank_sources
 from .core import Scene
 from .layouts import build_layout
 from .raytrace import render_view
@@ -26,15 +26,26 @@ def make_scene(seed: int, layout: str, n_views: int = 20, width: int = 160, heig
 
 
 def source_ranking(scene: Scene, target_index: int) -> list[int]:
-    """All other views that face the target's way, nearest camera centre first
+    """All other views that face the target's way, nearest camera centre first."""
+    return camera_ranking([v.camera for v in scene.views], target_index)
+
+
+def camera_ranking(cameras: list[Camera], target_index: int) -> list[int]:
+    """All other cameras that face the target's way, nearest centre first
     (:func:`scnerf_export.cameras.rank_sources`)."""
-    others = [i for i in range(len(scene.views)) if i != target_index]
-    ranked = rank_sources(scene.views[target_index].camera, [scene.views[i].camera for i in others])
+    others = [i for i in range(len(cameras)) if i != target_index]
+    ranked = rank_sources(cameras[target_index], [cameras[i] for i in others])
     return [others[i] for i in ranked]
 
 
 def pick_sources(scene: Scene, target_index: int, gap: str = "small", n_sources: int = 3) -> list[int]:
-    """Indices of the source views for a target, nearest first (the first is the reference view).
+    """Indices of the source views for a target (:func:`pick_camera_sources` on the scene's cameras)."""
+    return pick_camera_sources([v.camera for v in scene.views], target_index, gap, n_sources)
+
+
+def pick_camera_sources(cameras: list[Camera], target_index: int, gap: str = "small", n_sources: int = 3) -> list[int]:
+    """Indices of the source cameras for a target, nearest first (the first is the reference view).
+    Ranking needs the cameras only, so sources are picked before anything is rendered.
 
     Other views are ranked by the distance of their camera centre to the target's (as MVSNeRF does
     for LLFF; for the object layout, where cameras sit at one radius, this is the same ranking as by
@@ -50,8 +61,8 @@ def pick_sources(scene: Scene, target_index: int, gap: str = "small", n_sources:
     """
     if gap not in GAPS:
         raise ValueError(f"gap must be one of {GAPS}, got {gap!r}")
-    ranking = source_ranking(scene, target_index)
+    ranking = camera_ranking(cameras, target_index)
     if len(ranking) < n_sources:
-        raise ValueError(f"scene has {len(scene.views)} views; need at least {n_sources + 1}")
+        raise ValueError(f"scene has {len(cameras)} views; need at least {n_sources + 1}")
     start = min(GAPS.index(gap) * n_sources, len(ranking) - n_sources)
     return ranking[start:start + n_sources]
