@@ -20,8 +20,8 @@ import onnx
 import onnxruntime as ort
 from onnx import TensorProto, helper
 
-from scnerf_export.runtime.onnx_pipeline import session_options
 from scnerf_export.export.ray_groups import attention_cores_in_ray_groups
+from scnerf_export.runtime.onnx_pipeline import session_options
 
 HEADS, HEAD_DIM, TOKENS = 4, 8, 64  # the default bundle's h, d_k and width C
 
@@ -65,9 +65,14 @@ def variants(rays: int, groups: list[int], rng) -> list:
     heads_in_hidden = {"q": per_head["q"].transpose(0, 2, 1, 3).reshape(r, c, 2 * h).copy(),
                        "k": so.transpose(0, 3, 1, 2).reshape(r, c, 2 * h).copy(),
                        "v": vt.transpose(0, 3, 1, 2).reshape(r, c, h * dk).copy()}
-    from_hidden = lambda y: y.reshape(-1, c, h, dk).transpose(0, 2, 3, 1)
     core = {"qa": qa, "so": so, "vt": vt}
-    attention = lambda **kw: [helper.make_node("Attention", ["q", "k", "v"], ["y"], scale=1.0, **kw)]
+
+    def from_hidden(y):
+        return y.reshape(-1, c, h, dk).transpose(0, 2, 3, 1)
+
+    def attention(**kw):
+        return [helper.make_node("Attention", ["q", "k", "v"], ["y"], scale=1.0, **kw)]
+
     return [
         ("chain (the graph's)", model(chain("", "qa", "so", "vt", "y"), core), core, lambda y: y),
         ("  scores alone (K = 2)", model([helper.make_node("MatMul", ["qa", "so"], ["y"])], {"qa": qa, "so": so}),

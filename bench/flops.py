@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import onnx
 from onnx import shape_inference
+
 from scnerf_export.export.ray_groups import plain_attention_cores
 
 

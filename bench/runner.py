@@ -25,6 +25,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+
 from scnerf_export.config import ModelConfig
 from scnerf_export.export.manifest import read_manifest
 from scnerf_export.runtime.chunks import rays_per_run

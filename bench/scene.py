@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 from PIL import Image
+
 from scnerf_export import cameras as cams
 from scnerf_export.cameras import camera_from_json, camera_json
 from scnerf_export.data.procedural.dataset import VAL_SEED0

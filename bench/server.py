@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 from PIL import Image
+
 from scnerf_export.serving import ServerProcess, multipart
 
 from .report import psnr

@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+
 from scnerf_export import cameras as cams
 from scnerf_export.config import ModelConfig
 from scnerf_export.export.manifest import read_manifest
@@ -64,6 +65,7 @@ def worker_gemm(args) -> dict:
 def worker_torch(args) -> dict:
     """PyTorch eager: scnerf_export.runtime.reference (encode_scene split into its two graphs for stage times)."""
     import torch
+
     from scnerf_export.runtime.reference import SceneTensors, render_rays
 
     torch.set_num_threads(args.threads)
@@ -122,6 +124,7 @@ def worker_profile(args) -> dict:
     """ONNX Runtime's profiler on one renderer run of ``--chunk`` rays of the scene: time per
     operator type (where the renderer's time goes besides its matrix products)."""
     import onnxruntime as ort
+
     from scnerf_export.runtime.onnx_pipeline import OnnxBundle, session_options
 
     bundle = OnnxBundle(args.bundle, threads=args.threads)

@@ -12,8 +12,8 @@ from .train.finetune import Recipe
 
 
 def cmd_convert(args) -> None:
-    from .model.checkpoint import load_mvsnerf
     from .export.bundle import export_bundle
+    from .model.checkpoint import load_mvsnerf
 
     model, provenance = load_mvsnerf(args.ckpt)
     manifest = export_bundle(model, args.out, provenance)
@@ -27,8 +27,8 @@ def cmd_init_scnerf(args) -> None:
 
 
 def cmd_export(args) -> None:
-    from .model.checkpoint import load_checkpoint
     from .export.bundle import export_bundle
+    from .model.checkpoint import load_checkpoint
 
     model, provenance = load_checkpoint(args.checkpoint)
     if args.metrics:

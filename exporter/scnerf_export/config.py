@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 VARIANTS = ("mvsnerf", "scnerf", "scnerf-geometry", "scnerf-appearance")
 DEPTH_NORMS = ("near_far", "image_minmax")

@@ -13,8 +13,8 @@ from PIL import Image
 from ..cameras import camera_from_json, camera_json
 from ..config import small_config
 from ..model.network import SCNeRF
-from ..runtime.reference import encode_scene, render_view
 from ..rigs import random_model, rig_cameras, smooth_pattern
+from ..runtime.reference import encode_scene, render_view
 from .bundle import export_bundle
 
 

@@ -14,6 +14,7 @@ of the core outside it, so any R >= 1 works and neither path ever sees an empty 
 """
 from __future__ import annotations
 
+import functools
 import re
 
 import onnx
@@ -48,9 +49,8 @@ def plain_attention_cores(model: onnx.ModelProto) -> int:
     graph = model.graph
     prefixes = sorted({m.group(0) for node in graph.node for out in node.output if (m := _GROUP_PREFIX.match(out))})
     for p in prefixes:
-        rest = p + "rest_"
-        strip = lambda name: name[len(rest):] if name.startswith(rest) else name
-        chain = [_renamed(node, strip(node.name), strip, strip) for node in graph.node if node.name.startswith(rest)]
+        strip = functools.partial(_unprefixed, prefix=p + "rest_")
+        chain = [_renamed(node, strip(node.name), strip, strip) for node in graph.node if node.name.startswith(p + "rest_")]
         nodes = list(graph.node)
         # Everything the rewrite made has a prefixed output, except the Concat that writes the
         # chain's own output name; the chain goes back where that Concat was.
@@ -62,6 +62,10 @@ def plain_attention_cores(model: onnx.ModelProto) -> int:
         del graph.node[:]
         graph.node.extend(kept[:at] + chain + kept[at:])
     return len(prefixes)
+
+
+def _unprefixed(name: str, prefix: str) -> str:
+    return name[len(prefix):] if name.startswith(prefix) else name
 
 
 def _attention_core(nodes, softmax: int, producer, consumers) -> list[int] | None:

@@ -32,8 +32,16 @@ from ..config import ModelConfig
 from ..model.checkpoint import sha256_file
 from ..model.network import SCNeRF
 from . import onnx_graph
-from .bundle import (CHECK_BLOCKS, CHECK_RAYS, RendererGraph, example_inputs, export_graph, graph_signatures,
-                     io_spec, validate_graph)
+from .bundle import (
+    CHECK_BLOCKS,
+    CHECK_RAYS,
+    RendererGraph,
+    example_inputs,
+    export_graph,
+    graph_signatures,
+    io_spec,
+    validate_graph,
+)
 from .manifest import model_id, read_manifest, write_manifest
 
 AGREEMENT_TOLERANCE = 1e-4

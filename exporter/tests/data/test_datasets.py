@@ -12,14 +12,13 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from scnerf_export.data import datasets as D
 from scnerf_export.cameras import Camera, look_at, opencv_w2c_to_opengl_c2w, opengl_c2w_to_opencv_w2c
+from scnerf_export.data import datasets as D
 from scnerf_export.data.dataparsers.dtu import DTU_SCALE
 from scnerf_export.data.datasets import load_scene
 from scnerf_export.data.scene import View, crop_view, resize_view
 
 from conftest import REPO
-
 
 
 def shared_data_dir() -> Path | None:
@@ -296,7 +295,7 @@ def test_llff_scale_uses_downsampled_folder_or_resizes(tmp_path):
     resized = load_scene(tmp_path, "llff", scale=0.5)
     sub = tmp_path / "images_2"
     sub.mkdir()
-    for i, im in enumerate(ims):
+    for i in range(len(ims)):
         Image.fromarray(np.zeros((H // 2, W // 2, 3), np.uint8)).save(sub / f"IMG_{i:04d}.png")
     folder = load_scene(tmp_path, "llff", scale=0.5)
     for scene in (resized, folder):
@@ -552,9 +551,11 @@ def test_malformed_colmap(tmp_path):
 
 DATA = shared_data_dir()
 needs_dtu = pytest.mark.skipif(DATA is None or not (DATA / "dtu_scan37").is_dir(),
-                               reason="real DTU scan37 not found: ../shared/data/dtu_scan37 (or $SCNERF_SHARED/data) is absent on this machine")
+                               reason="real DTU scan37 not found: ../shared/data/dtu_scan37 "
+                                      "(or $SCNERF_SHARED/data) is absent on this machine")
 needs_lego = pytest.mark.skipif(DATA is None or not (DATA / "nerf_synthetic_lego").is_dir(),
-                                reason="real lego scene not found: ../shared/data/nerf_synthetic_lego (or $SCNERF_SHARED/data) is absent on this machine")
+                                reason="real lego scene not found: ../shared/data/nerf_synthetic_lego "
+                                       "(or $SCNERF_SHARED/data) is absent on this machine")
 
 
 @pytest.fixture(scope="module")

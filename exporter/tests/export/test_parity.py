@@ -101,10 +101,12 @@ def test_committed_fixtures_match_the_committed_bundle(parity_fixtures):
         got = bundle.render_view(images, [camera_from_json(s["camera"]) for s in request["sources"]],
                                  camera_from_json(request["target"]),
                                  request["near"], request["far"], tuple(request["background"]), chunk=1000)
-        read = lambda n: np.fromfile(case / expected["files"][n], dtype="<f4").reshape(expected["shapes"][n])  # noqa: E731
-        assert np.abs(got.rgb - read("rgb")).max() <= expected["tolerances"]["rgb_max_abs"]
-        assert np.abs(got.depth - read("depth")).max() <= expected["tolerances"]["depth_max_rel"] * np.abs(read("depth")).max()
-        assert np.abs(got.opacity - read("opacity")).max() <= expected["tolerances"]["opacity_max_abs"]
+        want = {n: np.fromfile(case / expected["files"][n], dtype="<f4").reshape(expected["shapes"][n])
+                for n in ("rgb", "depth", "opacity")}
+        tolerances = expected["tolerances"]
+        assert np.abs(got.rgb - want["rgb"]).max() <= tolerances["rgb_max_abs"]
+        assert np.abs(got.depth - want["depth"]).max() <= tolerances["depth_max_rel"] * np.abs(want["depth"]).max()
+        assert np.abs(got.opacity - want["opacity"]).max() <= tolerances["opacity_max_abs"]
 
 
 def test_the_renderer_runs_its_attention_cores_in_ray_groups(exported):

@@ -10,14 +10,20 @@ import onnx
 import onnxruntime as ort
 import pytest
 
-from scnerf_export.export import onnx_graph
-from scnerf_export.model.checkpoint import sha256_file
 from scnerf_export.cli import main
-from scnerf_export.export.manifest import read_manifest
 from scnerf_export.evaluate.metrics import psnr
+from scnerf_export.export import onnx_graph
+from scnerf_export.export.manifest import read_manifest
+from scnerf_export.export.precision import (
+    compare_bundles,
+    gemm_to_matmul,
+    procedural_cases,
+    quantizable_matmuls,
+    quantize_bundle,
+    verify_bundle_hashes,
+)
+from scnerf_export.model.checkpoint import sha256_file
 from scnerf_export.runtime.onnx_pipeline import OnnxBundle
-from scnerf_export.export.precision import (compare_bundles, gemm_to_matmul, procedural_cases, quantizable_matmuls,
-                                     quantize_bundle, verify_bundle_hashes)
 
 
 @pytest.fixture(scope="module")

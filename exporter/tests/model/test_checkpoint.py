@@ -5,9 +5,9 @@ import zipfile
 import pytest
 import torch
 
-from scnerf_export.model.checkpoint import CheckpointError, load_checkpoint, load_mvsnerf, save_checkpoint
 from scnerf_export.cli import main
-from scnerf_export.config import ModelConfig, small_config
+from scnerf_export.config import small_config
+from scnerf_export.model.checkpoint import CheckpointError, load_checkpoint, load_mvsnerf, save_checkpoint
 from scnerf_export.rigs import random_model
 
 

@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 import torch
 
-from scnerf_export.data import datasets
 from scnerf_export.cameras import target_rays
-from scnerf_export.model.checkpoint import init_scnerf, load_checkpoint, load_mvsnerf, scnerf_from_mvsnerf
 from scnerf_export.config import small_config
+from scnerf_export.data import datasets
 from scnerf_export.evaluate.eval import downscale_target
 from scnerf_export.export.bundle import export_bundle
+from scnerf_export.model.checkpoint import init_scnerf, load_checkpoint, load_mvsnerf, scnerf_from_mvsnerf
 from scnerf_export.rigs import random_model, rig_cameras, synthetic_rig
 from scnerf_export.runtime.onnx_pipeline import OnnxBundle
 from scnerf_export.runtime.reference import encode_scene, render_rays

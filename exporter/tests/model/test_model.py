@@ -6,9 +6,9 @@ import torch
 
 from scnerf_export import cameras as cams
 from scnerf_export.config import ModelConfig, small_config
-from scnerf_export.rigs import random_model, rig_cameras, smooth_pattern
 from scnerf_export.model.layers import affine_inverse
 from scnerf_export.model.renderer import composite_weights
+from scnerf_export.rigs import random_model, rig_cameras, smooth_pattern
 from scnerf_export.runtime.reference import render_view
 
 

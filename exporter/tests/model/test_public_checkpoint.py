@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 import torch
 
-from scnerf_export.evaluate import metrics
-from scnerf_export.data import datasets
 from scnerf_export.cameras import target_rays
+from scnerf_export.data import datasets
+from scnerf_export.evaluate import metrics
 from scnerf_export.model.checkpoint import load_mvsnerf
 from scnerf_export.runtime.reference import encode_scene, render_rays
 

@@ -6,9 +6,9 @@ import json
 import numpy as np
 from PIL import Image
 
-from scnerf_export.evaluate import metrics
 from scnerf_export.cameras import Camera
 from scnerf_export.cameras import intrinsics_from_json as _k
+from scnerf_export.evaluate import metrics
 from scnerf_export.runtime.onnx_pipeline import OnnxBundle
 
 from conftest import REPO

@@ -86,7 +86,8 @@ class BlenderParser(DataParser):
                     continue
                 entries.append((split, img.stem, img, frame_pose(fr, jf, i), angle_x, angle_y))
         if not entries:
-            raise FileNotFoundError(f"none of the frames listed in {[j.name for j in json_files]} has an image file under {json_files[0].parent}")
+            listed = [j.name for j in json_files]
+            raise FileNotFoundError(f"none of the frames listed in {listed} has an image file under {json_files[0].parent}")
         names = _unique_names([(e[0], e[1]) for e in entries])
         views: dict[str, View] = {}
         for name, (_, _, img, w2c, ax, ay) in zip(names, entries):

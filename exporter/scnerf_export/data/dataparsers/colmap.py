@@ -55,7 +55,7 @@ def _parse_colmap_cameras(path: Path) -> dict[int, tuple[np.ndarray, int, int]]:
             fx, fy, cx, cy = params[:4]
             dist = params[4:]
         if any(abs(d) > 0 for d in dist) and model not in warned:
-            warnings.warn(f"{path}: {model} distortion parameters are ignored (images are used as pinhole)")
+            warnings.warn(f"{path}: {model} distortion parameters are ignored (images are used as pinhole)", stacklevel=2)
             warned.add(model)
         if fx <= 0 or fy <= 0 or w <= 0 or h <= 0:
             raise ValueError(f"{path}:{ln}: non-positive focal length or image size")
@@ -183,13 +183,13 @@ class ColmapParser(DataParser):
         bg = resolve_background(background, (0.0, 0.0, 0.0))
         scale = check_scale(scale)
         views: dict[str, View] = {}
-        for iid, name, w2c, cid in sorted(imgs, key=lambda e: natural_key(e[1])):
+        for _, name, w2c, cid in sorted(imgs, key=lambda e: natural_key(e[1])):
             if cid not in cams:
                 raise ValueError(f"{model_dir / 'images.txt'}: image {name} uses unknown camera {cid}")
             K, w, h = cams[cid]
             img_path = img_dir / name
             if not img_path.exists():
-                warnings.warn(f"COLMAP image {img_path} is missing; skipped")
+                warnings.warn(f"COLMAP image {img_path} is missing; skipped", stacklevel=2)
                 continue
             vname = os.path.splitext(name)[0]
             views[vname] = make_view(vname, img_path, K, w2c, bg, scale, declared_size=(w, h))

@@ -160,7 +160,7 @@ class DtuParser(DataParser):
             vid = int(mm.group(1))
             img_path = img_dir / f"rect_{vid + 1:03d}_3_r5000.png"
             if not img_path.exists():
-                warnings.warn(f"DTU view {vid}: camera {cf.name} has no image {img_path.name}; skipped")
+                warnings.warn(f"DTU view {vid}: camera {cf.name} has no image {img_path.name}; skipped", stacklevel=2)
                 continue
             w2c, K, dmin, dint = _parse_dtu_cam(cf)
             w2c = w2c.copy()

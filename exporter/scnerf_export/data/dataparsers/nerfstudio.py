@@ -62,7 +62,7 @@ class NerfstudioParser(DataParser):
             if fx <= 0 or fy <= 0 or w <= 0 or h <= 0:
                 raise ValueError(f"{jf}: frame {i} has non-positive focal length or size")
             if not warned and any(abs(float(fr.get(k, data.get(k, 0.0)) or 0.0)) > 0 for k in _NS_DISTORTION):
-                warnings.warn(f"{jf}: lens distortion coefficients are ignored (images are used as pinhole)")
+                warnings.warn(f"{jf}: lens distortion coefficients are ignored (images are used as pinhole)", stacklevel=2)
                 warned = True
             K = np.array([[fx, 0.0, cx - 0.5], [0.0, fy, cy - 0.5], [0.0, 0.0, 1.0]])
             rel = os.path.splitext(str(fr["file_path"]))[0]

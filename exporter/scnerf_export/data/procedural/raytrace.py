@@ -1,9 +1,10 @@
 """A vectorised ray tracer: all rays of an image are intersected with each primitive at once.
 
 Shading is Lambert with one directional light plus ambient, cast shadows where the world asks for
-them, a small optional Blinn-Phong highlight, and an optional world-space haze.  The haze depends on a surface point's distance from a
-fixed world point, not from the camera, so it looks like aerial perspective yet stays identical in
-every view (it hides the aliasing of far-away ground texture without breaking multi-view consistency).
+them, a small optional Blinn-Phong highlight, and an optional world-space haze.  The haze depends
+on a surface point's distance from a fixed world point, not from the camera, so it looks like
+aerial perspective yet stays identical in every view (it hides the aliasing of far-away ground
+texture without breaking multi-view consistency).
 """
 
 from __future__ import annotations
@@ -15,7 +16,6 @@ import numpy as np
 from .core import Camera, View
 from .geometry import Primitive, SkyDome
 from .textures import albedo, sky_color
-
 
 CHUNK = 1 << 15  # rays traced and shaded together
 SHADOW_OFFSET = 1e-4  # shadow rays start this far off the surface, so it does not shadow itself
