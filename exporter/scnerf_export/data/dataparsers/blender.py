@@ -19,7 +19,7 @@ from ..scene import (
     resolve_background,
 )
 from .base import DataParser
-from .transforms import frame_pose, read_json, resolve_image
+from .transforms import frame_pose, frames_with_images, read_json
 
 LEGO_DEFAULT_SOURCES = ["r_6", "r_43", "r_33"]
 LEGO_DEFAULT_TARGETS = ["r_63", "r_70", "r_18", "r_28"]
@@ -78,12 +78,7 @@ class BlenderParser(DataParser):
                 raise ValueError(f"{jf}: camera_angle_x {angle_x} is not an angle in (0, pi)")
             m = re.match(r"transforms_(\w+)\.json$", jf.name)
             split = m.group(1) if m else ""
-            for i, fr in enumerate(data["frames"]):
-                if not isinstance(fr, dict) or "file_path" not in fr:
-                    raise ValueError(f"{jf}: frame {i} has no 'file_path'")
-                img = resolve_image(jf.parent, str(fr["file_path"]))
-                if img is None:
-                    continue
+            for i, fr, img in frames_with_images(data, jf):
                 entries.append((split, img.stem, img, frame_pose(fr, jf, i), angle_x, angle_y))
         if not entries:
             listed = [j.name for j in json_files]

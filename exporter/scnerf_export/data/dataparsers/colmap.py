@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import warnings
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -29,14 +30,18 @@ def _colmap_lines(path: Path) -> list[str]:
         raise FileNotFoundError(f"COLMAP file not found: {path}") from None
 
 
+def _colmap_rows(path: Path) -> Iterator[tuple[int, str, list[str]]]:
+    """(line number, line, its fields) of every line that is neither blank nor a comment."""
+    for ln, line in enumerate(_colmap_lines(path), 1):
+        s = line.strip()
+        if s and not s.startswith("#"):
+            yield ln, s, s.split()
+
+
 def _parse_colmap_cameras(path: Path) -> dict[int, tuple[np.ndarray, int, int]]:
     cams = {}
     warned = set()
-    for ln, line in enumerate(_colmap_lines(path), 1):
-        s = line.strip()
-        if not s or s.startswith("#"):
-            continue
-        t = s.split()
+    for ln, s, t in _colmap_rows(path):
         try:
             cid, model, w, h = int(t[0]), t[1].upper(), int(t[2]), int(t[3])
             params = [float(x) for x in t[4:]]
@@ -121,11 +126,7 @@ def _colmap_points_near_far(path: Path, images: dict[int, np.ndarray]) -> tuple[
     """near = 0.9 x the 1st percentile, far = 1.1 x the 99th percentile of the z-depths of the
     points in the views that observe them (in every view if a point has no track)."""
     xyz, pair_pt, pair_img, untracked = [], [], [], []
-    for ln, line in enumerate(_colmap_lines(path), 1):
-        s = line.strip()
-        if not s or s.startswith("#"):
-            continue
-        t = s.split()
+    for ln, _, t in _colmap_rows(path):
         try:
             xyz.append([float(t[1]), float(t[2]), float(t[3])])
             track = [int(x) for x in t[8::2]]

@@ -10,7 +10,7 @@ import numpy as np
 
 from ..scene import SceneData, check_near_far, check_scale, make_view, resolve_background
 from .base import DataParser
-from .transforms import frame_pose, read_json, resolve_image
+from .transforms import frame_pose, frames_with_images, read_json
 
 _NS_DISTORTION = ("k1", "k2", "k3", "k4", "p1", "p2")
 
@@ -49,12 +49,7 @@ class NerfstudioParser(DataParser):
 
         warned = False
         entries = []
-        for i, fr in enumerate(data["frames"]):
-            if not isinstance(fr, dict) or "file_path" not in fr:
-                raise ValueError(f"{jf}: frame {i} has no 'file_path'")
-            img = resolve_image(jf.parent, str(fr["file_path"]))
-            if img is None:
-                continue
+        for i, fr, img in frames_with_images(data, jf):
             fx = param(fr, "fl_x", i)
             fy = param(fr, "fl_y", i) if ("fl_y" in fr or "fl_y" in data) else fx
             cx, cy = param(fr, "cx", i), param(fr, "cy", i)

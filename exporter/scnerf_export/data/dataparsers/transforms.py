@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +27,7 @@ def read_json(path: Path) -> dict:
     return data
 
 
-def resolve_image(base: Path, file_path: str) -> Path | None:
+def _resolve_image(base: Path, file_path: str) -> Path | None:
     p = (base / file_path) if not os.path.isabs(file_path) else Path(file_path)
     if p.exists():
         return p
@@ -36,6 +37,16 @@ def resolve_image(base: Path, file_path: str) -> Path | None:
             if q.exists():
                 return q
     return None
+
+
+def frames_with_images(data: dict, json_path: Path) -> Iterator[tuple[int, dict, Path]]:
+    """(index, frame, image file) of every frame whose image exists; frames without one are skipped."""
+    for i, frame in enumerate(data["frames"]):
+        if not isinstance(frame, dict) or "file_path" not in frame:
+            raise ValueError(f"{json_path}: frame {i} has no 'file_path'")
+        image = _resolve_image(json_path.parent, str(frame["file_path"]))
+        if image is not None:
+            yield i, frame, image
 
 
 def frame_pose(frame: dict, json_path: Path, idx: int) -> np.ndarray:
