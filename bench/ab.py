@@ -13,6 +13,7 @@ takes a core from the next session's run, which made medians 3-5x the fastest ro
 
 A bundle may carry ONNX Runtime session config entries after '@' (key=value, '@'-separated).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -48,8 +49,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("bundles", nargs="+", help="bundle directories, each optionally @key=value...")
     parser.add_argument("--rounds", type=int, default=40)
-    parser.add_argument("--rays", default="512",
-                        help="rays per run (the server's default chunk); a list (64,512) times each bundle at each")
+    parser.add_argument(
+        "--rays",
+        default="512",
+        help="rays per run (the server's default chunk); a list (64,512) times each bundle at each",
+    )
     parser.add_argument("--first-ray", type=int, default=20000, help="where the slice starts (inside the object)")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--spin", action="store_true", help="let idle workers spin (see the module docstring)")
@@ -70,9 +74,11 @@ def main() -> None:
         per_ray = np.array(spent) * 1e6 / rays
         rgb = session.run(None, feeds)[0]
         shared = min(len(rgb), len(reference))
-        print(f"{spec:40s} {rays:5d} rays: fastest {per_ray.min():6.1f}  p25 {np.quantile(per_ray, 0.25):6.1f}  "
-              f"median {np.median(per_ray):6.1f} µs/ray  max |rgb - first| "
-              f"{np.abs(rgb[:shared] - reference[:shared]).max():.1e}")
+        print(
+            f"{spec:40s} {rays:5d} rays: fastest {per_ray.min():6.1f}  p25 {np.quantile(per_ray, 0.25):6.1f}  "
+            f"median {np.median(per_ray):6.1f} µs/ray  max |rgb - first| "
+            f"{np.abs(rgb[:shared] - reference[:shared]).max():.1e}"
+        )
 
 
 if __name__ == "__main__":

@@ -63,5 +63,10 @@ def renderer_flops_for(onnx_path: Path, rays: int, hw: tuple[int, int], pad: int
     b = renderer_gemm_flops(onnx_path, 1024, hw, pad)
     if b["flops"] != 2 * a["flops"] or a["unresolved_nodes"]:
         raise RuntimeError(f"renderer FLOPs not linear in R or shapes unresolved: {a} {b}")
-    return {**b, "flops": b["flops"] * rays // 1024, "rays": rays, "counted_at_rays": 1024,
-            "per_ray": b["flops"] / 1024}
+    return {
+        **b,
+        "flops": b["flops"] * rays // 1024,
+        "rays": rays,
+        "counted_at_rays": 1024,
+        "per_ray": b["flops"] / 1024,
+    }

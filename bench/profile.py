@@ -17,8 +17,12 @@ def kernel_events_by_run(profile: Path) -> list[list[dict]]:
     starts = sorted(e["ts"] for e in events if e.get("name") == "model_run")
     runs: list[list[dict]] = [[] for _ in starts]
     for e in events:
-        if (e.get("cat") == "Node" and e["name"].endswith("_kernel_time")
-                and e["args"].get("op_name") not in CONTAINER_OPS and e["ts"] >= starts[0]):
+        if (
+            e.get("cat") == "Node"
+            and e["name"].endswith("_kernel_time")
+            and e["args"].get("op_name") not in CONTAINER_OPS
+            and e["ts"] >= starts[0]
+        ):
             runs[bisect.bisect_right(starts, e["ts"]) - 1].append(e)
     return runs
 

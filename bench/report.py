@@ -59,8 +59,12 @@ def derive(entry: dict, gemm_flops: float, rgbs: dict, truth) -> None:
         # A cached-scene view: the server's scene endpoints; for the Python paths the renderer (+
         # ray set-up) part of the cold run, which is exactly the work a cached view repeats.
         if "cached_ms" not in r and r.get("method") in ("torch", "ort"):
-            r["cached_ms"] = {"renderer": cold["renderer"], "encode": cold.get("encode", 0.0),
-                              "total": cold["renderer"] + cold.get("encode", 0.0), "derived": True}
+            r["cached_ms"] = {
+                "renderer": cold["renderer"],
+                "encode": cold.get("encode", 0.0),
+                "total": cold["renderer"] + cold.get("encode", 0.0),
+                "derived": True,
+            }
         if r.get("cached_ms") and cold.get("total"):
             r["cached_over_cold"] = r["cached_ms"]["total"] / cold["total"]
         if name in rgbs:
@@ -88,8 +92,9 @@ def merge_earlier(results: dict, earlier: dict) -> None:
                     r["from_run"] = earlier["started"]
                     results["sizes"][size]["methods"][name] = r
     results["sizes"] = dict(sorted(results["sizes"].items(), key=lambda kv: int(kv[0].split("x")[0])))
-    results["merged_runs"] = [{k: earlier.get(k) for k in ("started", "finished", "label", "gemm", "contention",
-                                                           "threads", "server_args")}]
+    results["merged_runs"] = [
+        {k: earlier.get(k) for k in ("started", "finished", "label", "gemm", "contention", "threads", "server_args")}
+    ]
     results["variant_precision"] = {**earlier.get("variant_precision", {}), **results["variant_precision"]}
     results["renderer_profile"] = results.get("renderer_profile") or earlier.get("renderer_profile")
     results["server_bin"] = results["server_bin"] or earlier.get("server_bin")
@@ -111,22 +116,31 @@ def server_row(res: dict, size: str, name: str = "server") -> dict | None:
 
 def end_to_end_ratios(res: dict) -> dict[str, float]:
     """Per size, the server's cold view over PyTorch eager's."""
-    return {size: r["ratio_to_torch"]["total"] for size in res["sizes"]
-            if (r := server_row(res, size)) and r.get("ratio_to_torch", {}).get("total") is not None}
+    return {
+        size: r["ratio_to_torch"]["total"]
+        for size in res["sizes"]
+        if (r := server_row(res, size)) and r.get("ratio_to_torch", {}).get("total") is not None
+    }
 
 
 def renderer_fractions(res: dict) -> dict[str, float]:
     """Per size, the server renderer's FLOP/s as a fraction of the fp32 GEMM rate."""
-    return {size: r["renderer_fraction_of_gemm"] for size in res["sizes"]
-            if (r := server_row(res, size)) and r.get("renderer_fraction_of_gemm") is not None}
+    return {
+        size: r["renderer_fraction_of_gemm"]
+        for size in res["sizes"]
+        if (r := server_row(res, size)) and r.get("renderer_fraction_of_gemm") is not None
+    }
 
 
 def reduced_precision_seconds(res: dict) -> dict[str, float]:
     """Per reduced-precision variant, the server's cold 640x512 view in seconds."""
     names = sorted({n for e in res["sizes"].values() for n in e["methods"] if n.startswith("server-")})
     # Results written before precisions were recorded list every variant as not fp32.
-    return {name[7:]: r["cold_ms"]["total"] / 1000.0 for name in names
-            if (r := server_row(res, "640x512", name)) and res.get("variant_precision", {}).get(name[7:]) != "fp32"}
+    return {
+        name[7:]: r["cold_ms"]["total"] / 1000.0
+        for name in names
+        if (r := server_row(res, "640x512", name)) and res.get("variant_precision", {}).get(name[7:]) != "fp32"
+    }
 
 
 def verdict(measured: dict[str, float], met: bool) -> str:
@@ -142,13 +156,17 @@ def targets(res: dict) -> list[str]:
     ratios = end_to_end_ratios(res)
     fractions = renderer_fractions(res)
     seconds = reduced_precision_seconds(res)
-    out = ["", "Issue 7 targets (server = the deployed path):", "",
-           f"* end-to-end fp32 view <= 0.5x PyTorch eager: "
-           f"{verdict(ratios, all(v <= 0.5 for v in ratios.values()))} ({listed(ratios, '{:.2f}x')})",
-           f"* renderer >= 50% of the fp32 GEMM rate: "
-           f"{verdict(fractions, all(v >= 0.5 for v in fractions.values()))} ({listed(fractions, '{:.0%}')})",
-           f"* reduced-precision 640x512 view <= 30 s: "
-           f"{verdict(seconds, any(v <= 30.0 for v in seconds.values()))} ({listed(seconds, '{:.1f} s')})"]
+    out = [
+        "",
+        "Issue 7 targets (server = the deployed path):",
+        "",
+        f"* end-to-end fp32 view <= 0.5x PyTorch eager: "
+        f"{verdict(ratios, all(v <= 0.5 for v in ratios.values()))} ({listed(ratios, '{:.2f}x')})",
+        f"* renderer >= 50% of the fp32 GEMM rate: "
+        f"{verdict(fractions, all(v >= 0.5 for v in fractions.values()))} ({listed(fractions, '{:.0%}')})",
+        f"* reduced-precision 640x512 view <= 30 s: "
+        f"{verdict(seconds, any(v <= 30.0 for v in seconds.values()))} ({listed(seconds, '{:.1f} s')})",
+    ]
     r = server_row(res, "160x128")
     if r and r.get("cached_over_cold") is not None:
         v = r["cached_over_cold"]
@@ -167,9 +185,11 @@ def fmt_stages(t: dict) -> str:
 
 
 def merged_note(res: dict) -> list[str]:
-    return [f"Merged with the run of {m['started']} ({m['label']}; GEMM {m['gemm']['numpy_gflops']:.0f} GFLOP/s; "
-            f"load before {m['contention']['loadavg_before']}): rows marked * come from it." for m in
-            res.get("merged_runs", [])] + ([""] if res.get("merged_runs") else [])
+    return [
+        f"Merged with the run of {m['started']} ({m['label']}; GEMM {m['gemm']['numpy_gflops']:.0f} GFLOP/s; "
+        f"load before {m['contention']['loadavg_before']}): rows marked * come from it."
+        for m in res.get("merged_runs", [])
+    ] + ([""] if res.get("merged_runs") else [])
 
 
 def rounds_note(res: dict) -> str:
@@ -177,8 +197,10 @@ def rounds_note(res: dict) -> str:
     if rounds <= 1:
         return "."
     runs = ", ".join(f"{x:.0f}" for x in res.get("gemm_runs_gflops", []))
-    return (f" (fastest of {runs}). {rounds} rounds per size, the methods interleaved in each; every figure "
-            "below is a method's fastest round (all rounds' cold totals: `round_totals_ms` in the JSON).")
+    return (
+        f" (fastest of {runs}). {rounds} rounds per size, the methods interleaved in each; every figure "
+        "below is a method's fastest round (all rounds' cold totals: `round_totals_ms` in the JSON)."
+    )
 
 
 def _s(ms) -> str:
@@ -189,24 +211,30 @@ def markdown(res: dict) -> str:
     m = res["machine"]
     g = res["gemm"]
     lines = [
-        f"# Benchmark {res['started']} ({res['label']})", "",
+        f"# Benchmark {res['started']} ({res['label']})",
+        "",
         f"Machine: {m.get('host')}, {m.get('cpu')}, {m.get('cpus')} CPUs ({m.get('hypervisor') or 'bare metal'}), "
         f"{m.get('memory_gib')} GiB; ISA: {' '.join(m.get('isa', []))}. "
-        f"numpy {m.get('numpy')}, torch {m.get('torch')}, onnxruntime {m.get('onnxruntime')}.", "",
+        f"numpy {m.get('numpy')}, torch {m.get('torch')}, onnxruntime {m.get('onnxruntime')}.",
+        "",
         f"Bundle `{res['bundle']['dir']}` ({res['bundle']['model_id']}, {res['bundle']['precision']}; "
         f"width {res['bundle']['config']['width']}, S = {res['bundle']['config']['samples']}, "
         f"D = {res['bundle']['config']['depth_planes']}); threads {res['threads']}; "
-        f"Python chunk {res['python_chunk']} rays; server `{res['server_bin']}` {' '.join(res['server_args'])}.", "",
+        f"Python chunk {res['python_chunk']} rays; server `{res['server_bin']}` {' '.join(res['server_args'])}.",
+        "",
         f"fp32 GEMM ({g['n']}x{g['n']}, {g['threads']} threads): numpy {g['numpy_gflops']:.0f} GFLOP/s, "
-        f"torch {g['torch_gflops']:.0f} GFLOP/s" + rounds_note(res), "",
+        f"torch {g['torch_gflops']:.0f} GFLOP/s" + rounds_note(res),
+        "",
         *merged_note(res),
         f"Contention: before {len(res['contention']['busy_processes_before'])} train/eval processes, "
         f"load {res['contention']['loadavg_before']}; after {len(res['contention'].get('busy_processes_after', []))}, "
-        f"load {res['contention'].get('loadavg_after')}.", "",
+        f"load {res['contention'].get('loadavg_after')}.",
+        "",
         "Times in seconds. cold = one-shot request (decode + encoder + volume + renderer + encode); cached = a view "
         "of an already encoded scene (server: POST /v1/scenes/{id}/render; Python: the renderer part of the cold "
         "run). Ratio = cold total / PyTorch eager cold total. FLOP/s = renderer MatMul/Gemm FLOPs (from the ONNX "
-        "graph) / renderer time, as a fraction of the numpy fp32 GEMM rate.", "",
+        "graph) / renderer time, as a fraction of the numpy fp32 GEMM rate.",
+        "",
         "| size | method | decode | encoder | volume | renderer | encode | cold total | cached | cached/cold "
         "| ratio to torch | renderer GFLOP/s (% GEMM) | peak RSS MiB | PSNR vs ref |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
@@ -218,11 +246,17 @@ def markdown(res: dict) -> str:
                 continue
             c = r.get("cold_ms", {})
             cached = r.get("cached_ms")
-            cached_s = _s(cached["total"]) + (" (derived)" if cached.get("derived") else "") if cached else r.get("cached", "-")
+            cached_s = (
+                _s(cached["total"]) + (" (derived)" if cached.get("derived") else "")
+                if cached
+                else r.get("cached", "-")
+            )
             ratio = r.get("ratio_to_torch", {}).get("total")
             frac = r.get("renderer_fraction_of_gemm")
-            keys = sorted((k for k in r if k.startswith("psnr_vs_") and k != "psnr_vs_truth"),
-                          key=lambda k: not k.startswith("psnr_vs_fp32"))
+            keys = sorted(
+                (k for k in r if k.startswith("psnr_vs_") and k != "psnr_vs_truth"),
+                key=lambda k: not k.startswith("psnr_vs_fp32"),
+            )
             ref = f"{r[keys[0]]:.1f} dB ({keys[0][8:]})" if keys else "-"
             rss = r.get("peak_rss_mib")
             cached_over = "-" if r.get("cached_over_cold") is None else f"{r['cached_over_cold']:.2f}"
@@ -233,16 +267,21 @@ def markdown(res: dict) -> str:
             lines.append(
                 f"| {size} | {name}{star} | {_s(c.get('decode'))} | {_s(c.get('encoder'))} | {_s(c.get('volume'))} "
                 f"| {_s(c.get('renderer'))} | {_s(c.get('encode'))} | {_s(c.get('total'))} | {cached_s} "
-                f"| {cached_over} | {ratio_s} | {frac_s} | {rss_s} | {ref} |")
+                f"| {cached_over} | {ratio_s} | {frac_s} | {rss_s} | {ref} |"
+            )
     lines.append("")
-    lines.append("Renderer FLOPs per view (MatMul/Gemm, ONNX shape inference): " + ", ".join(
-        f"{k}: {e['renderer_gemm_flops']['flops'] / 1e9:.1f} GFLOP" for k, e in res["sizes"].items()))
+    lines.append(
+        "Renderer FLOPs per view (MatMul/Gemm, ONNX shape inference): "
+        + ", ".join(f"{k}: {e['renderer_gemm_flops']['flops'] / 1e9:.1f} GFLOP" for k, e in res["sizes"].items())
+    )
     lines.append("")
     lines += targets(res)
     for name, prof in (res.get("renderer_profile") or {}).items():
         prof = {**prof, **kernel_shares(prof["by_op_ms"])}
         share = ", ".join(f"{op} {100 * v:.0f}%" for op, v in prof["by_op_share"].items() if v >= 0.02)
-        lines.append(f"Renderer profile ({name}, one chunk of {prof['rays']} rays, {prof['kernel_ms'] / 1000:.2f} s "
-                     f"in kernels): {share}.")
+        lines.append(
+            f"Renderer profile ({name}, one chunk of {prof['rays']} rays, {prof['kernel_ms'] / 1000:.2f} s "
+            f"in kernels): {share}."
+        )
     lines.append("")
     return "\n".join(lines)

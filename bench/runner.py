@@ -43,14 +43,23 @@ BUSY_PATTERN = r"scnerf-export (train|eval)"
 
 
 def parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m bench", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        prog="python -m bench", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("--bundle", default=str(REPO / "bundles/default"))
-    p.add_argument("--checkpoint", default="auto",
-                   help="weights of the PyTorch reference: a checkpoint, random:SEED, or auto (from the manifest)")
-    p.add_argument("--variant", action="append", default=[], metavar="NAME=DIR",
-                   help="another bundle of the same network (e.g. int8=bundles/default-int8): ONNX Runtime and "
-                        "server timings and PSNR against the fp32 outputs")
+    p.add_argument(
+        "--checkpoint",
+        default="auto",
+        help="weights of the PyTorch reference: a checkpoint, random:SEED, or auto (from the manifest)",
+    )
+    p.add_argument(
+        "--variant",
+        action="append",
+        default=[],
+        metavar="NAME=DIR",
+        help="another bundle of the same network (e.g. int8=bundles/default-int8): ONNX Runtime and "
+        "server timings and PSNR against the fp32 outputs",
+    )
     p.add_argument("--sizes", default=",".join(DEFAULT_SIZES), help="WxH list, e.g. 160x128,320x256")
     p.add_argument("--variant-sizes", help="sizes at which the --variant bundles run (default: all)")
     p.add_argument("--variant-methods", default="ort,server", help="methods for the --variant bundles")
@@ -59,11 +68,20 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--methods", default="torch,ort,server")
     p.add_argument("--chunk", type=int, help="rays per renderer call for the Python paths (default: the server's)")
     p.add_argument("--repeats", type=int, default=1, help="server renders per size (the fastest is kept)")
-    p.add_argument("--rounds", type=int, default=1,
-                   help="measure every method this many times per size, interleaved, keeping each one's fastest")
+    p.add_argument(
+        "--rounds",
+        type=int,
+        default=1,
+        help="measure every method this many times per size, interleaved, keeping each one's fastest",
+    )
     p.add_argument("--server-bin", help="default: target/release/scnerf-server, else target/debug/")
-    p.add_argument("--server-arg", dest="server_args", action="append", default=[],
-                   help="extra server flag (repeatable), e.g. --server-arg=--ort-arena=off")
+    p.add_argument(
+        "--server-arg",
+        dest="server_args",
+        action="append",
+        default=[],
+        help="extra server flag (repeatable), e.g. --server-arg=--ort-arena=off",
+    )
     p.add_argument("--gemm-n", type=int, default=4096)
     p.add_argument("--gemm-repeats", type=int, default=5)
     p.add_argument("--out", default=str(REPO / "bench/results"))
@@ -71,10 +89,16 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--label", help="free text recorded with the results (default: contended/quiet from the load)")
     p.add_argument("--no-write", action="store_true", help="print only")
     p.add_argument("--report", help="rewrite latest.md (and the ratios) from a results JSON, measuring nothing")
-    p.add_argument("--merge", help="results JSON of an earlier run of the same bundle: its other sizes/methods are "
-                                   "added to this run's JSON and table (e.g. 640x512 measured separately)")
-    p.add_argument("--profile", action="store_true",
-                   help="also profile one renderer chunk per bundle with ONNX Runtime's profiler (time per op type)")
+    p.add_argument(
+        "--merge",
+        help="results JSON of an earlier run of the same bundle: its other sizes/methods are "
+        "added to this run's JSON and table (e.g. 640x512 measured separately)",
+    )
+    p.add_argument(
+        "--profile",
+        action="store_true",
+        help="also profile one renderer chunk per bundle with ONNX Runtime's profiler (time per op type)",
+    )
     return p
 
 
@@ -118,7 +142,9 @@ def run(args) -> dict:
     chunk = args.chunk or rays_per_run(manifest["config"]["samples"])
     results = start_results(args, manifest, chunk)
     measure_gemm(args, results)
-    measured = [measure_size(args, results, manifest, width, height, chunk) for width, height in parse_sizes(args.sizes)]
+    measured = [
+        measure_size(args, results, manifest, width, height, chunk) for width, height in parse_sizes(args.sizes)
+    ]
     for entry, rgbs, truth in measured:  # after every GEMM measurement: one rate for all sizes
         derive(entry, results["gemm"]["numpy_gflops"] * 1e9, rgbs, truth)
     results["contention"].update({"busy_processes_after": busy_processes(), "loadavg_after": load()})
@@ -149,16 +175,26 @@ def start_results(args, manifest: dict, chunk: int) -> dict:
     if busy_before:
         log(f"CONTENDED: {len(busy_before)} training/eval processes running")
     return {
-        "started": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"), "machine": machine(),
-        "bundle": {"dir": args.bundle, "model_id": manifest["model_id"], "variant": manifest["variant"],
-                   "precision": manifest.get("precision", "fp32"),
-                   "config": {k: cfg[k] for k in ("width", "samples", "depth_planes", "views", "pad")}},
-        "threads": args.threads, "rounds": args.rounds, "python_chunk": chunk,
+        "started": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+        "machine": machine(),
+        "bundle": {
+            "dir": args.bundle,
+            "model_id": manifest["model_id"],
+            "variant": manifest["variant"],
+            "precision": manifest.get("precision", "fp32"),
+            "config": {k: cfg[k] for k in ("width", "samples", "depth_planes", "views", "pad")},
+        },
+        "threads": args.threads,
+        "rounds": args.rounds,
+        "python_chunk": chunk,
         "server_bin": str(server_bin) if server_bin else None,
-        "server_args": args.server_args, "methods": methods, "variants": variants,
+        "server_args": args.server_args,
+        "methods": methods,
+        "variants": variants,
         "variant_precision": {name: read_manifest(d).get("precision", "fp32") for name, d in variants.items()},
         "contention": {"busy_processes_before": busy_before, "loadavg_before": load_before},
-        "gemm": None, "sizes": {},
+        "gemm": None,
+        "sizes": {},
     }
 
 
@@ -170,8 +206,9 @@ def measure_size(args, results: dict, manifest: dict, width: int, height: int, c
     scene_dir = make_scene_dir(Path(args.cache), width, height)
     multiple = cfg["image_multiple"]
     padded = (-(-height // multiple) * multiple, -(-width // multiple) * multiple)
-    flops = renderer_flops_for(Path(args.bundle) / manifest["graphs"]["renderer"]["file"],
-                               width * height, padded, cfg["pad"])
+    flops = renderer_flops_for(
+        Path(args.bundle) / manifest["graphs"]["renderer"]["file"], width * height, padded, cfg["pad"]
+    )
     flops["flops"] *= renderer_passes(ModelConfig.from_dict(cfg))
     entry: dict = {"rays": width * height, "renderer_gemm_flops": flops, "methods": {}}
     results["sizes"][key] = entry
@@ -184,8 +221,9 @@ def measure_size(args, results: dict, manifest: dict, width: int, height: int, c
         for label, method, bundle in jobs(args, results, key):
             log(f"{key}: {label} (round {round_no}/{args.rounds}) ...")
             try:
-                r, rgb = run_method(args, method, bundle, scene_dir, chunk, key in cached_sizes(args),
-                                    tmp / f"{label}-{key}.npy")
+                r, rgb = run_method(
+                    args, method, bundle, scene_dir, chunk, key in cached_sizes(args), tmp / f"{label}-{key}.npy"
+                )
             except Exception as exc:  # noqa: BLE001 (record and go on with the other methods)
                 log(f"  {label} failed: {exc}")
                 entry["methods"].setdefault(label, {"error": str(exc)[-2000:]})
@@ -206,8 +244,12 @@ def jobs(args, results: dict, key: str) -> list[tuple[str, str, str]]:
     --variant bundles by --variant-methods where --variant-sizes includes the size."""
     out = [(m, m, args.bundle) for m in results["methods"]]
     if key in {f"{w}x{h}" for w, h in parse_sizes(args.variant_sizes or args.sizes)}:
-        out += [(f"{m}-{name}", m, directory) for name, directory in results["variants"].items()
-                for m in args.variant_methods.split(",") if m in ("ort", "server")]
+        out += [
+            (f"{m}-{name}", m, directory)
+            for name, directory in results["variants"].items()
+            for m in args.variant_methods.split(",")
+            if m in ("ort", "server")
+        ]
     return out
 
 
@@ -221,7 +263,8 @@ def profile_renderers(args, results: dict, key: str, scene_dir: Path, chunk: int
         log(f"{key}: profiling one renderer chunk of {name} ...")
         try:
             results.setdefault("renderer_profile", {})[name] = run_worker(
-                args, "profile", ["--bundle", directory, "--scene-dir", str(scene_dir), "--chunk", str(chunk)])
+                args, "profile", ["--bundle", directory, "--scene-dir", str(scene_dir), "--chunk", str(chunk)]
+            )
         except Exception as exc:  # noqa: BLE001
             log(f"  profile failed: {exc}")
 
@@ -268,11 +311,17 @@ def machine() -> dict:
         fields = dict(line.split(":", 1) for line in lscpu.splitlines() if ":" in line)
         fields = {k.strip(): v.strip() for k, v in fields.items()}
         flags = fields.get("Flags", "").split()
-        info.update({"cpu": fields.get("Model name"), "cpus": int(fields.get("CPU(s)", 0)),
-                     "threads_per_core": fields.get("Thread(s) per core"),
-                     "hypervisor": fields.get("Hypervisor vendor"),
-                     "isa": [f for f in flags if f.startswith(("avx512", "amx", "avx_vnni", "fma", "avx2"))],
-                     "l2": fields.get("L2 cache"), "l3": fields.get("L3 cache")})
+        info.update(
+            {
+                "cpu": fields.get("Model name"),
+                "cpus": int(fields.get("CPU(s)", 0)),
+                "threads_per_core": fields.get("Thread(s) per core"),
+                "hypervisor": fields.get("Hypervisor vendor"),
+                "isa": [f for f in flags if f.startswith(("avx512", "amx", "avx_vnni", "fma", "avx2"))],
+                "l2": fields.get("L2 cache"),
+                "l3": fields.get("L3 cache"),
+            }
+        )
     except OSError:
         pass
     for line in Path("/proc/meminfo").read_text().splitlines():

@@ -39,9 +39,14 @@ def make_scene_dir(root: Path, width: int, height: int) -> Path:
         view = render_view(world, cameras[index], supersample=2)
         name = f"source_{k}.png" if k < len(sources) else "target_truth.png"
         Image.fromarray((view.image * 255).round().astype("uint8")).save(out / name)
-    request = {"sources": [{"camera": camera_json(cameras[i])} for i in sources],
-               "target": camera_json(cameras[SCENE_TARGET]), "near": float(near), "far": float(far),
-               "background": [0.0, 0.0, 0.0], "outputs": ["rgb"]}
+    request = {
+        "sources": [{"camera": camera_json(cameras[i])} for i in sources],
+        "target": camera_json(cameras[SCENE_TARGET]),
+        "near": float(near),
+        "far": float(far),
+        "background": [0.0, 0.0, 0.0],
+        "outputs": ["rgb"],
+    }
     (out / "request.json").write_text(json.dumps(request, indent=2) + "\n")
     return out
 

@@ -28,8 +28,10 @@ ACCEPT_JSON = {"Accept": "application/json"}
 
 def multipart_request(document: dict, sources: list[bytes]) -> tuple[bytes, dict]:
     """A multipart body as curl sends it (the request JSON, then the source PNGs) and its headers."""
-    body, ctype = multipart([("request", "", json.dumps(document).encode(), "application/json")]
-                            + [(f"source_{i}", f"source_{i}.png", s, "image/png") for i, s in enumerate(sources)])
+    body, ctype = multipart(
+        [("request", "", json.dumps(document).encode(), "application/json")]
+        + [(f"source_{i}", f"source_{i}.png", s, "image/png") for i, s in enumerate(sources)]
+    )
     return body, {**ACCEPT_JSON, "Content-Type": ctype}
 
 
@@ -46,8 +48,12 @@ def bench_server(args, bundle: str, scene_dir: Path, cached: bool = True) -> dic
     request = json.loads((scene_dir / "request.json").read_text())
     sources = [(scene_dir / f"source_{i}.png").read_bytes() for i in range(len(request["sources"]))]
     server = ServerProcess(Path(args.server_bin), bundle, args.threads, tuple(args.server_args))
-    out: dict = {"method": "server", "startup_ms": server.startup_ms, "model_id": server.model.get("model_id"),
-                 "threads": args.threads}
+    out: dict = {
+        "method": "server",
+        "startup_ms": server.startup_ms,
+        "model_id": server.model.get("model_id"),
+        "threads": args.threads,
+    }
     try:
         out.update(cold_views(server, request, sources, args.repeats))
         out["peak_rss_mib_cold"] = server.peak_rss_mib()
@@ -86,8 +92,9 @@ def cached_views(server: ServerProcess, request: dict, sources: list[bytes], rep
     view = json.dumps({"target": request["target"], "outputs": request["outputs"]}).encode()
     runs = []
     for _ in range(max(1, repeats)):
-        status, data, _, wall = timed_request(server, f"/v1/scenes/{scene_id}/render", view,
-                                              {**ACCEPT_JSON, "Content-Type": "application/json"})
+        status, data, _, wall = timed_request(
+            server, f"/v1/scenes/{scene_id}/render", view, {**ACCEPT_JSON, "Content-Type": "application/json"}
+        )
         if status != 200:
             out["cached"] = f"failed (render answered {status}: {data[:300]!r})"
             break

@@ -47,8 +47,9 @@ def worker_gemm(args) -> dict:
     try:
         from threadpoolctl import threadpool_info  # optional: names the BLAS
 
-        result["blas"] = [{k: i.get(k) for k in ("internal_api", "version", "num_threads", "architecture")}
-                          for i in threadpool_info()]
+        result["blas"] = [
+            {k: i.get(k) for k in ("internal_api", "version", "num_threads", "architecture")} for i in threadpool_info()
+        ]
     except ImportError:
         result["blas"] = str(np.show_config(mode="dicts").get("Build Dependencies", {}).get("blas", {}))
     import torch
@@ -85,14 +86,29 @@ def worker_torch(args) -> dict:
         features = model.encode(imgs)
         stages["encoder"] = time.perf_counter() - start
         start = time.perf_counter()
-        volume = model.build_volume(features, imgs, torch.from_numpy(cams.feature_projections(cameras)),
-                                    torch.from_numpy(cams.depth_planes(near, far, cfg.depth_planes)))
+        volume = model.build_volume(
+            features,
+            imgs,
+            torch.from_numpy(cams.feature_projections(cameras)),
+            torch.from_numpy(cams.depth_planes(near, far, cfg.depth_planes)),
+        )
         stages["volume"] = time.perf_counter() - start
-        scene = SceneTensors(imgs, features, volume, torch.from_numpy(cams.stack_intrinsics(cameras)),
-                             torch.from_numpy(cams.stack_extrinsics(cameras)))
+        scene = SceneTensors(
+            imgs,
+            features,
+            volume,
+            torch.from_numpy(cams.stack_intrinsics(cameras)),
+            torch.from_numpy(cams.stack_extrinsics(cameras)),
+        )
         start = time.perf_counter()
-        result = render_in_passes(cfg, target, near, far, bg, lambda o, d, depth_range: render_rays(
-            model, scene, o, d, near, far, depth_range, args.chunk))
+        result = render_in_passes(
+            cfg,
+            target,
+            near,
+            far,
+            bg,
+            lambda o, d, depth_range: render_rays(model, scene, o, d, near, far, depth_range, args.chunk),
+        )
         stages["renderer"] = time.perf_counter() - start
     start = time.perf_counter()
     png = png_bytes(result.rgb)
@@ -110,8 +126,9 @@ def worker_ort(args) -> dict:
     load_s = time.perf_counter() - t0
     request, images, cameras, target, decode = read_scene(Path(args.scene_dir))
     total0 = time.perf_counter()
-    result = bundle.render_view(images, cameras, target, request["near"], request["far"],
-                                tuple(request["background"]), chunk=args.chunk)
+    result = bundle.render_view(
+        images, cameras, target, request["near"], request["far"], tuple(request["background"]), chunk=args.chunk
+    )
     stages = {"decode": decode, **bundle.timings}
     start = time.perf_counter()
     png = png_bytes(result.rgb)
@@ -132,8 +149,11 @@ def worker_profile(args) -> dict:
     options = session_options(args.threads)
     options.enable_profiling = True
     options.profile_file_prefix = str(Path(args.scene_dir).parent / "tmp" / "ort-profile")
-    session = ort.InferenceSession(str(Path(args.bundle) / bundle.manifest["graphs"]["renderer"]["file"]), options,
-                                   providers=["CPUExecutionProvider"])
+    session = ort.InferenceSession(
+        str(Path(args.bundle) / bundle.manifest["graphs"]["renderer"]["file"]),
+        options,
+        providers=["CPUExecutionProvider"],
+    )
     session.run(None, feeds)  # warm-up
     start = time.perf_counter()
     session.run(None, feeds)
@@ -150,8 +170,15 @@ def finish(args, method: str, stages: dict, total: float, rgb, load_s: float, ex
         np.save(args.save_rgb, np.asarray(rgb, np.float32))
     stages_ms = {k: v * 1000.0 for k, v in stages.items()}
     stages_ms["other"] = max(0.0, total * 1000.0 - sum(stages_ms.values()))
-    return {"method": method, "cold_ms": {**stages_ms, "total": total * 1000.0}, "load_ms": load_s * 1000.0,
-            "chunk": args.chunk, "threads": args.threads, "peak_rss_mib": peak_rss_mib(), **extra}
+    return {
+        "method": method,
+        "cold_ms": {**stages_ms, "total": total * 1000.0},
+        "load_ms": load_s * 1000.0,
+        "chunk": args.chunk,
+        "threads": args.threads,
+        "peak_rss_mib": peak_rss_mib(),
+        **extra,
+    }
 
 
 def load_torch_model(bundle_dir: str, checkpoint: str):

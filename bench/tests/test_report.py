@@ -29,10 +29,12 @@ def _reduced_precision_line(res: dict) -> str:
 
 
 def test_reduced_precision_target_reads_only_reduced_precision_variants():
-    methods = {"server": _run(75_000.0, "fp32"), "server-int8": _run(28_000.0, "int8"),
-               "server-graph0.1": _run(20_000.0, "fp32 graph")}
-    res = {"sizes": {"640x512": {"methods": methods}},
-           "variant_precision": {"int8": "int8", "graph0.1": "fp32"}}
+    methods = {
+        "server": _run(75_000.0, "fp32"),
+        "server-int8": _run(28_000.0, "int8"),
+        "server-graph0.1": _run(20_000.0, "fp32 graph"),
+    }
+    res = {"sizes": {"640x512": {"methods": methods}}, "variant_precision": {"int8": "int8", "graph0.1": "fp32"}}
     assert _reduced_precision_line(res) == "* reduced-precision 640x512 view <= 30 s: met (int8 28.0 s)"
     methods["server-int8"] = _run(31_000.0, "int8")
     assert _reduced_precision_line(res) == "* reduced-precision 640x512 view <= 30 s: NOT met (int8 31.0 s)"
@@ -50,6 +52,8 @@ def test_profile_shares_leave_container_ops_out():
 
 
 def test_targets_are_checked_on_the_figures_not_on_their_rounded_text():
-    res = {"sizes": {"160x128": {"methods": {"server": {**_run(1000.0, "server"), "ratio_to_torch": {"total": 0.504}}}}}}
+    res = {
+        "sizes": {"160x128": {"methods": {"server": {**_run(1000.0, "server"), "ratio_to_torch": {"total": 0.504}}}}}
+    }
     line = next(line for line in report.targets(res) if line.startswith("* end-to-end"))
     assert line == "* end-to-end fp32 view <= 0.5x PyTorch eager: NOT met (160x128 0.50x)"

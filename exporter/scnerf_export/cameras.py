@@ -98,8 +98,9 @@ class Camera:
         return (cam - self.w2c[:3, 3]) @ self.w2c[:3, :3]
 
     @classmethod
-    def from_pose(cls, K, matrix, width: int, height: int, kind: str = "world_to_camera",
-                  axes: str = "opencv") -> "Camera":
+    def from_pose(
+        cls, K, matrix, width: int, height: int, kind: str = "world_to_camera", axes: str = "opencv"
+    ) -> "Camera":
         """Build a canonical camera from any of the API's pose conventions."""
         return cls(np.asarray(K, dtype=np.float64), canonical_w2c(matrix, kind, axes), int(width), int(height))
 
@@ -127,8 +128,9 @@ def target_rays(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
     Directions are R_c2w [(u-cx)/fx, (v-cy)/fy, 1]: the sample parameter is the target z-depth.
     """
     K, c2w = camera.K, camera.c2w
-    v, u = np.meshgrid(np.arange(camera.height, dtype=np.float64),
-                       np.arange(camera.width, dtype=np.float64), indexing="ij")
+    v, u = np.meshgrid(
+        np.arange(camera.height, dtype=np.float64), np.arange(camera.width, dtype=np.float64), indexing="ij"
+    )
     cam_dirs = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], axis=-1)
     directions = cam_dirs.reshape(-1, 3) @ c2w[:3, :3].T
     origins = np.broadcast_to(c2w[:3, 3], directions.shape)
@@ -199,9 +201,12 @@ def camera_json(camera: Camera, pose: str = "opencv_w2c") -> dict:
         matrix, kind, axes = opencv_w2c_to_opengl_c2w(camera.w2c), "camera_to_world", "opengl"
     else:
         matrix, kind, axes = camera.w2c, "world_to_camera", "opencv"
-    return {"width": int(camera.width), "height": int(camera.height),
-            "intrinsics": {"fx": float(K[0, 0]), "fy": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2])},
-            "pose": {"matrix": matrix.tolist(), "kind": kind, "axes": axes}}
+    return {
+        "width": int(camera.width),
+        "height": int(camera.height),
+        "intrinsics": {"fx": float(K[0, 0]), "fy": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2])},
+        "pose": {"matrix": matrix.tolist(), "kind": kind, "axes": axes},
+    }
 
 
 def intrinsics_from_json(camera: dict) -> np.ndarray:
@@ -213,5 +218,6 @@ def intrinsics_from_json(camera: dict) -> np.ndarray:
 def camera_from_json(camera: dict) -> Camera:
     """The canonical camera of an API camera object, decoded as the server decodes it."""
     pose = camera["pose"]
-    return Camera.from_pose(intrinsics_from_json(camera), pose["matrix"], camera["width"], camera["height"],
-                            pose["kind"], pose["axes"])
+    return Camera.from_pose(
+        intrinsics_from_json(camera), pose["matrix"], camera["width"], camera["height"], pose["kind"], pose["axes"]
+    )

@@ -48,9 +48,21 @@ def cmd_eval(args) -> None:
 
     if (args.bundle is None) == (args.server is None):
         raise ValueError("eval takes exactly one of --bundle DIR and --server URL")
-    summary = evaluate(args.bundle, args.scene, args.format, split_names(args.sources), split_names(args.targets),
-                       args.scale, args.near, args.far, args.threads, args.chunk, args.save_renders,
-                       args.target_scale, args.server)
+    summary = evaluate(
+        args.bundle,
+        args.scene,
+        args.format,
+        split_names(args.sources),
+        split_names(args.targets),
+        args.scale,
+        args.near,
+        args.far,
+        args.threads,
+        args.chunk,
+        args.save_renders,
+        args.target_scale,
+        args.server,
+    )
     if "lpips_unavailable" in summary:
         print(f"LPIPS not computed: {summary['lpips_unavailable']}")
     if args.json:
@@ -79,16 +91,31 @@ def cmd_experiment(args) -> None:
 def cmd_train(args) -> None:
     from .train.from_scratch import train
 
-    last = train(args.variant, args.preset, args.out, resume=args.resume, steps=args.steps, seed=args.seed,
-                 cache_dir=args.cache, threads=args.threads)
+    last = train(
+        args.variant,
+        args.preset,
+        args.out,
+        resume=args.resume,
+        steps=args.steps,
+        seed=args.seed,
+        cache_dir=args.cache,
+        threads=args.threads,
+    )
     print(f"checkpoint {last}")
 
 
 def cmd_finetune(args) -> None:
     from .train.finetune import finetune
 
-    recipe = Recipe(steps=args.steps, rays=args.rays, lr=args.lr, pretrained_lr_scale=args.pretrained_lr_scale,
-                    scenes=args.scenes, seed=args.seed, validate_every=args.validate_every)
+    recipe = Recipe(
+        steps=args.steps,
+        rays=args.rays,
+        lr=args.lr,
+        pretrained_lr_scale=args.pretrained_lr_scale,
+        scenes=args.scenes,
+        seed=args.seed,
+        validate_every=args.validate_every,
+    )
     print(f"checkpoint {finetune(args.init, args.out, args.shared, recipe, args.threads, args.cache)}")
 
 
@@ -102,15 +129,20 @@ def cmd_quantize(args) -> None:
     print(f"wrote {args.out} ({manifest['model_id']}, {args.precision}: {', '.join(graphs)})")
     if args.compare:
         width, height = (int(x) for x in args.compare_size.lower().split("x"))
-        report = compare_bundles(args.bundle, args.out, procedural_cases(args.compare, width, height),
-                                 threads=args.threads)
+        report = compare_bundles(
+            args.bundle, args.out, procedural_cases(args.compare, width, height), threads=args.threads
+        )
         for row in report["rows"]:
-            print(f"{row['case']:>22}  fp32 {row['psnr_fp32']:6.2f} dB  {args.precision} {row['psnr_candidate']:6.2f} dB"
-                  f"  drop {row['psnr_drop']:+.3f} dB  renderer {row['renderer_seconds_fp32']:.2f} s -> "
-                  f"{row['renderer_seconds_candidate']:.2f} s")
+            print(
+                f"{row['case']:>22}  fp32 {row['psnr_fp32']:6.2f} dB  {args.precision} {row['psnr_candidate']:6.2f} dB"
+                f"  drop {row['psnr_drop']:+.3f} dB  renderer {row['renderer_seconds_fp32']:.2f} s -> "
+                f"{row['renderer_seconds_candidate']:.2f} s"
+            )
         verdict = "offer" if report["offer"] else "do not offer"
-        print(f"mean PSNR drop {report['psnr_drop_db']:+.3f} dB, renderer speed-up x{report['renderer_speedup']:.2f}: "
-              f"{verdict} ({report['rule']})")
+        print(
+            f"mean PSNR drop {report['psnr_drop_db']:+.3f} dB, renderer speed-up x{report['renderer_speedup']:.2f}: "
+            f"{verdict} ({report['rule']})"
+        )
         if args.json:
             args.json.parent.mkdir(parents=True, exist_ok=True)
             args.json.write_text(json.dumps(report, indent=2, default=float) + "\n")
@@ -157,13 +189,20 @@ def parser() -> argparse.ArgumentParser:
     v.add_argument("--server", help="render through the server at this URL instead (e.g. http://127.0.0.1:8080)")
     v.add_argument("--scene", required=True, type=Path)
     v.add_argument("--format", required=True, choices=["dtu", "blender", "llff", "nerfstudio", "colmap"])
-    v.add_argument("--sources", help="comma-separated view names, the same for every target, or 'fixed' for the "
-                   "scene's fixed triple (default: per target, the 3 nearest views by camera-centre distance "
-                   "among those that are not targets)")
+    v.add_argument(
+        "--sources",
+        help="comma-separated view names, the same for every target, or 'fixed' for the "
+        "scene's fixed triple (default: per target, the 3 nearest views by camera-centre distance "
+        "among those that are not targets)",
+    )
     v.add_argument("--targets", help="comma-separated view names (default: the scene's)")
     v.add_argument("--scale", type=float, default=1.0, help="resize every view by this factor")
-    v.add_argument("--target-scale", type=float, default=1.0,
-                   help="render targets at 1/n size (ground truth box-averaged); sources stay full size")
+    v.add_argument(
+        "--target-scale",
+        type=float,
+        default=1.0,
+        help="render targets at 1/n size (ground truth box-averaged); sources stay full size",
+    )
     v.add_argument("--near", type=float)
     v.add_argument("--far", type=float)
     v.add_argument("--threads", type=int)
@@ -199,13 +238,21 @@ def parser() -> argparse.ArgumentParser:
     n = sub.add_parser("finetune", help="train scnerf's heads on a frozen backbone from an init-scnerf checkpoint")
     n.add_argument("--init", required=True, type=Path, help="checkpoint from init-scnerf")
     n.add_argument("--out", required=True, type=Path)
-    n.add_argument("--shared", type=Path, default=Path("../shared"),
-                   help="folder with data/ (validation scenes: they choose the checkpoint, never train)")
+    n.add_argument(
+        "--shared",
+        type=Path,
+        default=Path("../shared"),
+        help="folder with data/ (validation scenes: they choose the checkpoint, never train)",
+    )
     n.add_argument("--steps", type=int, default=defaults.steps)
     n.add_argument("--rays", type=int, default=defaults.rays, help="rays per step")
     n.add_argument("--lr", type=float, default=defaults.lr, help="learning rate of the rectifiers")
-    n.add_argument("--pretrained-lr-scale", type=float, default=defaults.pretrained_lr_scale,
-                   help="M2's and M4's learning rate relative to the rectifiers'")
+    n.add_argument(
+        "--pretrained-lr-scale",
+        type=float,
+        default=defaults.pretrained_lr_scale,
+        help="M2's and M4's learning rate relative to the rectifiers'",
+    )
     n.add_argument("--scenes", type=int, default=defaults.scenes, help="procedural training scenes")
     n.add_argument("--validate-every", type=int, default=defaults.validate_every)
     n.add_argument("--seed", type=int, default=defaults.seed)
@@ -219,8 +266,13 @@ def parser() -> argparse.ArgumentParser:
     q.add_argument("--precision", required=True, choices=["int8", "fp16"])
     q.add_argument("--graphs", default="renderer", help="comma-separated: renderer (default), volume")
     q.add_argument("--min-inner", type=int, default=16, help="convert only products with inner size >= this")
-    q.add_argument("--compare", type=int, default=0, metavar="N",
-                   help="render N held-out procedural views through both bundles and report the PSNR drop")
+    q.add_argument(
+        "--compare",
+        type=int,
+        default=0,
+        metavar="N",
+        help="render N held-out procedural views through both bundles and report the PSNR drop",
+    )
     q.add_argument("--compare-size", default="160x128")
     q.add_argument("--threads", type=int)
     q.add_argument("--json", type=Path, help="write the comparison here")

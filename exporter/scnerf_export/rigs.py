@@ -47,7 +47,8 @@ def synthetic_rig(cfg: ModelConfig, height: int, width: int, seed: int = 0) -> d
         "intrinsics": t(cams.stack_intrinsics(sources)),
         "extrinsics": t(cams.stack_extrinsics(sources)),
         "near_far": torch.tensor([near, far], dtype=torch.float32),
-        "ray_origins": t(origins), "ray_directions": t(directions),
+        "ray_origins": t(origins),
+        "ray_directions": t(directions),
     }
 
 

@@ -26,8 +26,16 @@ def save_png(image: np.ndarray, path: Path) -> None:
     Image.fromarray((image * 255).round().astype(np.uint8)).save(path)
 
 
-def write_example(out_dir: str | Path, seed: int = EXAMPLE_SEED, layout: str = "tabletop", width: int = 640,
-                  height: int = 512, target_index: int = 7, target_scale: float = 0.375, views: int = 16) -> Path:
+def write_example(
+    out_dir: str | Path,
+    seed: int = EXAMPLE_SEED,
+    layout: str = "tabletop",
+    width: int = 640,
+    height: int = 512,
+    target_index: int = 7,
+    target_scale: float = 0.375,
+    views: int = 16,
+) -> Path:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     scene = make_scene(seed, layout, n_views=views, width=width, height=height)
@@ -37,13 +45,19 @@ def write_example(out_dir: str | Path, seed: int = EXAMPLE_SEED, layout: str = "
     world, _, _, _ = build_layout(seed, layout, views, width, height)
     target = scene.views[target_index].camera.scaled(target_scale)
     save_png(render_view(world, target, supersample=scene.meta["supersample"]).image, out / "target_truth.png")
-    request = {"sources": [{"camera": camera_json(scene.views[i].camera)} for i in sources],
-               "target": camera_json(target), "near": float(scene.near), "far": float(scene.far),
-               "background": [0.0, 0.0, 0.0], "outputs": ["rgb"]}
+    request = {
+        "sources": [{"camera": camera_json(scene.views[i].camera)} for i in sources],
+        "target": camera_json(target),
+        "near": float(scene.near),
+        "far": float(scene.far),
+        "background": [0.0, 0.0, 0.0],
+        "outputs": ["rgb"],
+    }
     (out / "request.json").write_text(json.dumps(request, indent=2) + "\n")
     (out / "README.md").write_text(
         f"A procedural tabletop scene (layout `{layout}`, seed {seed}: a validation seed, never trained on),\n"
         f"written by `scnerf-export example`. Views {sources} of {views} ({width}x{height}) are the sources,\n"
         f"the 3 nearest to view {target_index}, the target, asked for at {target.width}x{target.height}.\n"
-        "`target_truth.png` is the ray-traced ground truth of the target view at that size.\n")
+        "`target_truth.png` is the ray-traced ground truth of the target view at that size.\n"
+    )
     return out

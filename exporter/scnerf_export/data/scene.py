@@ -47,8 +47,11 @@ def resize_float(arr: np.ndarray, width: int, height: int, resample) -> np.ndarr
     if arr.ndim == 2:
         return np.asarray(Image.fromarray(arr.astype(np.float32), mode="F").resize((width, height), resample))
     chans = [
-        np.asarray(Image.fromarray(np.ascontiguousarray(arr[..., c], dtype=np.float32), mode="F")
-                   .resize((width, height), resample))
+        np.asarray(
+            Image.fromarray(np.ascontiguousarray(arr[..., c], dtype=np.float32), mode="F").resize(
+                (width, height), resample
+            )
+        )
         for c in range(arr.shape[2])
     ]
     return np.stack(chans, axis=-1).astype(np.float32)
@@ -128,8 +131,17 @@ def image_size(path: Path) -> tuple[int, int]:
         raise ValueError(f"cannot read image {path}: {e}") from None
 
 
-def make_view(name: str, image_path: Path, K: np.ndarray, w2c: np.ndarray, background, scale: float,
-               declared_size: tuple[int, int] | None = None, depth=None, mask=None) -> View:
+def make_view(
+    name: str,
+    image_path: Path,
+    K: np.ndarray,
+    w2c: np.ndarray,
+    background,
+    scale: float,
+    declared_size: tuple[int, int] | None = None,
+    depth=None,
+    mask=None,
+) -> View:
     """Read the image, fit K to its real size (if the file declares another), apply ``scale``."""
     image = read_image(image_path, background)
     h, w = image.shape[:2]

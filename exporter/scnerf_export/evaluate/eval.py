@@ -21,10 +21,21 @@ def split_names(value: str | None) -> list[str] | None:
     return [v.strip() for v in value.split(",") if v.strip()] if value else None
 
 
-def evaluate(bundle_dir: str | Path, scene_dir: str | Path, fmt: str, sources: list[str] | None = None,
-             targets: list[str] | None = None, scale: float = 1.0, near: float | None = None,
-             far: float | None = None, threads: int | None = None, chunk: int = DEFAULT_CHUNK,
-             save_dir: str | Path | None = None, target_scale: float = 1.0, server: str | None = None) -> dict:
+def evaluate(
+    bundle_dir: str | Path,
+    scene_dir: str | Path,
+    fmt: str,
+    sources: list[str] | None = None,
+    targets: list[str] | None = None,
+    scale: float = 1.0,
+    near: float | None = None,
+    far: float | None = None,
+    threads: int | None = None,
+    chunk: int = DEFAULT_CHUNK,
+    save_dir: str | Path | None = None,
+    target_scale: float = 1.0,
+    server: str | None = None,
+) -> dict:
     """Render every target, through ONNX Runtime in this process or through the server at ``server``
     (its scene API, PNG output), and score it. Sources: ``sources`` for every target (``["fixed"]``: the
     scene's own fixed triple, MVSNeRF's r_6/r_43/r_33 or 25/21/33), or by default the paper's
@@ -52,9 +63,14 @@ def evaluate(bundle_dir: str | Path, scene_dir: str | Path, fmt: str, sources: l
         start = time.perf_counter()
         result = bundle.render_target(scene_tensors, view.camera, scene.near, scene.far, scene.background, chunk)
         seconds = time.perf_counter() - start
-        row = {"view": view.name, "sources": list(names), "psnr": metrics.psnr(result.rgb, view.image),
-               "ssim": metrics.ssim(result.rgb, view.image), "seconds": seconds,
-               "seconds_with_encoding": seconds + encode_seconds}
+        row = {
+            "view": view.name,
+            "sources": list(names),
+            "psnr": metrics.psnr(result.rgb, view.image),
+            "ssim": metrics.ssim(result.rgb, view.image),
+            "seconds": seconds,
+            "seconds_with_encoding": seconds + encode_seconds,
+        }
         if view.mask is not None:
             masked = metrics.dtu_masked_metrics(result.rgb, view.image, view.mask)
             row.update({"psnr_masked": masked["psnr"], "ssim_masked": masked["ssim"]})
@@ -66,12 +82,22 @@ def evaluate(bundle_dir: str | Path, scene_dir: str | Path, fmt: str, sources: l
             out.mkdir(parents=True, exist_ok=True)
             Image.fromarray((np.clip(result.rgb, 0, 1) * 255).round().astype(np.uint8)).save(out / f"{view.name}.png")
         print(format_row(row), flush=True)
-    summary = {"bundle": server or str(bundle_dir), "model_id": bundle.manifest["model_id"], "scene": str(scene_dir),
-               "protocol": PROTOCOL_FIXED if sources else PROTOCOL_NEAREST,
-               "encode_seconds": sum(seconds for _, seconds in encoded.values()), "threads": threads,
-               "format": fmt, "scale": scale, "target_scale": target_scale, "targets": targets,
-               "near": scene.near, "far": scene.far, "views": {r["view"]: r for r in rows},
-               "mean": metrics.mean_metrics(rows)}
+    summary = {
+        "bundle": server or str(bundle_dir),
+        "model_id": bundle.manifest["model_id"],
+        "scene": str(scene_dir),
+        "protocol": PROTOCOL_FIXED if sources else PROTOCOL_NEAREST,
+        "encode_seconds": sum(seconds for _, seconds in encoded.values()),
+        "threads": threads,
+        "format": fmt,
+        "scale": scale,
+        "target_scale": target_scale,
+        "targets": targets,
+        "near": scene.near,
+        "far": scene.far,
+        "views": {r["view"]: r for r in rows},
+        "mean": metrics.mean_metrics(rows),
+    }
     lpips_ok, reason = metrics.lpips_available("vgg")
     summary["lpips"] = None if not lpips_ok else "not computed"
     if not lpips_ok:
@@ -94,8 +120,9 @@ def encode_sources(bundle: OnnxBundle, scene: datasets.SceneData, names: tuple[s
     """The encoder and volume of one source triple (reference first), and the seconds it took."""
     views = datasets.get_views(scene, list(names))
     start = time.perf_counter()
-    encoded = bundle.encode_scene(np.stack([v.image for v in views]), [v.camera for v in views],
-                                  scene.near, scene.far, scene.background)
+    encoded = bundle.encode_scene(
+        np.stack([v.image for v in views]), [v.camera for v in views], scene.near, scene.far, scene.background
+    )
     seconds = time.perf_counter() - start
     print(f"sources {','.join(names)}: encoder + volume {seconds:.1f} s", flush=True)
     return encoded, seconds
@@ -114,8 +141,12 @@ def downscale_target(view: datasets.View, factor: float) -> datasets.View:
 
 
 def format_row(row: dict) -> str:
-    parts = [f"{row['view']:>8}", f"{','.join(row['sources']):>12}", f"PSNR {row['psnr']:6.2f}",
-             f"SSIM {row['ssim']:.3f}"]
+    parts = [
+        f"{row['view']:>8}",
+        f"{','.join(row['sources']):>12}",
+        f"PSNR {row['psnr']:6.2f}",
+        f"SSIM {row['ssim']:.3f}",
+    ]
     if "psnr_masked" in row:
         parts += [f"masked PSNR {row['psnr_masked']:6.2f}", f"masked SSIM {row['ssim_masked']:.3f}"]
     if isinstance(row.get("depth"), dict) and "abs_err" in row["depth"]:

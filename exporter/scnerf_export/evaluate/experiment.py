@@ -22,8 +22,14 @@ def depth_relative_error(depth: np.ndarray, truth: np.ndarray, alpha: np.ndarray
     return float(np.mean(np.abs(depth[valid] - truth[valid]) / truth[valid]))
 
 
-def procedural_rows(bundles: dict[str, Path], n_scenes: int = 9, width: int = 160, height: int = 128,
-                    cache_dir: Path | None = None, threads: int | None = None) -> list[dict]:
+def procedural_rows(
+    bundles: dict[str, Path],
+    n_scenes: int = 9,
+    width: int = 160,
+    height: int = 128,
+    cache_dir: Path | None = None,
+    threads: int | None = None,
+) -> list[dict]:
     data = ProceduralDataset("val", n_scenes=n_scenes, width=width, height=height, gaps=GAPS, cache_dir=cache_dir)
     examples = list(data.fixed_examples(targets_per_scene=1))
     rows = []
@@ -32,10 +38,17 @@ def procedural_rows(bundles: dict[str, Path], n_scenes: int = 9, width: int = 16
         for ex in examples:
             images = np.stack([v.image for v in ex.sources])
             result = bundle.render_view(images, [v.camera for v in ex.sources], ex.target.camera, ex.near, ex.far)
-            rows.append({"model": name, "layout": ex.layout, "gap": ex.gap, "scene_seed": ex.scene_seed,
-                         "psnr": metrics.psnr(result.rgb, ex.target.image),
-                         "ssim": metrics.ssim(result.rgb, ex.target.image),
-                         "depth_rel_err": depth_relative_error(result.depth, ex.target.depth, ex.target.alpha)})
+            rows.append(
+                {
+                    "model": name,
+                    "layout": ex.layout,
+                    "gap": ex.gap,
+                    "scene_seed": ex.scene_seed,
+                    "psnr": metrics.psnr(result.rgb, ex.target.image),
+                    "ssim": metrics.ssim(result.rgb, ex.target.image),
+                    "depth_rel_err": depth_relative_error(result.depth, ex.target.depth, ex.target.alpha),
+                }
+            )
             print(json.dumps(rows[-1]), flush=True)
     return rows
 
@@ -45,13 +58,20 @@ def summarise(rows: list[dict]) -> dict[tuple[str, str, str], dict]:
     for row in rows:
         groups[(row["model"], row["layout"], row["gap"])].append(row)
         groups[(row["model"], "all", row["gap"])].append(row)
-    return {key: {**metrics.mean_metrics([{k: r[k] for k in ("psnr", "ssim", "depth_rel_err")} for r in group]),
-                  "n": len(group)} for key, group in groups.items()}
+    return {
+        key: {
+            **metrics.mean_metrics([{k: r[k] for k in ("psnr", "ssim", "depth_rel_err")} for r in group]),
+            "n": len(group),
+        }
+        for key, group in groups.items()
+    }
 
 
 def markdown_table(summary: dict, models: list[str]) -> str:
-    lines = ["| layout | gap | " + " | ".join(f"{m} PSNR / SSIM / depth rel. err" for m in models) + " |",
-             "|---|---|" + "---|" * len(models)]
+    lines = [
+        "| layout | gap | " + " | ".join(f"{m} PSNR / SSIM / depth rel. err" for m in models) + " |",
+        "|---|---|" + "---|" * len(models),
+    ]
     for layout in (*LAYOUTS, "all"):
         for gap in GAPS:
             cells = []

@@ -101,8 +101,8 @@ def _filter_valid(x: np.ndarray, w: np.ndarray) -> np.ndarray:
     """Separable 'valid' correlation of (H,W,C) with the 1-D window w along H then W."""
     k = len(w)
     h, wd = x.shape[0] - k + 1, x.shape[1] - k + 1
-    y = sum(w[i] * x[i:i + h] for i in range(k))
-    return sum(w[i] * y[:, i:i + wd] for i in range(k))
+    y = sum(w[i] * x[i : i + h] for i in range(k))
+    return sum(w[i] * y[:, i : i + wd] for i in range(k))
 
 
 def ssim(pred, gt, return_map: bool = False):
@@ -113,15 +113,15 @@ def ssim(pred, gt, return_map: bool = False):
         raise ValueError(f"SSIM needs images of at least {SSIM_WINDOW}x{SSIM_WINDOW}, got {p.shape[1]}x{p.shape[0]}")
     w = _gaussian_window()
     mu_p, mu_g = _filter_valid(p, w), _filter_valid(g, w)
-    s_pp = _filter_valid(p * p, w) - mu_p ** 2
-    s_gg = _filter_valid(g * g, w) - mu_g ** 2
+    s_pp = _filter_valid(p * p, w) - mu_p**2
+    s_gg = _filter_valid(g * g, w) - mu_g**2
     s_pg = _filter_valid(p * g, w) - mu_p * mu_g
     # numerical guards of JAX-NeRF / MVSNeRF's rgb_ssim (no-ops up to rounding)
     s_pp = np.maximum(0.0, s_pp)
     s_gg = np.maximum(0.0, s_gg)
     s_pg = np.sign(s_pg) * np.minimum(np.sqrt(s_pp * s_gg), np.abs(s_pg))
-    c1, c2 = SSIM_K1 ** 2, SSIM_K2 ** 2
-    smap = ((2 * mu_p * mu_g + c1) * (2 * s_pg + c2)) / ((mu_p ** 2 + mu_g ** 2 + c1) * (s_pp + s_gg + c2))
+    c1, c2 = SSIM_K1**2, SSIM_K2**2
+    smap = ((2 * mu_p * mu_g + c1) * (2 * s_pg + c2)) / ((mu_p**2 + mu_g**2 + c1) * (s_pp + s_gg + c2))
     return smap if return_map else float(smap.mean())
 
 
@@ -211,14 +211,18 @@ def lpips_available(net: str = "vgg") -> tuple[bool, str]:
         import torch
         import torchvision  # noqa: F401
     except ImportError as e:
-        return False, (f"the 'lpips' package (and torchvision) is not installed ({e}); "
-                       "`pip install lpips torchvision` provides the code and LPIPS's own linear layers")
+        return False, (
+            f"the 'lpips' package (and torchvision) is not installed ({e}); "
+            "`pip install lpips torchvision` provides the code and LPIPS's own linear layers"
+        )
     ckpt = Path(torch.hub.get_dir()) / "checkpoints" / _BACKBONE_FILES[net]
     if not ckpt.is_file():
-        return False, (f"LPIPS needs torchvision's ImageNet-pretrained {net} backbone weights "
-                       f"({_BACKBONE_FILES[net]}), which torchvision downloads from download.pytorch.org "
-                       f"at first use; no package on a reachable registry ships them and that host is "
-                       f"not reachable here. Put the file at {ckpt} (or set TORCH_HOME) to enable LPIPS.")
+        return False, (
+            f"LPIPS needs torchvision's ImageNet-pretrained {net} backbone weights "
+            f"({_BACKBONE_FILES[net]}), which torchvision downloads from download.pytorch.org "
+            f"at first use; no package on a reachable registry ships them and that host is "
+            f"not reachable here. Put the file at {ckpt} (or set TORCH_HOME) to enable LPIPS."
+        )
     return True, ""
 
 

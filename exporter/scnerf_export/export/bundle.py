@@ -68,9 +68,15 @@ class RendererGraph(nn.Module):
     def forward(self, *args):
         given = dict(zip(self.names, args))
         return self.model.renderer(
-            given["ray_origins"], given["ray_directions"], given["near_far"],
-            given.get("depth_range", given["near_far"]), given["volume"], given["images"],
-            given.get("features"), given["intrinsics"], given["extrinsics"],
+            given["ray_origins"],
+            given["ray_directions"],
+            given["near_far"],
+            given.get("depth_range", given["near_far"]),
+            given["volume"],
+            given["images"],
+            given.get("features"),
+            given["intrinsics"],
+            given["extrinsics"],
         )
 
 
@@ -80,15 +86,25 @@ def graph_signatures(model: SCNeRF) -> dict[str, dict[str, list]]:
     v, c, d = cfg.views, cfg.feature_channels, cfg.depth_planes
     vol = [1, cfg.volume_channels, d, "Hp", "Wp"]
     renderer_inputs = {
-        "ray_origins": ["R", 3], "ray_directions": ["R", 3], "near_far": [2], "depth_range": [2],
-        "volume": vol, "images": [v, 3, "H", "W"], "features": [v, c, "h", "w"],
-        "intrinsics": [v, 3, 3], "extrinsics": [v, 4, 4],
+        "ray_origins": ["R", 3],
+        "ray_directions": ["R", 3],
+        "near_far": [2],
+        "depth_range": [2],
+        "volume": vol,
+        "images": [v, 3, "H", "W"],
+        "features": [v, c, "h", "w"],
+        "intrinsics": [v, 3, 3],
+        "extrinsics": [v, 4, 4],
     }
     return {
         "encoder": {"inputs": {"images": [v, 3, "H", "W"]}, "outputs": {"features": [v, c, "h", "w"]}},
         "volume": {
-            "inputs": {"features": [v, c, "h", "w"], "images": [v, 3, "H", "W"],
-                       "projections": [v, 4, 4], "depth_planes": [d]},
+            "inputs": {
+                "features": [v, c, "h", "w"],
+                "images": [v, 3, "H", "W"],
+                "projections": [v, 4, 4],
+                "depth_planes": [d],
+            },
             "outputs": {"volume": vol},
         },
         "renderer": {
@@ -98,8 +114,12 @@ def graph_signatures(model: SCNeRF) -> dict[str, dict[str, list]]:
     }
 
 
-def example_inputs(model: SCNeRF, seed: int = 0, blocks: tuple[int, int] = (_EXAMPLE_BLOCKS_H, _EXAMPLE_BLOCKS_W),
-                   rays: int = _EXAMPLE_RAYS) -> dict[str, dict[str, torch.Tensor]]:
+def example_inputs(
+    model: SCNeRF,
+    seed: int = 0,
+    blocks: tuple[int, int] = (_EXAMPLE_BLOCKS_H, _EXAMPLE_BLOCKS_W),
+    rays: int = _EXAMPLE_RAYS,
+) -> dict[str, dict[str, torch.Tensor]]:
     """Plausible tensors for tracing and validation: a small scene with real camera geometry,
     images of ``blocks`` x 32 pixels, ``rays`` target rays."""
     cfg = model.cfg
@@ -108,16 +128,25 @@ def example_inputs(model: SCNeRF, seed: int = 0, blocks: tuple[int, int] = (_EXA
         features = model.encode(rig["images"])
         volume = model.build_volume(features, rig["images"], rig["projections"], rig["depth_planes"])
     rays = {
-        "ray_origins": rig["ray_origins"][:rays], "ray_directions": rig["ray_directions"][:rays],
+        "ray_origins": rig["ray_origins"][:rays],
+        "ray_directions": rig["ray_directions"][:rays],
         # A tensor of its own: torch.export would alias two inputs given the same tensor object.
-        "near_far": rig["near_far"], "depth_range": rig["near_far"] * torch.tensor([1.05, 0.95]), "volume": volume,
-        "images": rig["images"], "features": features,
-        "intrinsics": rig["intrinsics"], "extrinsics": rig["extrinsics"],
+        "near_far": rig["near_far"],
+        "depth_range": rig["near_far"] * torch.tensor([1.05, 0.95]),
+        "volume": volume,
+        "images": rig["images"],
+        "features": features,
+        "intrinsics": rig["intrinsics"],
+        "extrinsics": rig["extrinsics"],
     }
     return {
         "encoder": {"images": rig["images"]},
-        "volume": {"features": features, "images": rig["images"], "projections": rig["projections"],
-                   "depth_planes": rig["depth_planes"]},
+        "volume": {
+            "features": features,
+            "images": rig["images"],
+            "projections": rig["projections"],
+            "depth_planes": rig["depth_planes"],
+        },
         "renderer": {n: rays[n] for n in renderer_input_names(model)},
     }
 
@@ -126,12 +155,16 @@ def _dynamic_shapes(model: SCNeRF, graph: str) -> dict:
     pad = model.cfg.pad
     hb, wb, rays = Dim("hb", min=1, max=512), Dim("wb", min=1, max=512), Dim("R", min=1)
     spatial = {
-        "H": 32 * hb, "W": 32 * wb, "h": 8 * hb, "w": 8 * wb, "Hp": 8 * hb + 2 * pad, "Wp": 8 * wb + 2 * pad,
+        "H": 32 * hb,
+        "W": 32 * wb,
+        "h": 8 * hb,
+        "w": 8 * wb,
+        "Hp": 8 * hb + 2 * pad,
+        "Wp": 8 * wb + 2 * pad,
         "R": rays,
     }
     shapes = graph_signatures(model)[graph]["inputs"]
-    return {name: {i: spatial[a] for i, a in enumerate(shape) if isinstance(a, str)}
-            for name, shape in shapes.items()}
+    return {name: {i: spatial[a] for i, a in enumerate(shape) if isinstance(a, str)} for name, shape in shapes.items()}
 
 
 def _rename_dims(proto: onnx.ModelProto, signature: dict) -> None:
@@ -153,8 +186,7 @@ def _strip_debug_metadata(proto: onnx.ModelProto) -> None:
         node.doc_string = ""
 
 
-def export_graph(module: nn.Module, inputs: dict[str, torch.Tensor], model: SCNeRF, graph: str,
-                  path: Path) -> None:
+def export_graph(module: nn.Module, inputs: dict[str, torch.Tensor], model: SCNeRF, graph: str, path: Path) -> None:
     signature = graph_signatures(model)[graph]
     dynamic = tuple(_dynamic_shapes(model, graph).values())
     if isinstance(module, RendererGraph):  # forward(*args): torch.export sees one tuple argument
@@ -162,9 +194,14 @@ def export_graph(module: nn.Module, inputs: dict[str, torch.Tensor], model: SCNe
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         program = torch.onnx.export(
-            module, tuple(inputs.values()), dynamo=True, opset_version=OPSET,
-            input_names=list(inputs), output_names=list(signature["outputs"]),
-            dynamic_shapes=dynamic, optimize=True,
+            module,
+            tuple(inputs.values()),
+            dynamo=True,
+            opset_version=OPSET,
+            input_names=list(inputs),
+            output_names=list(signature["outputs"]),
+            dynamic_shapes=dynamic,
+            optimize=True,
             verbose=False,
         )
     proto = program.model_proto
@@ -208,8 +245,10 @@ def export_bundle(model: SCNeRF, out_dir: str | Path, provenance: dict) -> dict:
         export_graph(module, inputs[name], model, name, path)
         errors[name] = max(validate_graph(path, module, example[name], tolerance=1e-4) for example in (inputs, checks))
         graphs[name] = {
-            "file": path.name, "sha256": sha256_file(path),
-            "inputs": io_spec(signatures[name]["inputs"]), "outputs": io_spec(signatures[name]["outputs"]),
+            "file": path.name,
+            "sha256": sha256_file(path),
+            "inputs": io_spec(signatures[name]["inputs"]),
+            "outputs": io_spec(signatures[name]["outputs"]),
         }
     provenance = write_licences(out, provenance)
     manifest = {
@@ -219,7 +258,9 @@ def export_bundle(model: SCNeRF, out_dir: str | Path, provenance: dict) -> dict:
         "config": model.cfg.to_dict(),
         "graphs": graphs,
         "provenance": {
-            "exporter_version": __version__, "torch_version": torch.__version__, "opset": OPSET,
+            "exporter_version": __version__,
+            "torch_version": torch.__version__,
+            "opset": OPSET,
             "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
             "export_validation_max_abs_error": errors,
             "metrics": None,

@@ -28,7 +28,7 @@ def outer_scope_reads(node) -> set[str]:
     """Names the node's subgraphs (a Loop's body) read from the enclosing graph."""
     reads = set()
     for attribute in node.attribute:
-        for body in ([attribute.g] if attribute.type == onnx.AttributeProto.GRAPH else list(attribute.graphs)):
+        for body in [attribute.g] if attribute.type == onnx.AttributeProto.GRAPH else list(attribute.graphs):
             local = {v.name for v in body.input} | {t.name for t in body.initializer}
             for inner in body.node:
                 reads |= {i for i in inner.input if i and i not in local} | (outer_scope_reads(inner) - local)

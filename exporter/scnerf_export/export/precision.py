@@ -57,8 +57,13 @@ def gemm_to_matmul(model: onnx.ModelProto) -> int:
     nodes, count = [], 0
     for node in graph.node:
         attrs = {a.name: helper.get_attribute_value(a) for a in node.attribute}
-        if (node.op_type != "Gemm" or node.input[1] not in inits or attrs.get("transA", 0)
-                or attrs.get("alpha", 1.0) != 1.0 or attrs.get("beta", 1.0) != 1.0):
+        if (
+            node.op_type != "Gemm"
+            or node.input[1] not in inits
+            or attrs.get("transA", 0)
+            or attrs.get("alpha", 1.0) != 1.0
+            or attrs.get("beta", 1.0) != 1.0
+        ):
             nodes.append(node)
             continue
         weight = numpy_helper.to_array(inits[node.input[1]])
@@ -126,8 +131,9 @@ def products_feeding_softmax(model: onnx.ModelProto, inits: dict) -> set[str]:
     return found
 
 
-def quantize_graph_int8(src: Path, dst: Path, min_inner: int = 16, exclude: tuple[str, ...] = (),
-                        per_channel: bool = True) -> dict:
+def quantize_graph_int8(
+    src: Path, dst: Path, min_inner: int = 16, exclude: tuple[str, ...] = (), per_channel: bool = True
+) -> dict:
     from onnxruntime.quantization import QuantType, quantize_dynamic
 
     model = onnx.load(str(src))
@@ -139,17 +145,28 @@ def quantize_graph_int8(src: Path, dst: Path, min_inner: int = 16, exclude: tupl
         staged = Path(tmp) / "float.onnx"
         onnx.save(model, str(staged))
         quantize_dynamic(
-            str(staged), str(dst), per_channel=per_channel, reduce_range=False,
-            weight_type=QuantType.QInt8, nodes_to_quantize=targets, op_types_to_quantize=["MatMul"],
+            str(staged),
+            str(dst),
+            per_channel=per_channel,
+            reduce_range=False,
+            weight_type=QuantType.QInt8,
+            nodes_to_quantize=targets,
+            op_types_to_quantize=["MatMul"],
             extra_options={"MatMulConstBOnly": True},
         )
     quantized = onnx.load(str(dst))
     onnx_graph.sort_with_outer_scope_reads(quantized.graph)
     onnx.checker.check_model(quantized)
     onnx.save(quantized, str(dst))
-    return {"method": "onnxruntime.quantization.quantize_dynamic", "weight_type": "QInt8",
-            "activation_type": "QUInt8 (dynamic, per tensor)", "per_channel": per_channel,
-            "gemm_rewritten_as_matmul": rewritten, "quantized_matmuls": len(targets), "min_inner": min_inner}
+    return {
+        "method": "onnxruntime.quantization.quantize_dynamic",
+        "weight_type": "QInt8",
+        "activation_type": "QUInt8 (dynamic, per tensor)",
+        "per_channel": per_channel,
+        "gemm_rewritten_as_matmul": rewritten,
+        "quantized_matmuls": len(targets),
+        "min_inner": min_inner,
+    }
 
 
 def convert_graph_fp16(src: Path, dst: Path, min_inner: int = 16, exclude: tuple[str, ...] = ()) -> dict:
@@ -178,8 +195,9 @@ def convert_graph_fp16(src: Path, dst: Path, min_inner: int = 16, exclude: tuple
             graph.initializer.append(inits[w16])
         out16 = f"{node.output[0]}__fp16"
         nodes.append(helper.make_node("MatMul", [casts[a], w16], [out16], name=f"{node.name}__fp16"))
-        nodes.append(helper.make_node("Cast", [out16], [node.output[0]], name=f"{node.name}__to_fp32",
-                                      to=onnx.TensorProto.FLOAT))
+        nodes.append(
+            helper.make_node("Cast", [out16], [node.output[0]], name=f"{node.name}__to_fp32", to=onnx.TensorProto.FLOAT)
+        )
         converted += 1
     del graph.node[:]
     graph.node.extend(nodes)
@@ -189,12 +207,22 @@ def convert_graph_fp16(src: Path, dst: Path, min_inner: int = 16, exclude: tuple
     graph.initializer.extend(keep)
     onnx.checker.check_model(model)
     onnx.save(model, str(dst))
-    return {"method": "float16 MatMul weights and inputs (Cast before, Cast back to float32 after), float32 elsewhere",
-            "gemm_rewritten_as_matmul": rewritten, "fp16_matmuls": converted, "min_inner": min_inner}
+    return {
+        "method": "float16 MatMul weights and inputs (Cast before, Cast back to float32 after), float32 elsewhere",
+        "gemm_rewritten_as_matmul": rewritten,
+        "fp16_matmuls": converted,
+        "min_inner": min_inner,
+    }
 
 
-def quantize_bundle(src_dir: str | Path, out_dir: str | Path, precision: str, graphs: tuple[str, ...] = ("renderer",),
-                    min_inner: int = 16, exclude: tuple[str, ...] = ()) -> dict:
+def quantize_bundle(
+    src_dir: str | Path,
+    out_dir: str | Path,
+    precision: str,
+    graphs: tuple[str, ...] = ("renderer",),
+    min_inner: int = 16,
+    exclude: tuple[str, ...] = (),
+) -> dict:
     """Write a copy of the float32 bundle ``src_dir`` to ``out_dir`` with ``graphs`` converted to
     ``precision``; returns the new manifest."""
     if precision not in ("int8", "fp16"):
@@ -225,7 +253,9 @@ def quantize_bundle(src_dir: str | Path, out_dir: str | Path, precision: str, gr
     manifest["model_id"] = model_id(manifest["variant"], manifest["graphs"]["renderer"]["sha256"])
     manifest["precision"] = precision
     manifest.setdefault("provenance", {})["quantization"] = {
-        "precision": precision, "source_model_id": read_manifest(src)["model_id"], "graphs": details,
+        "precision": precision,
+        "source_model_id": read_manifest(src)["model_id"],
+        "graphs": details,
         "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
     }
     write_manifest(out, manifest)
@@ -261,14 +291,28 @@ def procedural_cases(count: int = 4, width: int = 160, height: int = 128, seed_o
         world, cameras, near, far = build_layout(seed, layout, 12, width, height)
         sources = pick_camera_sources(cameras, target, gap="small")
         views = [render_view(world, cameras[k], supersample=2) for k in sources + [target]]
-        cases.append({"name": f"{layout}-{seed}", "images": np.stack([v.image for v in views[:3]]),
-                      "cameras": [cameras[k] for k in sources], "target": cameras[target],
-                      "near": near, "far": far, "background": (0.0, 0.0, 0.0), "truth": views[3].image})
+        cases.append(
+            {
+                "name": f"{layout}-{seed}",
+                "images": np.stack([v.image for v in views[:3]]),
+                "cameras": [cameras[k] for k in sources],
+                "target": cameras[target],
+                "near": near,
+                "far": far,
+                "background": (0.0, 0.0, 0.0),
+                "truth": views[3].image,
+            }
+        )
     return cases
 
 
-def compare_bundles(reference_dir: str | Path, candidate_dir: str | Path, cases: list[dict],
-                    threads: int | None = None, chunk: int | None = None) -> dict:
+def compare_bundles(
+    reference_dir: str | Path,
+    candidate_dir: str | Path,
+    cases: list[dict],
+    threads: int | None = None,
+    chunk: int | None = None,
+) -> dict:
     import time
 
     from ..evaluate.metrics import psnr
@@ -283,15 +327,30 @@ def compare_bundles(reference_dir: str | Path, candidate_dir: str | Path, cases:
         b = cand.render_view(*args)
         t2 = time.perf_counter()
         ref_r, cand_r = ref.timings.get("renderer", 0.0), cand.timings.get("renderer", 0.0)
-        rows.append({"case": case["name"], "psnr_fp32": psnr(a.rgb, case["truth"]),
-                     "psnr_candidate": psnr(b.rgb, case["truth"]), "psnr_candidate_vs_fp32": psnr(b.rgb, a.rgb),
-                     "max_abs_diff": float(np.abs(a.rgb - b.rgb).max()),
-                     "seconds_fp32": t1 - t0, "seconds_candidate": t2 - t1,
-                     "renderer_seconds_fp32": ref_r, "renderer_seconds_candidate": cand_r})
+        rows.append(
+            {
+                "case": case["name"],
+                "psnr_fp32": psnr(a.rgb, case["truth"]),
+                "psnr_candidate": psnr(b.rgb, case["truth"]),
+                "psnr_candidate_vs_fp32": psnr(b.rgb, a.rgb),
+                "max_abs_diff": float(np.abs(a.rgb - b.rgb).max()),
+                "seconds_fp32": t1 - t0,
+                "seconds_candidate": t2 - t1,
+                "renderer_seconds_fp32": ref_r,
+                "renderer_seconds_candidate": cand_r,
+            }
+        )
         rows[-1]["psnr_drop"] = rows[-1]["psnr_fp32"] - rows[-1]["psnr_candidate"]
     mean = {k: float(np.mean([r[k] for r in rows])) for k in rows[0] if k != "case"}
     drop = mean["psnr_fp32"] - mean["psnr_candidate"]
-    return {"reference": str(reference_dir), "candidate": str(candidate_dir),
-            "precision": bundle_precision(cand.manifest), "rows": rows, "mean": mean, "psnr_drop_db": drop,
-            "renderer_speedup": mean["renderer_seconds_fp32"] / max(mean["renderer_seconds_candidate"], 1e-9),
-            "offer": bool(drop <= MAX_PSNR_DROP_DB), "rule": f"offer only if the mean PSNR drop <= {MAX_PSNR_DROP_DB} dB"}
+    return {
+        "reference": str(reference_dir),
+        "candidate": str(candidate_dir),
+        "precision": bundle_precision(cand.manifest),
+        "rows": rows,
+        "mean": mean,
+        "psnr_drop_db": drop,
+        "renderer_speedup": mean["renderer_seconds_fp32"] / max(mean["renderer_seconds_candidate"], 1e-9),
+        "offer": bool(drop <= MAX_PSNR_DROP_DB),
+        "rule": f"offer only if the mean PSNR drop <= {MAX_PSNR_DROP_DB} dB",
+    }

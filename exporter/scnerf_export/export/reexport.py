@@ -133,8 +133,10 @@ def reexport_bundle(bundle_dir: str | Path, out_dir: str | Path) -> dict:
     manifest = read_manifest(src)
     version = manifest.get("provenance", {}).get("exporter_version")
     if version != READABLE_EXPORTER_VERSION or "reexport" in manifest.get("provenance", {}):
-        raise ReexportError(f"{src}: written by scnerf-export {version}; reexport reads the renderer graphs of "
-                            f"{READABLE_EXPORTER_VERSION} bundles")
+        raise ReexportError(
+            f"{src}: written by scnerf-export {version}; reexport reads the renderer graphs of "
+            f"{READABLE_EXPORTER_VERSION} bundles"
+        )
     if manifest.get("precision", "fp32") != "fp32":
         raise ReexportError(f"{src}: a {manifest['precision']} bundle; re-export its float32 source instead")
     model = SCNeRF(ModelConfig.from_dict(manifest["config"])).eval()
@@ -154,8 +156,12 @@ def reexport_bundle(bundle_dir: str | Path, out_dir: str | Path) -> dict:
 
     signature = graph_signatures(model)["renderer"]
     renderer = manifest["graphs"]["renderer"]
-    renderer.update(file=renderer_path.name, sha256=sha256_file(renderer_path),
-                    inputs=io_spec(signature["inputs"]), outputs=io_spec(signature["outputs"]))
+    renderer.update(
+        file=renderer_path.name,
+        sha256=sha256_file(renderer_path),
+        inputs=io_spec(signature["inputs"]),
+        outputs=io_spec(signature["outputs"]),
+    )
     previous_id = manifest["model_id"]
     manifest["model_id"] = model_id(model.cfg.variant, renderer["sha256"])
     manifest["provenance"]["reexport"] = {
@@ -163,7 +169,7 @@ def reexport_bundle(bundle_dir: str | Path, out_dir: str | Path) -> dict:
         "source_model_id": previous_id,
         "renderer_max_abs_difference": agreement,
         "what": "renderer.onnx written again by this exporter from the weights in the source renderer graph; "
-                "encoder.onnx and volume.onnx unchanged",
+        "encoder.onnx and volume.onnx unchanged",
     }
     write_manifest(out, manifest)
     return manifest

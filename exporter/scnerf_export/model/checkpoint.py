@@ -83,8 +83,9 @@ def load_state_strict(model: SCNeRF, state: dict[str, torch.Tensor], path: Path)
         raise CheckpointError(f"{path}: {len(extra)} tensors left over, first {extra[0]!r}")
     for key, tensor in state.items():
         if tuple(tensor.shape) != tuple(expected[key].shape):
-            raise CheckpointError(f"{path}: {key} has shape {tuple(tensor.shape)}, "
-                                  f"the model needs {tuple(expected[key].shape)}")
+            raise CheckpointError(
+                f"{path}: {key} has shape {tuple(tensor.shape)}, the model needs {tuple(expected[key].shape)}"
+            )
     model.load_state_dict(state, strict=True)
 
 
@@ -168,22 +169,35 @@ def init_scnerf(mvsnerf_checkpoint: str | Path, out: str | Path, seed: int = 0) 
     torch.manual_seed(seed)
     mvsnerf, provenance = load_mvsnerf(mvsnerf_checkpoint)
     model = scnerf_from_mvsnerf(mvsnerf)
-    save_checkpoint(out, model, {"derived_from": base_weights(provenance),
-                                 "training": {"steps": 0, "seed": seed,
-                                              "what": "exact initialisation from the public MVSNeRF weights"}})
+    save_checkpoint(
+        out,
+        model,
+        {
+            "derived_from": base_weights(provenance),
+            "training": {"steps": 0, "seed": seed, "what": "exact initialisation from the public MVSNeRF weights"},
+        },
+    )
     return Path(out)
 
 
 def base_weights(provenance: dict) -> dict:
     """What a derived checkpoint records of the weights it started from."""
-    keys = ("source_checkpoint", "source_sha256", "source_kind", "source_global_step", "licence", "licence_file",
-            "licence_text")
+    keys = (
+        "source_checkpoint",
+        "source_sha256",
+        "source_kind",
+        "source_global_step",
+        "licence",
+        "licence_file",
+        "licence_text",
+    )
     return {k: provenance[k] for k in keys if k in provenance}
 
 
 def save_checkpoint(path: str | Path, model: SCNeRF, extra: dict) -> None:
-    torch.save({"format": PROJECT_FORMAT, "config": model.cfg.to_dict(),
-                "state_dict": model.state_dict(), **extra}, path)
+    torch.save(
+        {"format": PROJECT_FORMAT, "config": model.cfg.to_dict(), "state_dict": model.state_dict(), **extra}, path
+    )
 
 
 def load_checkpoint(path: str | Path) -> tuple[SCNeRF, dict]:

@@ -11,9 +11,7 @@ from ..config import ModelConfig
 from .layers import BatchStatNorm, ConvNormAct, affine_inverse, normalise_imagenet
 
 
-def plane_sweep_grid(
-    projections: torch.Tensor, depth_planes: torch.Tensor, h: int, w: int, pad: int
-) -> torch.Tensor:
+def plane_sweep_grid(projections: torch.Tensor, depth_planes: torch.Tensor, h: int, w: int, pad: int) -> torch.Tensor:
     """Sampling grids of the homographies H_i(z) for every source view (paper Eq. 2).
 
     projections: (V,4,4) feature-resolution K[R|t]; view 0 is the reference.
@@ -60,10 +58,12 @@ def build_cost_volume(
     warped_images = [ref_image]
     for i in range(1, views):
         grid = grids[i - 1 : i]
-        warped = F.grid_sample(features[i : i + 1], grid, mode="bilinear", padding_mode="zeros",
-                               align_corners=True).view(1, -1, d, hp, wp)
-        warped_img = F.grid_sample(small[i : i + 1], grid, mode="bilinear", padding_mode="zeros",
-                                   align_corners=True).view(1, -1, d, hp, wp)
+        warped = F.grid_sample(
+            features[i : i + 1], grid, mode="bilinear", padding_mode="zeros", align_corners=True
+        ).view(1, -1, d, hp, wp)
+        warped_img = F.grid_sample(
+            small[i : i + 1], grid, mode="bilinear", padding_mode="zeros", align_corners=True
+        ).view(1, -1, d, hp, wp)
         inside = ((grid > -1.0) & (grid < 1.0)).all(dim=-1).to(features.dtype).view(1, 1, d, hp, wp)
         volume_sum = volume_sum + warped
         volume_sq_sum = volume_sq_sum + warped.square()

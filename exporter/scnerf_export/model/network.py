@@ -24,7 +24,8 @@ class SCNeRF(nn.Module):
     def encode(self, images: torch.Tensor) -> torch.Tensor:
         return self.encoder(images)
 
-    def build_volume(self, features: torch.Tensor, images: torch.Tensor, projections: torch.Tensor,
-                     depth_planes: torch.Tensor) -> torch.Tensor:
+    def build_volume(
+        self, features: torch.Tensor, images: torch.Tensor, projections: torch.Tensor, depth_planes: torch.Tensor
+    ) -> torch.Tensor:
         cost = build_cost_volume(features, images, projections, depth_planes, self.cfg.pad)
         return self.volume_net(cost)

@@ -7,8 +7,9 @@ import torch
 import torch.nn.functional as F
 
 
-def project(points: torch.Tensor, intrinsics: torch.Tensor, extrinsics: torch.Tensor
-            ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def project(
+    points: torch.Tensor, intrinsics: torch.Tensor, extrinsics: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """World points (N,3) -> pixel u, pixel v and camera z in one view, each (N).
 
     Separate axes rather than one (N,3) tensor: every caller takes them apart again, and a
@@ -20,8 +21,13 @@ def project(points: torch.Tensor, intrinsics: torch.Tensor, extrinsics: torch.Te
 
 
 def reference_frustum_coordinates(
-    points: torch.Tensor, intrinsics: torch.Tensor, extrinsics: torch.Tensor,
-    near_far: torch.Tensor, height: int, width: int, pad: int,
+    points: torch.Tensor,
+    intrinsics: torch.Tensor,
+    extrinsics: torch.Tensor,
+    near_far: torch.Tensor,
+    height: int,
+    width: int,
+    pad: int,
 ) -> torch.Tensor:
     """x in the reference frustum, in [0,1]^3: u/(W-1), v/(H-1), (z-near)/(far-near), then the
     image axes remapped into the padded volume (reference code's get_ndc_coordinate)."""
@@ -42,8 +48,9 @@ def sample_volume(volume: torch.Tensor, frustum: torch.Tensor) -> torch.Tensor:
     return s.view(volume.shape[1], -1)
 
 
-def view_grid(points: torch.Tensor, intrinsics: torch.Tensor, extrinsics: torch.Tensor,
-              height: int, width: int) -> torch.Tensor:
+def view_grid(
+    points: torch.Tensor, intrinsics: torch.Tensor, extrinsics: torch.Tensor, height: int, width: int
+) -> torch.Tensor:
     """Pixel positions of points in one view as a grid_sample grid (align_corners=True), (N,2)."""
     u, v, _ = project(points, intrinsics, extrinsics)
     return torch.stack([u / (width - 1), v / (height - 1)], dim=-1) * 2.0 - 1.0
@@ -62,8 +69,11 @@ def same_taps_without_corner_alignment(grid: torch.Tensor, height: int, width: i
 
 
 def sample_views(
-    points: torch.Tensor, images: torch.Tensor, features: torch.Tensor | None,
-    intrinsics: torch.Tensor, extrinsics: torch.Tensor,
+    points: torch.Tensor,
+    images: torch.Tensor,
+    features: torch.Tensor | None,
+    intrinsics: torch.Tensor,
+    extrinsics: torch.Tensor,
 ) -> tuple[torch.Tensor, torch.Tensor | None]:
     """Reproject x into every source view.
 
@@ -80,13 +90,15 @@ def sample_views(
     # Border padding is sampling at the grid clamped to the image; clamped, the taps can take the
     # fast align_corners=False path (see same_taps_without_corner_alignment).
     colour_grid = same_taps_without_corner_alignment(grid4.clamp(-1.0, 1.0), height, width)
-    rgb = F.grid_sample(images, colour_grid, mode="bilinear", padding_mode="zeros",
-                        align_corners=False).view(views, 3, -1)  # (V,3,N)
+    rgb = F.grid_sample(images, colour_grid, mode="bilinear", padding_mode="zeros", align_corners=False).view(
+        views, 3, -1
+    )  # (V,3,N)
     colours = torch.cat([rgb, inside], dim=1).reshape(4 * views, -1)
     if features is None:
         return colours, None
     feat_grid = same_taps_without_corner_alignment(grid4, features.shape[2], features.shape[3])
-    feat = F.grid_sample(features, feat_grid, mode="bilinear", padding_mode="zeros",
-                         align_corners=False).view(views, features.shape[1], -1)  # (V,C1,N)
+    feat = F.grid_sample(features, feat_grid, mode="bilinear", padding_mode="zeros", align_corners=False).view(
+        views, features.shape[1], -1
+    )  # (V,C1,N)
     appearance = torch.cat([(feat * inside).sum(dim=0), (rgb * inside).sum(dim=0)]) / views
     return colours, appearance

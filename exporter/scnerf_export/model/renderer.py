@@ -58,8 +58,7 @@ class RayRenderer(nn.Module):
             self.m2 = nn.Sequential(nn.Linear(cfg.width, cfg.width), nn.ReLU(), nn.Linear(cfg.width, 1), nn.ReLU())
             self.colour_head = ColourHeadM4(cfg)
         self.geometry = SampleAxisAttention(cfg, cfg.point_feature_channels) if cfg.geometry_rectification else None
-        self.appearance = (SampleAxisAttention(cfg, cfg.feature_channels + 3)
-                           if cfg.appearance_rectification else None)
+        self.appearance = SampleAxisAttention(cfg, cfg.feature_channels + 3) if cfg.appearance_rectification else None
 
     def forward(
         self,
@@ -74,8 +73,9 @@ class RayRenderer(nn.Module):
         extrinsics: torch.Tensor,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Returns rgb (R,3) before background compositing, depth (R), opacity (R)."""
-        points = self.radiance_points(ray_origins, ray_directions, near_far, volume, images, features,
-                                      intrinsics, extrinsics)
+        points = self.radiance_points(
+            ray_origins, ray_directions, near_far, volume, images, features, intrinsics, extrinsics
+        )
         return self.shade(points, depth_range)
 
     def radiance_points(
@@ -97,11 +97,11 @@ class RayRenderer(nn.Module):
         z = near_far[0] * (1.0 - steps) + near_far[1] * steps  # (S) target z-depths
         points = (ray_origins[:, None, :] + ray_directions[:, None, :] * z[None, :, None]).reshape(-1, 3)
 
-        frustum = reference_frustum_coordinates(points, intrinsics[0], extrinsics[0], near_far,
-                                                height, width, cfg.pad)
+        frustum = reference_frustum_coordinates(points, intrinsics[0], extrinsics[0], near_far, height, width, cfg.pad)
         s = sample_volume(volume, frustum)
-        colours, appearance = sample_views(points, images, features if self.appearance is not None else None,
-                                           intrinsics, extrinsics)
+        colours, appearance = sample_views(
+            points, images, features if self.appearance is not None else None, intrinsics, extrinsics
+        )
         point_features = torch.cat([s, colours])  # f, channels first (8+4V, N)
 
         unit_dir = ray_directions / torch.linalg.vector_norm(ray_directions, dim=-1, keepdim=True)
@@ -109,8 +109,9 @@ class RayRenderer(nn.Module):
         radiance = self.m1(frequency_encoding(frustum, cfg.position_freqs), point_features.transpose(0, 1))
         return RadiancePoints(z, radiance, point_features, appearance, ref_dir)
 
-    def shade(self, points: RadiancePoints, depth_range: torch.Tensor
-              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def shade(
+        self, points: RadiancePoints, depth_range: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """M2 -> compositing weights and depth D -> rectification -> M4 -> rgb (R,3), depth, opacity.
 
         depth_range is (2) for the whole chunk, or (2,R) per ray (training batches mix scenes)."""

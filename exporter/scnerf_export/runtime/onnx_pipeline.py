@@ -44,27 +44,59 @@ class OnnxBundle:
         self.timings[stage] = self.timings.get(stage, 0.0) + time.perf_counter() - start
         return out
 
-    def encode_scene(self, images: np.ndarray, cameras: list[Camera], near: float, far: float,
-                     background) -> dict[str, np.ndarray]:
+    def encode_scene(
+        self, images: np.ndarray, cameras: list[Camera], near: float, far: float, background
+    ) -> dict[str, np.ndarray]:
         padded = pad_images(images.astype(np.float32), self.cfg.image_multiple, background)
         imgs = np.ascontiguousarray(padded.transpose(0, 3, 1, 2))
         (features,) = self._timed("encoder", "encoder", {"images": imgs})
-        (volume,) = self._timed("volume", "volume", {
-            "features": features, "images": imgs, "projections": cams.feature_projections(cameras),
-            "depth_planes": cams.depth_planes(near, far, self.cfg.depth_planes)})
-        return {"images": imgs, "features": features, "volume": volume,
-                "intrinsics": cams.stack_intrinsics(cameras), "extrinsics": cams.stack_extrinsics(cameras)}
+        (volume,) = self._timed(
+            "volume",
+            "volume",
+            {
+                "features": features,
+                "images": imgs,
+                "projections": cams.feature_projections(cameras),
+                "depth_planes": cams.depth_planes(near, far, self.cfg.depth_planes),
+            },
+        )
+        return {
+            "images": imgs,
+            "features": features,
+            "volume": volume,
+            "intrinsics": cams.stack_intrinsics(cameras),
+            "extrinsics": cams.stack_extrinsics(cameras),
+        }
 
-    def renderer_feeds(self, scene: dict, origins: np.ndarray, directions: np.ndarray, near: float, far: float,
-                       depth_range: tuple[float, float]) -> dict[str, np.ndarray]:
+    def renderer_feeds(
+        self,
+        scene: dict,
+        origins: np.ndarray,
+        directions: np.ndarray,
+        near: float,
+        far: float,
+        depth_range: tuple[float, float],
+    ) -> dict[str, np.ndarray]:
         """The renderer's inputs for one run of rays of an encoded scene."""
-        given = {**scene, "near_far": np.array([near, far], np.float32),
-                 "depth_range": np.array(depth_range, np.float32),
-                 "ray_origins": np.ascontiguousarray(origins), "ray_directions": np.ascontiguousarray(directions)}
+        given = {
+            **scene,
+            "near_far": np.array([near, far], np.float32),
+            "depth_range": np.array(depth_range, np.float32),
+            "ray_origins": np.ascontiguousarray(origins),
+            "ray_directions": np.ascontiguousarray(directions),
+        }
         return {name: given[name] for name in self.renderer_inputs}
 
-    def render_rays(self, scene: dict, origins: np.ndarray, directions: np.ndarray, near: float, far: float,
-                    depth_range: tuple[float, float], chunk: int | None = None):
+    def render_rays(
+        self,
+        scene: dict,
+        origins: np.ndarray,
+        directions: np.ndarray,
+        near: float,
+        far: float,
+        depth_range: tuple[float, float],
+        chunk: int | None = None,
+    ):
         """Raw rgb, depth, opacity of the rays, ``chunk`` rays per run (default: the server's)."""
         chunk = chunk or rays_per_run(self.cfg.samples)
         outs = []
@@ -74,14 +106,29 @@ class OnnxBundle:
             outs.append(self._timed("renderer", "renderer", feeds))
         return tuple(np.concatenate([o[i] for o in outs]) for i in range(3))
 
-    def render_view(self, images: np.ndarray, cameras: list[Camera], target: Camera, near: float, far: float,
-                    background=(0.0, 0.0, 0.0), chunk: int | None = None) -> Rendering:
+    def render_view(
+        self,
+        images: np.ndarray,
+        cameras: list[Camera],
+        target: Camera,
+        near: float,
+        far: float,
+        background=(0.0, 0.0, 0.0),
+        chunk: int | None = None,
+    ) -> Rendering:
         self.timings = {}
         scene = self.encode_scene(images, cameras, near, far, background)
         return self.render_target(scene, target, near, far, background, chunk)
 
-    def render_target(self, scene: dict, target: Camera, near: float, far: float, background=(0.0, 0.0, 0.0),
-                      chunk: int | None = None) -> Rendering:
+    def render_target(
+        self, scene: dict, target: Camera, near: float, far: float, background=(0.0, 0.0, 0.0), chunk: int | None = None
+    ) -> Rendering:
         """One target view of an encoded scene (what a cached scene costs per view)."""
-        return render_in_passes(self.cfg, target, near, far, background,
-                                lambda o, d, depth_range: self.render_rays(scene, o, d, near, far, depth_range, chunk))
+        return render_in_passes(
+            self.cfg,
+            target,
+            near,
+            far,
+            background,
+            lambda o, d, depth_range: self.render_rays(scene, o, d, near, far, depth_range, chunk),
+        )

@@ -25,28 +25,47 @@ class SceneTensors:
     extrinsics: torch.Tensor
 
 
-def encode_scene(model: SCNeRF, images: np.ndarray, cameras: list[Camera], near: float, far: float,
-                 background=(0.0, 0.0, 0.0)) -> SceneTensors:
+def encode_scene(
+    model: SCNeRF, images: np.ndarray, cameras: list[Camera], near: float, far: float, background=(0.0, 0.0, 0.0)
+) -> SceneTensors:
     cfg = model.cfg
     padded = pad_images(images.astype(np.float32), cfg.image_multiple, background)
     imgs = torch.from_numpy(np.ascontiguousarray(padded.transpose(0, 3, 1, 2)))
     features = model.encode(imgs)
-    volume = model.build_volume(features, imgs, torch.from_numpy(cams.feature_projections(cameras)),
-                                torch.from_numpy(cams.depth_planes(near, far, cfg.depth_planes)))
-    return SceneTensors(imgs, features, volume, torch.from_numpy(cams.stack_intrinsics(cameras)),
-                        torch.from_numpy(cams.stack_extrinsics(cameras)))
+    volume = model.build_volume(
+        features,
+        imgs,
+        torch.from_numpy(cams.feature_projections(cameras)),
+        torch.from_numpy(cams.depth_planes(near, far, cfg.depth_planes)),
+    )
+    return SceneTensors(
+        imgs,
+        features,
+        volume,
+        torch.from_numpy(cams.stack_intrinsics(cameras)),
+        torch.from_numpy(cams.stack_extrinsics(cameras)),
+    )
 
 
-def render_rays(model: SCNeRF, scene: SceneTensors, origins: np.ndarray, directions: np.ndarray,
-                near: float, far: float, depth_range: tuple[float, float], chunk: int):
+def render_rays(
+    model: SCNeRF,
+    scene: SceneTensors,
+    origins: np.ndarray,
+    directions: np.ndarray,
+    near: float,
+    far: float,
+    depth_range: tuple[float, float],
+    chunk: int,
+):
     rgb, depth, opacity = [], [], []
     near_far = torch.tensor([near, far], dtype=torch.float32)
     drange = torch.tensor(depth_range, dtype=torch.float32)
     for start in range(0, origins.shape[0], chunk):
         o = torch.from_numpy(np.ascontiguousarray(origins[start : start + chunk]))
         d = torch.from_numpy(np.ascontiguousarray(directions[start : start + chunk]))
-        c, z, a = model.renderer(o, d, near_far, drange, scene.volume, scene.images, scene.features,
-                                 scene.intrinsics, scene.extrinsics)
+        c, z, a = model.renderer(
+            o, d, near_far, drange, scene.volume, scene.images, scene.features, scene.intrinsics, scene.extrinsics
+        )
         rgb.append(c)
         depth.append(z)
         opacity.append(a)
@@ -54,10 +73,24 @@ def render_rays(model: SCNeRF, scene: SceneTensors, origins: np.ndarray, directi
 
 
 @torch.no_grad()
-def render_view(model: SCNeRF, images: np.ndarray, cameras: list[Camera], target: Camera,
-                near: float, far: float, background=(0.0, 0.0, 0.0), chunk: int = 1024) -> Rendering:
+def render_view(
+    model: SCNeRF,
+    images: np.ndarray,
+    cameras: list[Camera],
+    target: Camera,
+    near: float,
+    far: float,
+    background=(0.0, 0.0, 0.0),
+    chunk: int = 1024,
+) -> Rendering:
     """images: (V,H,W,3) float32 in [0,1] (alpha already composited on ``background``)."""
     model.eval()
     scene = encode_scene(model, images, cameras, near, far, background)
-    return render_in_passes(model.cfg, target, near, far, background,
-                            lambda o, d, depth_range: render_rays(model, scene, o, d, near, far, depth_range, chunk))
+    return render_in_passes(
+        model.cfg,
+        target,
+        near,
+        far,
+        background,
+        lambda o, d, depth_range: render_rays(model, scene, o, d, near, far, depth_range, chunk),
+    )

@@ -52,8 +52,9 @@ def image_depth_range(depth: np.ndarray, near: float, far: float) -> tuple[float
     return (float(finite.min()), float(finite.max())) if finite.size else (near, far)
 
 
-def render_in_passes(cfg: ModelConfig, target: Camera, near: float, far: float, background,
-                     render_rays: RenderRays) -> Rendering:
+def render_in_passes(
+    cfg: ModelConfig, target: Camera, near: float, far: float, background, render_rays: RenderRays
+) -> Rendering:
     """Every pixel of ``target`` through ``render_rays`` in :func:`renderer_passes` passes, composited
     on ``background``."""
     origins, directions = cams.target_rays(target)

@@ -64,9 +64,13 @@ class RayBank:
         def channels_first(x: torch.Tensor) -> torch.Tensor:  # (R,K,S) -> (K, R*S)
             return x[idx].float().transpose(0, 1).reshape(x.shape[1], -1)
 
-        return RadiancePoints(self.z[idx], self.radiance[idx].float().reshape(rays * self.z.shape[1], -1),
-                              channels_first(self.point_features), channels_first(self.appearance),
-                              self.ref_dir[idx])
+        return RadiancePoints(
+            self.z[idx],
+            self.radiance[idx].float().reshape(rays * self.z.shape[1], -1),
+            channels_first(self.point_features),
+            channels_first(self.appearance),
+            self.ref_dir[idx],
+        )
 
     @staticmethod
     def concat(banks: list["RayBank"]) -> "RayBank":
@@ -77,28 +81,53 @@ class RayBank:
 
 
 @torch.no_grad()
-def bank_view(model: SCNeRF, sources: list, near: float, far: float, background, target_camera: cams.Camera,
-              target_image: np.ndarray, pick: np.ndarray, mask: np.ndarray | None = None,
-              chunk: int = 512) -> RayBank:
+def bank_view(
+    model: SCNeRF,
+    sources: list,
+    near: float,
+    far: float,
+    background,
+    target_camera: cams.Camera,
+    target_image: np.ndarray,
+    pick: np.ndarray,
+    mask: np.ndarray | None = None,
+    chunk: int = 512,
+) -> RayBank:
     """The heads' inputs for the pixels ``pick`` (flat indices) of one target view."""
-    encoded = encode_scene(model, np.stack([v.image for v in sources]), [v.camera for v in sources], near, far,
-                           background)
+    encoded = encode_scene(
+        model, np.stack([v.image for v in sources]), [v.camera for v in sources], near, far, background
+    )
     origins, directions = cams.target_rays(target_camera)
     near_far = torch.tensor([near, far], dtype=torch.float32)
     parts = []
     for start in range(0, len(pick), chunk):
         rows = pick[start : start + chunk]
-        p = model.renderer.radiance_points(torch.from_numpy(origins[rows]), torch.from_numpy(directions[rows]),
-                                           near_far, encoded.volume, encoded.images, encoded.features,
-                                           encoded.intrinsics, encoded.extrinsics)
+        p = model.renderer.radiance_points(
+            torch.from_numpy(origins[rows]),
+            torch.from_numpy(directions[rows]),
+            near_far,
+            encoded.volume,
+            encoded.images,
+            encoded.features,
+            encoded.intrinsics,
+            encoded.extrinsics,
+        )
         rays, samples = len(rows), p.z.shape[0]
-        parts.append((p.radiance.view(rays, samples, -1).half(),
-                      p.point_features.view(-1, rays, samples).transpose(0, 1).half(),
-                      p.appearance.view(-1, rays, samples).transpose(0, 1).half(), p.ref_dir, p.z))
+        parts.append(
+            (
+                p.radiance.view(rays, samples, -1).half(),
+                p.point_features.view(-1, rays, samples).transpose(0, 1).half(),
+                p.appearance.view(-1, rays, samples).transpose(0, 1).half(),
+                p.ref_dir,
+                p.z,
+            )
+        )
     n = len(pick)
     return RayBank(
-        radiance=torch.cat([q[0] for q in parts]), point_features=torch.cat([q[1] for q in parts]),
-        appearance=torch.cat([q[2] for q in parts]), ref_dir=torch.cat([q[3] for q in parts]),
+        radiance=torch.cat([q[0] for q in parts]),
+        point_features=torch.cat([q[1] for q in parts]),
+        appearance=torch.cat([q[2] for q in parts]),
+        ref_dir=torch.cat([q[3] for q in parts]),
         z=parts[0][4][None, :].expand(n, -1).clone(),
         depth_range=torch.tensor([[near, far]], dtype=torch.float32).expand(n, -1).clone(),
         background=torch.tensor([background], dtype=torch.float32).expand(n, -1).clone(),
@@ -117,16 +146,26 @@ def shade(model: SCNeRF, bank: RayBank, idx: torch.Tensor) -> torch.Tensor:
 # ----------------------------------------------------------------------------------------------- data
 
 
-def training_bank(model: SCNeRF, cache: Path, scenes: int, targets_per_scene: int, rays_per_target: int,
-                  seed: int, width: int = 640, height: int = 512, views: int = 12) -> RayBank:
+def training_bank(
+    model: SCNeRF,
+    cache: Path,
+    scenes: int,
+    targets_per_scene: int,
+    rays_per_target: int,
+    seed: int,
+    width: int = 640,
+    height: int = 512,
+    views: int = 12,
+) -> RayBank:
     """Random rays of ``targets_per_scene`` targets in each of ``scenes`` procedural scenes (seeds
     from the training range), each target with its 3 nearest views as sources.
 
     Each target and its sources are composited on a random background (black, white or a random
     colour), as the server composites transparent photos: on black alone, empty space could take
     any opacity unpunished, and a white-background scene (lego) would pay for it."""
-    paths = build_dataset(cache / "scenes", scenes, seed0=TRAIN_SEED0, layouts=LAYOUTS, n_views=views,
-                          width=width, height=height)
+    paths = build_dataset(
+        cache / "scenes", scenes, seed0=TRAIN_SEED0, layouts=LAYOUTS, n_views=views, width=width, height=height
+    )
     rng = np.random.default_rng(seed)
     banks = []
     for path in tqdm(paths, desc="training rays", mininterval=10.0):
@@ -163,8 +202,10 @@ class ValidationScene:
     stride: int  # every stride-th pixel of the (scaled) target along each axis
 
 
-VALIDATION = (ValidationScene("lego", "nerf_synthetic_lego", "blender", 0.25, 2),
-              ValidationScene("scan37", "dtu_scan37", "dtu", 0.5, 4))
+VALIDATION = (
+    ValidationScene("lego", "nerf_synthetic_lego", "blender", 0.25, 2),
+    ValidationScene("scan37", "dtu_scan37", "dtu", 0.5, 4),
+)
 
 
 def validation_bank(model: SCNeRF, shared: Path, spec: ValidationScene) -> RayBank:
@@ -178,8 +219,19 @@ def validation_bank(model: SCNeRF, shared: Path, spec: ValidationScene) -> RayBa
         h, w = view.image.shape[:2]
         grid = np.zeros((h, w), dtype=bool)
         grid[:: spec.stride, :: spec.stride] = True
-        banks.append(bank_view(model, sources, scene.near, scene.far, scene.background, view.camera, view.image,
-                               np.flatnonzero(grid), view.mask))
+        banks.append(
+            bank_view(
+                model,
+                sources,
+                scene.near,
+                scene.far,
+                scene.background,
+                view.camera,
+                view.image,
+                np.flatnonzero(grid),
+                view.mask,
+            )
+        )
     return RayBank.concat(banks)
 
 
@@ -207,8 +259,9 @@ def cached(path: Path, build) -> RayBank:
 @torch.no_grad()
 def score(model: SCNeRF, bank: RayBank, chunk: int = 2048) -> dict[str, float]:
     """Mean over views of the PSNR of the banked pixels, and of the object pixels where masked."""
-    rgb = torch.cat([shade(model, bank, torch.arange(s, min(s + chunk, len(bank))))
-                     for s in range(0, len(bank), chunk)]).clamp(0.0, 1.0)
+    rgb = torch.cat(
+        [shade(model, bank, torch.arange(s, min(s + chunk, len(bank)))) for s in range(0, len(bank), chunk)]
+    ).clamp(0.0, 1.0)
     error = ((rgb - bank.truth) ** 2).mean(dim=1)
     full, masked = [], []
     for v in range(int(bank.view.max()) + 1):
@@ -238,8 +291,14 @@ class Recipe:
     seed: int = 0
 
 
-def finetune(init: str | Path, out_dir: str | Path, shared: str | Path, recipe: Recipe = Recipe(),
-             threads: int | None = None, cache_dir: str | Path | None = None) -> Path:
+def finetune(
+    init: str | Path,
+    out_dir: str | Path,
+    shared: str | Path,
+    recipe: Recipe = Recipe(),
+    threads: int | None = None,
+    cache_dir: str | Path | None = None,
+) -> Path:
     """Train the heads and write ``best.pt``: the validated step with the best mean gain over the
     initialisation, among those no worse than it on any validation scene (step 0 if none)."""
     out = Path(out_dir)
@@ -254,8 +313,13 @@ def finetune(init: str | Path, out_dir: str | Path, shared: str | Path, recipe: 
     model.eval()
     for p in model.parameters():
         p.requires_grad_(False)
-    groups = [{"params": list(getattr(model.renderer, name).parameters()),
-               "lr": recipe.lr * (1.0 if name in RECTIFIERS else recipe.pretrained_lr_scale)} for name in HEADS]
+    groups = [
+        {
+            "params": list(getattr(model.renderer, name).parameters()),
+            "lr": recipe.lr * (1.0 if name in RECTIFIERS else recipe.pretrained_lr_scale),
+        }
+        for name in HEADS
+    ]
     for group in groups:
         for p in group["params"]:
             p.requires_grad_(True)
@@ -263,13 +327,20 @@ def finetune(init: str | Path, out_dir: str | Path, shared: str | Path, recipe: 
     start = time.perf_counter()
     cache = Path(cache_dir) if cache_dir else out / "cache"
     backbone = backbone_digest(model)
-    train_bank = cached(cache / f"train-{backbone}-{recipe.scenes}x{recipe.targets_per_scene}x"
-                                f"{recipe.rays_per_target}-seed{recipe.seed}-bg.pt",
-                        lambda: training_bank(model, cache, recipe.scenes, recipe.targets_per_scene,
-                                              recipe.rays_per_target, recipe.seed))
-    val_banks = {spec.name: cached(cache / f"val-{backbone}-{spec.name}-{spec.target_scale}-{spec.stride}.pt",
-                                   lambda spec=spec: validation_bank(model, Path(shared), spec))
-                 for spec in VALIDATION}
+    train_bank = cached(
+        cache / f"train-{backbone}-{recipe.scenes}x{recipe.targets_per_scene}x"
+        f"{recipe.rays_per_target}-seed{recipe.seed}-bg.pt",
+        lambda: training_bank(
+            model, cache, recipe.scenes, recipe.targets_per_scene, recipe.rays_per_target, recipe.seed
+        ),
+    )
+    val_banks = {
+        spec.name: cached(
+            cache / f"val-{backbone}-{spec.name}-{spec.target_scale}-{spec.stride}.pt",
+            lambda spec=spec: validation_bank(model, Path(shared), spec),
+        )
+        for spec in VALIDATION
+    }
     bank_seconds = time.perf_counter() - start
     log = open(out / "log.jsonl", "a")
 
@@ -283,16 +354,24 @@ def finetune(init: str | Path, out_dir: str | Path, shared: str | Path, recipe: 
     def training_record(best_step: int, chosen: dict) -> dict:
         return {
             "what": "M2, the geometry and appearance rectifiers and M4 trained on top of the exact MVSNeRF "
-                    "initialisation; G1, G2 and M1 frozen",
+            "initialisation; G1, G2 and M1 frozen",
             "data": f"procedural scenes (scnerf_export.procedural, layouts {', '.join(LAYOUTS)}), "
-                    f"{recipe.scenes} scenes of the training seed range at 640x512, {recipe.targets_per_scene} "
-                    f"targets each with their 3 nearest views, {recipe.rays_per_target} random rays per target, "
-                    "each target on a random black, white or coloured background",
-            "recipe": recipe.__dict__, "steps": best_step, "seed": recipe.seed, "hardware": hardware(),
-            "seconds": seconds, "ray_bank_seconds": bank_seconds,
-            "selection": {"rule": "validated step with the best mean PSNR gain over the initialisation, no worse "
-                                  "than it on any validation scene (validation scenes choose, never train)",
-                          "scenes": [spec.__dict__ for spec in VALIDATION], "initial": initial, "chosen": chosen},
+            f"{recipe.scenes} scenes of the training seed range at 640x512, {recipe.targets_per_scene} "
+            f"targets each with their 3 nearest views, {recipe.rays_per_target} random rays per target, "
+            "each target on a random black, white or coloured background",
+            "recipe": recipe.__dict__,
+            "steps": best_step,
+            "seed": recipe.seed,
+            "hardware": hardware(),
+            "seconds": seconds,
+            "ray_bank_seconds": bank_seconds,
+            "selection": {
+                "rule": "validated step with the best mean PSNR gain over the initialisation, no worse "
+                "than it on any validation scene (validation scenes choose, never train)",
+                "scenes": [spec.__dict__ for spec in VALIDATION],
+                "initial": initial,
+                "chosen": chosen,
+            },
         }
 
     # best.pt is written whenever a validated step becomes the best, so an interrupted run keeps it.
@@ -317,11 +396,14 @@ def finetune(init: str | Path, out_dir: str | Path, shared: str | Path, recipe: 
         if (step + 1) % recipe.validate_every == 0 or step + 1 == recipe.steps:
             scores = validate(step + 1)
             gains = [scores[k] - initial[k] for k in initial]
-            print(f"step {step + 1}: " + ", ".join(f"{k} {v:.3f} ({v - initial[k]:+.3f})" for k, v in scores.items()),
-                  flush=True)
+            print(
+                f"step {step + 1}: " + ", ".join(f"{k} {v:.3f} ({v - initial[k]:+.3f})" for k, v in scores.items()),
+                flush=True,
+            )
             if min(gains) >= 0.0 and float(np.mean(gains)) > best_gain:
                 best_gain = float(np.mean(gains))
-                save_checkpoint(path, model, {"derived_from": derived_from,
-                                              "training": training_record(step + 1, scores)})
+                save_checkpoint(
+                    path, model, {"derived_from": derived_from, "training": training_record(step + 1, scores)}
+                )
     log.close()
     return path

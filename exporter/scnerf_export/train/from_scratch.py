@@ -47,8 +47,16 @@ def preset(name: str, variant: str) -> Preset:
         return Preset(cfg, width=160, height=128, rays=384, steps=3000, train_scenes=96)
     if name == "gpu":
         cfg = ModelConfig(variant=variant)
-        return Preset(cfg, width=320, height=256, rays=1024, steps=20000, train_scenes=600,
-                      checkpoint_every=250, validate_every=1000)
+        return Preset(
+            cfg,
+            width=320,
+            height=256,
+            rays=1024,
+            steps=20000,
+            train_scenes=600,
+            checkpoint_every=250,
+            validate_every=1000,
+        )
     raise ValueError(f"unknown preset {name!r} (cpu-small, gpu)")
 
 
@@ -57,8 +65,10 @@ def to_tensors(example, device):
     cameras = [v.camera for v in example.sources]
     t = lambda a: torch.from_numpy(np.ascontiguousarray(a)).to(device)  # noqa: E731
     return {
-        "images": t(images), "projections": t(cams.feature_projections(cameras)),
-        "intrinsics": t(cams.stack_intrinsics(cameras)), "extrinsics": t(cams.stack_extrinsics(cameras)),
+        "images": t(images),
+        "projections": t(cams.feature_projections(cameras)),
+        "intrinsics": t(cams.stack_intrinsics(cameras)),
+        "extrinsics": t(cams.stack_extrinsics(cameras)),
         "near_far": torch.tensor([example.near, example.far], dtype=torch.float32, device=device),
     }
 
@@ -72,9 +82,17 @@ def training_step(model: SCNeRF, example, rays: int, rng: np.random.Generator, d
     origins, directions = cams.target_rays(example.target.camera)
     pick = rng.choice(origins.shape[0], size=rays, replace=False)
     gt = torch.from_numpy(example.target.image.reshape(-1, 3)[pick]).to(device)
-    rgb, _, _ = model.renderer(torch.from_numpy(origins[pick]).to(device), torch.from_numpy(directions[pick]).to(device),
-                               x["near_far"], x["near_far"], volume, x["images"], features,
-                               x["intrinsics"], x["extrinsics"])
+    rgb, _, _ = model.renderer(
+        torch.from_numpy(origins[pick]).to(device),
+        torch.from_numpy(directions[pick]).to(device),
+        x["near_far"],
+        x["near_far"],
+        volume,
+        x["images"],
+        features,
+        x["intrinsics"],
+        x["extrinsics"],
+    )
     return torch.mean((rgb - gt) ** 2), rays
 
 
@@ -88,8 +106,9 @@ def validate(model: SCNeRF, examples, out_dir: Path, step: int) -> dict:
     scores = {}
     for i, ex in enumerate(examples):
         images = np.stack([v.image for v in ex.sources])
-        result = render_view(model.cpu(), images, [v.camera for v in ex.sources], ex.target.camera,
-                             ex.near, ex.far, chunk=2048)
+        result = render_view(
+            model.cpu(), images, [v.camera for v in ex.sources], ex.target.camera, ex.near, ex.far, chunk=2048
+        )
         mse = float(np.mean((result.rgb - ex.target.image) ** 2))
         scores[f"{ex.layout}_{i}"] = psnr_from_mse(mse)
         strip = np.concatenate([np.clip(result.rgb, 0, 1), ex.target.image], axis=1)
@@ -110,8 +129,16 @@ def hardware() -> str:
     return f"CPU {model}, {torch.get_num_threads()} threads of {os.cpu_count()}"
 
 
-def train(variant: str, preset_name: str, out_dir: str | Path, resume: bool = False, steps: int | None = None,
-          seed: int = 0, cache_dir: str | Path | None = None, threads: int | None = None) -> Path:
+def train(
+    variant: str,
+    preset_name: str,
+    out_dir: str | Path,
+    resume: bool = False,
+    steps: int | None = None,
+    seed: int = 0,
+    cache_dir: str | Path | None = None,
+    threads: int | None = None,
+) -> Path:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     if threads:
@@ -134,28 +161,60 @@ def train(variant: str, preset_name: str, out_dir: str | Path, resume: bool = Fa
         start, seconds = state["step"], state["training"]["seconds"]
 
     cache = Path(cache_dir) if cache_dir else out / "cache"
-    train_set = ProceduralDataset("train", n_scenes=p.train_scenes, width=p.width, height=p.height,
-                                  gaps=p.gaps, cache_dir=cache / "train", seed=seed)
-    val_set = ProceduralDataset("val", n_scenes=3, width=p.width, height=p.height, gaps=("small",),
-                                cache_dir=cache / "val", seed=seed)
+    train_set = ProceduralDataset(
+        "train",
+        n_scenes=p.train_scenes,
+        width=p.width,
+        height=p.height,
+        gaps=p.gaps,
+        cache_dir=cache / "train",
+        seed=seed,
+    )
+    val_set = ProceduralDataset(
+        "val", n_scenes=3, width=p.width, height=p.height, gaps=("small",), cache_dir=cache / "val", seed=seed
+    )
     val_examples = list(val_set.fixed_examples(targets_per_scene=1))
     log = open(out / "log.jsonl", "a")
 
     def training_record(step: int) -> dict:
-        return {"preset": preset_name, "variant": variant, "steps": step, "data_seed": seed,
-                "train_scenes": p.train_scenes, "image_size": [p.width, p.height], "rays_per_step": p.rays,
-                "gaps": list(p.gaps), "lr": p.lr, "hardware": hardware(), "seconds": seconds,
-                "data": "procedural scenes (scnerf_export.data.procedural), object/forward/outdoor layouts"}
+        return {
+            "preset": preset_name,
+            "variant": variant,
+            "steps": step,
+            "data_seed": seed,
+            "train_scenes": p.train_scenes,
+            "image_size": [p.width, p.height],
+            "rays_per_step": p.rays,
+            "gaps": list(p.gaps),
+            "lr": p.lr,
+            "hardware": hardware(),
+            "seconds": seconds,
+            "data": "procedural scenes (scnerf_export.data.procedural), object/forward/outdoor layouts",
+        }
 
     def save(step: int) -> None:
         tmp = out / "last.pt.tmp"
-        save_checkpoint(tmp, model, {"training": training_record(step), "optimizer": optimiser.state_dict(),
-                                      "rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state(),
-                                      "step": step})
+        save_checkpoint(
+            tmp,
+            model,
+            {
+                "training": training_record(step),
+                "optimizer": optimiser.state_dict(),
+                "rng": rng.bit_generator.state,
+                "torch_rng": torch.get_rng_state(),
+                "step": step,
+            },
+        )
         os.replace(tmp, last)
 
-    bar = tqdm(range(start, total), initial=start, total=total, desc=f"{variant}/{preset_name}",
-               mininterval=5.0, dynamic_ncols=True)
+    bar = tqdm(
+        range(start, total),
+        initial=start,
+        total=total,
+        desc=f"{variant}/{preset_name}",
+        mininterval=5.0,
+        dynamic_ncols=True,
+    )
     for step in bar:
         tick = time.perf_counter()
         loss, rays = training_step(model, train_set.sample(rng), p.rays, rng, device)

@@ -96,8 +96,9 @@ def write_blender(root: Path, cams, images, split="train", angle=None, name_fmt=
     for i, (c, im) in enumerate(zip(cams, images)):
         name = name_fmt.format(i=i)
         Image.fromarray(im).save(root / split / f"{name}.png")
-        frames.append({"file_path": f"./{split}/{name}", "rotation": 0.1,
-                       "transform_matrix": w2c_to_gl_c2w(c.w2c).tolist()})
+        frames.append(
+            {"file_path": f"./{split}/{name}", "rotation": 0.1, "transform_matrix": w2c_to_gl_c2w(c.w2c).tolist()}
+        )
     (root / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": angle, "frames": frames}))
 
 
@@ -107,8 +108,14 @@ def write_nerfstudio(root: Path, cams, images, per_frame=False, extra=None):
     top = {}
     for i, (c, im) in enumerate(zip(cams, images)):
         Image.fromarray(im).save(root / "images" / f"frame_{i:05d}.png")
-        intr = {"fl_x": c.K[0, 0], "fl_y": c.K[1, 1], "cx": c.K[0, 2] + 0.5, "cy": c.K[1, 2] + 0.5,
-                "w": c.width, "h": c.height}
+        intr = {
+            "fl_x": c.K[0, 0],
+            "fl_y": c.K[1, 1],
+            "cx": c.K[0, 2] + 0.5,
+            "cy": c.K[1, 2] + 0.5,
+            "w": c.width,
+            "h": c.height,
+        }
         fr = {"file_path": f"images/frame_{i:05d}.png", "transform_matrix": w2c_to_gl_c2w(c.w2c).tolist()}
         if per_frame:
             fr.update(intr)
@@ -434,8 +441,7 @@ def test_scale_resamples_the_image_consistently(tmp_path):
 
 def test_crop_and_resize_view_helpers():
     cams = make_cameras(1)
-    view = View("a", np.random.default_rng(0).random((H, W, 3), dtype=np.float32), cams[0],
-                  mask=np.ones((H, W), bool))
+    view = View("a", np.random.default_rng(0).random((H, W, 3), dtype=np.float32), cams[0], mask=np.ones((H, W), bool))
     c = crop_view(view, 4, 6, 32, 32)
     assert c.image.shape == (32, 32, 3) and c.mask.shape == (32, 32)
     uv, _ = view.camera.project(POINTS)
@@ -504,7 +510,11 @@ def test_malformed_transforms_json(tmp_path):
     jf.write_text(json.dumps({"frames": []}))
     with pytest.raises(ValueError, match="camera_angle_x"):
         load_scene(tmp_path, "blender")
-    jf.write_text(json.dumps({"camera_angle_x": 0.7, "frames": [{"file_path": "./train/r_0", "transform_matrix": [[1, 0], [0, 1]]}]}))
+    jf.write_text(
+        json.dumps(
+            {"camera_angle_x": 0.7, "frames": [{"file_path": "./train/r_0", "transform_matrix": [[1, 0], [0, 1]]}]}
+        )
+    )
     with pytest.raises(ValueError, match="transform_matrix"):
         load_scene(tmp_path, "blender")
 
@@ -550,12 +560,15 @@ def test_malformed_colmap(tmp_path):
 # ----------------------------------------------------------------------------- real data
 
 DATA = shared_data_dir()
-needs_dtu = pytest.mark.skipif(DATA is None or not (DATA / "dtu_scan37").is_dir(),
-                               reason="real DTU scan37 not found: ../shared/data/dtu_scan37 "
-                                      "(or $SCNERF_SHARED/data) is absent on this machine")
-needs_lego = pytest.mark.skipif(DATA is None or not (DATA / "nerf_synthetic_lego").is_dir(),
-                                reason="real lego scene not found: ../shared/data/nerf_synthetic_lego "
-                                       "(or $SCNERF_SHARED/data) is absent on this machine")
+needs_dtu = pytest.mark.skipif(
+    DATA is None or not (DATA / "dtu_scan37").is_dir(),
+    reason="real DTU scan37 not found: ../shared/data/dtu_scan37 (or $SCNERF_SHARED/data) is absent on this machine",
+)
+needs_lego = pytest.mark.skipif(
+    DATA is None or not (DATA / "nerf_synthetic_lego").is_dir(),
+    reason="real lego scene not found: ../shared/data/nerf_synthetic_lego "
+    "(or $SCNERF_SHARED/data) is absent on this machine",
+)
 
 
 @pytest.fixture(scope="module")
@@ -586,7 +599,9 @@ def test_real_dtu_scan37(dtu_scene):
     # view 25: file intrinsics x4, translation / 200
     K = s.views["25"].camera.K
     np.testing.assert_allclose(K[0], [361.541351 * 4, 0, 82.900696 * 4], atol=1e-9)
-    np.testing.assert_allclose(s.views["25"].camera.w2c[:3, 3], [-294.210632 / 200, -402.820435 / 200, 247.354492 / 200], atol=1e-12)
+    np.testing.assert_allclose(
+        s.views["25"].camera.w2c[:3, 3], [-294.210632 / 200, -402.820435 / 200, 247.354492 / 200], atol=1e-12
+    )
 
 
 @needs_dtu
@@ -647,4 +662,4 @@ def test_real_lego(lego_scene):
         # ... and near the image centre, where the (non-white) object is
         assert np.all(np.abs(uv - 399.5) < 150), name
         u, vv = np.round(uv[0]).astype(int)
-        assert v.image[vv - 40:vv + 40, u - 40:u + 40].mean() < 0.98, name
+        assert v.image[vv - 40 : vv + 40, u - 40 : u + 40].mean() < 0.98, name

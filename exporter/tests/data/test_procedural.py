@@ -92,8 +92,10 @@ def _plain(color=(0.6, 0.5, 0.4)) -> Material:
 
 def test_sphere_depth_matches_analytic_z_depth():
     center, radius = np.array([0.3, 2.0, 0.5]), 0.8
-    world = World([Sphere(center=center, material=_plain(), radius=radius)],
-                  Light(direction=np.array([0.0, -1.0, 1.0]) / np.sqrt(2)))
+    world = World(
+        [Sphere(center=center, material=_plain(), radius=radius)],
+        Light(direction=np.array([0.0, -1.0, 1.0]) / np.sqrt(2)),
+    )
     K = intrinsics(64, 48, 50.0)
     w2c = look_at(np.array([1.0, -2.5, 1.7]), center + np.array([0.2, 0.1, -0.1]))
     cam = Camera(K=K, w2c=w2c, width=64, height=48)
@@ -152,29 +154,37 @@ def _bilinear(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
 
 def _reproject(a, b, step=3):
     """Pixels of view a (every ``step``-th), their world points, and where they land in view b."""
-    v, u = np.mgrid[1:a.camera.height - 1:step, 1:a.camera.width - 1:step]
+    v, u = np.mgrid[1 : a.camera.height - 1 : step, 1 : a.camera.width - 1 : step]
     uv_a = np.stack([u.ravel(), v.ravel()], axis=-1).astype(np.float64)
     depth_a = a.depth[v.ravel(), u.ravel()].astype(np.float64)
     ok = np.isfinite(depth_a)
     uv_a, depth_a = uv_a[ok], depth_a[ok]
     uv_b, z_b = b.camera.project(a.camera.unproject(uv_a, depth_a))
     # one pixel of margin, so the bilinear lookups below (and a half-pixel shift) stay inside b
-    inside = (z_b > 0) & (uv_b[:, 0] >= 0) & (uv_b[:, 1] >= 0) & \
-             (uv_b[:, 0] < b.camera.width - 2) & (uv_b[:, 1] < b.camera.height - 2)
+    inside = (
+        (z_b > 0)
+        & (uv_b[:, 0] >= 0)
+        & (uv_b[:, 1] >= 0)
+        & (uv_b[:, 0] < b.camera.width - 2)
+        & (uv_b[:, 1] < b.camera.height - 2)
+    )
     return uv_a[inside], uv_b[inside], z_b[inside]
 
 
 def test_multiview_consistency_on_a_textured_plane():
     """A diffuse, solid-textured plane: reprojecting a pixel of A with its depth into B finds the
     same depth and colour in B (bilinear).  Half a pixel of convention error would fail it."""
-    mat = Material(pattern="noise", colors=np.array([[0.1, 0.2, 0.7], [0.9, 0.8, 0.2], [0.2, 0.8, 0.3]]),
-                   scale=0.3, seed=5)
+    mat = Material(
+        pattern="noise", colors=np.array([[0.1, 0.2, 0.7], [0.9, 0.8, 0.2], [0.2, 0.8, 0.3]]), scale=0.3, seed=5
+    )
     world = World([Plane(center=np.zeros(3), material=mat)], Light(direction=np.array([0.3, -0.2, 0.93])))
     K = intrinsics(96, 80, 55.0)
-    a = render_view(world, Camera(K, look_at(np.array([-0.8, -3.0, 2.2]), np.array([0.2, 0.5, 0.0])), 96, 80),
-                    quantize=False)
-    b = render_view(world, Camera(K, look_at(np.array([1.2, -2.6, 2.8]), np.array([0.0, 0.8, 0.0])), 96, 80),
-                    quantize=False)
+    a = render_view(
+        world, Camera(K, look_at(np.array([-0.8, -3.0, 2.2]), np.array([0.2, 0.5, 0.0])), 96, 80), quantize=False
+    )
+    b = render_view(
+        world, Camera(K, look_at(np.array([1.2, -2.6, 2.8]), np.array([0.0, 0.8, 0.0])), 96, 80), quantize=False
+    )
     uv_a, uv_b, z_b = _reproject(a, b, step=2)
     assert len(uv_a) > 500
     ia = uv_a.astype(int)
@@ -286,19 +296,26 @@ def test_dataset_stream_and_cache(tmp_path):
     paths = build_dataset(tmp_path, n_scenes=3, n_views=10, width=32, height=32, supersample=1)
     assert [p.exists() for p in paths] == [True] * 3
     assert [load_scene(p).layout for p in paths] == list(LAYOUTS)
-    ds = ProceduralDataset("train", n_scenes=3, n_views=10, width=32, height=32, gaps=GAPS,
-                           cache_dir=tmp_path, supersample=1, seed=4)
+    ds = ProceduralDataset(
+        "train", n_scenes=3, n_views=10, width=32, height=32, gaps=GAPS, cache_dir=tmp_path, supersample=1, seed=4
+    )
     stream = iter(ds)
     examples = [next(stream) for _ in range(6)]
-    again = iter(ProceduralDataset("train", n_scenes=3, n_views=10, width=32, height=32, gaps=GAPS,
-                                   cache_dir=tmp_path, supersample=1, seed=4))
+    again = iter(
+        ProceduralDataset(
+            "train", n_scenes=3, n_views=10, width=32, height=32, gaps=GAPS, cache_dir=tmp_path, supersample=1, seed=4
+        )
+    )
     for ex in examples:
         assert len(ex.sources) == 3 and ex.target_index not in ex.source_indices
         assert ex.near < ex.far and ex.layout in LAYOUTS and ex.gap in GAPS
         assert ex.source_indices == pick_sources(ds.scene(ex.scene_index), ex.target_index, ex.gap)
         assert np.array_equal(ex.target.image, next(again).target.image)  # the stream is seeded
-    fixed = list(ProceduralDataset("val", n_scenes=1, n_views=10, width=32, height=32, gaps=GAPS,
-                                   supersample=1).fixed_examples(targets_per_scene=2))
+    fixed = list(
+        ProceduralDataset("val", n_scenes=1, n_views=10, width=32, height=32, gaps=GAPS, supersample=1).fixed_examples(
+            targets_per_scene=2
+        )
+    )
     assert len(fixed) == 6 and all(ex.scene_seed == VAL_SEED0 for ex in fixed)
 
 

@@ -108,8 +108,9 @@ def test_ssim_matches_skimage():
     for shape in ((40, 48, 3), (33, 57, 3), (64, 64, 1)):
         a = rng.random(shape)
         b = np.clip(a + rng.normal(0, 0.1, shape), 0, 1)
-        ref = skm.structural_similarity(a, b, channel_axis=-1, data_range=1.0, gaussian_weights=True,
-                                        sigma=1.5, use_sample_covariance=False)
+        ref = skm.structural_similarity(
+            a, b, channel_axis=-1, data_range=1.0, gaussian_weights=True, sigma=1.5, use_sample_covariance=False
+        )
         assert M.ssim(a, b) == pytest.approx(ref, abs=1e-9)
 
 

@@ -80,8 +80,10 @@ def test_manifest_describes_the_graphs(exported):
     assert manifest["config"] == model.cfg.to_dict()
     for name, graph in manifest["graphs"].items():
         proto = onnx.load(out / graph["file"])
-        declared = {i.name: [d.dim_param or d.dim_value for d in i.type.tensor_type.shape.dim]
-                    for i in list(proto.graph.input) + list(proto.graph.output)}
+        declared = {
+            i.name: [d.dim_param or d.dim_value for d in i.type.tensor_type.shape.dim]
+            for i in list(proto.graph.input) + list(proto.graph.output)
+        }
         for io in graph["inputs"] + graph["outputs"]:
             assert declared[io["name"]] == io["shape"], f"{name}.{io['name']}"
         assert [i["name"] for i in graph["inputs"]] == [i.name for i in proto.graph.input]
@@ -96,13 +98,25 @@ def test_committed_fixtures_match_the_committed_bundle(parity_fixtures):
     for case in cases:
         request = json.loads((case / "request.json").read_text())
         expected = json.loads((case / "expected.json").read_text())
-        images = np.stack([np.asarray(Image.open(case / f"source_{i}.png").convert("RGB"), np.float32) / 255
-                           for i in range(len(request["sources"]))])
-        got = bundle.render_view(images, [camera_from_json(s["camera"]) for s in request["sources"]],
-                                 camera_from_json(request["target"]),
-                                 request["near"], request["far"], tuple(request["background"]), chunk=1000)
-        want = {n: np.fromfile(case / expected["files"][n], dtype="<f4").reshape(expected["shapes"][n])
-                for n in ("rgb", "depth", "opacity")}
+        images = np.stack(
+            [
+                np.asarray(Image.open(case / f"source_{i}.png").convert("RGB"), np.float32) / 255
+                for i in range(len(request["sources"]))
+            ]
+        )
+        got = bundle.render_view(
+            images,
+            [camera_from_json(s["camera"]) for s in request["sources"]],
+            camera_from_json(request["target"]),
+            request["near"],
+            request["far"],
+            tuple(request["background"]),
+            chunk=1000,
+        )
+        want = {
+            n: np.fromfile(case / expected["files"][n], dtype="<f4").reshape(expected["shapes"][n])
+            for n in ("rgb", "depth", "opacity")
+        }
         tolerances = expected["tolerances"]
         assert np.abs(got.rgb - want["rgb"]).max() <= tolerances["rgb_max_abs"]
         assert np.abs(got.depth - want["depth"]).max() <= tolerances["depth_max_rel"] * np.abs(want["depth"]).max()

@@ -43,21 +43,27 @@ def fp32_render(fp32_bundle, case):
 
 def render(bundle_dir, case):
     bundle = OnnxBundle(bundle_dir, threads=2)
-    return bundle.render_view(case["images"], case["cameras"], case["target"], case["near"], case["far"],
-                              case["background"], chunk=1024)
+    return bundle.render_view(
+        case["images"], case["cameras"], case["target"], case["near"], case["far"], case["background"], chunk=1024
+    )
 
 
 def io_signature(path):
     model = onnx.load(str(path))
+
     def sig(values):
-        return [(v.name, v.type.tensor_type.elem_type,
-                 [d.dim_param or d.dim_value for d in v.type.tensor_type.shape.dim]) for v in values]
+        return [
+            (v.name, v.type.tensor_type.elem_type, [d.dim_param or d.dim_value for d in v.type.tensor_type.shape.dim])
+            for v in values
+        ]
+
     return sig(model.graph.input), sig(model.graph.output)
 
 
 @pytest.mark.parametrize("precision,min_psnr,max_abs", [("int8", 30.0, 0.1), ("fp16", 45.0, 0.01)])
-def test_converted_bundle_keeps_contract_and_renders_close(tmp_path, fp32_bundle, case, fp32_render,
-                                                           precision, min_psnr, max_abs):
+def test_converted_bundle_keeps_contract_and_renders_close(
+    tmp_path, fp32_bundle, case, fp32_render, precision, min_psnr, max_abs
+):
     out = tmp_path / precision
     manifest = quantize_bundle(fp32_bundle, out, precision)
     source = read_manifest(fp32_bundle)
@@ -86,8 +92,9 @@ def test_gemm_rewrite_is_exact(tmp_path, fp32_bundle, case, fp32_render):
     """The Gemm -> MatMul + Add rewrite that precedes quantisation changes no float32 result."""
     model = onnx.load(str(fp32_bundle / "renderer.onnx"))
     assert gemm_to_matmul(model) > 0
-    assert not any(n.op_type == "Gemm" and n.input[1] in {t.name for t in model.graph.initializer}
-                   for n in model.graph.node)
+    assert not any(
+        n.op_type == "Gemm" and n.input[1] in {t.name for t in model.graph.initializer} for n in model.graph.node
+    )
     bundle = tmp_path / "rewritten"
     shutil.copytree(fp32_bundle, bundle)
     onnx.save(model, str(bundle / "renderer.onnx"))
@@ -145,8 +152,28 @@ def test_refuses_bad_requests(tmp_path, fp32_bundle):
 
 def test_cli_quantize_with_comparison(tmp_path, fp32_bundle, capsys):
     report = tmp_path / "report.json"
-    assert main(["quantize", "--bundle", str(fp32_bundle), "--out", str(tmp_path / "q"), "--precision", "int8",
-                 "--compare", "1", "--compare-size", "64x32", "--threads", "2", "--json", str(report)]) == 0
+    assert (
+        main(
+            [
+                "quantize",
+                "--bundle",
+                str(fp32_bundle),
+                "--out",
+                str(tmp_path / "q"),
+                "--precision",
+                "int8",
+                "--compare",
+                "1",
+                "--compare-size",
+                "64x32",
+                "--threads",
+                "2",
+                "--json",
+                str(report),
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     assert "mean PSNR drop" in out
     data = json.loads(report.read_text())

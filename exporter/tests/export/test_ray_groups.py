@@ -15,26 +15,36 @@ HEADS, HEAD_DIM, TOKENS = 2, 3, 5
 def chain_model(extra_softmax: bool = False) -> onnx.ModelProto:
     """MatMul(q, k) -> Softmax -> Transpose -> MatMul(v, .) as the exporter writes it; optionally
     a second Softmax that feeds no such chain."""
-    nodes = [helper.make_node("MatMul", ["q", "k"], ["scores"], name="scores"),
-             helper.make_node("Softmax", ["scores"], ["attention"], name="softmax", axis=-1),
-             helper.make_node("Transpose", ["attention"], ["attention_t"], name="transpose", perm=[0, 1, 3, 2]),
-             helper.make_node("MatMul", ["v", "attention_t"], ["y"], name="values")]
+    nodes = [
+        helper.make_node("MatMul", ["q", "k"], ["scores"], name="scores"),
+        helper.make_node("Softmax", ["scores"], ["attention"], name="softmax", axis=-1),
+        helper.make_node("Transpose", ["attention"], ["attention_t"], name="transpose", perm=[0, 1, 3, 2]),
+        helper.make_node("MatMul", ["v", "attention_t"], ["y"], name="values"),
+    ]
     outputs = [helper.make_tensor_value_info("y", TensorProto.FLOAT, ["R", HEADS, HEAD_DIM, TOKENS])]
     if extra_softmax:
         nodes.append(helper.make_node("Softmax", ["q"], ["q_softmax"], name="other", axis=-1))
         outputs.append(helper.make_tensor_value_info("q_softmax", TensorProto.FLOAT, None))
-    graph = helper.make_graph(nodes, "chain", [
-        helper.make_tensor_value_info("q", TensorProto.FLOAT, ["R", 1, TOKENS, 2]),
-        helper.make_tensor_value_info("k", TensorProto.FLOAT, ["R", HEADS, 2, TOKENS]),
-        helper.make_tensor_value_info("v", TensorProto.FLOAT, ["R", HEADS, HEAD_DIM, TOKENS])], outputs)
+    graph = helper.make_graph(
+        nodes,
+        "chain",
+        [
+            helper.make_tensor_value_info("q", TensorProto.FLOAT, ["R", 1, TOKENS, 2]),
+            helper.make_tensor_value_info("k", TensorProto.FLOAT, ["R", HEADS, 2, TOKENS]),
+            helper.make_tensor_value_info("v", TensorProto.FLOAT, ["R", HEADS, HEAD_DIM, TOKENS]),
+        ],
+        outputs,
+    )
     return helper.make_model(graph, opset_imports=[helper.make_opsetid("", 20)], ir_version=10)
 
 
 def run(model: onnx.ModelProto, rays: int, seed: int = 0) -> list[np.ndarray]:
     rng = np.random.default_rng(seed)
-    feeds = {"q": rng.standard_normal((rays, 1, TOKENS, 2), np.float32),
-             "k": rng.standard_normal((rays, HEADS, 2, TOKENS), np.float32) * 3,
-             "v": rng.standard_normal((rays, HEADS, HEAD_DIM, TOKENS), np.float32)}
+    feeds = {
+        "q": rng.standard_normal((rays, 1, TOKENS, 2), np.float32),
+        "k": rng.standard_normal((rays, HEADS, 2, TOKENS), np.float32) * 3,
+        "v": rng.standard_normal((rays, HEADS, HEAD_DIM, TOKENS), np.float32),
+    }
     session = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
     return session.run(None, feeds)
 

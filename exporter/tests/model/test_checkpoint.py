@@ -18,7 +18,8 @@ def test_public_checkpoint_maps_every_tensor(public_checkpoint):
     assert len(model.state_dict()) == n_raw
     params = sum(p.numel() for p in model.parameters())
     assert params == 341_858 + 126_788 - sum(  # the checkpoint's counts include BN running statistics
-        t.numel() for k, t in raw["network_mvs_state_dict"].items() if "running" in k or "num_batches" in k)
+        t.numel() for k, t in raw["network_mvs_state_dict"].items() if "running" in k or "num_batches" in k
+    )
     assert provenance["source_sha256"] == "84c2a397760d5e717c21faee9c4f8f8f8a1ba22b378b10971c44f4a0b932c124"
     assert torch.equal(model.renderer.m1.feature_gate.weight, raw["network_fn_state_dict"]["nerf.pts_bias.weight"])
 
@@ -63,8 +64,13 @@ def test_truncated_public_checkpoint(tmp_path, public_checkpoint):
 
 
 def test_mvsnerf_tensors_on_a_foreign_layout_are_refused(tmp_path):
-    torch.save({"network_mvs_state_dict": {"feature.conv0.0.conv.weight": torch.zeros(8, 3, 3, 3)},
-                "network_fn_state_dict": {"nerf.extra.weight": torch.zeros(1)}}, tmp_path / "odd.tar")
+    torch.save(
+        {
+            "network_mvs_state_dict": {"feature.conv0.0.conv.weight": torch.zeros(8, 3, 3, 3)},
+            "network_fn_state_dict": {"nerf.extra.weight": torch.zeros(1)},
+        },
+        tmp_path / "odd.tar",
+    )
     with pytest.raises(CheckpointError, match="left over"):
         load_mvsnerf(tmp_path / "odd.tar")
 

@@ -26,8 +26,17 @@ def render_rig(model, height=64, width=96, grad=False):
     with torch.set_grad_enabled(grad):
         features = model.encode(rig["images"])
         volume = model.build_volume(features, rig["images"], rig["projections"], rig["depth_planes"])
-        return model.renderer(rig["ray_origins"], rig["ray_directions"], rig["near_far"], rig["near_far"], volume,
-                              rig["images"], features, rig["intrinsics"], rig["extrinsics"])
+        return model.renderer(
+            rig["ray_origins"],
+            rig["ray_directions"],
+            rig["near_far"],
+            rig["near_far"],
+            volume,
+            rig["images"],
+            features,
+            rig["intrinsics"],
+            rig["extrinsics"],
+        )
 
 
 def assert_same_renders(a, b):
@@ -99,10 +108,13 @@ def test_public_weights_render_the_same_through_pytorch(public_checkpoint, scan3
     scnerf = scnerf_from_mvsnerf(mvsnerf)
     origins, directions = target_rays(target.camera)
     with torch.no_grad():
-        encoded = encode_scene(mvsnerf, np.stack([v.image for v in sources]), [v.camera for v in sources],
-                               scene.near, scene.far)
-        renders = [render_rays(m, encoded, origins[::7], directions[::7], scene.near, scene.far,
-                               (scene.near, scene.far), 512) for m in (mvsnerf, scnerf)]
+        encoded = encode_scene(
+            mvsnerf, np.stack([v.image for v in sources]), [v.camera for v in sources], scene.near, scene.far
+        )
+        renders = [
+            render_rays(m, encoded, origins[::7], directions[::7], scene.near, scene.far, (scene.near, scene.far), 512)
+            for m in (mvsnerf, scnerf)
+        ]
     assert_same_renders(*renders)
 
 
@@ -115,6 +127,7 @@ def test_public_weights_render_the_same_through_onnx_runtime(public_checkpoint, 
         export_bundle(model, tmp_path / model.cfg.variant, provenance)
         assert (tmp_path / model.cfg.variant / "LICENSE.mvsnerf").is_file()
         r = OnnxBundle(tmp_path / model.cfg.variant).render_view(
-            np.stack([v.image for v in sources]), [v.camera for v in sources], target.camera, scene.near, scene.far)
+            np.stack([v.image for v in sources]), [v.camera for v in sources], target.camera, scene.near, scene.far
+        )
         renders.append((r.rgb, r.depth, r.opacity))
     assert_same_renders(*renders)

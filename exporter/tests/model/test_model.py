@@ -88,8 +88,12 @@ def test_pose_conventions_reach_one_canonical_camera():
     K = cams.pinhole(50.0, 16, 16)
     cam = cams.Camera(K, cams.look_at((1.0, 0.5, -3.0), (0, 0, 0), up=(0, -1, 0)), 16, 16)
     gl_c2w = cam.c2w @ cams.OPENGL_TO_OPENCV
-    for matrix, kind, axes in [(cam.w2c, "world_to_camera", "opencv"), (cam.c2w, "camera_to_world", "opencv"),
-                               (gl_c2w, "camera_to_world", "opengl"), (np.linalg.inv(gl_c2w), "world_to_camera", "opengl")]:
+    for matrix, kind, axes in [
+        (cam.w2c, "world_to_camera", "opencv"),
+        (cam.c2w, "camera_to_world", "opencv"),
+        (gl_c2w, "camera_to_world", "opengl"),
+        (np.linalg.inv(gl_c2w), "world_to_camera", "opengl"),
+    ]:
         np.testing.assert_allclose(cams.Camera.from_pose(K, matrix, 16, 16, kind, axes).w2c, cam.w2c, atol=1e-12)
 
 
@@ -189,6 +193,7 @@ def test_colours_are_the_border_padded_samples():
     for i in range(len(sources)):
         grid = view_grid(points, intrinsics[i], extrinsics[i], 12, 16).view(1, 1, -1, 2)
         assert (grid.abs() > 1).any() and (grid.abs() < 1).all(dim=-1).any(), "need points in and out"
-        want = torch.nn.functional.grid_sample(images[i : i + 1], grid, mode="bilinear",
-                                               padding_mode="border", align_corners=True).view(3, -1)
+        want = torch.nn.functional.grid_sample(
+            images[i : i + 1], grid, mode="bilinear", padding_mode="border", align_corners=True
+        ).view(3, -1)
         torch.testing.assert_close(rgb[i], want, rtol=1e-12, atol=1e-12)

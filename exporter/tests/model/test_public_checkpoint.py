@@ -28,14 +28,16 @@ def test_scan37_view32_masked_psnr(public_checkpoint):
     (target,) = datasets.get_views(scene, ["32"])
     model, _ = load_mvsnerf(public_checkpoint)
     with torch.no_grad():
-        encoded = encode_scene(model, np.stack([v.image for v in sources]), [v.camera for v in sources],
-                               scene.near, scene.far)
+        encoded = encode_scene(
+            model, np.stack([v.image for v in sources]), [v.camera for v in sources], scene.near, scene.far
+        )
         origins, directions = target_rays(target.camera)
         h, w = target.image.shape[:2]
         pick = (np.arange(h)[:, None] % 8 == 0) & (np.arange(w)[None] % 8 == 0)
         idx = np.flatnonzero(pick)
-        rgb, _, _ = render_rays(model, encoded, origins[idx], directions[idx], scene.near, scene.far,
-                                (scene.near, scene.far), 4096)
+        rgb, _, _ = render_rays(
+            model, encoded, origins[idx], directions[idx], scene.near, scene.far, (scene.near, scene.far), 4096
+        )
     gt = target.image.reshape(-1, 3)[idx]
     mask = target.mask.reshape(-1)[idx]
     assert metrics.psnr(rgb[mask], gt[mask]) >= MASKED_PSNR_FLOOR

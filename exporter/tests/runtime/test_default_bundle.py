@@ -32,6 +32,12 @@ def test_default_bundle_renders_the_example_above_its_floor():
     assert bundle.manifest["provenance"]["source_kind"] == "scnerf-serve-training"
     request = json.loads((EXAMPLE / "request.json").read_text())
     images = np.stack([load_rgb(EXAMPLE / f"source_{i}.png") for i in range(3)])
-    result = bundle.render_view(images, [camera(s["camera"]) for s in request["sources"]], camera(request["target"]),
-                                request["near"], request["far"], tuple(request["background"]))
+    result = bundle.render_view(
+        images,
+        [camera(s["camera"]) for s in request["sources"]],
+        camera(request["target"]),
+        request["near"],
+        request["far"],
+        tuple(request["background"]),
+    )
     assert metrics.psnr(result.rgb, load_rgb(EXAMPLE / "target_truth.png")) >= expected["psnr_floor"]

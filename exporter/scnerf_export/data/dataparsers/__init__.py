@@ -8,6 +8,5 @@ from .llff import LlffParser
 from .nerfstudio import NerfstudioParser
 
 PARSERS: dict[str, DataParser] = {
-    parser.format: parser
-    for parser in (DtuParser(), BlenderParser(), LlffParser(), NerfstudioParser(), ColmapParser())
+    parser.format: parser for parser in (DtuParser(), BlenderParser(), LlffParser(), NerfstudioParser(), ColmapParser())
 }

@@ -54,7 +54,9 @@ class BlenderParser(DataParser):
         if p.is_file():
             json_files = [p]
         elif p.is_dir():
-            json_files = [p / f"transforms_{s}.json" for s in ("train", "val", "test") if (p / f"transforms_{s}.json").exists()]
+            json_files = [
+                p / f"transforms_{s}.json" for s in ("train", "val", "test") if (p / f"transforms_{s}.json").exists()
+            ]
             if not json_files and (p / "transforms.json").exists():
                 json_files = [p / "transforms.json"]
             if not json_files:
@@ -82,7 +84,9 @@ class BlenderParser(DataParser):
                 entries.append((split, img.stem, img, frame_pose(fr, jf, i), angle_x, angle_y))
         if not entries:
             listed = [j.name for j in json_files]
-            raise FileNotFoundError(f"none of the frames listed in {listed} has an image file under {json_files[0].parent}")
+            raise FileNotFoundError(
+                f"none of the frames listed in {listed} has an image file under {json_files[0].parent}"
+            )
         names = _unique_names([(e[0], e[1]) for e in entries])
         views: dict[str, View] = {}
         for name, (_, _, img, w2c, ax, ay) in zip(names, entries):
@@ -94,5 +98,11 @@ class BlenderParser(DataParser):
         n = BLENDER_NEAR_FAR[0] if near is None else near
         f = BLENDER_NEAR_FAR[1] if far is None else far
         n, f = check_near_far(n, f, str(p))
-        return SceneData(views, n, f, bg, defaults_if_present(views, LEGO_DEFAULT_SOURCES),
-                         defaults_if_present(views, LEGO_DEFAULT_TARGETS))
+        return SceneData(
+            views,
+            n,
+            f,
+            bg,
+            defaults_if_present(views, LEGO_DEFAULT_SOURCES),
+            defaults_if_present(views, LEGO_DEFAULT_TARGETS),
+        )

@@ -48,8 +48,9 @@ def _parse_colmap_cameras(path: Path) -> dict[int, tuple[np.ndarray, int, int]]:
         except (IndexError, ValueError):
             raise ValueError(f"{path}:{ln}: malformed camera line: {s!r}") from None
         if model not in _COLMAP_MODELS:
-            raise ValueError(f"{path}:{ln}: camera model {model} is not supported "
-                             f"(supported: {', '.join(_COLMAP_MODELS)})")
+            raise ValueError(
+                f"{path}:{ln}: camera model {model} is not supported (supported: {', '.join(_COLMAP_MODELS)})"
+            )
         if len(params) != _COLMAP_MODELS[model]:
             raise ValueError(f"{path}:{ln}: {model} needs {_COLMAP_MODELS[model]} parameters, got {len(params)}")
         if model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL"):
@@ -60,7 +61,9 @@ def _parse_colmap_cameras(path: Path) -> dict[int, tuple[np.ndarray, int, int]]:
             fx, fy, cx, cy = params[:4]
             dist = params[4:]
         if any(abs(d) > 0 for d in dist) and model not in warned:
-            warnings.warn(f"{path}: {model} distortion parameters are ignored (images are used as pinhole)", stacklevel=2)
+            warnings.warn(
+                f"{path}: {model} distortion parameters are ignored (images are used as pinhole)", stacklevel=2
+            )
             warned.add(model)
         if fx <= 0 or fy <= 0 or w <= 0 or h <= 0:
             raise ValueError(f"{path}:{ln}: non-positive focal length or image size")
@@ -78,11 +81,13 @@ def _quat_to_rot(qw, qx, qy, qz) -> np.ndarray:
     if not np.isfinite(n) or n < 1e-12:
         raise ValueError("zero or non-finite quaternion")
     w, x, y, z = q / n
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def _parse_colmap_images(path: Path) -> list[tuple[int, str, np.ndarray, int]]:
@@ -172,10 +177,18 @@ class ColmapParser(DataParser):
         root = Path(path)
         if not root.is_dir():
             raise FileNotFoundError(f"COLMAP scene folder not found: {root}")
-        model_dir = next((d for d in (root, root / "sparse" / "0", root / "sparse")
-                          if (d / "cameras.txt").exists() and (d / "images.txt").exists()), None)
+        model_dir = next(
+            (
+                d
+                for d in (root, root / "sparse" / "0", root / "sparse")
+                if (d / "cameras.txt").exists() and (d / "images.txt").exists()
+            ),
+            None,
+        )
         if model_dir is None:
-            raise FileNotFoundError(f"no COLMAP text model (cameras.txt + images.txt) in {root}, {root / 'sparse/0'} or {root / 'sparse'}")
+            raise FileNotFoundError(
+                f"no COLMAP text model (cameras.txt + images.txt) in {root}, {root / 'sparse/0'} or {root / 'sparse'}"
+            )
         cams = _parse_colmap_cameras(model_dir / "cameras.txt")
         imgs = _parse_colmap_images(model_dir / "images.txt")
         img_dir = root / "images"
@@ -201,7 +214,9 @@ class ColmapParser(DataParser):
             pts = model_dir / "points3D.txt"
             nf = _colmap_points_near_far(pts, {iid: w2c for iid, _, w2c, _ in imgs}) if pts.exists() else None
             if nf is None:
-                raise ValueError(f"{model_dir}: no usable points3D.txt to derive near/far from; pass them explicitly (--near/--far)")
+                raise ValueError(
+                    f"{model_dir}: no usable points3D.txt to derive near/far from; pass them explicitly (--near/--far)"
+                )
             n = nf[0] if n is None else n
             f = nf[1] if f is None else f
         n, f = check_near_far(n, f, str(model_dir))

@@ -41,8 +41,8 @@ def _parse_dtu_cam(path: Path) -> tuple[np.ndarray, np.ndarray, float, float]:
     if i_ext < 0 or i_int < 0 or i_int < i_ext:
         raise ValueError(f"{path}: not an MVSNet cam.txt (needs 'extrinsic' then 'intrinsic' sections)")
     try:
-        ext = [float(t) for t in text[i_ext + len("extrinsic"):i_int].split()]
-        rest = [float(t) for t in text[i_int + len("intrinsic"):].split()]
+        ext = [float(t) for t in text[i_ext + len("extrinsic") : i_int].split()]
+        rest = [float(t) for t in text[i_int + len("intrinsic") :].split()]
     except ValueError as e:
         raise ValueError(f"{path}: malformed number in cam.txt ({e})") from None
     if len(ext) != 16:
@@ -131,7 +131,9 @@ class DtuParser(DataParser):
             cam_dir = root / "Cameras"
         cam_files = sorted(cam_dir.glob("*_cam.txt")) if cam_dir.is_dir() else []
         if not cam_files:
-            raise FileNotFoundError(f"no MVSNet camera files (*_cam.txt) in {root / 'Cameras' / 'train'} or {root / 'Cameras'}")
+            raise FileNotFoundError(
+                f"no MVSNet camera files (*_cam.txt) in {root / 'Cameras' / 'train'} or {root / 'Cameras'}"
+            )
 
         m = re.search(r"scan(\d+)", root.name)
         rect_root = root / "Rectified"
@@ -145,7 +147,9 @@ class DtuParser(DataParser):
             if not candidates and any(rect_root.glob("rect_*.png")):
                 candidates = [rect_root]
             else:
-                raise ValueError(f"cannot tell which folder of {rect_root} holds the images: {[c.name for c in candidates]}")
+                raise ValueError(
+                    f"cannot tell which folder of {rect_root} holds the images: {[c.name for c in candidates]}"
+                )
         img_dir = candidates[0]
         scan_name = img_dir.name[: -len("_train")] if img_dir.name.endswith("_train") else img_dir.name
 
@@ -175,12 +179,20 @@ class DtuParser(DataParser):
             depth = _dtu_depth(depth_path) if depth_path.exists() else None
             view = make_view(str(vid), img_path, K, w2c, bg, 1.0, depth=depth, mask=mask)
             if view.image.shape[:2] != (512, 640):
-                raise ValueError(f"{img_path}: expected a 640x512 image (MVSNeRF's DTU), got "
-                                 f"{view.image.shape[1]}x{view.image.shape[0]}")
+                raise ValueError(
+                    f"{img_path}: expected a 640x512 image (MVSNeRF's DTU), got "
+                    f"{view.image.shape[1]}x{view.image.shape[0]}"
+                )
             views[str(vid)] = apply_scale(view, scale)
         if not views:
             raise FileNotFoundError(f"no DTU view of {root} has both a camera and an image")
         n, f = (near if near is not None else min(nears)), (far if far is not None else max(fars))
         n, f = check_near_far(n, f, str(root))
-        return SceneData(views, n, f, bg, defaults_if_present(views, DTU_DEFAULT_SOURCES),
-                         defaults_if_present(views, DTU_DEFAULT_TARGETS))
+        return SceneData(
+            views,
+            n,
+            f,
+            bg,
+            defaults_if_present(views, DTU_DEFAULT_SOURCES),
+            defaults_if_present(views, DTU_DEFAULT_TARGETS),
+        )

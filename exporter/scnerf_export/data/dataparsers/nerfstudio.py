@@ -57,7 +57,9 @@ class NerfstudioParser(DataParser):
             if fx <= 0 or fy <= 0 or w <= 0 or h <= 0:
                 raise ValueError(f"{jf}: frame {i} has non-positive focal length or size")
             if not warned and any(abs(float(fr.get(k, data.get(k, 0.0)) or 0.0)) > 0 for k in _NS_DISTORTION):
-                warnings.warn(f"{jf}: lens distortion coefficients are ignored (images are used as pinhole)", stacklevel=2)
+                warnings.warn(
+                    f"{jf}: lens distortion coefficients are ignored (images are used as pinhole)", stacklevel=2
+                )
                 warned = True
             K = np.array([[fx, 0.0, cx - 0.5], [0.0, fy, cy - 0.5], [0.0, 0.0, 1.0]])
             rel = os.path.splitext(str(fr["file_path"]))[0]
@@ -66,8 +68,10 @@ class NerfstudioParser(DataParser):
             raise FileNotFoundError(f"none of the frames listed in {jf} has an image file")
         stems = [Path(e[0]).name for e in entries]
         names = stems if len(set(stems)) == len(stems) else [e[0] for e in entries]
-        views = {n: make_view(n, img, K, w2c, bg, scale, declared_size=size)
-                 for n, (_, img, K, w2c, size) in zip(names, entries)}
+        views = {
+            n: make_view(n, img, K, w2c, bg, scale, declared_size=size)
+            for n, (_, img, K, w2c, size) in zip(names, entries)
+        }
         n, f = near, far
         if n is None or f is None:
             nf = data.get("near_far")

@@ -55,5 +55,7 @@ def frame_pose(frame: dict, json_path: Path, idx: int) -> np.ndarray:
     except (KeyError, TypeError, ValueError):
         raise ValueError(f"{json_path}: frame {idx} has no valid 'transform_matrix'") from None
     if m.shape not in ((4, 4), (3, 4)) or not np.all(np.isfinite(m)):
-        raise ValueError(f"{json_path}: frame {idx} 'transform_matrix' must be a finite 4x4 matrix, got shape {m.shape}")
+        raise ValueError(
+            f"{json_path}: frame {idx} 'transform_matrix' must be a finite 4x4 matrix, got shape {m.shape}"
+        )
     return opengl_c2w_to_opencv_w2c(m)

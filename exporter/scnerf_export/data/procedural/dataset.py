@@ -98,10 +98,20 @@ def load_scene(path: str | os.PathLike) -> Scene:
         alphas = z["alphas"].astype(np.float32) / np.float32(255.0)
         depths, K, w2c = z["depths"], z["K"], z["w2c"]
         n, h, w = depths.shape
-        views = [View(image=images[i], depth=depths[i], alpha=alphas[i],
-                      camera=Camera(K=K[i], w2c=w2c[i], width=w, height=h)) for i in range(n)]
-        return Scene(views=views, near=float(z["near"]), far=float(z["far"]), layout=str(z["layout"]),
-                     seed=int(z["seed"]), meta={"supersample": int(z["supersample"])})
+        views = [
+            View(
+                image=images[i], depth=depths[i], alpha=alphas[i], camera=Camera(K=K[i], w2c=w2c[i], width=w, height=h)
+            )
+            for i in range(n)
+        ]
+        return Scene(
+            views=views,
+            near=float(z["near"]),
+            far=float(z["far"]),
+            layout=str(z["layout"]),
+            seed=int(z["seed"]),
+            meta={"supersample": int(z["supersample"])},
+        )
 
 
 def _build_one(args: tuple) -> str:
@@ -111,9 +121,18 @@ def _build_one(args: tuple) -> str:
     return str(path)
 
 
-def build_dataset(out_dir: str | os.PathLike, n_scenes: int, seed0: int = TRAIN_SEED0,
-                  layouts: Sequence[str] = LAYOUTS, n_views: int = 20, width: int = 160, height: int = 128,
-                  supersample: int = 2, workers: int = 1, overwrite: bool = False) -> list[Path]:
+def build_dataset(
+    out_dir: str | os.PathLike,
+    n_scenes: int,
+    seed0: int = TRAIN_SEED0,
+    layouts: Sequence[str] = LAYOUTS,
+    n_views: int = 20,
+    width: int = 160,
+    height: int = 128,
+    supersample: int = 2,
+    workers: int = 1,
+    overwrite: bool = False,
+) -> list[Path]:
     """Render scenes ``seed0 .. seed0 + n_scenes - 1`` (layout ``layouts[i % len(layouts)]``) into
     ``out_dir`` as npz files and return their paths; existing files are kept unless ``overwrite``.
     Use ``seed0 = VAL_SEED0`` for the validation split.  ``workers`` > 1 renders in processes."""
@@ -152,10 +171,21 @@ class ProceduralDataset:
     deterministic examples used for validation tables.
     """
 
-    def __init__(self, split: str = "train", n_scenes: int = 96, layouts: Sequence[str] = LAYOUTS,
-                 n_views: int = 20, width: int = 160, height: int = 128, gaps: Sequence[str] = ("small",),
-                 n_sources: int = 3, cache_dir: str | os.PathLike | None = None, supersample: int = 2,
-                 seed: int = 0, memory_scenes: int = 16):
+    def __init__(
+        self,
+        split: str = "train",
+        n_scenes: int = 96,
+        layouts: Sequence[str] = LAYOUTS,
+        n_views: int = 20,
+        width: int = 160,
+        height: int = 128,
+        gaps: Sequence[str] = ("small",),
+        n_sources: int = 3,
+        cache_dir: str | os.PathLike | None = None,
+        supersample: int = 2,
+        seed: int = 0,
+        memory_scenes: int = 16,
+    ):
         for layout in layouts:
             if layout not in ALL_LAYOUTS:
                 raise ValueError(f"unknown layout {layout!r}")
@@ -205,15 +235,33 @@ class ProceduralDataset:
         if self.cache_dir is None:
             raise ValueError("prefetch needs a cache_dir")
         seed0 = split_seed(self.split, 0)
-        return build_dataset(self.cache_dir, self.n_scenes, seed0, self.layouts, self.n_views, self.width,
-                             self.height, self.supersample, workers)
+        return build_dataset(
+            self.cache_dir,
+            self.n_scenes,
+            seed0,
+            self.layouts,
+            self.n_views,
+            self.width,
+            self.height,
+            self.supersample,
+            workers,
+        )
 
     def example(self, index: int, target_index: int, gap: str) -> Example:
         scene = self.scene(index)
         src = pick_sources(scene, target_index, gap, self.n_sources)
-        return Example(sources=[scene.views[i] for i in src], target=scene.views[target_index],
-                       near=scene.near, far=scene.far, layout=scene.layout, scene_index=index, scene_seed=scene.seed,
-                       target_index=target_index, source_indices=src, gap=gap)
+        return Example(
+            sources=[scene.views[i] for i in src],
+            target=scene.views[target_index],
+            near=scene.near,
+            far=scene.far,
+            layout=scene.layout,
+            scene_index=index,
+            scene_seed=scene.seed,
+            target_index=target_index,
+            source_indices=src,
+            gap=gap,
+        )
 
     def sample(self, rng: np.random.Generator) -> Example:
         index = int(rng.integers(self.n_scenes))
@@ -263,7 +311,7 @@ def save_preview(scene: Scene, path: str | os.PathLike, max_views: int = 8) -> N
     for col, i in enumerate(idx):
         v = scene.views[i]
         x = pad + col * (w + pad)
-        sheet[pad:pad + h, x:x + w] = v.image
-        sheet[2 * pad + h:2 * pad + 2 * h, x:x + w] = _inverse_depth_colors(v.depth, scene.near, scene.far)
+        sheet[pad : pad + h, x : x + w] = v.image
+        sheet[2 * pad + h : 2 * pad + 2 * h, x : x + w] = _inverse_depth_colors(v.depth, scene.near, scene.far)
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(np.round(sheet * 255).astype(np.uint8)).save(path)

@@ -40,8 +40,13 @@ PROBE_WIDTH = 96
 # shared helpers
 
 
-def _sun(rng: np.random.Generator, elevation_deg: tuple[float, float], ambient: tuple[float, float],
-         toward_deg: float, spread_deg: float) -> Light:
+def _sun(
+    rng: np.random.Generator,
+    elevation_deg: tuple[float, float],
+    ambient: tuple[float, float],
+    toward_deg: float,
+    spread_deg: float,
+) -> Light:
     """A directional light whose azimuth is within ``spread_deg`` of ``toward_deg`` (the side the
     cameras are on), so most visible faces are lit, as in most photographs."""
     az = np.radians(toward_deg + rng.uniform(-spread_deg, spread_deg))
@@ -49,12 +54,14 @@ def _sun(rng: np.random.Generator, elevation_deg: tuple[float, float], ambient: 
     direction = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
     warmth = rng.uniform(-0.08, 0.08)
     color = np.array([1.0 + warmth, 1.0, 1.0 - warmth])
-    return Light(direction=direction, color=color, ambient=float(rng.uniform(*ambient)),
-                 diffuse=float(rng.uniform(0.6, 0.8)))
+    return Light(
+        direction=direction, color=color, ambient=float(rng.uniform(*ambient)), diffuse=float(rng.uniform(0.6, 0.8))
+    )
 
 
-def _random_shape(rng: np.random.Generator, size: float, base: np.ndarray, material: Material,
-                  upright: bool) -> tuple[Primitive, float]:
+def _random_shape(
+    rng: np.random.Generator, size: float, base: np.ndarray, material: Material, upright: bool
+) -> tuple[Primitive, float]:
     """A box, sphere or cylinder of roughly ``size`` resting on z = base[2] (if ``upright``) or
     freely rotated around ``base``; returns the primitive and its bounding radius."""
     kind = rng.choice(["box", "sphere", "cylinder"], p=[0.4, 0.3, 0.3])
@@ -83,8 +90,9 @@ def _grid(rng: np.random.Generator, n: int, aspect: float, jitter: float) -> np.
     pts = []
     for r in range(rows):
         for c in range(cols):
-            pts.append(((c + 0.5 + rng.uniform(-jitter, jitter)) / cols,
-                        (r + 0.5 + rng.uniform(-jitter, jitter)) / rows))
+            pts.append(
+                ((c + 0.5 + rng.uniform(-jitter, jitter)) / cols, (r + 0.5 + rng.uniform(-jitter, jitter)) / rows)
+            )
     pts = np.array(pts[:n])
     return np.clip(pts, 0.0, 1.0)
 
@@ -105,11 +113,13 @@ def _probe_range(world: World, cameras: list[Camera]) -> tuple[float, float]:
 
 
 def _object_world(rng: np.random.Generator, cam_azimuth: float) -> World:
-    table_mat = random_material(rng, scale_range=(2.0, 6.0), specular_prob=0.1,
-                                patterns=("noise", "checker", "stripes", "marble", "flat"))
+    table_mat = random_material(
+        rng, scale_range=(2.0, 6.0), specular_prob=0.1, patterns=("noise", "checker", "stripes", "marble", "flat")
+    )
     table_r = rng.uniform(0.9, 1.05)
-    prims: list[Primitive] = [Cylinder(center=np.array([0.0, 0.0, -0.05]), material=table_mat,
-                                       radius=table_r, half_height=0.05)]
+    prims: list[Primitive] = [
+        Cylinder(center=np.array([0.0, 0.0, -0.05]), material=table_mat, radius=table_r, half_height=0.05)
+    ]
     n_obj = int(rng.integers(3, 8))
     tries = 0
     while len(prims) < n_obj + 1 and tries < 100:
@@ -126,8 +136,7 @@ def _object_world(rng: np.random.Generator, cam_azimuth: float) -> World:
     return World(primitives=prims, light=_sun(rng, (30.0, 75.0), (0.35, 0.5), np.degrees(cam_azimuth), 100.0))
 
 
-def _object_cameras(rng: np.random.Generator, n: int, width: int, height: int, hfov: float,
-                    az0: float) -> list[Camera]:
+def _object_cameras(rng: np.random.Generator, n: int, width: int, height: int, hfov: float, az0: float) -> list[Camera]:
     dist = rng.uniform(3.1, 3.5)
     az_span = np.radians(rng.uniform(80.0, 140.0))
     el_lo, el_hi = np.radians(rng.uniform(15.0, 25.0)), np.radians(rng.uniform(45.0, 60.0))
@@ -158,14 +167,25 @@ TABLETOP_HFOV = (26.0, 32.0)  # DTU's 640x512 crops see ~25 degrees: objects fil
 def _tabletop_world(rng: np.random.Generator, cam_azimuth: float) -> World:
     """A square table with a wood, stone or cloth texture, four to eight textured objects on it, a
     sun from the cameras' side with cast shadows; beyond the table the void is black, like DTU's."""
-    table_mat = random_material(rng, scale_range=(1.5, 5.0), specular_prob=0.15,
-                                patterns=("noise", "marble", "stripes", "checker"), weights=(3, 3, 2, 1))
-    table_mat = dataclasses.replace(table_mat, colors=np.stack([random_color(rng, sat=(0.1, 0.45), val=(0.35, 0.85))
-                                                                 for _ in range(3)]))
+    table_mat = random_material(
+        rng,
+        scale_range=(1.5, 5.0),
+        specular_prob=0.15,
+        patterns=("noise", "marble", "stripes", "checker"),
+        weights=(3, 3, 2, 1),
+    )
+    table_mat = dataclasses.replace(
+        table_mat, colors=np.stack([random_color(rng, sat=(0.1, 0.45), val=(0.35, 0.85)) for _ in range(3)])
+    )
     half = rng.uniform(1.4, 1.8)
-    prims: list[Primitive] = [Box(center=np.array([0.0, 0.0, -0.05]), material=table_mat,
-                                  rotation=rotation_from_euler(rng.uniform(0, 2 * np.pi)),
-                                  half=np.array([half, half, 0.05]))]
+    prims: list[Primitive] = [
+        Box(
+            center=np.array([0.0, 0.0, -0.05]),
+            material=table_mat,
+            rotation=rotation_from_euler(rng.uniform(0, 2 * np.pi)),
+            half=np.array([half, half, 0.05]),
+        )
+    ]
     n_obj = int(rng.integers(4, 9))
     tries = 0
     while len(prims) < n_obj + 1 and tries < 200:
@@ -181,8 +201,9 @@ def _tabletop_world(rng: np.random.Generator, cam_azimuth: float) -> World:
     return World(primitives=prims, light=light, shadows=True)
 
 
-def _tabletop_cameras(rng: np.random.Generator, n: int, width: int, height: int, hfov: float,
-                      az0: float) -> list[Camera]:
+def _tabletop_cameras(
+    rng: np.random.Generator, n: int, width: int, height: int, hfov: float, az0: float
+) -> list[Camera]:
     """Rows of cameras on an arc around the table, as DTU's robot arm places them."""
     dist = rng.uniform(3.0, 3.4)
     az_span = np.radians(rng.uniform(90.0, 120.0))
@@ -211,10 +232,12 @@ def _wall(y: float, material: Material) -> Plane:
 
 def _forward_world(rng: np.random.Generator, hfov: float, cam_height: float) -> World:
     back = rng.uniform(8.0, 12.0)
-    wall_mat = random_material(rng, scale_range=(0.3, 1.5), specular_prob=0.0,
-                               patterns=("noise", "stripes", "checker", "marble", "gradient"))
-    floor_mat = random_material(rng, scale_range=(0.5, 3.0), specular_prob=0.1,
-                                patterns=("noise", "checker", "stripes", "marble"))
+    wall_mat = random_material(
+        rng, scale_range=(0.3, 1.5), specular_prob=0.0, patterns=("noise", "stripes", "checker", "marble", "gradient")
+    )
+    floor_mat = random_material(
+        rng, scale_range=(0.5, 3.0), specular_prob=0.1, patterns=("noise", "checker", "stripes", "marble")
+    )
     prims: list[Primitive] = [_wall(back, wall_mat), Plane(center=np.zeros(3), material=floor_mat)]
     tan_h = np.tan(np.radians(hfov) / 2.0)
     tan_v = tan_h * 0.8  # placement assumes 5:4 frames so the scene does not depend on the output size
@@ -233,8 +256,9 @@ def _forward_world(rng: np.random.Generator, hfov: float, cam_height: float) -> 
     return World(primitives=prims, light=_sun(rng, (30.0, 75.0), (0.35, 0.5), -90.0, 100.0))
 
 
-def _forward_cameras(rng: np.random.Generator, n: int, width: int, height: int, hfov: float,
-                     cam_height: float) -> list[Camera]:
+def _forward_cameras(
+    rng: np.random.Generator, n: int, width: int, height: int, hfov: float, cam_height: float
+) -> list[Camera]:
     bw = rng.uniform(0.5, 1.0)
     bh = bw * rng.uniform(0.5, 0.8)
     focus = np.array([0.0, rng.uniform(6.0, 15.0), cam_height])
@@ -253,28 +277,47 @@ def _forward_cameras(rng: np.random.Generator, n: int, width: int, height: int, 
 
 def _earthy_material(rng: np.random.Generator, scale_range: tuple[float, float]) -> Material:
     hue = rng.choice([0.08, 0.1, 0.22, 0.28, 0.3, 0.12]) + rng.uniform(-0.03, 0.03)
-    colors = np.stack([random_color(rng, sat=(0.2, 0.6), val=(0.25, 0.6), hue=hue + rng.uniform(-0.05, 0.05))
-                       for _ in range(3)])
-    return Material(pattern="noise", colors=colors,
-                    scale=float(np.exp(rng.uniform(np.log(scale_range[0]), np.log(scale_range[1])))),
-                    seed=int(rng.integers(0, 2**31 - 1)))
+    colors = np.stack(
+        [random_color(rng, sat=(0.2, 0.6), val=(0.25, 0.6), hue=hue + rng.uniform(-0.05, 0.05)) for _ in range(3)]
+    )
+    return Material(
+        pattern="noise",
+        colors=colors,
+        scale=float(np.exp(rng.uniform(np.log(scale_range[0]), np.log(scale_range[1])))),
+        seed=int(rng.integers(0, 2**31 - 1)),
+    )
 
 
 def _foliage_material(rng: np.random.Generator) -> Material:
-    colors = np.stack([random_color(rng, sat=(0.35, 0.8), val=(0.15, 0.55), hue=rng.uniform(0.18, 0.38))
-                       for _ in range(3)])
-    return Material(pattern="noise", colors=colors, scale=float(rng.uniform(1.5, 4.0)),
-                    seed=int(rng.integers(0, 2**31 - 1)))
+    colors = np.stack(
+        [random_color(rng, sat=(0.35, 0.8), val=(0.15, 0.55), hue=rng.uniform(0.18, 0.38)) for _ in range(3)]
+    )
+    return Material(
+        pattern="noise", colors=colors, scale=float(rng.uniform(1.5, 4.0)), seed=int(rng.integers(0, 2**31 - 1))
+    )
 
 
 def _building_material(rng: np.random.Generator) -> Material:
-    m = random_material(rng, scale_range=(0.25, 1.0), specular_prob=0.2,
-                        patterns=("stripes", "checker", "noise", "flat", "marble"), weights=(3, 3, 2, 1, 1))
+    m = random_material(
+        rng,
+        scale_range=(0.25, 1.0),
+        specular_prob=0.2,
+        patterns=("stripes", "checker", "noise", "flat", "marble"),
+        weights=(3, 3, 2, 1, 1),
+    )
     # facades: mostly unsaturated, with real grime
     colors = 0.5 * m.colors + 0.5 * m.colors.mean(axis=1, keepdims=True)
     axis = np.array([0.0, 0.0, 1.0]) if rng.uniform() < 0.5 else np.array([1.0, 0.0, 0.0])
-    return Material(pattern=m.pattern, colors=colors, scale=m.scale, direction=axis, seed=m.seed,
-                    noise_amount=max(m.noise_amount, 0.3), specular=m.specular, shininess=m.shininess)
+    return Material(
+        pattern=m.pattern,
+        colors=colors,
+        scale=m.scale,
+        direction=axis,
+        seed=m.seed,
+        noise_amount=max(m.noise_amount, 0.3),
+        specular=m.specular,
+        shininess=m.shininess,
+    )
 
 
 def _outdoor_world(rng: np.random.Generator, hfov: float) -> World:
@@ -283,10 +326,21 @@ def _outdoor_world(rng: np.random.Generator, hfov: float) -> World:
     if rng.uniform() < 0.5:  # a road running away from the cameras
         road = random_material(rng, scale_range=(0.2, 0.6), patterns=("stripes", "noise"), specular_prob=0.0)
         grey = road.colors.mean(axis=1, keepdims=True) * np.array([[0.6], [0.6], [1.2]])
-        road = Material(pattern=road.pattern, colors=np.clip(0.7 * grey + 0.3 * road.colors, 0, 1),
-                        scale=road.scale, direction=np.array([1.0, 0.0, 0.0]), seed=road.seed, noise_amount=0.6)
-        prims.append(Plane(center=np.array([rng.uniform(-4.0, 4.0), 0.0, 0.01]), material=road,
-                           half=(float(rng.uniform(1.5, 4.0)), np.inf)))
+        road = Material(
+            pattern=road.pattern,
+            colors=np.clip(0.7 * grey + 0.3 * road.colors, 0, 1),
+            scale=road.scale,
+            direction=np.array([1.0, 0.0, 0.0]),
+            seed=road.seed,
+            noise_amount=0.6,
+        )
+        prims.append(
+            Plane(
+                center=np.array([rng.uniform(-4.0, 4.0), 0.0, 0.01]),
+                material=road,
+                half=(float(rng.uniform(1.5, 4.0)), np.inf),
+            )
+        )
 
     def spot(y_lo: float, y_hi: float, spread: float = 1.1) -> tuple[float, float]:
         y = float(np.exp(rng.uniform(np.log(y_lo), np.log(y_hi))))
@@ -295,31 +349,56 @@ def _outdoor_world(rng: np.random.Generator, hfov: float) -> World:
     for _ in range(int(rng.integers(3, 9))):  # buildings
         x, y = spot(18.0, 90.0)
         half = np.array([rng.uniform(2.0, 8.0), rng.uniform(2.0, 8.0), rng.uniform(2.0, 12.0)])
-        prims.append(Box(center=np.array([x, y + half[1], half[2]]), material=_building_material(rng),
-                         rotation=rotation_from_euler(rng.uniform(-0.35, 0.35)), half=half))
+        prims.append(
+            Box(
+                center=np.array([x, y + half[1], half[2]]),
+                material=_building_material(rng),
+                rotation=rotation_from_euler(rng.uniform(-0.35, 0.35)),
+                half=half,
+            )
+        )
     for _ in range(int(rng.integers(3, 11))):  # trees
         x, y = spot(6.0, 50.0)
         trunk_h = rng.uniform(1.0, 2.0)
         trunk_mat = _earthy_material(rng, (3.0, 8.0))
-        prims.append(Cylinder(center=np.array([x, y, trunk_h]), material=trunk_mat,
-                              radius=float(rng.uniform(0.15, 0.35)), half_height=trunk_h))
+        prims.append(
+            Cylinder(
+                center=np.array([x, y, trunk_h]),
+                material=trunk_mat,
+                radius=float(rng.uniform(0.15, 0.35)),
+                half_height=trunk_h,
+            )
+        )
         crown = rng.uniform(1.0, 2.8)
-        prims.append(Sphere(center=np.array([x, y, 2 * trunk_h + 0.7 * crown]), material=_foliage_material(rng),
-                            radius=crown))
+        prims.append(
+            Sphere(center=np.array([x, y, 2 * trunk_h + 0.7 * crown]), material=_foliage_material(rng), radius=crown)
+        )
     for _ in range(int(rng.integers(1, 5))):  # poles
         x, y = spot(5.0, 30.0)
         hh = rng.uniform(1.5, 4.0)
-        prims.append(Cylinder(center=np.array([x, y, hh]), material=random_material(rng, (1.0, 4.0)),
-                              radius=float(rng.uniform(0.06, 0.18)), half_height=hh))
+        prims.append(
+            Cylinder(
+                center=np.array([x, y, hh]),
+                material=random_material(rng, (1.0, 4.0)),
+                radius=float(rng.uniform(0.06, 0.18)),
+                half_height=hh,
+            )
+        )
     for _ in range(int(rng.integers(2, 7))):  # rocks, crates and other near props
         x, y = spot(3.5, 15.0, spread=0.9)
         size = rng.uniform(0.25, 0.9)
         if rng.uniform() < 0.5:
-            prims.append(Sphere(center=np.array([x, y, size * rng.uniform(-0.3, 0.4)]),
-                                material=_earthy_material(rng, (1.0, 4.0)), radius=size))
+            prims.append(
+                Sphere(
+                    center=np.array([x, y, size * rng.uniform(-0.3, 0.4)]),
+                    material=_earthy_material(rng, (1.0, 4.0)),
+                    radius=size,
+                )
+            )
         else:
-            prims.append(_random_shape(rng, size, np.array([x, y, 0.0]), random_material(rng, (1.0, 5.0)),
-                                       upright=True)[0])
+            prims.append(
+                _random_shape(rng, size, np.array([x, y, 0.0]), random_material(rng, (1.0, 5.0)), upright=True)[0]
+            )
 
     overcast = rng.uniform() < 0.25
     if overcast:
@@ -331,9 +410,17 @@ def _outdoor_world(rng: np.random.Generator, hfov: float) -> World:
     horizon = np.clip(horizon, 0.0, 1.0)
     dome_r = float(rng.uniform(150.0, 300.0))
     sky_mat = Material(pattern="flat", colors=np.stack([horizon] * 3), emissive=True)
-    prims.append(SkyDome(center=np.zeros(3), material=sky_mat, radius=dome_r, zenith=zenith, horizon=horizon,
-                         cloud_seed=int(rng.integers(0, 2**31 - 1)),
-                         cloud_amount=float(rng.uniform(0.0, 0.6)) if not overcast else 0.0))
+    prims.append(
+        SkyDome(
+            center=np.zeros(3),
+            material=sky_mat,
+            radius=dome_r,
+            zenith=zenith,
+            horizon=horizon,
+            cloud_seed=int(rng.integers(0, 2**31 - 1)),
+            cloud_amount=float(rng.uniform(0.0, 0.6)) if not overcast else 0.0,
+        )
+    )
     haze = Haze(color=horizon * 0.95, center=np.array([0.0, 0.0, 0.0]), distance=float(rng.uniform(80.0, 220.0)))
     return World(primitives=prims, light=_sun(rng, (20.0, 70.0), (0.4, 0.55), -90.0, 130.0), haze=haze)
 
@@ -356,8 +443,9 @@ def _outdoor_cameras(rng: np.random.Generator, n: int, width: int, height: int, 
 # ----------------------------------------------------------------------------------------------
 
 
-def build_layout(seed: int, layout: str, n_views: int, width: int, height: int
-                 ) -> tuple[World, list[Camera], float, float]:
+def build_layout(
+    seed: int, layout: str, n_views: int, width: int, height: int
+) -> tuple[World, list[Camera], float, float]:
     """World, cameras and [near, far] of scene ``seed`` in ``layout`` (nothing rendered yet)."""
     if layout not in ALL_LAYOUTS:
         raise ValueError(f"layout must be one of {ALL_LAYOUTS}, got {layout!r}")

@@ -48,10 +48,10 @@ def pixel_rays(camera: Camera, offset: tuple[float, float] = (0.0, 0.0)) -> tupl
     """Origin (3,) and world directions (H*W, 3) of the rays through pixel centres (+ a sub-pixel
     offset), row-major.  Directions have camera-frame z = 1, so the hit parameter t is the z-depth."""
     fx, fy, cx, cy = camera.K[0, 0], camera.K[1, 1], camera.K[0, 2], camera.K[1, 2]
-    v, u = np.meshgrid(np.arange(camera.height, dtype=np.float64), np.arange(camera.width, dtype=np.float64),
-                       indexing="ij")
-    d_cam = np.stack([(u.ravel() + offset[0] - cx) / fx, (v.ravel() + offset[1] - cy) / fy,
-                      np.ones(u.size)], axis=-1)
+    v, u = np.meshgrid(
+        np.arange(camera.height, dtype=np.float64), np.arange(camera.width, dtype=np.float64), indexing="ij"
+    )
+    d_cam = np.stack([(u.ravel() + offset[0] - cx) / fx, (v.ravel() + offset[1] - cy) / fy, np.ones(u.size)], axis=-1)
     return camera.center, d_cam @ camera.rotation
 
 
@@ -179,8 +179,12 @@ def render_view(world: World, camera: Camera, supersample: int = 1, quantize: bo
     if quantize:
         rgb = np.round(rgb * 255.0) / 255.0
         alpha = np.round(alpha * 255.0) / 255.0
-    return View(image=rgb.astype(np.float32), depth=t_centre.reshape(h, w).astype(np.float32),
-                alpha=alpha.astype(np.float32), camera=camera)
+    return View(
+        image=rgb.astype(np.float32),
+        depth=t_centre.reshape(h, w).astype(np.float32),
+        alpha=alpha.astype(np.float32),
+        camera=camera,
+    )
 
 
 def trace_depth(world: World, camera: Camera, width: int | None = None) -> np.ndarray:

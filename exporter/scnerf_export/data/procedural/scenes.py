@@ -10,8 +10,9 @@ from .raytrace import render_view
 GAPS: tuple[str, ...] = ("small", "medium", "large")
 
 
-def make_scene(seed: int, layout: str, n_views: int = 20, width: int = 160, height: int = 128,
-               supersample: int = 2) -> Scene:
+def make_scene(
+    seed: int, layout: str, n_views: int = 20, width: int = 160, height: int = 128, supersample: int = 2
+) -> Scene:
     """Render ``n_views`` views of procedural scene ``seed`` in ``layout``.
 
     Deterministic: the same arguments give bit-identical arrays (on another CPU or numpy build,
@@ -21,8 +22,7 @@ def make_scene(seed: int, layout: str, n_views: int = 20, width: int = 160, heig
     """
     world, cameras, near, far = build_layout(seed, layout, n_views, width, height)
     views = [render_view(world, cam, supersample=supersample) for cam in cameras]
-    return Scene(views=views, near=near, far=far, layout=layout, seed=int(seed),
-                 meta={"supersample": int(supersample)})
+    return Scene(views=views, near=near, far=far, layout=layout, seed=int(seed), meta={"supersample": int(supersample)})
 
 
 def source_ranking(scene: Scene, target_index: int) -> list[int]:
@@ -65,4 +65,4 @@ def pick_camera_sources(cameras: list[Camera], target_index: int, gap: str = "sm
     if len(ranking) < n_sources:
         raise ValueError(f"scene has {len(cameras)} views; need at least {n_sources + 1}")
     start = min(GAPS.index(gap) * n_sources, len(ranking) - n_sources)
-    return ranking[start:start + n_sources]
+    return ranking[start : start + n_sources]

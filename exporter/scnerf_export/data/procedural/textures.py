@@ -141,8 +141,14 @@ def albedo(m: Material, p: np.ndarray) -> np.ndarray:
     return np.clip(rgb, 0.0, 1.0)
 
 
-def sky_color(directions: np.ndarray, zenith: np.ndarray, horizon: np.ndarray, ground_haze: np.ndarray,
-              cloud_seed: int, cloud_amount: float) -> np.ndarray:
+def sky_color(
+    directions: np.ndarray,
+    zenith: np.ndarray,
+    horizon: np.ndarray,
+    ground_haze: np.ndarray,
+    cloud_seed: int,
+    cloud_amount: float,
+) -> np.ndarray:
     """Sky radiance for unit directions (N, 3) seen from the dome centre (z up): a zenith-horizon
     gradient with fbm clouds; below the horizon the haze colour, so the horizon has no seam."""
     elev = directions[:, 2]
@@ -159,8 +165,12 @@ def sky_color(directions: np.ndarray, zenith: np.ndarray, horizon: np.ndarray, g
     return np.clip(rgb, 0.0, 1.0)
 
 
-def random_color(rng: np.random.Generator, sat: tuple[float, float] = (0.15, 0.85),
-                 val: tuple[float, float] = (0.3, 0.95), hue: float | None = None) -> np.ndarray:
+def random_color(
+    rng: np.random.Generator,
+    sat: tuple[float, float] = (0.15, 0.85),
+    val: tuple[float, float] = (0.3, 0.95),
+    hue: float | None = None,
+) -> np.ndarray:
     """An RGB colour from HSV ranges (so saturation and brightness stay photographic)."""
     h = rng.uniform(0.0, 1.0) if hue is None else hue % 1.0
     s = rng.uniform(*sat)
@@ -175,9 +185,13 @@ def _hsv_to_rgb(h: float, s: float, v: float) -> np.ndarray:
     return np.array([(v, t, p), (q, v, p), (p, v, t), (p, q, v), (t, p, v), (v, p, q)][i])
 
 
-def random_material(rng: np.random.Generator, scale_range: tuple[float, float] = (1.0, 4.0),
-                    patterns: tuple[str, ...] = PATTERNS, specular_prob: float = 0.3,
-                    weights: tuple[float, ...] | None = None) -> Material:
+def random_material(
+    rng: np.random.Generator,
+    scale_range: tuple[float, float] = (1.0, 4.0),
+    patterns: tuple[str, ...] = PATTERNS,
+    specular_prob: float = 0.3,
+    weights: tuple[float, ...] | None = None,
+) -> Material:
     """A random textured material: pattern, harmonious or contrasting palette, frequency, noise."""
     pattern = str(rng.choice(patterns, p=None if weights is None else np.asarray(weights) / np.sum(weights)))
     hue = rng.uniform()
