@@ -19,7 +19,8 @@ OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
 def invert_rigid(m: np.ndarray) -> np.ndarray:
-    """Inverse of a 4x4 [R|t] matrix (exact for rotations, falls back to a general inverse)."""
+    """Inverse of a 4x4 [R|t] matrix, exact for rotations (falls back to a general inverse): the
+    data loaders' inverse. Requests are decoded with the general inverse, as the server does."""
     r = m[:3, :3]
     if np.allclose(r @ r.T, np.eye(3), atol=1e-6) and np.allclose(m[3], [0, 0, 0, 1]):
         out = np.eye(4)
@@ -29,27 +30,32 @@ def invert_rigid(m: np.ndarray) -> np.ndarray:
     return np.linalg.inv(m)
 
 
-def canonical_w2c(matrix, kind: str = "world_to_camera", axes: str = "opencv") -> np.ndarray:
+def canonical_w2c(matrix, kind: str = "world_to_camera", axes: str = "opencv", invert=np.linalg.inv) -> np.ndarray:
     """A pose in any of the API's conventions (``kind``: world_to_camera | camera_to_world, ``axes``:
-    opencv | opengl; 4x4 or 3x4) -> world-to-camera in OpenCV axes (4, 4)."""
+    opencv | opengl; 4x4 or 3x4) -> world-to-camera in OpenCV axes (4, 4).
+
+    ``invert`` is the general inverse by default, the arithmetic of the server's decoding
+    (server/src/camera.rs: invert4, Gauss-Jordan like numpy.linalg.inv), so that both feed the graphs
+    the same cameras; the data loaders pass :func:`invert_rigid`."""
     m = np.asarray(matrix, dtype=np.float64)
     if m.shape == (3, 4):
         m = np.vstack([m, [0.0, 0.0, 0.0, 1.0]])
     if m.shape != (4, 4):
         raise ValueError(f"expected a 4x4 (or 3x4) pose matrix, got shape {m.shape}")
-    w2c = invert_rigid(m) if kind == "camera_to_world" else m
-    return OPENGL_TO_OPENCV @ w2c if axes == "opengl" else w2c
+    c2w = m if kind == "camera_to_world" else invert(m)
+    if axes == "opengl":
+        c2w = c2w @ OPENGL_TO_OPENCV
+    return invert(c2w)
 
 
 def opengl_c2w_to_opencv_w2c(c2w_gl: np.ndarray) -> np.ndarray:
-    """Camera-to-world in OpenGL axes (Blender, nerfstudio, LLFF once reordered) -> world-to-camera
-    in OpenCV axes."""
-    return canonical_w2c(c2w_gl, "camera_to_world", "opengl")
+    """Camera-to-world in OpenGL axes (Blender, nerfstudio) -> world-to-camera in OpenCV axes."""
+    return canonical_w2c(c2w_gl, "camera_to_world", "opengl", invert_rigid)
 
 
-def opencv_w2c_to_opengl_c2w(w2c_cv: np.ndarray) -> np.ndarray:
+def opencv_w2c_to_opengl_c2w(w2c_cv: np.ndarray, invert=invert_rigid) -> np.ndarray:
     """Inverse of :func:`opengl_c2w_to_opencv_w2c`."""
-    return invert_rigid(np.asarray(w2c_cv, dtype=np.float64)) @ OPENGL_TO_OPENCV
+    return invert(np.asarray(w2c_cv, dtype=np.float64)) @ OPENGL_TO_OPENCV
 
 
 def scaled_size(width: int, height: int, factor: float) -> tuple[int, int]:
@@ -66,7 +72,8 @@ class Camera:
 
     @property
     def c2w(self) -> np.ndarray:
-        return invert_rigid(self.w2c)
+        """Camera-to-world by the general inverse, as the server computes it: the rays match its rays."""
+        return np.linalg.inv(self.w2c)
 
     @property
     def rotation(self) -> np.ndarray:
@@ -76,7 +83,7 @@ class Camera:
     @property
     def center(self) -> np.ndarray:
         """Camera centre in world coordinates (3,)."""
-        return self.c2w[:3, 3]
+        return -self.w2c[:3, :3].T @ self.w2c[:3, 3]
 
     @property
     def forward(self) -> np.ndarray:
@@ -198,7 +205,7 @@ def camera_json(camera: Camera, pose: str = "opencv_w2c") -> dict:
     OpenGL camera-to-world (``opengl_c2w``); both must decode to the same camera."""
     K = camera.K
     if pose == "opengl_c2w":
-        matrix, kind, axes = opencv_w2c_to_opengl_c2w(camera.w2c), "camera_to_world", "opengl"
+        matrix, kind, axes = opencv_w2c_to_opengl_c2w(camera.w2c, np.linalg.inv), "camera_to_world", "opengl"
     else:
         matrix, kind, axes = camera.w2c, "world_to_camera", "opencv"
     return {
