@@ -14,10 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from scnerf_export import cameras as cams
 from scnerf_export.config import ModelConfig
 from scnerf_export.export.manifest import read_manifest
-from scnerf_export.runtime.view import pad_images, render_in_passes
 from scnerf_export.serving import png_bytes
 
 from . import REPO
@@ -67,7 +65,7 @@ def worker_torch(args) -> dict:
     """PyTorch eager: scnerf_export.runtime.reference (encode_scene split into its two graphs for stage times)."""
     import torch
 
-    from scnerf_export.runtime.reference import SceneTensors, render_rays
+    from scnerf_export.runtime.reference import build_scene, render_target, source_images
 
     torch.set_num_threads(args.threads)
     torch.set_num_interop_threads(1)
@@ -80,35 +78,15 @@ def worker_torch(args) -> dict:
     stages = {"decode": decode}
     total0 = time.perf_counter()
     with torch.no_grad():
-        padded = pad_images(images.astype(np.float32), cfg.image_multiple, bg)
-        imgs = torch.from_numpy(np.ascontiguousarray(padded.transpose(0, 3, 1, 2)))
+        imgs = source_images(cfg, images, bg)
         start = time.perf_counter()
         features = model.encode(imgs)
         stages["encoder"] = time.perf_counter() - start
         start = time.perf_counter()
-        volume = model.build_volume(
-            features,
-            imgs,
-            torch.from_numpy(cams.feature_projections(cameras)),
-            torch.from_numpy(cams.depth_planes(near, far, cfg.depth_planes)),
-        )
+        scene = build_scene(model, imgs, features, cameras, near, far)
         stages["volume"] = time.perf_counter() - start
-        scene = SceneTensors(
-            imgs,
-            features,
-            volume,
-            torch.from_numpy(cams.stack_intrinsics(cameras)),
-            torch.from_numpy(cams.stack_extrinsics(cameras)),
-        )
         start = time.perf_counter()
-        result = render_in_passes(
-            cfg,
-            target,
-            near,
-            far,
-            bg,
-            lambda o, d, depth_range: render_rays(model, scene, o, d, near, far, depth_range, args.chunk),
-        )
+        result = render_target(model, scene, target, near, far, bg, args.chunk)
         stages["renderer"] = time.perf_counter() - start
     start = time.perf_counter()
     png = png_bytes(result.rgb)

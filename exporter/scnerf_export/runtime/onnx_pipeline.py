@@ -124,11 +124,8 @@ class OnnxBundle:
         self, scene: dict, target: Camera, near: float, far: float, background=(0.0, 0.0, 0.0), chunk: int | None = None
     ) -> Rendering:
         """One target view of an encoded scene (what a cached scene costs per view)."""
-        return render_in_passes(
-            self.cfg,
-            target,
-            near,
-            far,
-            background,
-            lambda o, d, depth_range: self.render_rays(scene, o, d, near, far, depth_range, chunk),
-        )
+
+        def rays(origins, directions, depth_range):
+            return self.render_rays(scene, origins, directions, near, far, depth_range, chunk)
+
+        return render_in_passes(self.cfg, target, near, far, background, rays)

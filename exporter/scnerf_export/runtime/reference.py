@@ -10,6 +10,7 @@ import torch
 
 from .. import cameras as cams
 from ..cameras import Camera
+from ..config import ModelConfig
 from ..model.network import SCNeRF
 from .view import Rendering, pad_images, render_in_passes
 
@@ -25,26 +26,31 @@ class SceneTensors:
     extrinsics: torch.Tensor
 
 
+def source_images(cfg: ModelConfig, images: np.ndarray, background) -> torch.Tensor:
+    """Sources (V,H,W,3) in [0,1] -> (V,3,H',W'), padded to the image multiple with the background."""
+    padded = pad_images(images.astype(np.float32), cfg.image_multiple, background)
+    return torch.from_numpy(np.ascontiguousarray(padded.transpose(0, 3, 1, 2)))
+
+
+def build_scene(
+    model: SCNeRF, images: torch.Tensor, features: torch.Tensor, cameras: list[Camera], near: float, far: float
+) -> SceneTensors:
+    """The encoded sources with their volume (G2 over the cost volume of [near, far])."""
+    volume = model.build_volume(
+        features,
+        images,
+        torch.from_numpy(cams.feature_projections(cameras)),
+        torch.from_numpy(cams.depth_planes(near, far, model.cfg.depth_planes)),
+    )
+    intrinsics = torch.from_numpy(cams.stack_intrinsics(cameras))
+    return SceneTensors(images, features, volume, intrinsics, torch.from_numpy(cams.stack_extrinsics(cameras)))
+
+
 def encode_scene(
     model: SCNeRF, images: np.ndarray, cameras: list[Camera], near: float, far: float, background=(0.0, 0.0, 0.0)
 ) -> SceneTensors:
-    cfg = model.cfg
-    padded = pad_images(images.astype(np.float32), cfg.image_multiple, background)
-    imgs = torch.from_numpy(np.ascontiguousarray(padded.transpose(0, 3, 1, 2)))
-    features = model.encode(imgs)
-    volume = model.build_volume(
-        features,
-        imgs,
-        torch.from_numpy(cams.feature_projections(cameras)),
-        torch.from_numpy(cams.depth_planes(near, far, cfg.depth_planes)),
-    )
-    return SceneTensors(
-        imgs,
-        features,
-        volume,
-        torch.from_numpy(cams.stack_intrinsics(cameras)),
-        torch.from_numpy(cams.stack_extrinsics(cameras)),
-    )
+    imgs = source_images(model.cfg, images, background)
+    return build_scene(model, imgs, model.encode(imgs), cameras, near, far)
 
 
 def render_rays(
@@ -86,11 +92,16 @@ def render_view(
     """images: (V,H,W,3) float32 in [0,1] (alpha already composited on ``background``)."""
     model.eval()
     scene = encode_scene(model, images, cameras, near, far, background)
-    return render_in_passes(
-        model.cfg,
-        target,
-        near,
-        far,
-        background,
-        lambda o, d, depth_range: render_rays(model, scene, o, d, near, far, depth_range, chunk),
-    )
+    return render_target(model, scene, target, near, far, background, chunk)
+
+
+@torch.no_grad()
+def render_target(
+    model: SCNeRF, scene: SceneTensors, target: Camera, near: float, far: float, background, chunk: int = 1024
+) -> Rendering:
+    """One target view of an encoded scene."""
+
+    def rays(origins, directions, depth_range):
+        return render_rays(model, scene, origins, directions, near, far, depth_range, chunk)
+
+    return render_in_passes(model.cfg, target, near, far, background, rays)
