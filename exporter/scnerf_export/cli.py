@@ -120,8 +120,6 @@ def cmd_finetune(args) -> None:
 
 
 def cmd_quantize(args) -> None:
-    import json
-
     from .export.precision import compare_bundles, procedural_cases, quantize_bundle
 
     graphs = tuple(g.strip() for g in args.graphs.split(",") if g.strip())
