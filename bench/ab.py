@@ -1,6 +1,6 @@
 """Interleaved A/B of renderer graphs: the sessions take turns, one renderer run each per round.
 
-bench.py times whole views one after another, so a drift of the machine's speed between them
+The benchmark (python -m bench) times whole views one after another, so a drift of the machine's speed between them
 (10-30 % within minutes on a shared KVM guest) is as large as most graph changes. Here every
 round runs each bundle's renderer once on the same rays, so a drift shifts all of them alike.
 
@@ -8,11 +8,12 @@ Each session has its own intra-op thread pool (Python's onnxruntime cannot share
 server's sessions do), so spinning is off by default: a pool whose workers spin after its run
 takes a core from the next session's run, which made medians 3-5x the fastest round on 2 cores.
 
-    .venv/bin/python bench/ab.py bundles/default /tmp/candidate --rounds 40
-    .venv/bin/python bench/ab.py bundles/default bundles/default@session.set_denormal_as_zero=1
+    .venv/bin/python -m bench.ab bundles/default /tmp/candidate --rounds 40
+    .venv/bin/python -m bench.ab bundles/default bundles/default@session.set_denormal_as_zero=1
 
 A bundle may carry ONNX Runtime session config entries after '@' (key=value, '@'-separated).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -22,10 +23,11 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
-from bench import renderer_run_feeds  # bench/bench.py, beside this script
-from scnerf_export.onnx_pipeline import OnnxBundle, session_options
+from scnerf_export.runtime.onnx_pipeline import OnnxBundle, session_options
 
-REPO = Path(__file__).resolve().parent.parent
+from . import REPO
+from .scene import renderer_run_feeds
+
 EXAMPLE = REPO / "examples" / "tabletop"
 
 
@@ -47,8 +49,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("bundles", nargs="+", help="bundle directories, each optionally @key=value...")
     parser.add_argument("--rounds", type=int, default=40)
-    parser.add_argument("--rays", default="512",
-                        help="rays per run (the server's default chunk); a list (64,512) times each bundle at each")
+    parser.add_argument(
+        "--rays",
+        default="512",
+        help="rays per run (the server's default chunk); a list (64,512) times each bundle at each",
+    )
     parser.add_argument("--first-ray", type=int, default=20000, help="where the slice starts (inside the object)")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--spin", action="store_true", help="let idle workers spin (see the module docstring)")
@@ -69,9 +74,11 @@ def main() -> None:
         per_ray = np.array(spent) * 1e6 / rays
         rgb = session.run(None, feeds)[0]
         shared = min(len(rgb), len(reference))
-        print(f"{spec:40s} {rays:5d} rays: fastest {per_ray.min():6.1f}  p25 {np.quantile(per_ray, 0.25):6.1f}  "
-              f"median {np.median(per_ray):6.1f} µs/ray  max |rgb - first| "
-              f"{np.abs(rgb[:shared] - reference[:shared]).max():.1e}")
+        print(
+            f"{spec:40s} {rays:5d} rays: fastest {per_ray.min():6.1f}  p25 {np.quantile(per_ray, 0.25):6.1f}  "
+            f"median {np.median(per_ray):6.1f} µs/ray  max |rgb - first| "
+            f"{np.abs(rgb[:shared] - reference[:shared]).max():.1e}"
+        )
 
 
 if __name__ == "__main__":

@@ -1,15 +1,16 @@
 """Where one renderer run's time goes, node by node, and whether the order of its rays matters.
 
-ONNX Runtime's profiler on renderer runs of the benchmark scene (bench.py's, at any size): the
+ONNX Runtime's profiler on renderer runs of the benchmark scene (bench/scene.py, at any size): the
 kernel time per op type and the slowest nodes with their shapes. Each ``--tiles`` entry is a ray
 order: a run takes the pixels of an R x C tile (rows x columns; 1x512 is a piece of a row, as the
 server cuts them) at every ``--at`` position; the orders take turns within each round, so a
 drift of the machine's speed shifts all of them alike.
 
-    .venv/bin/python bench/chunk_profile.py --size 640x512
-    .venv/bin/python bench/chunk_profile.py --size 640x512 --tiles 1x512,16x32,32x16 \\
+    .venv/bin/python -m bench.chunk_profile --size 640x512
+    .venv/bin/python -m bench.chunk_profile --size 640x512 --tiles 1x512,16x32,32x16 \\
         --at 250,64 --at 200,100 --at 300,100 --at 260,40 --rounds 10
 """
+
 from __future__ import annotations
 
 import argparse
@@ -19,8 +20,11 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
-from bench import REPO, kernel_events_by_run, make_scene_dir, parse_sizes, renderer_run_feeds
-from scnerf_export.onnx_pipeline import OnnxBundle, session_options
+from scnerf_export.runtime.onnx_pipeline import OnnxBundle, session_options
+
+from . import REPO
+from .profile import kernel_events_by_run
+from .scene import make_scene_dir, parse_sizes, renderer_run_feeds
 
 PRODUCTS = ("Gemm", "MatMul", "FusedGemm", "FusedMatMul")
 
@@ -34,15 +38,20 @@ def main() -> None:
     parser.add_argument("--bundle", default=str(REPO / "bundles/default"))
     parser.add_argument("--size", default="640x512", help="WxH of the benchmark scene")
     parser.add_argument("--tiles", default="1x512", help="ray orders, RxC tiles (comma-separated)")
-    parser.add_argument("--at", action="append", default=[], metavar="ROW,COL",
-                        help="top-left pixel of a run (repeatable; default: the tiles centred in the view)")
+    parser.add_argument(
+        "--at",
+        action="append",
+        default=[],
+        metavar="ROW,COL",
+        help="top-left pixel of a run (repeatable; default: the tiles centred in the view)",
+    )
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--nodes", type=int, default=12, help="slowest nodes listed (first order only)")
     parser.add_argument("--cache", default=str(REPO / "bench/.cache"))
     args = parser.parse_args()
 
-    (width, height), = parse_sizes(args.size)
+    ((width, height),) = parse_sizes(args.size)
     tiles = [tuple(int(v) for v in t.split("x")) for t in args.tiles.split(",")]
     centred = ((height - max(r for r, _ in tiles)) // 2, (width - max(c for _, c in tiles)) // 2)
     spots = [tuple(int(v) for v in at.split(",")) for at in args.at] or [centred]
@@ -58,8 +67,13 @@ def main() -> None:
     feeds, start = [], 0
     for _, pixels in runs:
         stop = start + len(pixels)
-        feeds.append({**everything, "ray_origins": everything["ray_origins"][start:stop],
-                      "ray_directions": everything["ray_directions"][start:stop]})
+        feeds.append(
+            {
+                **everything,
+                "ray_origins": everything["ray_origins"][start:stop],
+                "ray_directions": everything["ray_directions"][start:stop],
+            }
+        )
         start = stop
 
     options = session_options(args.threads)
@@ -73,7 +87,7 @@ def main() -> None:
     for _ in range(args.rounds):
         for f in feeds:
             session.run(None, f)
-    measured = kernel_events_by_run(Path(session.end_profiling()))[len(feeds):]
+    measured = kernel_events_by_run(Path(session.end_profiling()))[len(feeds) :]
 
     by_tile: dict[tuple, list[collections.Counter]] = collections.defaultdict(list)
     for k, events in enumerate(measured):
@@ -86,8 +100,10 @@ def main() -> None:
         totals = [sum(c.values()) for c in counters]
         top = collections.Counter({op: float(np.median([c[op] for c in counters])) for op in counters[0]})
         products = np.median([sum(c[op] for op in PRODUCTS) for c in counters])
-        print(f"{tile[0]}x{tile[1]}: kernels {np.median(totals):.1f} (fastest {min(totals):.1f}), "
-              f"matrix products {products:.1f}; " + ", ".join(f"{op} {ms:.2f}" for op, ms in top.most_common(8)))
+        print(
+            f"{tile[0]}x{tile[1]}: kernels {np.median(totals):.1f} (fastest {min(totals):.1f}), "
+            f"matrix products {products:.1f}; " + ", ".join(f"{op} {ms:.2f}" for op, ms in top.most_common(8))
+        )
 
     first = [events for k, events in enumerate(measured) if runs[k % len(runs)][0] == tiles[0]]
     nodes: collections.Counter = collections.Counter()

@@ -17,7 +17,7 @@ import json
 import sys
 from pathlib import Path
 
-from scnerf_export.evaluate import evaluate, write_json
+from scnerf_export.evaluate.eval import evaluate, write_json
 from scnerf_export.serving import ServerProcess, find_server_binary
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -36,8 +36,9 @@ def measure(name: str, bundle: str, out: Path, target_scale: float, threads: int
                 if path.is_file():
                     continue
                 print(f"{name}: {scene}, {protocol} sources", flush=True)
-                summary = evaluate(None, SHARED / folder, fmt, sources=sources, target_scale=target_scale,
-                                   server=server.url)
+                summary = evaluate(
+                    None, SHARED / folder, fmt, sources=sources, target_scale=target_scale, server=server.url
+                )
                 write_json(summary, path)
 
 

@@ -1,11 +1,14 @@
 #!/usr/bin/env bash
-# Every test of the project: the Rust workspace (unit, HTTP, parity against the committed
-# fixtures, end-to-end) and the exporter's pytest suite. Needs network access to crates.io and
-# PyPI on the first run only.
+# Every test of the project: the Python lint (ruff, configured in ruff.toml), the Rust workspace
+# (unit, HTTP, parity against the committed fixtures, end-to-end), the exporter's pytest suite and
+# the benchmark's. Needs network access to crates.io and PyPI on the first run only.
 set -euo pipefail
 repo=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 cd "${repo}"
 scripts/fetch-onnxruntime.sh
 scripts/setup-python.sh
+.venv/bin/ruff check exporter bench
+.venv/bin/ruff format --check exporter bench
 cargo test -j2 --workspace --locked
 .venv/bin/python -m pytest -q -p no:cacheprovider exporter/tests
+.venv/bin/python -m pytest -q -p no:cacheprovider bench/tests

@@ -7,14 +7,13 @@ import json
 import sys
 from pathlib import Path
 
-from .checkpoint import CheckpointError
-from .finetune import Recipe
-from .onnx_pipeline import DEFAULT_CHUNK
+from .model.checkpoint import CheckpointError
+from .train.finetune import Recipe
 
 
 def cmd_convert(args) -> None:
-    from .checkpoint import load_mvsnerf
-    from .export import export_bundle
+    from .export.bundle import export_bundle
+    from .model.checkpoint import load_mvsnerf
 
     model, provenance = load_mvsnerf(args.ckpt)
     manifest = export_bundle(model, args.out, provenance)
@@ -22,14 +21,14 @@ def cmd_convert(args) -> None:
 
 
 def cmd_init_scnerf(args) -> None:
-    from .checkpoint import init_scnerf
+    from .model.checkpoint import init_scnerf
 
     print(f"wrote {init_scnerf(args.from_mvsnerf, args.out, seed=args.seed)}")
 
 
 def cmd_export(args) -> None:
-    from .checkpoint import load_checkpoint
-    from .export import export_bundle
+    from .export.bundle import export_bundle
+    from .model.checkpoint import load_checkpoint
 
     model, provenance = load_checkpoint(args.checkpoint)
     if args.metrics:
@@ -39,19 +38,31 @@ def cmd_export(args) -> None:
 
 
 def cmd_fixtures(args) -> None:
-    from .fixtures import write_fixtures
+    from .export.fixtures import write_fixtures
 
     print(f"wrote {write_fixtures(args.out, variant=args.variant, seed=args.seed)}")
 
 
 def cmd_eval(args) -> None:
-    from .evaluate import evaluate, split_names, write_json
+    from .evaluate.eval import evaluate, split_names, write_json
 
     if (args.bundle is None) == (args.server is None):
         raise ValueError("eval takes exactly one of --bundle DIR and --server URL")
-    summary = evaluate(args.bundle, args.scene, args.format, split_names(args.sources), split_names(args.targets),
-                       args.scale, args.near, args.far, args.threads, args.chunk, args.save_renders,
-                       args.target_scale, args.server)
+    summary = evaluate(
+        args.bundle,
+        args.scene,
+        args.format,
+        split_names(args.sources),
+        split_names(args.targets),
+        args.scale,
+        args.near,
+        args.far,
+        args.threads,
+        args.chunk,
+        args.save_renders,
+        args.target_scale,
+        args.server,
+    )
     if "lpips_unavailable" in summary:
         print(f"LPIPS not computed: {summary['lpips_unavailable']}")
     if args.json:
@@ -60,13 +71,13 @@ def cmd_eval(args) -> None:
 
 
 def cmd_example(args) -> None:
-    from .example import write_example
+    from .data.example import write_example
 
     print(f"wrote {write_example(args.out)}")
 
 
 def cmd_experiment(args) -> None:
-    from .experiment import run
+    from .evaluate.experiment import run
 
     bundles = {}
     for item in args.bundle:
@@ -78,40 +89,58 @@ def cmd_experiment(args) -> None:
 
 
 def cmd_train(args) -> None:
-    from .train import train
+    from .train.from_scratch import train
 
-    last = train(args.variant, args.preset, args.out, resume=args.resume, steps=args.steps, seed=args.seed,
-                 cache_dir=args.cache, threads=args.threads)
+    last = train(
+        args.variant,
+        args.preset,
+        args.out,
+        resume=args.resume,
+        steps=args.steps,
+        seed=args.seed,
+        cache_dir=args.cache,
+        threads=args.threads,
+    )
     print(f"checkpoint {last}")
 
 
 def cmd_finetune(args) -> None:
-    from .finetune import finetune
+    from .train.finetune import finetune
 
-    recipe = Recipe(steps=args.steps, rays=args.rays, lr=args.lr, pretrained_lr_scale=args.pretrained_lr_scale,
-                    scenes=args.scenes, seed=args.seed, validate_every=args.validate_every)
+    recipe = Recipe(
+        steps=args.steps,
+        rays=args.rays,
+        lr=args.lr,
+        pretrained_lr_scale=args.pretrained_lr_scale,
+        scenes=args.scenes,
+        seed=args.seed,
+        validate_every=args.validate_every,
+    )
     print(f"checkpoint {finetune(args.init, args.out, args.shared, recipe, args.threads, args.cache)}")
 
 
 def cmd_quantize(args) -> None:
-    import json
-
-    from .precision import compare_bundles, procedural_cases, quantize_bundle
+    from .export.precision import compare_bundles, procedural_cases, quantize_bundle
 
     graphs = tuple(g.strip() for g in args.graphs.split(",") if g.strip())
     manifest = quantize_bundle(args.bundle, args.out, args.precision, graphs=graphs, min_inner=args.min_inner)
     print(f"wrote {args.out} ({manifest['model_id']}, {args.precision}: {', '.join(graphs)})")
     if args.compare:
         width, height = (int(x) for x in args.compare_size.lower().split("x"))
-        report = compare_bundles(args.bundle, args.out, procedural_cases(args.compare, width, height),
-                                 threads=args.threads)
+        report = compare_bundles(
+            args.bundle, args.out, procedural_cases(args.compare, width, height), threads=args.threads
+        )
         for row in report["rows"]:
-            print(f"{row['case']:>22}  fp32 {row['psnr_fp32']:6.2f} dB  {args.precision} {row['psnr_candidate']:6.2f} dB"
-                  f"  drop {row['psnr_drop']:+.3f} dB  renderer {row['renderer_seconds_fp32']:.2f} s -> "
-                  f"{row['renderer_seconds_candidate']:.2f} s")
+            print(
+                f"{row['case']:>22}  fp32 {row['psnr_fp32']:6.2f} dB  {args.precision} {row['psnr_candidate']:6.2f} dB"
+                f"  drop {row['psnr_drop']:+.3f} dB  renderer {row['renderer_seconds_fp32']:.2f} s -> "
+                f"{row['renderer_seconds_candidate']:.2f} s"
+            )
         verdict = "offer" if report["offer"] else "do not offer"
-        print(f"mean PSNR drop {report['psnr_drop_db']:+.3f} dB, renderer speed-up x{report['renderer_speedup']:.2f}: "
-              f"{verdict} ({report['rule']})")
+        print(
+            f"mean PSNR drop {report['psnr_drop_db']:+.3f} dB, renderer speed-up x{report['renderer_speedup']:.2f}: "
+            f"{verdict} ({report['rule']})"
+        )
         if args.json:
             args.json.parent.mkdir(parents=True, exist_ok=True)
             args.json.write_text(json.dumps(report, indent=2, default=float) + "\n")
@@ -119,7 +148,7 @@ def cmd_quantize(args) -> None:
 
 
 def cmd_reexport(args) -> None:
-    from .reexport import reexport_bundle
+    from .export.reexport import reexport_bundle
 
     manifest = reexport_bundle(args.bundle, args.out)
     diff = manifest["provenance"]["reexport"]["renderer_max_abs_difference"]
@@ -158,17 +187,24 @@ def parser() -> argparse.ArgumentParser:
     v.add_argument("--server", help="render through the server at this URL instead (e.g. http://127.0.0.1:8080)")
     v.add_argument("--scene", required=True, type=Path)
     v.add_argument("--format", required=True, choices=["dtu", "blender", "llff", "nerfstudio", "colmap"])
-    v.add_argument("--sources", help="comma-separated view names, the same for every target, or 'fixed' for the "
-                   "scene's fixed triple (default: per target, the 3 nearest views by camera-centre distance "
-                   "among those that are not targets)")
+    v.add_argument(
+        "--sources",
+        help="comma-separated view names, the same for every target, or 'fixed' for the "
+        "scene's fixed triple (default: per target, the 3 nearest views by camera-centre distance "
+        "among those that are not targets)",
+    )
     v.add_argument("--targets", help="comma-separated view names (default: the scene's)")
     v.add_argument("--scale", type=float, default=1.0, help="resize every view by this factor")
-    v.add_argument("--target-scale", type=float, default=1.0,
-                   help="render targets at 1/n size (ground truth box-averaged); sources stay full size")
+    v.add_argument(
+        "--target-scale",
+        type=float,
+        default=1.0,
+        help="render targets at 1/n size (ground truth box-averaged); sources stay full size",
+    )
     v.add_argument("--near", type=float)
     v.add_argument("--far", type=float)
     v.add_argument("--threads", type=int)
-    v.add_argument("--chunk", type=int, default=DEFAULT_CHUNK, help="rays per renderer call")
+    v.add_argument("--chunk", type=int, help="rays per renderer call (default: the server's for the bundle)")
     v.add_argument("--json", type=Path, help="write the results here")
     v.add_argument("--save-renders", type=Path, help="write rendered PNGs here")
     v.set_defaults(func=cmd_eval)
@@ -200,13 +236,21 @@ def parser() -> argparse.ArgumentParser:
     n = sub.add_parser("finetune", help="train scnerf's heads on a frozen backbone from an init-scnerf checkpoint")
     n.add_argument("--init", required=True, type=Path, help="checkpoint from init-scnerf")
     n.add_argument("--out", required=True, type=Path)
-    n.add_argument("--shared", type=Path, default=Path("../shared"),
-                   help="folder with data/ (validation scenes: they choose the checkpoint, never train)")
+    n.add_argument(
+        "--shared",
+        type=Path,
+        default=Path("../shared"),
+        help="folder with data/ (validation scenes: they choose the checkpoint, never train)",
+    )
     n.add_argument("--steps", type=int, default=defaults.steps)
     n.add_argument("--rays", type=int, default=defaults.rays, help="rays per step")
     n.add_argument("--lr", type=float, default=defaults.lr, help="learning rate of the rectifiers")
-    n.add_argument("--pretrained-lr-scale", type=float, default=defaults.pretrained_lr_scale,
-                   help="M2's and M4's learning rate relative to the rectifiers'")
+    n.add_argument(
+        "--pretrained-lr-scale",
+        type=float,
+        default=defaults.pretrained_lr_scale,
+        help="M2's and M4's learning rate relative to the rectifiers'",
+    )
     n.add_argument("--scenes", type=int, default=defaults.scenes, help="procedural training scenes")
     n.add_argument("--validate-every", type=int, default=defaults.validate_every)
     n.add_argument("--seed", type=int, default=defaults.seed)
@@ -220,8 +264,13 @@ def parser() -> argparse.ArgumentParser:
     q.add_argument("--precision", required=True, choices=["int8", "fp16"])
     q.add_argument("--graphs", default="renderer", help="comma-separated: renderer (default), volume")
     q.add_argument("--min-inner", type=int, default=16, help="convert only products with inner size >= this")
-    q.add_argument("--compare", type=int, default=0, metavar="N",
-                   help="render N held-out procedural views through both bundles and report the PSNR drop")
+    q.add_argument(
+        "--compare",
+        type=int,
+        default=0,
+        metavar="N",
+        help="render N held-out procedural views through both bundles and report the PSNR drop",
+    )
     q.add_argument("--compare-size", default="160x128")
     q.add_argument("--threads", type=int)
     q.add_argument("--json", type=Path, help="write the comparison here")

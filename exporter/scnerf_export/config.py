@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 VARIANTS = ("mvsnerf", "scnerf", "scnerf-geometry", "scnerf-appearance")
 DEPTH_NORMS = ("near_far", "image_minmax")
@@ -56,8 +56,10 @@ class ModelConfig:
         if self.image_multiple % 32:
             raise ValueError("image_multiple must be a multiple of 32")
         if not 0 <= self.skip_layer < self.trunk_layers - 1:
-            raise ValueError("skip_layer must name a trunk layer that has a layer after it "
-                             f"(0..{self.trunk_layers - 2}), got {self.skip_layer}")
+            raise ValueError(
+                "skip_layer must name a trunk layer that has a layer after it "
+                f"(0..{self.trunk_layers - 2}), got {self.skip_layer}"
+            )
 
     @property
     def geometry_rectification(self) -> bool:

@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from .cameras import Camera
-from .render import Rendering
+from .cameras import Camera, camera_json
+from .runtime.view import Rendering
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -37,8 +37,14 @@ def find_server_binary(explicit: str | Path | None = None) -> Path | None:
 class ServerProcess:
     """``scnerf-server`` on an ephemeral loopback port, ready (``/readyz`` 200) once constructed."""
 
-    def __init__(self, binary: Path, bundle: str | Path, threads: int | None = None, extra: tuple[str, ...] = (),
-                 ready_timeout: float = 900.0):
+    def __init__(
+        self,
+        binary: Path,
+        bundle: str | Path,
+        threads: int | None = None,
+        extra: tuple[str, ...] = (),
+        ready_timeout: float = 900.0,
+    ):
         env = {**os.environ, "RUST_LOG": os.environ.get("RUST_LOG", "warn")}
         args = [str(binary), "--bundle", str(bundle), "--addr", "127.0.0.1:0", *extra]
         if threads:
@@ -66,8 +72,9 @@ class ServerProcess:
         self.startup_ms = (time.perf_counter() - start) * 1000.0
         self.model = json.loads(self.request("GET", "/v1/model")[1])
 
-    def request(self, method: str, path: str, body: bytes | None = None, headers: dict | None = None,
-                timeout: float = 3600.0) -> tuple[int, bytes, dict]:
+    def request(
+        self, method: str, path: str, body: bytes | None = None, headers: dict | None = None, timeout: float = 3600.0
+    ) -> tuple[int, bytes, dict]:
         return http_request(self.url, method, path, body, headers, timeout)
 
     def peak_rss_mib(self) -> float:
@@ -91,8 +98,9 @@ class ServerProcess:
         self.stop()
 
 
-def http_request(url: str, method: str, path: str, body: bytes | None = None, headers: dict | None = None,
-                 timeout: float = 3600.0) -> tuple[int, bytes, dict]:
+def http_request(
+    url: str, method: str, path: str, body: bytes | None = None, headers: dict | None = None, timeout: float = 3600.0
+) -> tuple[int, bytes, dict]:
     """Status, body and headers of one request; error statuses are answers, not exceptions."""
     req = urllib.request.Request(url + path, data=body, method=method, headers=headers or {})
     try:
@@ -103,7 +111,7 @@ def http_request(url: str, method: str, path: str, body: bytes | None = None, he
 
 
 class ServedBundle:
-    """The bundle a running server serves, used like :class:`onnx_pipeline.OnnxBundle`: a scene is
+    """The bundle a running server serves, used like :class:`runtime.onnx_pipeline.OnnxBundle`: a scene is
     encoded once (``POST /v1/scenes``) and each target rendered from it (``/v1/scenes/{id}/render``)."""
 
     def __init__(self, url: str):
@@ -114,27 +122,47 @@ class ServedBundle:
         self.manifest = json.loads(body)
 
     def _post_json(self, path: str, document: dict) -> dict:
-        status, body, _ = http_request(self.url, "POST", path, json.dumps(document).encode(),
-                                       {"content-type": "application/json", "accept": "application/json"})
+        status, body, _ = http_request(
+            self.url,
+            "POST",
+            path,
+            json.dumps(document).encode(),
+            {"content-type": "application/json", "accept": "application/json"},
+        )
         if status not in (200, 201):
             raise ValueError(f"POST {path} answered {status}: {body[:500].decode(errors='replace')}")
         return json.loads(body)
 
     def encode_scene(self, images: np.ndarray, cameras: list[Camera], near: float, far: float, background) -> str:
-        sources = [{"camera": camera_json(c), "image": base64.b64encode(png_bytes(im)).decode()}
-                   for im, c in zip(images, cameras)]
-        document = {"sources": sources, "near": float(near), "far": float(far),
-                    "background": [float(b) for b in background]}
+        sources = [
+            {"camera": camera_json(c), "image": base64.b64encode(png_bytes(im)).decode()}
+            for im, c in zip(images, cameras)
+        ]
+        document = {
+            "sources": sources,
+            "near": float(near),
+            "far": float(far),
+            "background": [float(b) for b in background],
+        }
         return self._post_json("/v1/scenes", document)["scene_id"]
 
-    def render_target(self, scene_id: str, target: Camera, near: float, far: float, background=(0.0, 0.0, 0.0),
-                      chunk: int | None = None) -> Rendering:
-        doc = self._post_json(f"/v1/scenes/{scene_id}/render",
-                              {"target": camera_json(target), "outputs": ["rgb", "depth", "opacity"]})
+    def render_target(
+        self,
+        scene_id: str,
+        target: Camera,
+        near: float,
+        far: float,
+        background=(0.0, 0.0, 0.0),
+        chunk: int | None = None,
+    ) -> Rendering:
+        doc = self._post_json(
+            f"/v1/scenes/{scene_id}/render", {"target": camera_json(target), "outputs": ["rgb", "depth", "opacity"]}
+        )
         rgb = np.asarray(Image.open(io.BytesIO(base64.b64decode(doc["rgb"]["data"]))).convert("RGB"), np.float32)
         shape = (target.height, target.width)
-        floats = {k: np.frombuffer(base64.b64decode(doc[k]["data"]), dtype="<f4").reshape(shape)
-                  for k in ("depth", "opacity")}
+        floats = {
+            k: np.frombuffer(base64.b64decode(doc[k]["data"]), dtype="<f4").reshape(shape) for k in ("depth", "opacity")
+        }
         return Rendering(rgb / 255.0, floats["depth"], floats["opacity"])
 
 
@@ -151,24 +179,28 @@ def multipart(fields: list[tuple[str, str, bytes, str]]) -> tuple[bytes, str]:
     parts = []
     for name, filename, data, ctype in fields:
         disp = f'form-data; name="{name}"' + (f'; filename="{filename}"' if filename else "")
-        parts.append(f"--{boundary}\r\nContent-Disposition: {disp}\r\nContent-Type: {ctype}\r\n\r\n".encode()
-                     + data + b"\r\n")
+        parts.append(
+            f"--{boundary}\r\nContent-Disposition: {disp}\r\nContent-Type: {ctype}\r\n\r\n".encode() + data + b"\r\n"
+        )
     return b"".join(parts) + f"--{boundary}--\r\n".encode(), f"multipart/form-data; boundary={boundary}"
 
 
-def camera_json(camera: Camera) -> dict:
-    """A camera in the API's canonical form (OpenCV axes, world-to-camera)."""
-    K = camera.K
-    return {"width": int(camera.width), "height": int(camera.height),
-            "intrinsics": {"fx": float(K[0, 0]), "fy": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2])},
-            "pose": {"matrix": camera.w2c.tolist(), "kind": "world_to_camera", "axes": "opencv"}}
-
-
-def render_request(sources: list[tuple[Camera, bytes]], target: Camera, near: float, far: float,
-                   background=(0.0, 0.0, 0.0), outputs=("rgb",)) -> bytes:
+def render_request(
+    sources: list[tuple[Camera, bytes]],
+    target: Camera,
+    near: float,
+    far: float,
+    background=(0.0, 0.0, 0.0),
+    outputs=("rgb",),
+) -> bytes:
     """A ``POST /v1/render`` JSON body: encoded source images (PNG/JPEG bytes) with their cameras."""
-    return json.dumps({
-        "sources": [{"camera": camera_json(c), "image": base64.b64encode(data).decode()} for c, data in sources],
-        "target": camera_json(target), "near": float(near), "far": float(far),
-        "background": [float(b) for b in background], "outputs": list(outputs),
-    }).encode()
+    return json.dumps(
+        {
+            "sources": [{"camera": camera_json(c), "image": base64.b64encode(data).decode()} for c, data in sources],
+            "target": camera_json(target),
+            "near": float(near),
+            "far": float(far),
+            "background": [float(b) for b in background],
+            "outputs": list(outputs),
+        }
+    ).encode()

@@ -1,0 +1,285 @@
+"""ONNX sub-graphs + manifest.json: the bundle the server runs (docs/bundle.md)."""
+
+from __future__ import annotations
+
+import datetime as _dt
+import warnings
+from pathlib import Path
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+import torch
+from torch import nn
+from torch.export import Dim
+
+from .. import __version__
+from ..model.checkpoint import sha256_file
+from ..model.network import SCNeRF
+from ..rigs import synthetic_rig
+from .manifest import model_id, write_manifest
+from .ray_groups import attention_cores_in_ray_groups
+
+FORMAT_VERSION = 1
+OPSET = 20
+
+# Example sizes for tracing: small and unlike any other axis so that no dimension is specialised.
+_EXAMPLE_BLOCKS_H, _EXAMPLE_BLOCKS_W, _EXAMPLE_RAYS = 2, 3, 37
+# A second validation size, not the tracing one: a size frozen into a graph shows up only there.
+CHECK_BLOCKS, CHECK_RAYS = (3, 2), 512
+
+
+class EncoderGraph(nn.Module):
+    def __init__(self, model: SCNeRF):
+        super().__init__()
+        self.model = model
+
+    def forward(self, images):
+        return self.model.encode(images)
+
+
+class VolumeGraph(nn.Module):
+    def __init__(self, model: SCNeRF):
+        super().__init__()
+        self.model = model
+
+    def forward(self, features, images, projections, depth_planes):
+        return self.model.build_volume(features, images, projections, depth_planes)
+
+
+def renderer_input_names(model: SCNeRF) -> list[str]:
+    """Inputs the renderer of this variant reads (docs/bundle.md): unused ones are not declared."""
+    cfg = model.cfg
+    names = ["ray_origins", "ray_directions", "near_far"]
+    if cfg.variant != "mvsnerf":
+        names.append("depth_range")
+    names += ["volume", "images"]
+    if cfg.appearance_rectification:
+        names.append("features")
+    return names + ["intrinsics", "extrinsics"]
+
+
+class RendererGraph(nn.Module):
+    def __init__(self, model: SCNeRF):
+        super().__init__()
+        self.model = model
+        self.names = renderer_input_names(model)
+
+    def forward(self, *args):
+        given = dict(zip(self.names, args))
+        return self.model.renderer(
+            given["ray_origins"],
+            given["ray_directions"],
+            given["near_far"],
+            given.get("depth_range", given["near_far"]),
+            given["volume"],
+            given["images"],
+            given.get("features"),
+            given["intrinsics"],
+            given["extrinsics"],
+        )
+
+
+def graph_signatures(model: SCNeRF) -> dict[str, dict[str, list]]:
+    """Names and shapes of every graph's inputs and outputs, as written in the manifest."""
+    cfg = model.cfg
+    v, c, d = cfg.views, cfg.feature_channels, cfg.depth_planes
+    vol = [1, cfg.volume_channels, d, "Hp", "Wp"]
+    renderer_inputs = {
+        "ray_origins": ["R", 3],
+        "ray_directions": ["R", 3],
+        "near_far": [2],
+        "depth_range": [2],
+        "volume": vol,
+        "images": [v, 3, "H", "W"],
+        "features": [v, c, "h", "w"],
+        "intrinsics": [v, 3, 3],
+        "extrinsics": [v, 4, 4],
+    }
+    return {
+        "encoder": {"inputs": {"images": [v, 3, "H", "W"]}, "outputs": {"features": [v, c, "h", "w"]}},
+        "volume": {
+            "inputs": {
+                "features": [v, c, "h", "w"],
+                "images": [v, 3, "H", "W"],
+                "projections": [v, 4, 4],
+                "depth_planes": [d],
+            },
+            "outputs": {"volume": vol},
+        },
+        "renderer": {
+            "inputs": {n: renderer_inputs[n] for n in renderer_input_names(model)},
+            "outputs": {"rgb": ["R", 3], "depth": ["R"], "opacity": ["R"]},
+        },
+    }
+
+
+def example_inputs(
+    model: SCNeRF,
+    seed: int = 0,
+    blocks: tuple[int, int] = (_EXAMPLE_BLOCKS_H, _EXAMPLE_BLOCKS_W),
+    rays: int = _EXAMPLE_RAYS,
+) -> dict[str, dict[str, torch.Tensor]]:
+    """Plausible tensors for tracing and validation: a small scene with real camera geometry,
+    images of ``blocks`` x 32 pixels, ``rays`` target rays."""
+    cfg = model.cfg
+    rig = synthetic_rig(cfg, 32 * blocks[0], 32 * blocks[1], seed=seed)
+    with torch.no_grad():
+        features = model.encode(rig["images"])
+        volume = model.build_volume(features, rig["images"], rig["projections"], rig["depth_planes"])
+    rays = {
+        "ray_origins": rig["ray_origins"][:rays],
+        "ray_directions": rig["ray_directions"][:rays],
+        # A tensor of its own: torch.export would alias two inputs given the same tensor object.
+        "near_far": rig["near_far"],
+        "depth_range": rig["near_far"] * torch.tensor([1.05, 0.95]),
+        "volume": volume,
+        "images": rig["images"],
+        "features": features,
+        "intrinsics": rig["intrinsics"],
+        "extrinsics": rig["extrinsics"],
+    }
+    return {
+        "encoder": {"images": rig["images"]},
+        "volume": {
+            "features": features,
+            "images": rig["images"],
+            "projections": rig["projections"],
+            "depth_planes": rig["depth_planes"],
+        },
+        "renderer": {n: rays[n] for n in renderer_input_names(model)},
+    }
+
+
+def _dynamic_shapes(model: SCNeRF, graph: str) -> dict:
+    pad = model.cfg.pad
+    hb, wb, rays = Dim("hb", min=1, max=512), Dim("wb", min=1, max=512), Dim("R", min=1)
+    spatial = {
+        "H": 32 * hb,
+        "W": 32 * wb,
+        "h": 8 * hb,
+        "w": 8 * wb,
+        "Hp": 8 * hb + 2 * pad,
+        "Wp": 8 * wb + 2 * pad,
+        "R": rays,
+    }
+    shapes = graph_signatures(model)[graph]["inputs"]
+    return {name: {i: spatial[a] for i, a in enumerate(shape) if isinstance(a, str)} for name, shape in shapes.items()}
+
+
+def _rename_dims(proto: onnx.ModelProto, signature: dict) -> None:
+    """Give dynamic axes the manifest's names (the exporter invents its own)."""
+    for values, specs in ((proto.graph.input, signature["inputs"]), (proto.graph.output, signature["outputs"])):
+        for value in values:
+            for dim, axis in zip(value.type.tensor_type.shape.dim, specs[value.name]):
+                if isinstance(axis, str):
+                    dim.ClearField("dim_value")
+                    dim.dim_param = axis
+
+
+def _strip_debug_metadata(proto: onnx.ModelProto) -> None:
+    """Drop the exporter's per-node debug records (Python stack traces and object addresses):
+    without them the same model exports to the same bytes, so a bundle's model id is reproducible."""
+    del proto.graph.metadata_props[:]
+    for node in proto.graph.node:
+        del node.metadata_props[:]
+        node.doc_string = ""
+
+
+def export_graph(module: nn.Module, inputs: dict[str, torch.Tensor], model: SCNeRF, graph: str, path: Path) -> None:
+    signature = graph_signatures(model)[graph]
+    dynamic = tuple(_dynamic_shapes(model, graph).values())
+    if isinstance(module, RendererGraph):  # forward(*args): torch.export sees one tuple argument
+        dynamic = (dynamic,)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        program = torch.onnx.export(
+            module,
+            tuple(inputs.values()),
+            dynamo=True,
+            opset_version=OPSET,
+            input_names=list(inputs),
+            output_names=list(signature["outputs"]),
+            dynamic_shapes=dynamic,
+            optimize=True,
+            verbose=False,
+        )
+    proto = program.model_proto
+    _strip_debug_metadata(proto)
+    if graph == "renderer":
+        attention_cores_in_ray_groups(proto)
+    _rename_dims(proto, signature)
+    onnx.checker.check_model(proto, full_check=True)
+    onnx.save(proto, path)
+
+
+def io_spec(names_shapes: dict[str, list]) -> list[dict]:
+    return [{"name": n, "shape": s, "dtype": "float32"} for n, s in names_shapes.items()]
+
+
+def validate_graph(path: Path, module: nn.Module, inputs: dict[str, torch.Tensor], tolerance: float) -> float:
+    """Run the written graph in ONNX Runtime on the tracing inputs; return max abs error vs torch."""
+    session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    got = session.run(None, {k: v.numpy() for k, v in inputs.items()})
+    with torch.no_grad():
+        want = module(*inputs.values())
+    want = want if isinstance(want, (tuple, list)) else (want,)
+    error = max(float(np.abs(g - w.numpy()).max()) for g, w in zip(got, want))
+    if not error <= tolerance:
+        raise RuntimeError(f"{path.name}: ONNX Runtime differs from PyTorch by {error:.3g} (> {tolerance})")
+    return error
+
+
+def export_bundle(model: SCNeRF, out_dir: str | Path, provenance: dict) -> dict:
+    """Write encoder/volume/renderer.onnx + manifest.json into out_dir and validate them."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    model = model.eval()
+    inputs = example_inputs(model)
+    checks = example_inputs(model, blocks=CHECK_BLOCKS, rays=CHECK_RAYS)
+    modules = {"encoder": EncoderGraph(model), "volume": VolumeGraph(model), "renderer": RendererGraph(model)}
+    signatures = graph_signatures(model)
+    graphs, errors = {}, {}
+    for name, module in modules.items():
+        path = out / f"{name}.onnx"
+        export_graph(module, inputs[name], model, name, path)
+        errors[name] = max(validate_graph(path, module, example[name], tolerance=1e-4) for example in (inputs, checks))
+        graphs[name] = {
+            "file": path.name,
+            "sha256": sha256_file(path),
+            "inputs": io_spec(signatures[name]["inputs"]),
+            "outputs": io_spec(signatures[name]["outputs"]),
+        }
+    provenance = write_licences(out, provenance)
+    manifest = {
+        "format_version": FORMAT_VERSION,
+        "model_id": model_id(model.cfg.variant, graphs["renderer"]["sha256"]),
+        "variant": model.cfg.variant,
+        "config": model.cfg.to_dict(),
+        "graphs": graphs,
+        "provenance": {
+            "exporter_version": __version__,
+            "torch_version": torch.__version__,
+            "opset": OPSET,
+            "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+            "export_validation_max_abs_error": errors,
+            "metrics": None,
+            "source_checkpoint": None,
+            "source_sha256": None,
+            **provenance,
+        },
+    }
+    write_manifest(out, manifest)
+    return manifest
+
+
+def write_licences(bundle_dir: Path, provenance: dict) -> dict:
+    """Write the licence text of weights the bundle derives from (the MVSNeRF checkpoint's MIT
+    licence must travel with every copy) beside the graphs; the manifest names the file instead."""
+    provenance = dict(provenance)
+    if isinstance(provenance.get("derived_from"), dict):
+        provenance["derived_from"] = dict(provenance["derived_from"])
+    for holder in (provenance, provenance.get("derived_from")):
+        if isinstance(holder, dict) and holder.get("licence_text"):
+            (bundle_dir / holder["licence_file"]).write_text(holder.pop("licence_text"))
+    return provenance

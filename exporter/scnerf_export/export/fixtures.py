@@ -1,0 +1,113 @@
+"""Parity fixtures for the Rust tests: a random-weight small bundle, requests and the PyTorch
+reference outputs (docs/bundle.md "Parity fixtures")."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+from PIL import Image
+
+from ..cameras import camera_from_json, camera_json
+from ..config import small_config
+from ..model.network import SCNeRF
+from ..rigs import random_model, rig_cameras, smooth_pattern
+from ..runtime.reference import encode_scene, render_view
+from .bundle import export_bundle
+
+
+def _write_f32(path: Path, array) -> None:
+    np.ascontiguousarray(np.asarray(array, dtype="<f4")).tofile(path)
+
+
+def write_case(
+    out: Path,
+    model: SCNeRF,
+    name: str,
+    height: int,
+    width: int,
+    target_scale: float,
+    style: str,
+    background: tuple[float, float, float],
+    seed: int,
+) -> None:
+    rng = np.random.default_rng(seed)
+    sources, target, near, far = rig_cameras(height, width)
+    target = target.scaled(target_scale)
+    case = out / name
+    case.mkdir(parents=True, exist_ok=True)
+    images = []
+    for i in range(len(sources)):
+        rgba = (smooth_pattern(rng, height, width) * 255).round().astype(np.uint8)
+        Image.fromarray(rgba).save(case / f"source_{i}.png")
+        images.append(np.asarray(Image.open(case / f"source_{i}.png"), dtype=np.float32) / 255.0)
+    images = np.stack(images)
+    request = {
+        "sources": [{"camera": camera_json(c, style)} for c in sources],
+        "target": camera_json(target, style),
+        "near": near,
+        "far": far,
+        "background": list(background),
+        "outputs": ["rgb", "depth", "opacity"],
+    }
+    (case / "request.json").write_text(json.dumps(request, indent=2) + "\n")
+    # Decode the request the way the server does, so the fixture tests the conversions too.
+    parsed = [camera_from_json(s["camera"]) for s in request["sources"]]
+    parsed_target = camera_from_json(request["target"])
+    result = render_view(model, images, parsed, parsed_target, near, far, background, chunk=97)
+    with torch.no_grad():
+        scene = encode_scene(model, images, parsed, near, far, background)
+    _write_f32(case / "rgb.f32", result.rgb)
+    _write_f32(case / "depth.f32", result.depth)
+    _write_f32(case / "opacity.f32", result.opacity)
+    _write_f32(case / "features.f32", scene.features.numpy())
+    _write_f32(case / "volume.f32", scene.volume.numpy())
+    expected = {
+        "width": parsed_target.width,
+        "height": parsed_target.height,
+        "background": list(background),
+        "files": {
+            "rgb": "rgb.f32",
+            "depth": "depth.f32",
+            "opacity": "opacity.f32",
+            "features": "features.f32",
+            "volume": "volume.f32",
+        },
+        "shapes": {
+            "rgb": [parsed_target.height, parsed_target.width, 3],
+            "depth": [parsed_target.height, parsed_target.width],
+            "opacity": [parsed_target.height, parsed_target.width],
+            "features": list(scene.features.shape),
+            "volume": list(scene.volume.shape),
+        },
+        "tolerances": {
+            "rgb_max_abs": 1e-3,
+            "depth_max_rel": 1e-3,
+            "opacity_max_abs": 1e-3,
+            "features_max_abs": 1e-4,
+            "volume_max_abs": 1e-4,
+        },
+        "stats": {"opacity_mean": float(result.opacity.mean()), "rgb_std": float(result.rgb.std())},
+    }
+    (case / "expected.json").write_text(json.dumps(expected, indent=2) + "\n")
+
+
+def write_fixtures(out_dir: str | Path, variant: str = "scnerf", seed: int = 7) -> Path:
+    out = Path(out_dir)
+    model = random_model(small_config(variant), seed)
+    export_bundle(
+        model,
+        out / "bundle",
+        {
+            "source_checkpoint": None,
+            "source_kind": "random-weights",
+            "training": f"random weights, torch seed {seed} (test fixture only)",
+        },
+    )
+    cases = out / "cases"
+    write_case(cases, model, "opencv_64x96", 64, 96, 1.0, "opencv_w2c", (0.0, 0.0, 0.0), seed + 1)
+    write_case(cases, model, "opengl_96x64_white", 96, 64, 0.75, "opengl_c2w", (1.0, 1.0, 1.0), seed + 2)
+    (out / "READY").write_text("fixtures complete\n")
+    return out

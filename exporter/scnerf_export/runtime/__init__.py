@@ -1,0 +1,3 @@
+"""Running a network on a view: the PyTorch reference renderer (reference), a bundle in ONNX
+Runtime with the server's stages (onnx_pipeline), and what they share (view). The Rust server
+itself is driven from scnerf_export.serving."""

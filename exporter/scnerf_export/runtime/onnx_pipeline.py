@@ -1,0 +1,131 @@
+"""A bundle run by ONNX Runtime from Python: the same stages and inputs as the Rust server."""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+
+from .. import cameras as cams
+from ..cameras import Camera
+from ..config import ModelConfig
+from ..export.manifest import read_manifest
+from .chunks import rays_per_run
+from .view import Rendering, pad_images, render_in_passes
+
+
+def session_options(threads: int | None) -> ort.SessionOptions:
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = threads or os.cpu_count() or 1
+    options.inter_op_num_threads = 1
+    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    return options
+
+
+class OnnxBundle:
+    def __init__(self, bundle_dir: str | Path, threads: int | None = None):
+        self.path = Path(bundle_dir)
+        self.manifest = read_manifest(self.path)
+        self.cfg = ModelConfig.from_dict(self.manifest["config"])
+        options = session_options(threads)
+        self.sessions = {
+            name: ort.InferenceSession(str(self.path / g["file"]), options, providers=["CPUExecutionProvider"])
+            for name, g in self.manifest["graphs"].items()
+        }
+        self.renderer_inputs = [i.name for i in self.sessions["renderer"].get_inputs()]
+        self.timings: dict[str, float] = {}
+
+    def _timed(self, stage: str, graph: str, feeds: dict) -> list[np.ndarray]:
+        start = time.perf_counter()
+        out = self.sessions[graph].run(None, feeds)
+        self.timings[stage] = self.timings.get(stage, 0.0) + time.perf_counter() - start
+        return out
+
+    def encode_scene(
+        self, images: np.ndarray, cameras: list[Camera], near: float, far: float, background
+    ) -> dict[str, np.ndarray]:
+        padded = pad_images(images.astype(np.float32), self.cfg.image_multiple, background)
+        imgs = np.ascontiguousarray(padded.transpose(0, 3, 1, 2))
+        (features,) = self._timed("encoder", "encoder", {"images": imgs})
+        (volume,) = self._timed(
+            "volume",
+            "volume",
+            {
+                "features": features,
+                "images": imgs,
+                "projections": cams.feature_projections(cameras),
+                "depth_planes": cams.depth_planes(near, far, self.cfg.depth_planes),
+            },
+        )
+        return {
+            "images": imgs,
+            "features": features,
+            "volume": volume,
+            "intrinsics": cams.stack_intrinsics(cameras),
+            "extrinsics": cams.stack_extrinsics(cameras),
+        }
+
+    def renderer_feeds(
+        self,
+        scene: dict,
+        origins: np.ndarray,
+        directions: np.ndarray,
+        near: float,
+        far: float,
+        depth_range: tuple[float, float],
+    ) -> dict[str, np.ndarray]:
+        """The renderer's inputs for one run of rays of an encoded scene."""
+        given = {
+            **scene,
+            "near_far": np.array([near, far], np.float32),
+            "depth_range": np.array(depth_range, np.float32),
+            "ray_origins": np.ascontiguousarray(origins),
+            "ray_directions": np.ascontiguousarray(directions),
+        }
+        return {name: given[name] for name in self.renderer_inputs}
+
+    def render_rays(
+        self,
+        scene: dict,
+        origins: np.ndarray,
+        directions: np.ndarray,
+        near: float,
+        far: float,
+        depth_range: tuple[float, float],
+        chunk: int | None = None,
+    ):
+        """Raw rgb, depth, opacity of the rays, ``chunk`` rays per run (default: the server's)."""
+        chunk = chunk or rays_per_run(self.cfg.samples)
+        outs = []
+        for start in range(0, origins.shape[0], chunk):
+            rays = slice(start, start + chunk)
+            feeds = self.renderer_feeds(scene, origins[rays], directions[rays], near, far, depth_range)
+            outs.append(self._timed("renderer", "renderer", feeds))
+        return tuple(np.concatenate([o[i] for o in outs]) for i in range(3))
+
+    def render_view(
+        self,
+        images: np.ndarray,
+        cameras: list[Camera],
+        target: Camera,
+        near: float,
+        far: float,
+        background=(0.0, 0.0, 0.0),
+        chunk: int | None = None,
+    ) -> Rendering:
+        self.timings = {}
+        scene = self.encode_scene(images, cameras, near, far, background)
+        return self.render_target(scene, target, near, far, background, chunk)
+
+    def render_target(
+        self, scene: dict, target: Camera, near: float, far: float, background=(0.0, 0.0, 0.0), chunk: int | None = None
+    ) -> Rendering:
+        """One target view of an encoded scene (what a cached scene costs per view)."""
+
+        def rays(origins, directions, depth_range):
+            return self.render_rays(scene, origins, directions, near, far, depth_range, chunk)
+
+        return render_in_passes(self.cfg, target, near, far, background, rays)

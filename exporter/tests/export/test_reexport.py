@@ -1,0 +1,75 @@
+"""`scnerf-export reexport`: a 0.1 bundle's renderer read back from its graph and written again.
+
+tests/fixtures/reexport-0.1 is the parity fixture bundle as scnerf-export 0.1 wrote it (random
+weights, small config)."""
+
+import hashlib
+import json
+import shutil
+
+import onnx
+import pytest
+
+from scnerf_export import __version__
+from scnerf_export.cli import main
+from scnerf_export.export.manifest import read_manifest
+from scnerf_export.export.reexport import ReexportError, reexport_bundle
+
+from conftest import REPO
+
+FIXTURE_BUNDLE = REPO / "tests" / "fixtures" / "reexport-0.1"
+CURRENT_BUNDLE = REPO / "tests" / "fixtures" / "parity" / "bundle"
+
+
+def sha256(path):
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def test_reexport_reproduces_the_renderer_and_keeps_the_other_graphs(tmp_path):
+    out = tmp_path / "again"
+    manifest = reexport_bundle(FIXTURE_BUNDLE, out)
+    source = read_manifest(FIXTURE_BUNDLE)
+    assert manifest["provenance"]["reexport"]["source_model_id"] == source["model_id"]
+    assert manifest["provenance"]["reexport"]["renderer_max_abs_difference"] <= 1e-4
+    assert manifest["model_id"] == f"scnerf-{source['variant']}-{sha256(out / 'renderer.onnx')[:12]}"
+    assert manifest["graphs"]["renderer"]["sha256"] == sha256(out / "renderer.onnx")
+    for name in ("encoder", "volume"):
+        assert sha256(out / f"{name}.onnx") == sha256(FIXTURE_BUNDLE / f"{name}.onnx")
+        assert manifest["graphs"][name] == source["graphs"][name]
+    assert manifest["config"] == source["config"]
+    assert json.loads((out / "manifest.json").read_text()) == manifest
+
+
+def test_a_renderer_missing_a_weight_is_refused_in_one_line(tmp_path, capsys):
+    broken = tmp_path / "broken"
+    shutil.copytree(FIXTURE_BUNDLE, broken)
+    proto = onnx.load(str(broken / "renderer.onnx"))
+    for tensor in proto.graph.initializer:
+        if tensor.name == "model.renderer.m1.feature_gate.weight":
+            tensor.name = "renamed"
+    for node in proto.graph.node:
+        node.input[:] = ["renamed" if i == "model.renderer.m1.feature_gate.weight" else i for i in node.input]
+    onnx.save(proto, str(broken / "renderer.onnx"))
+    with pytest.raises(ReexportError, match="m1.feature_gate.weight"):
+        reexport_bundle(broken, tmp_path / "out")
+    assert main(["reexport", "--bundle", str(broken), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("scnerf-export reexport: error:") and "\n" not in err
+
+
+def test_reexport_refuses_to_overwrite_its_source():
+    with pytest.raises(ReexportError, match="--out must differ"):
+        reexport_bundle(FIXTURE_BUNDLE, FIXTURE_BUNDLE)
+
+
+def test_reexport_refuses_bundles_of_other_exporter_versions(tmp_path):
+    with pytest.raises(ReexportError, match=f"written by scnerf-export {__version__}"):
+        reexport_bundle(CURRENT_BUNDLE, tmp_path / "out")
+
+
+def test_the_same_weights_export_to_the_same_bytes(tmp_path):
+    """No addresses or stack traces in the graphs: the model id of a re-export is reproducible."""
+    first = reexport_bundle(FIXTURE_BUNDLE, tmp_path / "a")
+    second = reexport_bundle(FIXTURE_BUNDLE, tmp_path / "b")
+    assert first["model_id"] == second["model_id"]
+    assert (tmp_path / "a" / "renderer.onnx").read_bytes() == (tmp_path / "b" / "renderer.onnx").read_bytes()

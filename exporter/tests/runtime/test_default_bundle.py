@@ -1,0 +1,160 @@
+"""The committed default bundle: what it is (SC-NeRF derived from the public MVSNeRF weights, with
+their licence) and what it renders. Regression floors, protocol as in docs/results.md (per target
+the 3 nearest source views): the committed example above examples/tabletop/regression.json's
+floor; lego r_28 at 200x200 >= 23 dB; DTU scan37 view 32 from 33, 31, 25 at 320x256 >= 20 dB on
+the object mask, through ONNX Runtime and through the real server alike."""
+
+import io
+import json
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from scnerf_export.cameras import Camera
+from scnerf_export.cameras import intrinsics_from_json as _k
+from scnerf_export.data import datasets
+from scnerf_export.evaluate import metrics
+from scnerf_export.evaluate.eval import downscale_target, source_pool
+from scnerf_export.runtime.onnx_pipeline import OnnxBundle
+from scnerf_export.serving import ServerProcess, find_server_binary, render_request
+
+from conftest import REPO, shared_dir
+
+EXAMPLE = REPO / "examples" / "tabletop"
+BUNDLE = REPO / "bundles" / "default"
+PUBLIC_SHA256 = "84c2a397760d5e717c21faee9c4f8f8f8a1ba22b378b10971c44f4a0b932c124"
+LEGO_FLOOR_DB, SCAN37_MASKED_FLOOR_DB = 23.0, 20.0
+SERVER_AGREEMENT_DB = 0.1
+
+
+def load_rgb(path):
+    return np.asarray(Image.open(path).convert("RGB"), dtype=np.float32) / 255.0
+
+
+def camera(c: dict) -> Camera:
+    return Camera.from_pose(_k(c), c["pose"]["matrix"], c["width"], c["height"], c["pose"]["kind"], c["pose"]["axes"])
+
+
+def test_default_bundle_is_scnerf_derived_from_the_public_weights_with_their_licence():
+    manifest = json.loads((BUNDLE / "manifest.json").read_text())
+    assert manifest["variant"] == "scnerf"
+    assert (manifest["config"]["depth_planes"], manifest["config"]["samples"], manifest["config"]["width"]) == (
+        128,
+        128,
+        128,
+    )
+    base = manifest["provenance"]["derived_from"]
+    assert base["source_sha256"] == PUBLIC_SHA256 and base["licence"] == "MIT"
+    assert "Permission is hereby granted" in (BUNDLE / base["licence_file"]).read_text()
+    training = manifest["provenance"]["training"]
+    assert {"data", "steps", "seed"} <= set(training)
+    assert sum(p.stat().st_size for p in BUNDLE.rglob("*") if p.is_file()) < 10 * 2**20
+
+
+def test_default_bundle_renders_the_example_above_its_floor():
+    expected = json.loads((EXAMPLE / "regression.json").read_text())
+    bundle = OnnxBundle(BUNDLE)
+    assert bundle.manifest["model_id"] == expected["model_id"], "default bundle changed: re-measure the floor"
+    request = json.loads((EXAMPLE / "request.json").read_text())
+    images = np.stack([load_rgb(EXAMPLE / f"source_{i}.png") for i in range(3)])
+    result = bundle.render_view(
+        images,
+        [camera(s["camera"]) for s in request["sources"]],
+        camera(request["target"]),
+        request["near"],
+        request["far"],
+        tuple(request["background"]),
+    )
+    assert metrics.psnr(result.rgb, load_rgb(EXAMPLE / "target_truth.png")) >= expected["psnr_floor"]
+
+
+class RealView:
+    """A target of a real scene, its sources and how it is scored."""
+
+    def __init__(self, folder: str, fmt: str, target: str, sources: list[str] | None, scale: float):
+        path = shared_dir() / "data" / folder
+        if not path.is_dir():
+            pytest.skip(f"{path} not found (../shared is absent on this machine)")
+        self.scene = datasets.load_scene(path, fmt)
+        pool = source_pool(self.scene, [target])
+        self.source_names = sources or datasets.nearest_sources(self.scene, target, pool)
+        self.sources = datasets.get_views(self.scene, self.source_names)
+        self.target = downscale_target(self.scene.views[target], scale)
+        self.image_files = [self.image_file(path, fmt, name) for name in self.source_names]
+
+    @staticmethod
+    def image_file(path, fmt, name):
+        if fmt == "dtu":
+            return next((path / "Rectified").glob(f"*/rect_{int(name) + 1:03d}_3_r5000.png"))
+        return path / "train" / f"{name}.png"
+
+    def render_onnx(self) -> np.ndarray:
+        s = self.scene
+        return (
+            OnnxBundle(BUNDLE)
+            .render_view(
+                np.stack([v.image for v in self.sources]),
+                [v.camera for v in self.sources],
+                self.target.camera,
+                s.near,
+                s.far,
+                s.background,
+            )
+            .rgb
+        )
+
+    def render_served(self, server: ServerProcess) -> np.ndarray:
+        s = self.scene
+        body = render_request(
+            [(v.camera, f.read_bytes()) for v, f in zip(self.sources, self.image_files)],
+            self.target.camera,
+            s.near,
+            s.far,
+            s.background,
+        )
+        status, png, _ = server.request(
+            "POST", "/v1/render", body, {"content-type": "application/json", "accept": "image/png"}
+        )
+        assert status == 200, png[:500]
+        return load_rgb(io.BytesIO(png))
+
+    def psnr(self, rgb: np.ndarray) -> float:
+        if self.target.mask is not None:
+            return metrics.dtu_masked_metrics(rgb, self.target.image, self.target.mask)["psnr"]
+        return metrics.psnr(rgb, self.target.image)
+
+
+@pytest.fixture(scope="module")
+def lego_r28():
+    return RealView("nerf_synthetic_lego", "blender", "r_28", None, 0.25)
+
+
+@pytest.fixture(scope="module")
+def scan37_view32():
+    return RealView("dtu_scan37", "dtu", "32", ["33", "31", "25"], 0.5)
+
+
+@pytest.fixture(scope="module")
+def scan37_onnx_psnr(scan37_view32):
+    return scan37_view32.psnr(scan37_view32.render_onnx())
+
+
+@pytest.mark.slow
+def test_lego_r28_from_its_nearest_views(lego_r28):
+    assert lego_r28.psnr(lego_r28.render_onnx()) >= LEGO_FLOOR_DB
+
+
+@pytest.mark.slow
+def test_scan37_view32_on_its_object(scan37_onnx_psnr):
+    assert scan37_onnx_psnr >= SCAN37_MASKED_FLOOR_DB
+
+
+@pytest.mark.slow
+def test_the_server_renders_scan37_view32_as_onnx_runtime_does(scan37_view32, scan37_onnx_psnr):
+    binary = find_server_binary()
+    assert binary is not None, "no scnerf-server binary under target/: build it first (scripts/test.sh does)"
+    with ServerProcess(binary, BUNDLE) as server:
+        served = scan37_view32.psnr(scan37_view32.render_served(server))
+    assert served >= SCAN37_MASKED_FLOOR_DB
+    assert abs(served - scan37_onnx_psnr) <= SERVER_AGREEMENT_DB
