@@ -8,9 +8,9 @@ images and the cameras of a few views on a ring around the origin, plus the corn
 loader handles (frames without an image, declared sizes that differ from the image, duplicate
 stems across splits, a pose that is rigid only to 3e-6, zero distortion, natural name order...).
 Each folder except colmap_binary gets an expected.json written from what
-``scnerf_export.datasets.load_scene`` returns for it; colmap_binary holds the colmap model in
+``scnerf_export.data.datasets.load_scene`` returns for it; colmap_binary holds the colmap model in
 COLMAP's binary form and must give colmap's expected cameras. metrics.json holds two fixed
-images and the PSNR / SSIM of ``scnerf_export.metrics`` for them.
+images and the PSNR / SSIM of ``scnerf_export.evaluate.metrics`` for them.
 
 Run from the repository root (deterministic: a second run rewrites the same bytes):
 
@@ -29,9 +29,9 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from scnerf_export import metrics
 from scnerf_export.cameras import look_at
-from scnerf_export.datasets import load_scene
+from scnerf_export.data.datasets import load_scene
+from scnerf_export.evaluate import metrics
 
 ROOT = Path(__file__).resolve().parents[1] / "tests" / "fixtures" / "datasets"
 W, H = 8, 6
@@ -141,10 +141,24 @@ def make_nerfstudio() -> dict[str, str]:
             save_image(d / rel, seed=30 + i)
             images[f"frame_{i + 1:05d}"] = rel
     # top-level intrinsics declared at twice the size of the images on disk
-    write_json(d / "transforms.json", {
-        "camera_model": "OPENCV", "fl_x": 16.0, "fl_y": 15.0, "cx": 8.1, "cy": 5.9, "w": 2 * W, "h": 2 * H,
-        "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0, "near_far": [0.5, 9.0], "frames": frames,
-    })
+    write_json(
+        d / "transforms.json",
+        {
+            "camera_model": "OPENCV",
+            "fl_x": 16.0,
+            "fl_y": 15.0,
+            "cx": 8.1,
+            "cy": 5.9,
+            "w": 2 * W,
+            "h": 2 * H,
+            "k1": 0.0,
+            "k2": 0.0,
+            "p1": 0.0,
+            "p2": 0.0,
+            "near_far": [0.5, 9.0],
+            "frames": frames,
+        },
+    )
     return images
 
 
@@ -195,8 +209,10 @@ def make_colmap() -> dict[str, str]:
     m = d / "sparse" / "0"
     m.mkdir(parents=True)
     cams = ["# Camera list with one line of data per camera:", "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]"]
-    cams += [f"{cid} {model} {w} {h} " + " ".join(repr(float(p)) for p in params)
-             for cid, model, w, h, params in COLMAP_CAMERAS]
+    cams += [
+        f"{cid} {model} {w} {h} " + " ".join(repr(float(p)) for p in params)
+        for cid, model, w, h, params in COLMAP_CAMERAS
+    ]
     (m / "cameras.txt").write_text("\n".join(cams) + "\n")
     lines = ["# Image list with two lines of data per image:"]
     images = {}
@@ -273,11 +289,26 @@ def expected(folder: str, fmt: str, images: dict[str, str], **kwargs) -> None:
     views = []
     for name, view in scene.views.items():
         cam = view.camera
-        views.append({"name": name, "image": images[name], "width": cam.width, "height": cam.height,
-                      "K": cam.K.tolist(), "w2c": cam.w2c.tolist()})
-    write_json(ROOT / folder / "expected.json", {
-        "format": fmt, "near": scene.near, "far": scene.far, "background": list(scene.background), "views": views,
-    })
+        views.append(
+            {
+                "name": name,
+                "image": images[name],
+                "width": cam.width,
+                "height": cam.height,
+                "K": cam.K.tolist(),
+                "w2c": cam.w2c.tolist(),
+            }
+        )
+    write_json(
+        ROOT / folder / "expected.json",
+        {
+            "format": fmt,
+            "near": scene.near,
+            "far": scene.far,
+            "background": list(scene.background),
+            "views": views,
+        },
+    )
 
 
 def make_metrics() -> None:
@@ -285,10 +316,18 @@ def make_metrics() -> None:
     y, x = np.mgrid[0:13, 0:16].astype(np.float64)
     gt = np.stack([(np.sin(x / 3 + c) * np.cos(y / 4 - c) + 1) / 2 for c in range(3)], axis=-1)
     pred = np.clip(gt + 0.08 * np.sin(7 * x + 3 * y)[..., None] * np.array([1.0, -0.5, 0.25]), 0, 1)
-    (ROOT / "metrics.json").write_text(json.dumps({
-        "shape": list(gt.shape), "psnr": metrics.psnr(pred, gt), "ssim": metrics.ssim(pred, gt),
-        "gt": gt.ravel().tolist(), "pred": pred.ravel().tolist(),
-    }) + "\n")
+    (ROOT / "metrics.json").write_text(
+        json.dumps(
+            {
+                "shape": list(gt.shape),
+                "psnr": metrics.psnr(pred, gt),
+                "ssim": metrics.ssim(pred, gt),
+                "gt": gt.ravel().tolist(),
+                "pred": pred.ravel().tolist(),
+            }
+        )
+        + "\n"
+    )
 
 
 def main() -> int:

@@ -7,8 +7,8 @@ repo=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 cd "${repo}"
 scripts/fetch-onnxruntime.sh
 scripts/setup-python.sh
-.venv/bin/ruff check exporter bench
-.venv/bin/ruff format --check exporter bench
+.venv/bin/ruff check exporter bench scripts
+.venv/bin/ruff format --check exporter bench scripts
 cargo test -j2 --workspace --locked
 .venv/bin/python -m pytest -q -p no:cacheprovider exporter/tests
 .venv/bin/python -m pytest -q -p no:cacheprovider bench/tests

@@ -1,6 +1,6 @@
 //! PSNR and SSIM against exporter/scnerf_export/metrics.py on the fixed arrays of
 //! tests/fixtures/datasets/metrics.json (written by scripts/make-dataset-fixtures.py with
-//! metrics.py; exporter/tests/test_dataset_fixtures.py checks the Python side).
+//! metrics.py; exporter/tests/data/test_dataset_fixtures.py checks the Python side).
 
 use scnerf_client::metrics::{psnr, ssim, Image};
 use serde_json::Value;

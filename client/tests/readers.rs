@@ -1,5 +1,5 @@
 //! Every reader against the fixtures of tests/fixtures/datasets/, whose expected.json the Python
-//! loader wrote (scripts/make-dataset-fixtures.py; exporter/tests/test_dataset_fixtures.py checks
+//! loader wrote (scripts/make-dataset-fixtures.py; exporter/tests/data/test_dataset_fixtures.py checks
 //! the Python side), so Rust and Python read the same files into the same cameras.
 
 use std::path::{Path, PathBuf};

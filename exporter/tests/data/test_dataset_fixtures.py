@@ -7,15 +7,16 @@ regenerated and the Rust reader changed to match."""
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-from scnerf_export import metrics
-from scnerf_export.datasets import load_scene
+from scnerf_export.data.datasets import load_scene
+from scnerf_export.evaluate import metrics
 
-FIXTURES = Path(__file__).resolve().parents[2] / "tests" / "fixtures" / "datasets"
+from conftest import REPO
+
+FIXTURES = REPO / "tests" / "fixtures" / "datasets"
 FOLDERS = sorted(p.parent.name for p in FIXTURES.glob("*/expected.json"))
 
 
