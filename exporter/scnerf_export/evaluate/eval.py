@@ -11,7 +11,6 @@ import numpy as np
 from PIL import Image
 
 from ..data import datasets
-from ..runtime.chunks import DEFAULT_MAX_RAYS as DEFAULT_CHUNK
 from ..runtime.onnx_pipeline import OnnxBundle
 from ..serving import ServedBundle
 from . import metrics
@@ -31,7 +30,7 @@ def evaluate(
     near: float | None = None,
     far: float | None = None,
     threads: int | None = None,
-    chunk: int = DEFAULT_CHUNK,
+    chunk: int | None = None,
     save_dir: str | Path | None = None,
     target_scale: float = 1.0,
     server: str | None = None,

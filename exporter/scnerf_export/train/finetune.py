@@ -361,7 +361,7 @@ def finetune(
         return {
             "what": "M2, the geometry and appearance rectifiers and M4 trained on top of the exact MVSNeRF "
             "initialisation; G1, G2 and M1 frozen",
-            "data": f"procedural scenes (scnerf_export.procedural, layouts {', '.join(LAYOUTS)}), "
+            "data": f"procedural scenes (scnerf_export.data.procedural, layouts {', '.join(LAYOUTS)}), "
             f"{recipe.scenes} scenes of the training seed range at 640x512, {recipe.targets_per_scene} "
             f"targets each with their 3 nearest views, {recipe.rays_per_target} random rays per target, "
             "each target on a random black, white or coloured background",
