@@ -4,7 +4,6 @@ use std::io::Cursor;
 
 use image::{DynamicImage, ImageFormat, ImageReader};
 
-use crate::backend::Tensor;
 use crate::error::ApiError;
 
 /// An RGB image in [0, 1], row-major, channels interleaved (H, W, 3).
@@ -85,29 +84,6 @@ fn to_rgb_on_background(image: DynamicImage, background: [f32; 3]) -> RgbF32 {
     RgbF32 { width, height, data }
 }
 
-/// Stacks same-size views into an NCHW tensor (V, 3, Hp, Wp), padding right and bottom with
-/// `background` up to the next multiple of `multiple` (which leaves the intrinsics unchanged).
-pub fn stack_padded(images: &[RgbF32], multiple: usize, background: [f32; 3]) -> Tensor {
-    let (w, h) = (images[0].width as usize, images[0].height as usize);
-    let wp = w.div_ceil(multiple) * multiple;
-    let hp = h.div_ceil(multiple) * multiple;
-    let plane = hp * wp;
-    let mut data = Vec::with_capacity(images.len() * 3 * plane);
-    for img in images {
-        for (c, bg) in background.iter().enumerate() {
-            let start = data.len();
-            data.resize(start + plane, *bg);
-            let dst = &mut data[start..];
-            for y in 0..h {
-                for x in 0..w {
-                    dst[y * wp + x] = img.data[(y * w + x) * 3 + c];
-                }
-            }
-        }
-    }
-    Tensor::new(vec![images.len(), 3, hp, wp], data)
-}
-
 /// Encodes 8-bit RGB as PNG.
 pub fn encode_png(width: u32, height: u32, rgb: &[u8]) -> Result<Vec<u8>, ApiError> {
     use image::codecs::png::{CompressionType, FilterType, PngEncoder};
@@ -158,18 +134,6 @@ mod tests {
         ));
         let big = png(DynamicImage::ImageRgb8(image::RgbImage::new(20, 20)));
         assert!(matches!(decode_source(&big, "source_2", [0.0; 3], 399), Err(ApiError::Invalid { .. })));
-    }
-
-    #[test]
-    fn pads_with_background() {
-        let img = RgbF32 { width: 1, height: 1, data: vec![0.1, 0.2, 0.3] };
-        let t = stack_padded(&[img.clone(), img], 4, [1.0, 0.5, 0.0]);
-        assert_eq!(t.shape, vec![2, 3, 4, 4]);
-        assert_eq!(t.data[0], 0.1);
-        assert_eq!(t.data[1], 1.0);
-        assert_eq!(t.data[16], 0.2);
-        assert_eq!(t.data[17], 0.5);
-        assert_eq!(t.data[48], 0.1);
     }
 
     #[test]

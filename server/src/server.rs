@@ -6,7 +6,7 @@ use std::time::{Duration, Instant};
 
 use tokio::net::TcpListener;
 
-use crate::backend::ort::{OrtOptions, OrtRunner};
+use crate::backend::ort::OrtRunner;
 use crate::backend::{BackendHandle, Tensor};
 use crate::bundle::Bundle;
 use crate::camera::Camera;
@@ -27,12 +27,7 @@ pub async fn run(config: Config) -> Result<(), String> {
     let bundle_dir = config.bundle_dir();
     let bundle = Bundle::load(&bundle_dir).map_err(|e| e.to_string())?;
     tracing::info!(model_id = %bundle.manifest.model_id, dir = %bundle_dir.display(), "bundle verified");
-    let ort = OrtOptions {
-        dylib: config.ort_dylib.clone(),
-        intra_threads: config.intra_threads(),
-        opt_level: config.graph_opt_level,
-        spin: config.ort_spin,
-    };
+    let ort = config.ort_options();
     let runner = {
         let bundle = bundle.clone();
         let exec = config.exec_options();
@@ -42,7 +37,7 @@ pub async fn run(config: Config) -> Result<(), String> {
             .map_err(|e| format!("bundle {}: {e}", bundle_dir.display()))?
     };
     let backend = BackendHandle::spawn(Box::new(runner), config.queue_capacity).map_err(|e| e.to_string())?;
-    let pipeline = Pipeline { backend, bundle: Arc::new(bundle), chunking: config.chunking(), limits: config.limits() };
+    let pipeline = Pipeline::new(backend, bundle, config.chunking(), config.limits());
     let state = AppState::new(pipeline, options);
     spawn_cache_sweeper(&state);
 
@@ -60,7 +55,7 @@ pub async fn run(config: Config) -> Result<(), String> {
     } else {
         let state = state.clone();
         tokio::spawn(async move {
-            match warm_up(&state.pipeline).await {
+            match warm_up(state.pipeline()).await {
                 Ok(elapsed) => {
                     tracing::info!(ms = elapsed.as_millis() as u64, "warm-up render done; ready");
                     state.set_ready();
@@ -103,8 +98,8 @@ pub async fn run(config: Config) -> Result<(), String> {
 /// Expired scenes are also dropped on every cache access; this frees their memory when the
 /// server is idle.
 fn spawn_cache_sweeper(state: &AppState) {
-    let scenes = Arc::downgrade(&state.scenes);
-    let period = (state.scenes.config().ttl / 4).clamp(Duration::from_secs(1), Duration::from_secs(60));
+    let scenes = Arc::downgrade(state.scenes());
+    let period = (state.scenes().config().ttl / 4).clamp(Duration::from_secs(1), Duration::from_secs(60));
     tokio::spawn(async move {
         let mut tick = tokio::time::interval(period);
         loop {
@@ -130,7 +125,7 @@ fn shutdown_signals() -> Result<impl std::future::Future<Output = ()>, String> {
 /// before /readyz says so, and lets ONNX Runtime allocate its kernels.
 pub async fn warm_up(pipeline: &Pipeline) -> Result<Duration, String> {
     let start = Instant::now();
-    let config = &pipeline.bundle.config;
+    let config = pipeline.config();
     let size = config.image_multiple;
     let cameras = warmup_cameras(config.views, size as u32);
     let images = Tensor::new(vec![config.views, 3, size, size], vec![0.5; config.views * 3 * size * size]);

@@ -1,12 +1,15 @@
 //! Test support (not part of the API): a fake graph runner with the bundle contract's shapes,
 //! a manifest for it, and request builders. Lets the HTTP layer be tested without ONNX Runtime.
 
+use std::path::Path;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
+use crate::backend::ort::{OrtOptions, OrtRunner};
 use crate::backend::{BackendError, BackendHandle, GraphRunner, NamedTensors, Tensor};
 use crate::bundle::{validate_manifest, Bundle, GraphKind, Manifest};
+use crate::config::GraphOptLevel;
 use crate::http::{AppState, ServiceOptions};
 use crate::pipeline::chunks::ChunkPolicy;
 use crate::pipeline::Pipeline;
@@ -90,12 +93,7 @@ fn input<'a>(inputs: &'a NamedTensors, name: &str) -> &'a Tensor {
 
 impl GraphRunner for FakeRunner {
     fn run(&mut self, graph: GraphKind, inputs: &NamedTensors) -> Result<NamedTensors, BackendError> {
-        let slot = match graph {
-            GraphKind::Encoder => 0,
-            GraphKind::Volume => 1,
-            GraphKind::Renderer => 2,
-        };
-        self.calls[slot].fetch_add(1, Ordering::SeqCst);
+        self.calls[graph.index()].fetch_add(1, Ordering::SeqCst);
         std::thread::sleep(self.delay);
         if let Some(message) = &self.fail_with {
             return Err(BackendError::Run { graph, message: message.clone() });
@@ -169,15 +167,28 @@ pub fn state_with_options(
     queue: usize,
 ) -> AppState {
     let backend = BackendHandle::spawn(Box::new(runner), queue).expect("spawn backend");
-    let pipeline = Pipeline {
-        backend,
-        bundle: Arc::new(bundle),
-        chunking: ChunkPolicy { max_rays: 100, memory_budget_bytes: usize::MAX },
-        limits,
-    };
+    let pipeline =
+        Pipeline::new(backend, bundle, ChunkPolicy { max_rays: 100, memory_budget_bytes: usize::MAX }, limits);
+    ready_state(pipeline, options)
+}
+
+/// The router's state over `pipeline`, ready at once (no warm-up render).
+pub fn ready_state(pipeline: Pipeline, options: ServiceOptions) -> AppState {
     let state = AppState::new(pipeline, options);
     state.set_ready();
     state
+}
+
+/// A pipeline over the real graphs of the bundle in `dir` with ONNX Runtime (all CPUs, default
+/// chunking), `queue` requests admitted at once. ONNX Runtime's environment is process-wide:
+/// one such pipeline per test process, shared by its tests.
+pub fn ort_pipeline(dir: &Path, limits: Limits, queue: usize) -> Pipeline {
+    let bundle = Bundle::load(dir).unwrap_or_else(|e| panic!("{e}"));
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let opts = OrtOptions { dylib: None, intra_threads: threads, opt_level: GraphOptLevel::All, spin: false };
+    let runner = OrtRunner::load(&bundle, &opts).unwrap_or_else(|e| panic!("{e}"));
+    let backend = BackendHandle::spawn(Box::new(runner), queue).expect("spawn backend");
+    Pipeline::new(backend, bundle, ChunkPolicy::default(), limits)
 }
 
 pub fn fake_state() -> AppState {

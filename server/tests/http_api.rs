@@ -243,7 +243,7 @@ async fn model_health_and_readiness() {
 #[tokio::test]
 async fn not_ready_is_503_with_retry_after_but_alive() {
     let state = fake_state();
-    state.ready.store(false, std::sync::atomic::Ordering::SeqCst);
+    state.set_draining();
     let app = router(state);
     let got = send(app.clone(), Request::get("/readyz").body(Body::empty()).unwrap()).await;
     assert_error(&got, 503, "unavailable", None);

@@ -5,20 +5,16 @@
 //! The fixtures are committed, so a missing fixture directory is a failure, not a skip.
 
 use std::path::{Path, PathBuf};
-use std::sync::{Arc, OnceLock};
+use std::sync::OnceLock;
 
 use axum::body::Body;
 use axum::http::Request;
 use base64::Engine;
 use http_body_util::BodyExt;
-use scnerf_server::backend::ort::{OrtOptions, OrtRunner};
-use scnerf_server::backend::BackendHandle;
-use scnerf_server::bundle::Bundle;
-use scnerf_server::config::GraphOptLevel;
 use scnerf_server::http::{router, AppState, ServiceOptions};
-use scnerf_server::pipeline::chunks::ChunkPolicy;
 use scnerf_server::pipeline::{Pipeline, Timings};
 use scnerf_server::request::{ImageMode, Limits, RenderRequest, ValidRequest};
+use scnerf_server::testing::{ort_pipeline, ready_state};
 use tower::ServiceExt;
 
 /// tests/fixtures/parity, or SCNERF_PARITY_FIXTURES (to check a freshly generated set).
@@ -40,16 +36,7 @@ fn pipeline() -> Pipeline {
                 "parity fixtures missing: {} (they are committed; run `scnerf-export fixtures`)",
                 dir.display()
             );
-            let bundle = Bundle::load(&dir).unwrap_or_else(|e| panic!("{e}"));
-            let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
-            let opts = OrtOptions { dylib: None, intra_threads: threads, opt_level: GraphOptLevel::All, spin: false };
-            let runner = OrtRunner::load(&bundle, &opts).unwrap_or_else(|e| panic!("{e}"));
-            Pipeline {
-                backend: BackendHandle::spawn(Box::new(runner), 16).unwrap(),
-                bundle: Arc::new(bundle),
-                chunking: ChunkPolicy::default(),
-                limits: Limits::default(),
-            }
+            ort_pipeline(&dir, Limits::default(), 16)
         })
         .clone()
 }
@@ -61,12 +48,9 @@ fn admit(p: &Pipeline) -> scnerf_server::backend::Ticket {
     p.admit(deadline, scnerf_server::backend::Work::default()).unwrap()
 }
 
-/// The real router over the ONNX Runtime pipeline, ready at once.
-fn ready_state(p: Pipeline) -> AppState {
-    let options = ServiceOptions { request_timeout: std::time::Duration::from_secs(600), ..Default::default() };
-    let state = AppState::new(p, options);
-    state.set_ready();
-    state
+/// The real router's state over the ONNX Runtime pipeline, ready at once.
+fn ready(p: Pipeline) -> AppState {
+    ready_state(p, ServiceOptions { request_timeout: std::time::Duration::from_secs(600), ..Default::default() })
 }
 
 fn cases() -> Vec<PathBuf> {
@@ -119,7 +103,7 @@ fn request(case: &Path) -> ValidRequest {
     for (i, s) in req.scene.sources.iter_mut().enumerate() {
         s.image = Some(std::fs::read(case.join(format!("source_{i}.png"))).unwrap().into());
     }
-    req.validate(&pipeline().bundle.config, &Limits::default()).unwrap()
+    req.validate(pipeline().config(), &Limits::default()).unwrap()
 }
 
 fn max_abs(a: &[f32], b: &[f32]) -> f64 {
@@ -208,7 +192,7 @@ async fn output_does_not_depend_on_chunk_size() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn http_multipart_render_matches_pytorch() {
     let p = pipeline();
-    let app = router(ready_state(p));
+    let app = router(ready(p));
     for case in cases() {
         let name = case.file_name().unwrap().to_string_lossy().to_string();
         let expected = Expected::load(&case);
@@ -253,7 +237,7 @@ async fn http_multipart_render_matches_pytorch() {
 /// bit-identical to the one-shot `POST /v1/render` of the same request, through the real graphs.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn cached_scene_render_is_bit_identical_to_one_shot() {
-    let app = router(ready_state(pipeline()));
+    let app = router(ready(pipeline()));
     let case = &cases()[0];
     let request: serde_json::Value =
         serde_json::from_slice(&std::fs::read(case.join("request.json")).unwrap()).unwrap();

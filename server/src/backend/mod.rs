@@ -89,7 +89,7 @@ pub struct Work(pub [f64; 3]);
 impl Work {
     pub fn of(graph: GraphKind, units: f64) -> Work {
         let mut work = Work::default();
-        work.0[slot(graph)] = units;
+        work.0[graph.index()] = units;
         work
     }
 
@@ -100,14 +100,6 @@ impl Work {
     /// Estimated seconds at `rates` (unmeasured graphs count 0).
     fn secs(&self, rates: &Rates) -> f64 {
         self.0.iter().zip(&rates.0).map(|(units, rate)| units * rate.unwrap_or(0.0)).sum()
-    }
-}
-
-fn slot(graph: GraphKind) -> usize {
-    match graph {
-        GraphKind::Encoder => 0,
-        GraphKind::Volume => 1,
-        GraphKind::Renderer => 2,
     }
 }
 
@@ -123,7 +115,7 @@ impl Rates {
         if units <= 0.0 {
             return;
         }
-        let rate = &mut self.0[slot(graph)];
+        let rate = &mut self.0[graph.index()];
         let latest = took / units;
         *rate = Some(rate.map_or(latest, |r| r + RATE_WEIGHT * (latest - r)));
     }
@@ -183,7 +175,7 @@ impl Queue {
     fn done(&mut self, job: &Job, took: f64) {
         self.rates.record(job.graph, job.units, took);
         if let Some(request) = self.requests.get_mut(&job.ticket) {
-            let left = &mut request.remaining.0[slot(job.graph)];
+            let left = &mut request.remaining.0[job.graph.index()];
             *left = (*left - job.units).max(0.0);
         }
     }

@@ -5,22 +5,17 @@
 //! Rays are independent in the renderer graph (depth normalisation uses a per-request range, not
 //! per-chunk statistics), so the output does not depend on the chunk size.
 
-use super::{Scene, SceneInputs};
 use futures_util::{stream, StreamExt, TryStreamExt};
 
+use super::rays::Rays;
+use super::Scene;
 use crate::backend::{BackendError, NamedTensors, Tensor, Ticket};
-use crate::bundle::GraphKind;
-use crate::pipeline::rays::Rays;
+use crate::bundle::{GraphKind, TensorSpec};
 
 /// Peak bytes of renderer activations per sample point. Measured with the paper-size `scnerf`
 /// renderer (width 128, both rectifiers), ONNX Runtime 1.31 CPU: about 4.7 GB of resident memory
 /// at 2048 rays x 128 samples, i.e. ~18 KiB per point.
 pub const BYTES_PER_SAMPLE: usize = 18 * 1024;
-
-/// Default upper bound on rays per renderer run (`--max-rays-per-chunk`).
-pub const DEFAULT_MAX_RAYS: usize = 512;
-/// Default renderer memory budget in MiB (`--chunk-memory-mb`).
-pub const DEFAULT_MEMORY_MB: usize = 1024;
 
 #[derive(Debug, Clone, Copy)]
 pub struct ChunkPolicy {
@@ -30,7 +25,8 @@ pub struct ChunkPolicy {
 
 impl Default for ChunkPolicy {
     fn default() -> Self {
-        ChunkPolicy { max_rays: DEFAULT_MAX_RAYS, memory_budget_bytes: DEFAULT_MEMORY_MB << 20 }
+        // `--max-rays-per-chunk` and `--chunk-memory-mb` (1 GiB).
+        ChunkPolicy { max_rays: 512, memory_budget_bytes: 1024 << 20 }
     }
 }
 
@@ -54,11 +50,12 @@ pub struct RawView {
 /// deadline, so queuing more does not buy a larger share).
 const CHUNKS_IN_FLIGHT: usize = 2;
 
-/// Runs the renderer over all rays, `chunk` rays at a time, and concatenates the outputs.
+/// Runs the renderer (whose inputs are `inputs`) over all rays, `chunk` rays at a time, and
+/// concatenates the outputs.
 pub async fn render_rays(
     ticket: &Ticket,
     scene: &Scene,
-    inputs: &SceneInputs,
+    inputs: &[TensorSpec],
     rays: &Rays,
     depth_range: [f32; 2],
     chunk: usize,
@@ -85,7 +82,7 @@ pub async fn render_rays(
 /// Every input the renderer graph declares, by name (the bundle check guarantees we know them).
 fn chunk_inputs(
     scene: &Scene,
-    inputs: &SceneInputs,
+    inputs: &[TensorSpec],
     rays: &Rays,
     start: usize,
     end: usize,
@@ -94,10 +91,9 @@ fn chunk_inputs(
     let r = end - start;
     let near_far = Tensor::new(vec![2], vec![scene.near as f32, scene.far as f32]);
     inputs
-        .renderer_inputs
         .iter()
-        .filter_map(|name| {
-            let t = match name.as_str() {
+        .filter_map(|spec| {
+            let t = match spec.name.as_str() {
                 "ray_origins" => Tensor::new(vec![r, 3], rays.origins[start * 3..end * 3].to_vec()),
                 "ray_directions" => Tensor::new(vec![r, 3], rays.directions[start * 3..end * 3].to_vec()),
                 "near_far" => near_far.clone(),
@@ -109,7 +105,7 @@ fn chunk_inputs(
                 "extrinsics" => scene.extrinsics.clone(),
                 _ => return None,
             };
-            Some((name.clone(), t))
+            Some((spec.name.clone(), t))
         })
         .collect()
 }
