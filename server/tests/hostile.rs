@@ -127,23 +127,15 @@ impl Make {
     }
 
     fn proto(&self, edit: impl FnOnce(&mut pb::RenderRequest)) -> Request<Body> {
-        let mut msg = proto_request(&self.request, &self.images);
+        let mut msg = proto_parity(&self.request, &self.images);
         edit(&mut msg);
         self.raw("POST", "/v1/render", "application/x-protobuf", msg.encode_to_vec())
     }
 }
 
-fn proto_request(r: &Value, images: &[Vec<u8>]) -> pb::RenderRequest {
-    pb::RenderRequest {
-        sources: (0..3)
-            .map(|i| pb::Source { camera: Some(proto_camera(&r["sources"][i]["camera"])), image: images[i].clone() })
-            .collect(),
-        target: Some(proto_camera(&r["target"])),
-        near: r["near"].as_f64().unwrap(),
-        far: r["far"].as_f64().unwrap(),
-        background: vec![],
-        outputs: vec!["rgb".into()],
-    }
+/// The parity request as protobuf: RGB only, default background.
+fn proto_parity(r: &Value, images: &[Vec<u8>]) -> pb::RenderRequest {
+    pb::RenderRequest { background: vec![], outputs: vec!["rgb".into()], ..proto_request(r, images) }
 }
 
 /// A JPEG of the given size.
@@ -507,7 +499,7 @@ fn cases() -> Vec<Case> {
         case(
             "protobuf scene with 17 sources",
             m.raw("POST", "/v1/scenes", "application/x-protobuf", {
-                let mut msg = proto_request(&m.request, &m.images);
+                let mut msg = proto_parity(&m.request, &m.images);
                 msg.sources = (0..17).map(|_| msg.sources[0].clone()).collect();
                 msg.encode_to_vec()
             }),

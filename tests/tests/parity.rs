@@ -11,8 +11,11 @@ use axum::body::Body;
 use axum::http::Request;
 use base64::Engine;
 use http_body_util::BodyExt;
+use scnerf_e2e::{split_request, Case};
+use scnerf_server::bundle::{Bundle, DepthNorm, GraphKind};
 use scnerf_server::http::{router, AppState, ServiceOptions};
-use scnerf_server::pipeline::{Pipeline, Timings};
+use scnerf_server::pipeline::chunks::{self, ChunkPolicy};
+use scnerf_server::pipeline::{assemble, rays, Pipeline, Timings};
 use scnerf_server::request::{ImageMode, Limits, RenderRequest, ValidRequest};
 use scnerf_server::testing::{ort_pipeline, ready_state};
 use tower::ServiceExt;
@@ -188,6 +191,45 @@ async fn output_does_not_depend_on_chunk_size() {
     assert!(err <= 1e-6, "output depends on the chunk size: max difference {err:.3e}");
 }
 
+/// The fixture bundle declaring `depth_norm: image_minmax`, over the same executor and graphs:
+/// the setting only changes what the renderer's `depth_range` input is fed.
+fn image_minmax_pipeline() -> Pipeline {
+    let mut bundle = Bundle::load(&fixtures_dir().join("bundle")).unwrap_or_else(|e| panic!("{e}"));
+    bundle.config.depth_norm = DepthNorm::ImageMinmax;
+    Pipeline::new(pipeline().executor().clone(), bundle, ChunkPolicy::default(), Limits::default())
+}
+
+/// The two-pass `image_minmax` render through the real graphs. The committed fixtures hold no
+/// image_minmax case (the exporter writes near_far ones), so this checks the rule rather than
+/// PyTorch's numbers: the view equals a renderer pass fed the [min, max] of the one-pass depth
+/// image (which does not depend on the range), and does not depend on the chunk size.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn image_minmax_feeds_the_depth_images_range_to_a_second_pass() {
+    let (near_far, minmax) = (pipeline(), image_minmax_pipeline());
+    let req = request(&cases()[0]);
+    let (target, background) = (&req.view.target, req.scene.background);
+    let mut timings = Timings::default();
+    let ticket = admit(&near_far);
+    let scene = near_far.prepare_scene(&ticket, &req.scene, &mut timings).await.unwrap();
+    let one_pass = near_far.render_view(&ticket, &scene, target, background, None, &mut timings).await.unwrap();
+    let small = minmax.render_view(&ticket, &scene, target, background, Some(37), &mut timings).await.unwrap();
+    let large = minmax.render_view(&ticket, &scene, target, background, Some(5000), &mut timings).await.unwrap();
+
+    let finite = one_pass.depth.iter().copied().filter(|d| d.is_finite());
+    let range = [finite.clone().fold(f32::INFINITY, f32::min), finite.fold(f32::NEG_INFINITY, f32::max)];
+    let inputs = &Bundle::load(&fixtures_dir().join("bundle")).unwrap().graph(GraphKind::Renderer).inputs.clone();
+    let raw = chunks::render_rays(&ticket, &scene, inputs, &rays::generate(target), range, 512).await.unwrap();
+    let expected_rgb = assemble::composite(&raw, background);
+
+    check("image_minmax", "rgb against a pass fed the depth range", max_abs(&large.rgb, &expected_rgb), 1e-6);
+    check("image_minmax", "depth against one pass", max_abs(&large.depth, &one_pass.depth), 1e-6);
+    let chunking = max_abs(&small.rgb, &large.rgb).max(max_abs(&small.depth, &large.depth));
+    check("image_minmax", "chunk 37 against 5000", chunking.max(max_abs(&small.opacity, &large.opacity)), 1e-6);
+    let fed = max_abs(&large.rgb, &one_pass.rgb);
+    eprintln!("image_minmax: rgb differs from near_far by up to {fed:.3e} (range {range:?})");
+    assert!(fed > 1e-6, "the depth range made no difference: this case cannot tell the two rules apart");
+}
+
 /// The same cases through the real HTTP router: multipart in, JSON out (PNG rgb, float32 depth).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn http_multipart_render_matches_pytorch() {
@@ -196,16 +238,8 @@ async fn http_multipart_render_matches_pytorch() {
     for case in cases() {
         let name = case.file_name().unwrap().to_string_lossy().to_string();
         let expected = Expected::load(&case);
-        let request_json = std::fs::read(case.join("request.json")).unwrap();
-        let images: Vec<Vec<u8>> =
-            (0..3).map(|i| std::fs::read(case.join(format!("source_{i}.png"))).unwrap()).collect();
-        let names: Vec<String> = (0..3).map(|i| format!("source_{i}")).collect();
-        let mut parts: Vec<(&str, Option<&str>, &str, &[u8])> =
-            vec![("request", None, "application/json", &request_json)];
-        for (n, img) in names.iter().zip(&images) {
-            parts.push((n, Some("view.png"), "image/png", img));
-        }
-        let (ctype, body) = scnerf_e2e::multipart(&parts);
+        let files = Case::load(&case).unwrap();
+        let (ctype, body) = files.multipart(&files.request);
         let req = Request::post("/v1/render")
             .header("content-type", ctype)
             .header("accept", "application/json")
@@ -238,23 +272,13 @@ async fn http_multipart_render_matches_pytorch() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn cached_scene_render_is_bit_identical_to_one_shot() {
     let app = router(ready(pipeline()));
-    let case = &cases()[0];
-    let request: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(case.join("request.json")).unwrap()).unwrap();
-    let images: Vec<Vec<u8>> = (0..3).map(|i| std::fs::read(case.join(format!("source_{i}.png"))).unwrap()).collect();
+    let case = Case::load(&cases()[0]).unwrap();
     let post = |path: &str, ctype: &str, body: Vec<u8>| {
         Request::post(path)
             .header("content-type", ctype)
             .header("accept", "application/json")
             .body(Body::from(body))
             .unwrap()
-    };
-    let multipart = |json: &serde_json::Value| {
-        let json = serde_json::to_vec(json).unwrap();
-        let names = ["source_0", "source_1", "source_2"];
-        let mut parts: Vec<(&str, Option<&str>, &str, &[u8])> = vec![("request", None, "application/json", &json)];
-        parts.extend(names.iter().zip(&images).map(|(n, img)| (*n, Some("view.png"), "image/png", img.as_slice())));
-        scnerf_e2e::multipart(&parts)
     };
     let call = |req: Request<Body>| {
         let app = app.clone();
@@ -267,13 +291,11 @@ async fn cached_scene_render_is_bit_identical_to_one_shot() {
         }
     };
 
-    let (ctype, body) = multipart(&request);
+    let (ctype, body) = case.multipart(&case.request);
     let one_shot = call(post("/v1/render", &ctype, body)).await;
 
-    let mut scene = request.clone();
-    let obj = scene.as_object_mut().unwrap();
-    let view = serde_json::json!({"target": obj.remove("target").unwrap(), "outputs": obj.remove("outputs").unwrap()});
-    let (ctype, body) = multipart(&scene);
+    let (scene, view) = split_request(&case.request);
+    let (ctype, body) = case.multipart(&scene);
     let created = call(post("/v1/scenes", &ctype, body)).await;
     let id = created["scene_id"].as_str().unwrap();
     let path = format!("/v1/scenes/{id}/render");
