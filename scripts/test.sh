@@ -8,4 +8,6 @@ cd "${repo}"
 scripts/fetch-onnxruntime.sh
 scripts/setup-python.sh
 cargo test -j2 --workspace --locked
+cargo clippy --workspace --all-targets --locked -- -D warnings
+cargo fmt --all --check
 .venv/bin/python -m pytest -q -p no:cacheprovider exporter/tests
