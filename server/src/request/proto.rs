@@ -11,35 +11,30 @@ use crate::error::ApiError;
 impl RenderRequest {
     /// Parses the protobuf form.
     pub fn from_protobuf(body: &[u8]) -> Result<RenderRequest, ApiError> {
-        check_repeated(body, &[SOURCES, OUTPUTS])?;
-        let msg = pb::RenderRequest::decode(body).map_err(|e| {
-            ApiError::malformed(Some("body".to_string()), format!("invalid protobuf RenderRequest: {e}"))
-        })?;
-        request_from_proto(msg)
+        request_from_proto(decode(body, &[SOURCES, OUTPUTS], "RenderRequest")?)
     }
 }
 
 impl SceneRequest {
     pub fn from_protobuf(body: &[u8]) -> Result<SceneRequest, ApiError> {
-        check_repeated(body, &[SOURCES])?;
-        let msg = pb::SceneRequest::decode(body).map_err(|e| {
-            ApiError::malformed(Some("body".to_string()), format!("invalid protobuf SceneRequest: {e}"))
-        })?;
-        scene_from_proto(msg)
+        scene_from_proto(decode(body, &[SOURCES], "SceneRequest")?)
     }
 }
 
 impl TargetRequest {
     pub fn from_protobuf(body: &[u8]) -> Result<TargetRequest, ApiError> {
-        check_repeated(body, &[OUTPUTS])?;
-        let msg = pb::SceneRenderRequest::decode(body).map_err(|e| {
-            ApiError::malformed(Some("body".to_string()), format!("invalid protobuf SceneRenderRequest: {e}"))
-        })?;
+        let msg: pb::SceneRenderRequest = decode(body, &[OUTPUTS], "SceneRenderRequest")?;
         Ok(TargetRequest {
             target: camera_from_proto(msg.target, "target")?,
             outputs: outputs_from_proto(&msg.outputs)?,
         })
     }
+}
+
+/// Decodes message `name` once its repeated fields are within `bounds`.
+fn decode<M: Message + Default>(body: &[u8], bounds: &[Bound], name: &str) -> Result<M, ApiError> {
+    check_repeated(body, bounds)?;
+    M::decode(body).map_err(|e| ApiError::malformed(Some("body".to_string()), format!("invalid protobuf {name}: {e}")))
 }
 
 /// A repeated field of the request messages: number, name, most entries a request can use.
