@@ -4,10 +4,12 @@ use std::io::Write;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+use nalgebra::{Isometry3, Matrix3, Vector3};
+use ndarray::Array4;
 use tokio::net::TcpListener;
 
 use crate::backend::ort::OrtRunner;
-use crate::backend::{BackendHandle, Tensor};
+use crate::backend::BackendHandle;
 use crate::bundle::Bundle;
 use crate::camera::Camera;
 use crate::config::Config;
@@ -128,7 +130,7 @@ pub async fn warm_up(pipeline: &Pipeline) -> Result<Duration, String> {
     let config = pipeline.config();
     let size = config.image_multiple;
     let cameras = warmup_cameras(config.views, size as u32);
-    let images = Tensor::new(vec![config.views, 3, size, size], vec![0.5; config.views * 3 * size * size]);
+    let images = Array4::from_elem((config.views, 3, size, size), 0.5);
     let mut timings = Timings::default();
     let mut target = cameras[0].clone();
     target.width = 4;
@@ -150,16 +152,16 @@ pub async fn warm_up(pipeline: &Pipeline) -> Result<Duration, String> {
 
 /// Cameras on a small arc 4 units from the origin, looking at it (OpenCV, world-to-camera).
 fn warmup_cameras(views: usize, size: u32) -> Vec<Camera> {
+    let (f, c) = (f64::from(size), f64::from(size) / 2.0);
     (0..views)
         .map(|i| {
-            let a = 0.1 * i as f64;
-            let (s, c) = a.sin_cos();
-            // Rotation about y by a; camera centre at R^T * (0, 0, -4) so the origin is 4 ahead.
+            // Rotation about y by -0.1·i; the origin lies 4 units ahead on the optical axis.
+            let w2c = Isometry3::new(Vector3::new(0.0, 0.0, 4.0), Vector3::y() * (-0.1 * i as f64));
             Camera {
                 width: size,
                 height: size,
-                k: [[size as f64, 0.0, size as f64 / 2.0], [0.0, size as f64, size as f64 / 2.0], [0.0, 0.0, 1.0]],
-                w2c: [[c, 0.0, -s, 0.0], [0.0, 1.0, 0.0, 0.0], [s, 0.0, c, 4.0], [0.0, 0.0, 0.0, 1.0]],
+                k: Matrix3::new(f, 0.0, c, 0.0, f, c, 0.0, 0.0, 1.0),
+                w2c: w2c.to_homogeneous(),
             }
         })
         .collect()

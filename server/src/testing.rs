@@ -7,6 +7,8 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use crate::backend::ort::{OrtOptions, OrtRunner};
+use ndarray::{ArrayD, Axis, Ix2, IxDyn};
+
 use crate::backend::{BackendError, BackendHandle, GraphRunner, NamedTensors, Tensor};
 use crate::bundle::{validate_manifest, Bundle, GraphKind, Manifest};
 use crate::config::GraphOptLevel;
@@ -99,44 +101,29 @@ impl GraphRunner for FakeRunner {
             return Err(BackendError::Run { graph, message: message.clone() });
         }
         let c = &self.config;
+        let filled = |shape: &[usize], value: f32| ArrayD::from_elem(IxDyn(shape), value).into_shared();
         Ok(match graph {
             GraphKind::Encoder => {
                 let images = input(inputs, "images");
-                let (v, h, w) = (images.shape[0], images.shape[2] / 4, images.shape[3] / 4);
-                let mean = images.data.iter().sum::<f32>() / images.len() as f32;
-                vec![(
-                    "features".into(),
-                    Tensor::new(vec![v, c.feature_channels, h, w], vec![mean; v * c.feature_channels * h * w]),
-                )]
+                let (v, h, w) = (images.shape()[0], images.shape()[2] / 4, images.shape()[3] / 4);
+                let mean = images.iter().sum::<f32>() / images.len() as f32;
+                vec![("features".into(), filled(&[v, c.feature_channels, h, w], mean))]
             }
             GraphKind::Volume => {
                 let f = input(inputs, "features");
-                let (hp, wp) = (f.shape[2] + 2 * c.pad, f.shape[3] + 2 * c.pad);
-                let n = c.volume_channels * c.depth_planes * hp * wp;
-                vec![(
-                    "volume".into(),
-                    Tensor::new(vec![1, c.volume_channels, c.depth_planes, hp, wp], vec![f.data[0]; n]),
-                )]
+                let (hp, wp) = (f.shape()[2] + 2 * c.pad, f.shape()[3] + 2 * c.pad);
+                vec![("volume".into(), filled(&[1, c.volume_channels, c.depth_planes, hp, wp], f[[0, 0, 0, 0]]))]
             }
             GraphKind::Renderer => {
-                let dirs = input(inputs, "ray_directions");
-                let near_far = input(inputs, "near_far");
-                let range =
-                    inputs.iter().find(|(n, _)| n == "depth_range").map(|(_, t)| t.data[1] - t.data[0]).unwrap_or(1.0);
-                let r = dirs.shape[0];
-                let mut rgb = Vec::with_capacity(r * 3);
-                let mut depth = Vec::with_capacity(r);
-                let mut opacity = Vec::with_capacity(r);
-                for d in dirs.data.chunks_exact(3) {
-                    let norm = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
-                    rgb.extend(d.iter().map(|x| 0.5 * (x / norm).abs()));
-                    depth.push(near_far.data[0] + (d[0] / norm).abs() * range);
-                    opacity.push(0.5 + 0.5 * (d[1] / norm).abs());
-                }
+                let dirs = input(inputs, "ray_directions").view().into_dimensionality::<Ix2>().expect("(R, 3) rays");
+                let near = input(inputs, "near_far")[0];
+                let range = inputs.iter().find(|(n, _)| n == "depth_range").map_or(1.0, |(_, t)| t[1] - t[0]);
+                let norm = dirs.map_axis(Axis(1), |d| (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt());
+                let unit = &dirs / &norm.insert_axis(Axis(1));
                 vec![
-                    ("rgb".into(), Tensor::new(vec![r, 3], rgb)),
-                    ("depth".into(), Tensor::new(vec![r], depth)),
-                    ("opacity".into(), Tensor::new(vec![r], opacity)),
+                    ("rgb".into(), unit.mapv(|x| 0.5 * x.abs()).into_shared().into_dyn()),
+                    ("depth".into(), unit.column(0).mapv(|x| near + x.abs() * range).into_shared().into_dyn()),
+                    ("opacity".into(), unit.column(1).mapv(|x| 0.5 + 0.5 * x.abs()).into_shared().into_dyn()),
                 ]
             }
         })

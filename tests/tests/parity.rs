@@ -109,15 +109,31 @@ fn request(case: &Path) -> ValidRequest {
     req.validate(pipeline().config(), &Limits::default()).unwrap()
 }
 
-fn max_abs(a: &[f32], b: &[f32]) -> f64 {
+/// The largest `error` between the values of two equally long tensors of any shape, paired in
+/// row-major order.
+fn max_error<'a>(
+    a: impl IntoIterator<Item = &'a f32, IntoIter: ExactSizeIterator>,
+    b: impl IntoIterator<Item = &'a f32, IntoIter: ExactSizeIterator>,
+    error: impl Fn(f32, f32) -> f64,
+) -> f64 {
+    let (a, b) = (a.into_iter(), b.into_iter());
     assert_eq!(a.len(), b.len());
-    a.iter().zip(b).map(|(x, y)| f64::from((x - y).abs())).fold(0.0, f64::max)
+    a.zip(b).map(|(x, y)| error(*x, *y)).fold(0.0, f64::max)
 }
 
-/// max |a - b| / max(|b|, 1e-6)... relative to the magnitude of the reference.
-fn max_rel(a: &[f32], b: &[f32]) -> f64 {
-    assert_eq!(a.len(), b.len());
-    a.iter().zip(b).map(|(x, y)| f64::from((x - y).abs()) / f64::from(y.abs()).max(1e-3)).fold(0.0, f64::max)
+fn max_abs<'a>(
+    a: impl IntoIterator<Item = &'a f32, IntoIter: ExactSizeIterator>,
+    b: impl IntoIterator<Item = &'a f32, IntoIter: ExactSizeIterator>,
+) -> f64 {
+    max_error(a, b, |x, y| f64::from((x - y).abs()))
+}
+
+/// max |a - b| / max(|b|, 1e-3): relative to the magnitude of the reference.
+fn max_rel<'a>(
+    a: impl IntoIterator<Item = &'a f32, IntoIter: ExactSizeIterator>,
+    b: impl IntoIterator<Item = &'a f32, IntoIter: ExactSizeIterator>,
+) -> f64 {
+    max_error(a, b, |x, y| f64::from((x - y).abs()) / f64::from(y.abs()).max(1e-3))
 }
 
 fn check(case: &str, stage: &str, err: f64, tol: f64) {
@@ -139,21 +155,16 @@ async fn pipeline_matches_pytorch_stage_by_stage() {
         let scene = p.build_scene(&ticket, &req.scene.cameras(), images, near, far, &mut timings).await.unwrap();
 
         let (shape, features) = expected.tensor("features");
-        assert_eq!(scene.features.shape, shape, "{name}: features shape");
-        check(
-            &name,
-            "features",
-            max_abs(&scene.features.data, &features),
-            expected.tolerance("features_max_abs", 1e-4),
-        );
+        assert_eq!(scene.features.shape(), shape, "{name}: features shape");
+        check(&name, "features", max_abs(&scene.features, &features), expected.tolerance("features_max_abs", 1e-4));
         let (shape, volume) = expected.tensor("volume");
-        assert_eq!(scene.volume.shape, shape, "{name}: volume shape");
-        check(&name, "volume", max_abs(&scene.volume.data, &volume), expected.tolerance("volume_max_abs", 1e-4));
+        assert_eq!(scene.volume.shape(), shape, "{name}: volume shape");
+        check(&name, "volume", max_abs(&scene.volume, &volume), expected.tolerance("volume_max_abs", 1e-4));
 
         let view =
             p.render_view(&ticket, &scene, &req.view.target, req.scene.background, None, &mut timings).await.unwrap();
         assert_eq!(
-            (view.width as u64, view.height as u64),
+            (u64::from(view.width()), u64::from(view.height())),
             (expected.json["width"].as_u64().unwrap(), expected.json["height"].as_u64().unwrap())
         );
         check(&name, "rgb", max_abs(&view.rgb, &expected.tensor("rgb").1), expected.tolerance("rgb_max_abs", 1e-3));

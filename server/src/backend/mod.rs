@@ -27,34 +27,16 @@ use std::future::Future;
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
+use ndarray::{ArcArray, ArcArrayD, Dimension};
 use tokio::sync::oneshot;
 use tracing::Span;
 
 use crate::bundle::GraphKind;
 
-/// A dense float32 tensor, row-major. The data is shared so that large inputs (the encoding
-/// volume, the source images) are not copied for every renderer chunk.
-#[derive(Debug, Clone)]
-pub struct Tensor {
-    pub shape: Vec<usize>,
-    pub data: Arc<Vec<f32>>,
-}
-
-impl Tensor {
-    /// Panics if `data` does not hold exactly the elements of `shape` (a programming error).
-    pub fn new(shape: Vec<usize>, data: Vec<f32>) -> Tensor {
-        assert_eq!(shape.iter().product::<usize>(), data.len(), "tensor data does not match shape {shape:?}");
-        Tensor { shape, data: Arc::new(data) }
-    }
-
-    pub fn len(&self) -> usize {
-        self.data.len()
-    }
-
-    pub fn is_empty(&self) -> bool {
-        self.data.is_empty()
-    }
-}
+/// A graph input or output: float32, any rank, standard (row-major) layout. Shared, so that
+/// large inputs (the encoding volume, the source images) are not copied for every renderer
+/// chunk; ONNX Runtime reads it in place.
+pub type Tensor = ArcArrayD<f32>;
 
 /// Named graph inputs or outputs.
 pub type NamedTensors = Vec<(String, Tensor)>;
@@ -396,8 +378,13 @@ pub struct Outputs {
 }
 
 impl Outputs {
-    /// Removes the named output and checks its shape (`None` = any size on that axis).
-    pub fn take(&mut self, name: &str, shape: &[Option<usize>]) -> Result<Tensor, BackendError> {
+    /// Removes the named output and checks its shape (`None` = any size on that axis), which
+    /// also fixes its rank `D`.
+    pub fn take<D: Dimension>(
+        &mut self,
+        name: &str,
+        shape: &[Option<usize>],
+    ) -> Result<ArcArray<f32, D>, BackendError> {
         let graph = self.graph;
         let idx = self
             .tensors
@@ -406,14 +393,17 @@ impl Outputs {
             .ok_or_else(|| BackendError::BadOutput { graph, message: format!("no output \"{name}\"") })?;
         let (_, tensor) = self.tensors.swap_remove(idx);
         let ok =
-            tensor.shape.len() == shape.len() && tensor.shape.iter().zip(shape).all(|(a, b)| b.is_none_or(|b| *a == b));
+            tensor.ndim() == shape.len() && tensor.shape().iter().zip(shape).all(|(a, b)| b.is_none_or(|b| *a == b));
         if !ok {
             return Err(BackendError::BadOutput {
                 graph,
-                message: format!("\"{name}\" has shape {:?}, expected {shape:?}", tensor.shape),
+                message: format!("\"{name}\" has shape {:?}, expected {shape:?}", tensor.shape()),
             });
         }
-        Ok(tensor)
+        // Cannot fail once the rank matched (`shape` has D's rank).
+        tensor
+            .into_dimensionality::<D>()
+            .map_err(|e| BackendError::BadOutput { graph, message: format!("\"{name}\": {e}") })
     }
 }
 
@@ -435,7 +425,7 @@ mod tests {
             if let Some(gate) = self.gate.take() {
                 let _ = gate.recv();
             }
-            let tag = inputs[0].1.data[0] as u32;
+            let tag = inputs[0].1.first().copied().unwrap_or_default() as u32;
             self.order.lock().unwrap().push(tag);
             std::thread::sleep(Duration::from_millis(u64::from(tag)));
             Ok(vec![])
@@ -443,7 +433,7 @@ mod tests {
     }
 
     fn tagged(tag: u32) -> NamedTensors {
-        vec![("tag".into(), Tensor::new(vec![1], vec![tag as f32]))]
+        vec![("tag".into(), ndarray::arr1(&[tag as f32]).into_shared().into_dyn())]
     }
 
     fn recorder() -> (BackendHandle, Arc<Mutex<Vec<u32>>>, mpsc::Sender<()>) {

@@ -8,6 +8,7 @@ use std::time::Instant;
 use axum::http::{header, HeaderValue};
 use axum::response::{IntoResponse, Response};
 use base64::Engine;
+use ndarray::Array2;
 use prost::Message;
 use serde::Serialize;
 
@@ -48,15 +49,14 @@ struct Encoded {
 
 async fn encode_outputs(view: View, outputs: OutputSet) -> Result<Encoded, ApiError> {
     tokio::task::spawn_blocking(move || {
-        let rgb_png = if outputs.rgb {
-            Some(image_io::encode_png(view.width, view.height, &assemble::quantize(&view.rgb))?)
-        } else {
-            None
-        };
-        let le = |v: &[f32]| v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
+        let (width, height) = (view.width(), view.height());
+        let rgb_png =
+            if outputs.rgb { Some(image_io::encode_png(width, height, &assemble::quantize(&view.rgb))?) } else { None };
+        // Row-major, as the arrays iterate.
+        let le = |v: &Array2<f32>| v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
         Ok(Encoded {
-            width: view.width,
-            height: view.height,
+            width,
+            height,
             rgb_png,
             depth: outputs.depth.then(|| le(&view.depth)),
             opacity: outputs.opacity.then(|| le(&view.opacity)),

@@ -19,9 +19,11 @@ pub mod volume;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use crate::backend::{BackendError, BackendHandle, Tensor, Ticket, Work};
+use ndarray::{ArcArray3, ArcArray4, ArcArray5, Array1, Array2, Array3, Array4};
+
+use crate::backend::{BackendError, BackendHandle, Ticket, Work};
 use crate::bundle::{Bundle, DepthNorm, GraphKind, Manifest, ModelConfig};
-use crate::camera::Camera;
+use crate::camera::{stack_rows, Camera};
 use crate::error::ApiError;
 use crate::request::{Limits, ValidRequest, ValidScene};
 use chunks::{ChunkPolicy, RawView};
@@ -49,18 +51,19 @@ impl Timings {
 }
 
 /// Everything the renderer needs about the sources; reusable for any number of target views.
+/// The arrays are shared: every renderer run of every view reads them without a copy.
 #[derive(Debug, Clone)]
 pub struct Scene {
     /// (V, 3, H, W) padded source images in [0, 1].
-    pub images: Tensor,
+    pub images: ArcArray4<f32>,
     /// (V, C, H/4, W/4) encoder output.
-    pub features: Tensor,
+    pub features: ArcArray4<f32>,
     /// (1, Cv, D, H/4 + 2·pad, W/4 + 2·pad) encoding volume.
-    pub volume: Tensor,
+    pub volume: ArcArray5<f32>,
     /// (V, 3, 3) full-resolution K per view.
-    pub intrinsics: Tensor,
+    pub intrinsics: ArcArray3<f32>,
     /// (V, 4, 4) OpenCV world-to-camera per view.
-    pub extrinsics: Tensor,
+    pub extrinsics: ArcArray3<f32>,
     pub near: f64,
     pub far: f64,
 }
@@ -72,14 +75,22 @@ impl Scene {
     }
 }
 
-/// A rendered view: composited RGB (H·W·3, in [0, 1]), depth and opacity (H·W).
+/// A rendered view: composited RGB (H, W, 3) in [0, 1], depth and opacity (H, W).
 #[derive(Debug, Clone)]
 pub struct View {
-    pub width: u32,
-    pub height: u32,
-    pub rgb: Vec<f32>,
-    pub depth: Vec<f32>,
-    pub opacity: Vec<f32>,
+    pub rgb: Array3<f32>,
+    pub depth: Array2<f32>,
+    pub opacity: Array2<f32>,
+}
+
+impl View {
+    pub fn width(&self) -> u32 {
+        self.depth.ncols() as u32
+    }
+
+    pub fn height(&self) -> u32 {
+        self.depth.nrows() as u32
+    }
 }
 
 /// The pipeline's shared, read-only context: the executor, the bundle, the chunking policy and
@@ -93,7 +104,7 @@ pub struct Pipeline {
 }
 
 /// Work units of an encoder or volume run over `images` (V, 3, H, W): its pixels.
-pub fn pixel_units(images: &Tensor) -> f64 {
+pub fn pixel_units(images: &ArcArray4<f32>) -> f64 {
     (images.len() / 3) as f64
 }
 
@@ -206,7 +217,7 @@ impl Pipeline {
     }
 
     /// Decodes the source images off the async runtime and stacks them padded.
-    pub async fn decode_sources(&self, req: &ValidScene) -> Result<Tensor, ApiError> {
+    pub async fn decode_sources(&self, req: &ValidScene) -> Result<Array4<f32>, ApiError> {
         let multiple = self.bundle.config.image_multiple;
         sources::decode(&req.sources, req.background, self.limits.max_source_pixels, multiple).await
     }
@@ -227,23 +238,24 @@ impl Pipeline {
         &self,
         ticket: &Ticket,
         cameras: &[Camera],
-        images: Tensor,
+        images: Array4<f32>,
         near: f64,
         far: f64,
         timings: &mut Timings,
     ) -> Result<Scene, BackendError> {
         let config = &self.bundle.config;
+        let images = images.into_shared();
         let features = timings.time("encoder", encoder::run(ticket, config, &images)).await?;
         let volume =
             timings.time("volume", volume::run(ticket, config, &features, &images, cameras, near, far)).await?;
-        let intrinsics = cameras.iter().flat_map(|c| c.k.into_iter().flatten().map(|x| x as f32)).collect();
-        let extrinsics = cameras.iter().flat_map(|c| c.w2c.into_iter().flatten().map(|x| x as f32)).collect();
+        let intrinsics: Vec<_> = cameras.iter().map(|c| c.k).collect();
+        let extrinsics: Vec<_> = cameras.iter().map(|c| c.w2c).collect();
         Ok(Scene {
             images,
             features,
             volume,
-            intrinsics: Tensor::new(vec![cameras.len(), 3, 3], intrinsics),
-            extrinsics: Tensor::new(vec![cameras.len(), 4, 4], extrinsics),
+            intrinsics: stack_rows(&intrinsics).into_shared(),
+            extrinsics: stack_rows(&extrinsics).into_shared(),
             near,
             far,
         })
@@ -278,13 +290,16 @@ impl Pipeline {
     }
 }
 
-fn min_max(values: &[f32]) -> Option<[f32; 2]> {
+fn min_max(values: &Array1<f32>) -> Option<[f32; 2]> {
     let mut it = values.iter().copied().filter(|v| v.is_finite());
     let first = it.next()?;
     Some(it.fold([first, first], |[lo, hi], v| [lo.min(v), hi.max(v)]))
 }
 
+/// The rays' outputs as images: rays are ordered row by row.
 fn assemble_view(target: &Camera, raw: RawView, background: [f32; 3]) -> View {
-    let rgb = assemble::composite(&raw, background);
-    View { width: target.width, height: target.height, rgb, depth: raw.depth, opacity: raw.opacity }
+    let (h, w) = (target.height as usize, target.width as usize);
+    let image = |a: Array1<f32>| a.into_shape_with_order((h, w)).expect("one ray per pixel");
+    let rgb = assemble::composite(&raw, background).into_shape_with_order((h, w, 3)).expect("one ray per pixel");
+    View { rgb, depth: image(raw.depth), opacity: image(raw.opacity) }
 }

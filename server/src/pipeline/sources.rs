@@ -1,9 +1,10 @@
 //! Stage 0: the source images, decoded off the async runtime and stacked into one
 //! (V, 3, H, W) tensor padded to the bundle's image multiple.
 
-use crate::backend::Tensor;
+use ndarray::{s, Array3, Array4, Axis};
+
 use crate::error::ApiError;
-use crate::image_io::{self, RgbF32};
+use crate::image_io;
 use crate::request::ValidSource;
 
 /// The size a `width` x `height` source is padded to: each side rounded up to `multiple`. The
@@ -19,18 +20,17 @@ pub async fn decode(
     background: [f32; 3],
     max_pixels: u64,
     multiple: usize,
-) -> Result<Tensor, ApiError> {
+) -> Result<Array4<f32>, ApiError> {
     let sources = sources.to_vec();
     tokio::task::spawn_blocking(move || {
-        let images =
-            sources.iter().map(|s| decode_one(s, background, max_pixels)).collect::<Result<Vec<RgbF32>, ApiError>>()?;
+        let images = sources.iter().map(|s| decode_one(s, background, max_pixels)).collect::<Result<Vec<_>, _>>()?;
         Ok(stack_padded(&images, multiple, background))
     })
     .await
     .map_err(|e| ApiError::Internal(format!("image decoding task failed: {e}")))?
 }
 
-fn decode_one(source: &ValidSource, background: [f32; 3], max_pixels: u64) -> Result<RgbF32, ApiError> {
+fn decode_one(source: &ValidSource, background: [f32; 3], max_pixels: u64) -> Result<Array3<f32>, ApiError> {
     let (cam, field) = (&source.camera, source.image_field.as_str());
     // The header alone tells the size: a mismatch is refused before anything is decoded.
     let (_, width, height) = image_io::probe(&source.image, field)?;
@@ -43,26 +43,19 @@ fn decode_one(source: &ValidSource, background: [f32; 3], max_pixels: u64) -> Re
     image_io::decode_source(&source.image, field, background, max_pixels)
 }
 
-/// Stacks same-size views into an NCHW tensor (V, 3, Hp, Wp), padded with `background` to
-/// `padded_size`.
-pub fn stack_padded(images: &[RgbF32], multiple: usize, background: [f32; 3]) -> Tensor {
-    let (w, h) = (images[0].width as usize, images[0].height as usize);
+/// Stacks same-size (H, W, 3) views into one NCHW array (V, 3, Hp, Wp), padded with
+/// `background` to `padded_size`.
+pub fn stack_padded(images: &[Array3<f32>], multiple: usize, background: [f32; 3]) -> Array4<f32> {
+    let (h, w, _) = images[0].dim();
     let (wp, hp) = padded_size(w, h, multiple);
-    let plane = hp * wp;
-    let mut data = Vec::with_capacity(images.len() * 3 * plane);
-    for img in images {
-        for (c, bg) in background.iter().enumerate() {
-            let start = data.len();
-            data.resize(start + plane, *bg);
-            let dst = &mut data[start..];
-            for y in 0..h {
-                for x in 0..w {
-                    dst[y * wp + x] = img.data[(y * w + x) * 3 + c];
-                }
-            }
-        }
+    let mut stacked = Array4::zeros((images.len(), 3, hp, wp));
+    for (c, bg) in background.into_iter().enumerate() {
+        stacked.index_axis_mut(Axis(1), c).fill(bg);
     }
-    Tensor::new(vec![images.len(), 3, hp, wp], data)
+    for (mut view, image) in stacked.outer_iter_mut().zip(images) {
+        view.slice_mut(s![.., ..h, ..w]).assign(&image.view().permuted_axes([2, 0, 1]));
+    }
+    stacked
 }
 
 #[cfg(test)]
@@ -71,14 +64,15 @@ mod tests {
 
     #[test]
     fn pads_with_background() {
-        let img = RgbF32 { width: 1, height: 1, data: vec![0.1, 0.2, 0.3] };
+        let img = ndarray::arr3(&[[[0.1, 0.2, 0.3]]]);
         let t = stack_padded(&[img.clone(), img], 4, [1.0, 0.5, 0.0]);
-        assert_eq!(t.shape, vec![2, 3, 4, 4]);
-        assert_eq!(t.data[0], 0.1);
-        assert_eq!(t.data[1], 1.0);
-        assert_eq!(t.data[16], 0.2);
-        assert_eq!(t.data[17], 0.5);
-        assert_eq!(t.data[48], 0.1);
+        assert_eq!(t.shape(), &[2, 3, 4, 4]);
+        let flat = t.as_slice().unwrap();
+        assert_eq!(flat[0], 0.1);
+        assert_eq!(flat[1], 1.0);
+        assert_eq!(flat[16], 0.2);
+        assert_eq!(flat[17], 0.5);
+        assert_eq!(flat[48], 0.1);
     }
 
     #[test]

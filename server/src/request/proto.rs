@@ -5,7 +5,9 @@ use prost::Message;
 use scnerf_proto::v1 as pb;
 
 use super::{OutputKind, RenderRequest, SceneRequest, SourceSpec, TargetRequest, MAX_SOURCES};
-use crate::camera::{Axes, CameraSpec, Intrinsics, Mat3, Mat4, Pose, PoseKind};
+use nalgebra::SMatrix;
+
+use crate::camera::{Axes, CameraSpec, Intrinsics, Pose, PoseKind};
 use crate::error::ApiError;
 
 impl RenderRequest {
@@ -138,7 +140,7 @@ fn camera_from_proto(c: Option<pb::Camera>, field: &str) -> Result<CameraSpec, A
     let c = c.ok_or_else(|| ApiError::malformed(field.to_string(), "missing camera"))?;
     let intrinsics = match c.intrinsics_kind {
         Some(pb::camera::IntrinsicsKind::Intrinsics(i)) => Intrinsics::Focal { fx: i.fx, fy: i.fy, cx: i.cx, cy: i.cy },
-        Some(pb::camera::IntrinsicsKind::K(m)) => Intrinsics::Matrix(mat3(&m.values, &format!("{field}.k.values"))?),
+        Some(pb::camera::IntrinsicsKind::K(m)) => Intrinsics::Matrix(matrix(&m.values, &format!("{field}.k.values"))?),
         None => return Err(ApiError::malformed(format!("{field}.intrinsics"), "missing intrinsics (or k)")),
     };
     let pose = c.pose.ok_or_else(|| ApiError::malformed(format!("{field}.pose"), "missing pose"))?;
@@ -161,32 +163,19 @@ fn camera_from_proto(c: Option<pb::Camera>, field: &str) -> Result<CameraSpec, A
         width: c.width,
         height: c.height,
         intrinsics,
-        pose: Pose { matrix: mat4(&pose.matrix, &format!("{field}.pose.matrix"))?, kind, axes },
+        pose: Pose { matrix: matrix(&pose.matrix, &format!("{field}.pose.matrix"))?, kind, axes },
     })
 }
 
-fn mat3(v: &[f64], field: &str) -> Result<Mat3, ApiError> {
-    if v.len() != 9 {
+/// An N x N matrix from its N² values, row by row.
+fn matrix<const N: usize>(v: &[f64], field: &str) -> Result<SMatrix<f64, N, N>, ApiError> {
+    if v.len() != N * N {
         return Err(ApiError::malformed(
             field.to_string(),
-            format!("expected 9 values (row-major 3x3), got {}", v.len()),
+            format!("expected {} values (row-major {N}x{N}), got {}", N * N, v.len()),
         ));
     }
-    Ok([[v[0], v[1], v[2]], [v[3], v[4], v[5]], [v[6], v[7], v[8]]])
-}
-
-fn mat4(v: &[f64], field: &str) -> Result<Mat4, ApiError> {
-    if v.len() != 16 {
-        return Err(ApiError::malformed(
-            field.to_string(),
-            format!("expected 16 values (row-major 4x4), got {}", v.len()),
-        ));
-    }
-    let mut m = [[0.0; 4]; 4];
-    for (i, x) in v.iter().enumerate() {
-        m[i / 4][i % 4] = *x;
-    }
-    Ok(m)
+    Ok(SMatrix::from_row_slice(v))
 }
 
 #[cfg(test)]

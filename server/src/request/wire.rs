@@ -5,7 +5,12 @@ use bytes::Bytes;
 use serde::{Deserialize, Deserializer};
 
 use super::{Limits, OutputKind, RenderRequest, SceneRequest, SourceSpec, TargetRequest};
-use crate::camera::{Axes, CameraSpec, Intrinsics, Mat3, Mat4, Pose, PoseKind};
+use crate::camera::{from_rows, Axes, CameraSpec, Intrinsics, Pose, PoseKind};
+
+/// A 3x3 matrix on the wire: rows.
+type Rows3 = [[f64; 3]; 3];
+/// A 4x4 matrix on the wire: rows.
+type Rows4 = [[f64; 4]; 4];
 use crate::error::ApiError;
 
 /// `POST /v1/render` JSON body (and the `request` part of a multipart body, without images).
@@ -85,7 +90,7 @@ pub struct JsonCamera {
     /// 3x3 intrinsic matrix (rows), instead of `intrinsics`.
     #[serde(default, rename = "K")]
     #[schema(value_type = Option<Matrix3Rows>)]
-    k: Option<Mat3>,
+    k: Option<Rows3>,
     pose: JsonPose,
 }
 
@@ -106,10 +111,10 @@ fn square_matrix_schema(n: usize) -> utoipa::openapi::schema::Array {
     ArrayBuilder::new().items(row).min_items(Some(n)).max_items(Some(n)).build()
 }
 
-/// Schema of a 3x3 matrix (`Mat3`).
+/// Schema of a 3x3 matrix (`Rows3`).
 pub struct Matrix3Rows;
 
-/// Schema of a 4x4 matrix (`Mat4`).
+/// Schema of a 4x4 matrix (`Rows4`).
 pub struct Matrix4Rows;
 
 impl utoipa::PartialSchema for Matrix3Rows {
@@ -144,7 +149,7 @@ pub struct JsonFocal {
 pub struct JsonPose {
     /// 4x4, row-major (a list of 4 rows of 4 numbers).
     #[schema(value_type = Matrix4Rows)]
-    matrix: Mat4,
+    matrix: Rows4,
     #[schema(value_type = String, pattern = "^(world_to_camera|camera_to_world)$")]
     kind: PoseKind,
     #[schema(value_type = String, pattern = "^(opencv|opengl)$")]
@@ -166,7 +171,7 @@ fn intrinsics_or_matrix<'de, D: Deserializer<'de>>(d: D) -> Result<Option<Intrin
         }
 
         fn visit_seq<A: SeqAccess<'de>>(self, seq: A) -> Result<Intrinsics, A::Error> {
-            Mat3::deserialize(SeqAccessDeserializer::new(seq)).map(Intrinsics::Matrix)
+            Rows3::deserialize(SeqAccessDeserializer::new(seq)).map(|rows| Intrinsics::Matrix(from_rows(&rows)))
         }
 
         fn visit_map<A: MapAccess<'de>>(self, map: A) -> Result<Intrinsics, A::Error> {
@@ -181,7 +186,7 @@ impl JsonCamera {
     fn into_spec(self, field: &str) -> Result<CameraSpec, ApiError> {
         let intrinsics = match (self.intrinsics, self.k) {
             (Some(i), None) => i,
-            (None, Some(k)) => Intrinsics::Matrix(k),
+            (None, Some(k)) => Intrinsics::Matrix(from_rows(&k)),
             (Some(_), Some(_)) => {
                 return Err(ApiError::malformed(format!("{field}.K"), "give either intrinsics or K, not both"))
             }
@@ -193,7 +198,7 @@ impl JsonCamera {
             width: self.width,
             height: self.height,
             intrinsics,
-            pose: Pose { matrix: self.pose.matrix, kind: self.pose.kind, axes: self.pose.axes },
+            pose: Pose { matrix: from_rows(&self.pose.matrix), kind: self.pose.kind, axes: self.pose.axes },
         })
     }
 }
