@@ -124,6 +124,24 @@ async fn other_variants_and_two_pass_depth_norm() {
     }
 }
 
+/// image_minmax renders a view twice (the depth image, then the colours fed its range) only when
+/// the renderer takes that range; the rule has one home (pipeline::DepthRange).
+#[tokio::test]
+async fn two_renderer_passes_only_when_the_renderer_takes_the_depth_range() {
+    for (variant, norm, passes) in
+        [("scnerf-geometry", "image_minmax", 2), ("mvsnerf", "image_minmax", 1), ("scnerf", "near_far", 1)]
+    {
+        let b = bundle(variant, norm);
+        let runner = FakeRunner::new(&b);
+        let calls = runner.calls.clone();
+        let app = router(state_with(b, runner, Limits::default(), Duration::from_secs(60)));
+        // 8x6 rays: one renderer run per pass.
+        let (status, _, body) = send(app, multipart_with("/v1/render", &request_json(32), 32, &[])).await;
+        assert_eq!(status, 200, "{variant}: {}", String::from_utf8_lossy(&body));
+        assert_eq!(calls[2].load(std::sync::atomic::Ordering::SeqCst), passes, "{variant}, {norm}");
+    }
+}
+
 #[tokio::test]
 async fn model_health_and_readiness() {
     let (status, _, body) = send(app(), Request::get("/v1/model").body(Body::empty()).unwrap()).await;
