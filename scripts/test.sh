@@ -10,5 +10,7 @@ scripts/setup-python.sh
 .venv/bin/ruff check exporter bench scripts
 .venv/bin/ruff format --check exporter bench scripts
 cargo test -j2 --workspace --locked
+cargo clippy --workspace --all-targets --locked -- -D warnings
+cargo fmt --all --check
 .venv/bin/python -m pytest -q -p no:cacheprovider exporter/tests
 .venv/bin/python -m pytest -q -p no:cacheprovider bench/tests

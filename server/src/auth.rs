@@ -11,6 +11,7 @@
 //! token scopes its scenes (`Principal::owner`); the token itself is never stored or logged.
 
 use std::path::Path;
+use std::sync::Arc;
 
 use axum::extract::{Request, State};
 use axum::http::header;
@@ -21,7 +22,6 @@ use subtle::{ConditionallySelectable, ConstantTimeEq};
 
 use crate::cache::Owner;
 use crate::error::ApiError;
-use crate::http::AppState;
 
 /// Paths served without a token.
 pub const PUBLIC_PATHS: [&str; 4] = ["/healthz", "/readyz", "/metrics", "/openapi.json"];
@@ -121,8 +121,7 @@ fn unauthorized(message: &str) -> Response {
 }
 
 /// Middleware: checks the bearer token and records the client as a `Principal`.
-pub async fn require_token(State(state): State<AppState>, mut req: Request, next: Next) -> Response {
-    let auth = &state.auth;
+pub async fn require_token(State(auth): State<Arc<Auth>>, mut req: Request, next: Next) -> Response {
     if !auth.enabled() || PUBLIC_PATHS.contains(&req.uri().path()) {
         req.extensions_mut().insert(Principal::default());
         return next.run(req).await;

@@ -35,6 +35,11 @@ pub enum GraphKind {
 impl GraphKind {
     pub const ALL: [GraphKind; 3] = [GraphKind::Encoder, GraphKind::Volume, GraphKind::Renderer];
 
+    /// Position in `ALL` (pipeline order): indexes per-graph arrays.
+    pub fn index(self) -> usize {
+        self as usize
+    }
+
     pub fn name(self) -> &'static str {
         match self {
             GraphKind::Encoder => "encoder",

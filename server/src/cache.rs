@@ -218,17 +218,19 @@ pub fn rfc3339(t: SystemTime) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::backend::Tensor;
+    use ndarray::{ArcArray, Dimension, ShapeBuilder};
 
-    /// A scene holding `floats` f32 values in its volume (plus 3 in images and features).
+    /// A scene holding `floats` f32 values in its volume (plus one each in images and features).
     fn scene(floats: usize) -> Scene {
-        let t = |n: usize| Tensor::new(vec![n], vec![0.0; n]);
+        fn zeros<D: Dimension>(shape: impl ShapeBuilder<Dim = D>) -> ArcArray<f32, D> {
+            ArcArray::zeros(shape)
+        }
         Scene {
-            images: t(1),
-            features: t(1),
-            volume: t(floats),
-            intrinsics: t(9),
-            extrinsics: t(16),
+            images: zeros((1, 1, 1, 1)),
+            features: zeros((1, 1, 1, 1)),
+            volume: zeros((1, 1, 1, 1, floats)),
+            intrinsics: zeros((1, 3, 3)),
+            extrinsics: zeros((1, 4, 4)),
             near: 1.0,
             far: 2.0,
         }

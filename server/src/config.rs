@@ -1,9 +1,21 @@
 //! Command line and environment configuration: one clap struct, every flag also `SCNERF_*`.
+//! The parts of the server take their settings from it (`limits`, `chunking`, ...); each
+//! setting's default lives with the part that uses it (its `Default`), and the flag shows it.
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
+use std::time::Duration;
 
 use clap::{Parser, ValueEnum};
+
+use crate::auth::Auth;
+use crate::backend::ort::{ExecOptions, OrtOptions};
+use crate::cache::CacheConfig;
+use crate::http::body::UploadPolicy;
+use crate::http::serve::ServeOptions;
+use crate::http::ServiceOptions;
+use crate::pipeline::chunks::ChunkPolicy;
+use crate::request::Limits;
 
 /// Where the server looks for the default bundle when `--bundle` is not given: the repository's
 /// `bundles/default`, resolved when the binary is compiled (the binary is built from the repo).
@@ -108,49 +120,49 @@ pub struct Config {
     /// Upper bound on rays per renderer run. Small runs keep the activations in cache: on 2 cores,
     /// 512 rays rendered the default bundle 6-34% faster than 4096 with 1.6-4x less memory
     /// (bench/README.md).
-    #[arg(long, env = "SCNERF_MAX_RAYS_PER_CHUNK", default_value_t = crate::pipeline::chunks::DEFAULT_MAX_RAYS)]
+    #[arg(long, env = "SCNERF_MAX_RAYS_PER_CHUNK", default_value_t = ChunkPolicy::default().max_rays)]
     pub max_rays_per_chunk: usize,
 
     /// Memory budget of one renderer run in MiB; the chunk size is derived from it and the
     /// bundle's samples per ray (see pipeline::chunks).
-    #[arg(long, env = "SCNERF_CHUNK_MEMORY_MB", default_value_t = crate::pipeline::chunks::DEFAULT_MEMORY_MB)]
+    #[arg(long, env = "SCNERF_CHUNK_MEMORY_MB", default_value_t = ChunkPolicy::default().memory_budget_bytes >> 20)]
     pub chunk_memory_mb: usize,
 
     /// Largest accepted request body in bytes.
-    #[arg(long, env = "SCNERF_MAX_BODY_BYTES", default_value_t = 64 * 1024 * 1024)]
+    #[arg(long, env = "SCNERF_MAX_BODY_BYTES", default_value_t = Limits::default().max_body_bytes)]
     pub max_body_bytes: usize,
 
     /// Largest accepted source image, in pixels (width x height), checked before decoding.
     /// Memory grows with it: the volume net over 800x800 sources peaks near 10 GB.
-    #[arg(long, env = "SCNERF_MAX_SOURCE_PIXELS", default_value_t = 1024 * 1024)]
+    #[arg(long, env = "SCNERF_MAX_SOURCE_PIXELS", default_value_t = Limits::default().max_source_pixels)]
     pub max_source_pixels: u64,
 
     /// Largest accepted target view, in pixels (width x height).
-    #[arg(long, env = "SCNERF_MAX_TARGET_PIXELS", default_value_t = 2048 * 2048)]
+    #[arg(long, env = "SCNERF_MAX_TARGET_PIXELS", default_value_t = Limits::default().max_target_pixels)]
     pub max_target_pixels: u64,
 
     /// Largest JSON document without images, in bytes: the multipart `request` part and
     /// scene-render bodies (413 beyond).
-    #[arg(long, env = "SCNERF_MAX_JSON_BYTES", default_value_t = 1024 * 1024)]
+    #[arg(long, env = "SCNERF_MAX_JSON_BYTES", default_value_t = Limits::default().max_json_bytes)]
     pub max_json_bytes: usize,
 
     /// Deepest accepted nesting of JSON arrays and objects (400 beyond). Valid requests nest 7 deep.
-    #[arg(long, env = "SCNERF_MAX_JSON_DEPTH", default_value_t = 16)]
+    #[arg(long, env = "SCNERF_MAX_JSON_DEPTH", default_value_t = Limits::default().max_json_depth)]
     pub max_json_depth: usize,
 
     /// Memory for cached scenes (POST /v1/scenes), in MiB; least recently used scenes are evicted
     /// beyond it. A paper-size scene of 640x512 sources takes ~150 MiB.
-    #[arg(long, env = "SCNERF_SCENE_CACHE_MB", default_value_t = 2048)]
+    #[arg(long, env = "SCNERF_SCENE_CACHE_MB", default_value_t = CacheConfig::default().max_bytes >> 20)]
     pub scene_cache_mb: usize,
 
     /// A cached scene expires this many seconds after its last use.
-    #[arg(long, env = "SCNERF_SCENE_TTL_SECS", default_value_t = 600)]
+    #[arg(long, env = "SCNERF_SCENE_TTL_SECS", default_value_t = CacheConfig::default().ttl.as_secs())]
     pub scene_ttl_secs: u64,
 
     /// Per-request deadline in seconds (body, decoding, inference, encoding); past it the request
     /// fails with 504 and its remaining graph runs are dropped. A client may ask for less with
     /// the `x-scnerf-deadline-ms` header.
-    #[arg(long, env = "SCNERF_REQUEST_TIMEOUT_SECS", default_value_t = 900)]
+    #[arg(long, env = "SCNERF_REQUEST_TIMEOUT_SECS", default_value_t = ServiceOptions::default().request_timeout.as_secs())]
     pub request_timeout_secs: u64,
 
     /// Requests admitted to the inference executor at once (rendering, or waiting for their turn
@@ -160,24 +172,24 @@ pub struct Config {
 
     /// POST requests handled at once (their bodies are in memory meanwhile); beyond it 503 +
     /// Retry-After before the body is read.
-    #[arg(long, env = "SCNERF_MAX_CONCURRENT_REQUESTS", default_value_t = 256)]
+    #[arg(long, env = "SCNERF_MAX_CONCURRENT_REQUESTS", default_value_t = ServiceOptions::default().max_concurrent_requests)]
     pub max_concurrent_requests: usize,
 
     /// POST requests handled at once from one client (peer IP address); beyond it 429 +
     /// Retry-After, so that one source cannot hold every slot. 0: no per-client cap (behind a
     /// reverse proxy every request comes from the proxy's address).
-    #[arg(long, env = "SCNERF_MAX_REQUESTS_PER_CLIENT", default_value_t = 32)]
+    #[arg(long, env = "SCNERF_MAX_REQUESTS_PER_CLIENT", default_value_t = ServiceOptions::default().max_requests_per_client)]
     pub max_requests_per_client: usize,
 
     /// Time any request body may take to arrive, whatever its rate (separate from the render
     /// deadline). Past it the body must keep up --min-body-bytes-per-sec, or the request ends
     /// with 408.
-    #[arg(long, env = "SCNERF_BODY_TIMEOUT_SECS", default_value_t = 30)]
+    #[arg(long, env = "SCNERF_BODY_TIMEOUT_SECS", default_value_t = UploadPolicy::default().grace.as_secs())]
     pub body_timeout_secs: u64,
 
     /// Slowest accepted upload: past --body-timeout-secs, each byte received buys the body
     /// 1/N s more. A stalled or trickling upload ends with 408 and frees its slot and memory.
-    #[arg(long, env = "SCNERF_MIN_BODY_BYTES_PER_SEC", default_value_t = 32 * 1024)]
+    #[arg(long, env = "SCNERF_MIN_BODY_BYTES_PER_SEC", default_value_t = UploadPolicy::default().min_bytes_per_sec)]
     pub min_body_bytes_per_sec: u64,
 
     /// Open connections at most (further clients wait in the listen backlog). Must fit in the
@@ -231,12 +243,21 @@ impl Config {
         self.threads.filter(|&t| t > 0).unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()))
     }
 
-    pub fn exec_options(&self) -> crate::backend::ort::ExecOptions {
-        crate::backend::ort::ExecOptions { device: self.device, cpu_arena: self.ort_arena }
+    pub fn ort_options(&self) -> OrtOptions {
+        OrtOptions {
+            dylib: self.ort_dylib.clone(),
+            intra_threads: self.intra_threads(),
+            opt_level: self.graph_opt_level,
+            spin: self.ort_spin,
+        }
     }
 
-    pub fn limits(&self) -> crate::request::Limits {
-        crate::request::Limits {
+    pub fn exec_options(&self) -> ExecOptions {
+        ExecOptions { device: self.device, cpu_arena: self.ort_arena }
+    }
+
+    pub fn limits(&self) -> Limits {
+        Limits {
             max_body_bytes: self.max_body_bytes,
             max_source_pixels: self.max_source_pixels,
             max_target_pixels: self.max_target_pixels,
@@ -246,35 +267,35 @@ impl Config {
     }
 
     /// Fails when the token file cannot be read.
-    pub fn service_options(&self) -> Result<crate::http::ServiceOptions, String> {
-        Ok(crate::http::ServiceOptions {
-            request_timeout: std::time::Duration::from_secs(self.request_timeout_secs),
-            cache: crate::cache::CacheConfig {
+    pub fn service_options(&self) -> Result<ServiceOptions, String> {
+        Ok(ServiceOptions {
+            request_timeout: Duration::from_secs(self.request_timeout_secs),
+            cache: CacheConfig {
                 max_bytes: self.scene_cache_mb.saturating_mul(1024 * 1024),
-                ttl: std::time::Duration::from_secs(self.scene_ttl_secs),
+                ttl: Duration::from_secs(self.scene_ttl_secs),
             },
             max_concurrent_requests: self.max_concurrent_requests,
             max_requests_per_client: self.max_requests_per_client,
-            uploads: crate::http::body::UploadPolicy {
-                grace: std::time::Duration::from_secs(self.body_timeout_secs),
+            uploads: UploadPolicy {
+                grace: Duration::from_secs(self.body_timeout_secs),
                 min_bytes_per_sec: self.min_body_bytes_per_sec.max(1),
             },
-            auth: crate::auth::Auth::from_config(&self.auth_tokens, self.auth_token_file.as_deref())?,
+            auth: Auth::from_config(&self.auth_tokens, self.auth_token_file.as_deref())?,
         })
     }
 
-    pub fn serve_options(&self) -> crate::http::serve::ServeOptions {
-        crate::http::serve::ServeOptions {
+    pub fn serve_options(&self) -> ServeOptions {
+        ServeOptions {
             max_connections: self.max_connections.max(1),
-            header_read_timeout: std::time::Duration::from_secs(self.header_read_timeout_secs.max(1)),
+            header_read_timeout: Duration::from_secs(self.header_read_timeout_secs.max(1)),
             // hyper needs room for at least a request line and a few headers.
             max_header_bytes: self.max_header_bytes.max(1024),
-            shutdown_grace: std::time::Duration::from_secs(self.shutdown_grace_secs),
+            shutdown_grace: Duration::from_secs(self.shutdown_grace_secs),
         }
     }
 
-    pub fn chunking(&self) -> crate::pipeline::chunks::ChunkPolicy {
-        crate::pipeline::chunks::ChunkPolicy {
+    pub fn chunking(&self) -> ChunkPolicy {
+        ChunkPolicy {
             max_rays: self.max_rays_per_chunk.max(1),
             memory_budget_bytes: self.chunk_memory_mb.saturating_mul(1024 * 1024),
         }

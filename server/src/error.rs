@@ -5,6 +5,9 @@ use axum::http::{header, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
 use serde::Serialize;
 
+use crate::backend::BackendError;
+use crate::cache::SceneTooLarge;
+
 #[derive(Debug, thiserror::Error)]
 pub enum ApiError {
     /// The body cannot be parsed (bad JSON, broken multipart, undecodable image, unknown field).
@@ -143,6 +146,31 @@ impl ApiError {
                 field: self.field().map(clip_quoted),
             },
         }
+    }
+}
+
+impl From<BackendError> for ApiError {
+    fn from(e: BackendError) -> Self {
+        match e {
+            BackendError::QueueFull => {
+                ApiError::Unavailable { message: "server busy: inference queue is full".into(), retry_after_secs: 2 }
+            }
+            BackendError::WouldMissDeadline { ahead_secs } => ApiError::Unavailable {
+                message: format!("server busy: {e}"),
+                retry_after_secs: ahead_secs.ceil().max(1.0) as u64,
+            },
+            // The handler's own timer normally fires first and knows the deadline; this is the
+            // executor noticing it between two graph runs.
+            BackendError::DeadlineExceeded => ApiError::DeadlineExceeded { ms: 0 },
+            other => ApiError::Internal(other.to_string()),
+        }
+    }
+}
+
+/// A scene too large for the whole cache is a property of its sources.
+impl From<SceneTooLarge> for ApiError {
+    fn from(e: SceneTooLarge) -> Self {
+        ApiError::invalid("sources", e.to_string())
     }
 }
 

@@ -3,17 +3,9 @@
 use std::io::Cursor;
 
 use image::{DynamicImage, ImageFormat, ImageReader};
+use ndarray::{s, Array3, ArrayView1};
 
-use crate::backend::Tensor;
 use crate::error::ApiError;
-
-/// An RGB image in [0, 1], row-major, channels interleaved (H, W, 3).
-#[derive(Debug, Clone, PartialEq)]
-pub struct RgbF32 {
-    pub width: u32,
-    pub height: u32,
-    pub data: Vec<f32>,
-}
 
 /// Reads only the header: format and size. Lets us refuse oversized images (decompression
 /// bombs) before allocating anything.
@@ -45,9 +37,14 @@ pub fn probe(bytes: &[u8], field: &str) -> Result<(ImageFormat, u32, u32), ApiEr
     Ok((format, w, h))
 }
 
-/// Decodes a PNG/JPEG source view to RGB in [0, 1]; alpha is composited on `background`
-/// (`rgb·a + background·(1 − a)`), as the network never sees transparency.
-pub fn decode_source(bytes: &[u8], field: &str, background: [f32; 3], max_pixels: u64) -> Result<RgbF32, ApiError> {
+/// Decodes a PNG/JPEG source view to RGB in [0, 1], (H, W, 3); alpha is composited on
+/// `background` (`rgb·a + background·(1 − a)`), as the network never sees transparency.
+pub fn decode_source(
+    bytes: &[u8],
+    field: &str,
+    background: [f32; 3],
+    max_pixels: u64,
+) -> Result<Array3<f32>, ApiError> {
     let (format, w, h) = probe(bytes, field)?;
     if u64::from(w) * u64::from(h) > max_pixels {
         return Err(ApiError::invalid(
@@ -67,45 +64,16 @@ pub fn decode_source(bytes: &[u8], field: &str, background: [f32; 3], max_pixels
     Ok(to_rgb_on_background(image, background))
 }
 
-fn to_rgb_on_background(image: DynamicImage, background: [f32; 3]) -> RgbF32 {
-    let (width, height) = (image.width(), image.height());
-    let data = if image.color().has_alpha() {
-        let rgba = image.into_rgba32f();
-        let mut out = Vec::with_capacity(width as usize * height as usize * 3);
-        for px in rgba.pixels() {
-            let a = px.0[3];
-            for (c, bg) in px.0[..3].iter().zip(background) {
-                out.push(c * a + bg * (1.0 - a));
-            }
-        }
-        out
-    } else {
-        image.into_rgb32f().into_raw()
-    };
-    RgbF32 { width, height, data }
-}
-
-/// Stacks same-size views into an NCHW tensor (V, 3, Hp, Wp), padding right and bottom with
-/// `background` up to the next multiple of `multiple` (which leaves the intrinsics unchanged).
-pub fn stack_padded(images: &[RgbF32], multiple: usize, background: [f32; 3]) -> Tensor {
-    let (w, h) = (images[0].width as usize, images[0].height as usize);
-    let wp = w.div_ceil(multiple) * multiple;
-    let hp = h.div_ceil(multiple) * multiple;
-    let plane = hp * wp;
-    let mut data = Vec::with_capacity(images.len() * 3 * plane);
-    for img in images {
-        for (c, bg) in background.iter().enumerate() {
-            let start = data.len();
-            data.resize(start + plane, *bg);
-            let dst = &mut data[start..];
-            for y in 0..h {
-                for x in 0..w {
-                    dst[y * wp + x] = img.data[(y * w + x) * 3 + c];
-                }
-            }
-        }
+fn to_rgb_on_background(image: DynamicImage, background: [f32; 3]) -> Array3<f32> {
+    let (w, h) = (image.width() as usize, image.height() as usize);
+    // The decoder's buffers hold exactly h·w pixels of 3 or 4 channels.
+    if !image.color().has_alpha() {
+        return Array3::from_shape_vec((h, w, 3), image.into_rgb32f().into_raw()).expect("h·w RGB pixels");
     }
-    Tensor::new(vec![images.len(), 3, hp, wp], data)
+    let rgba = Array3::from_shape_vec((h, w, 4), image.into_rgba32f().into_raw()).expect("h·w RGBA pixels");
+    let alpha = rgba.slice(s![.., .., 3..]);
+    let background = ArrayView1::from(&background);
+    &rgba.slice(s![.., .., ..3]) * &alpha + &(&background * &(1.0 - &alpha))
 }
 
 /// Encodes 8-bit RGB as PNG.
@@ -135,17 +103,20 @@ mod tests {
         rgba.put_pixel(0, 0, image::Rgba([255, 0, 0, 255]));
         rgba.put_pixel(1, 0, image::Rgba([255, 0, 0, 0]));
         let img = decode_source(&png(DynamicImage::ImageRgba8(rgba)), "source_0", [0.0, 1.0, 0.5], 100).unwrap();
-        assert_eq!(img.data, vec![1.0, 0.0, 0.0, 0.0, 1.0, 0.5]);
+        assert_eq!(img, ndarray::arr3(&[[[1.0, 0.0, 0.0], [0.0, 1.0, 0.5]]]));
     }
 
     #[test]
     fn rgb_and_gray_decode() {
         let rgb = image::RgbImage::from_pixel(3, 2, image::Rgb([0, 51, 255]));
         let img = decode_source(&png(DynamicImage::ImageRgb8(rgb)), "s", [0.0; 3], 100).unwrap();
-        assert_eq!((img.width, img.height), (3, 2));
-        assert_eq!(&img.data[..3], &[0.0, 0.2, 1.0]);
+        assert_eq!(img.dim(), (2, 3, 3));
+        assert_eq!(img.slice(s![0, 0, ..]), ndarray::aview1(&[0.0, 0.2, 1.0]));
         let gray = image::GrayImage::from_pixel(1, 1, image::Luma([255]));
-        assert_eq!(decode_source(&png(DynamicImage::ImageLuma8(gray)), "s", [0.0; 3], 100).unwrap().data, vec![1.0; 3]);
+        assert_eq!(
+            decode_source(&png(DynamicImage::ImageLuma8(gray)), "s", [0.0; 3], 100).unwrap(),
+            Array3::<f32>::ones((1, 1, 3))
+        );
     }
 
     #[test]
@@ -158,18 +129,6 @@ mod tests {
         ));
         let big = png(DynamicImage::ImageRgb8(image::RgbImage::new(20, 20)));
         assert!(matches!(decode_source(&big, "source_2", [0.0; 3], 399), Err(ApiError::Invalid { .. })));
-    }
-
-    #[test]
-    fn pads_with_background() {
-        let img = RgbF32 { width: 1, height: 1, data: vec![0.1, 0.2, 0.3] };
-        let t = stack_padded(&[img.clone(), img], 4, [1.0, 0.5, 0.0]);
-        assert_eq!(t.shape, vec![2, 3, 4, 4]);
-        assert_eq!(t.data[0], 0.1);
-        assert_eq!(t.data[1], 1.0);
-        assert_eq!(t.data[16], 0.2);
-        assert_eq!(t.data[17], 0.5);
-        assert_eq!(t.data[48], 0.1);
     }
 
     #[test]

@@ -1,7 +1,11 @@
 //! scnerf-server: SC-NeRF novel-view rendering over HTTP with ONNX Runtime.
 //!
-//! Data path: request -> camera -> image_io -> pipeline::{encoder, volume, rays, chunks,
-//! assemble} -> http response. The ONNX sessions run on one inference thread (`backend`).
+//! Data path: `http` (router, body, negotiation) -> `request` (wire -> domain -> validate) ->
+//! `camera` (canonical cameras) -> `pipeline`: `sources` (decode, pad) -> `encoder` ->
+//! `volume` (cost volume) -> `rays` -> `chunks` (renderer runs) -> `assemble` (image) ->
+//! `http::respond`. The graphs run on one inference thread (`backend`, ONNX Runtime in
+//! `backend::ort`); `bundle` is the model contract, `cache` keeps scenes, `error` maps every
+//! refusal to HTTP, `config` is the one configuration struct.
 
 pub mod auth;
 pub mod backend;

@@ -4,10 +4,12 @@ use std::io::Write;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+use nalgebra::{Isometry3, Matrix3, Vector3};
+use ndarray::Array4;
 use tokio::net::TcpListener;
 
-use crate::backend::ort::{OrtOptions, OrtRunner};
-use crate::backend::{BackendHandle, Tensor};
+use crate::backend::ort::OrtRunner;
+use crate::backend::BackendHandle;
 use crate::bundle::Bundle;
 use crate::camera::Camera;
 use crate::config::Config;
@@ -27,12 +29,7 @@ pub async fn run(config: Config) -> Result<(), String> {
     let bundle_dir = config.bundle_dir();
     let bundle = Bundle::load(&bundle_dir).map_err(|e| e.to_string())?;
     tracing::info!(model_id = %bundle.manifest.model_id, dir = %bundle_dir.display(), "bundle verified");
-    let ort = OrtOptions {
-        dylib: config.ort_dylib.clone(),
-        intra_threads: config.intra_threads(),
-        opt_level: config.graph_opt_level,
-        spin: config.ort_spin,
-    };
+    let ort = config.ort_options();
     let runner = {
         let bundle = bundle.clone();
         let exec = config.exec_options();
@@ -42,7 +39,7 @@ pub async fn run(config: Config) -> Result<(), String> {
             .map_err(|e| format!("bundle {}: {e}", bundle_dir.display()))?
     };
     let backend = BackendHandle::spawn(Box::new(runner), config.queue_capacity).map_err(|e| e.to_string())?;
-    let pipeline = Pipeline { backend, bundle: Arc::new(bundle), chunking: config.chunking(), limits: config.limits() };
+    let pipeline = Pipeline::new(backend, bundle, config.chunking(), config.limits());
     let state = AppState::new(pipeline, options);
     spawn_cache_sweeper(&state);
 
@@ -60,7 +57,7 @@ pub async fn run(config: Config) -> Result<(), String> {
     } else {
         let state = state.clone();
         tokio::spawn(async move {
-            match warm_up(&state.pipeline).await {
+            match warm_up(state.pipeline()).await {
                 Ok(elapsed) => {
                     tracing::info!(ms = elapsed.as_millis() as u64, "warm-up render done; ready");
                     state.set_ready();
@@ -103,8 +100,8 @@ pub async fn run(config: Config) -> Result<(), String> {
 /// Expired scenes are also dropped on every cache access; this frees their memory when the
 /// server is idle.
 fn spawn_cache_sweeper(state: &AppState) {
-    let scenes = Arc::downgrade(&state.scenes);
-    let period = (state.scenes.config().ttl / 4).clamp(Duration::from_secs(1), Duration::from_secs(60));
+    let scenes = Arc::downgrade(state.scenes());
+    let period = (state.scenes().config().ttl / 4).clamp(Duration::from_secs(1), Duration::from_secs(60));
     tokio::spawn(async move {
         let mut tick = tokio::time::interval(period);
         loop {
@@ -130,10 +127,10 @@ fn shutdown_signals() -> Result<impl std::future::Future<Output = ()>, String> {
 /// before /readyz says so, and lets ONNX Runtime allocate its kernels.
 pub async fn warm_up(pipeline: &Pipeline) -> Result<Duration, String> {
     let start = Instant::now();
-    let config = &pipeline.bundle.config;
+    let config = pipeline.config();
     let size = config.image_multiple;
     let cameras = warmup_cameras(config.views, size as u32);
-    let images = Tensor::new(vec![config.views, 3, size, size], vec![0.5; config.views * 3 * size * size]);
+    let images = Array4::from_elem((config.views, 3, size, size), 0.5);
     let mut timings = Timings::default();
     let mut target = cameras[0].clone();
     target.width = 4;
@@ -155,16 +152,16 @@ pub async fn warm_up(pipeline: &Pipeline) -> Result<Duration, String> {
 
 /// Cameras on a small arc 4 units from the origin, looking at it (OpenCV, world-to-camera).
 fn warmup_cameras(views: usize, size: u32) -> Vec<Camera> {
+    let (f, c) = (f64::from(size), f64::from(size) / 2.0);
     (0..views)
         .map(|i| {
-            let a = 0.1 * i as f64;
-            let (s, c) = a.sin_cos();
-            // Rotation about y by a; camera centre at R^T * (0, 0, -4) so the origin is 4 ahead.
+            // Rotation about y by -0.1·i; the origin lies 4 units ahead on the optical axis.
+            let w2c = Isometry3::new(Vector3::new(0.0, 0.0, 4.0), Vector3::y() * (-0.1 * i as f64));
             Camera {
                 width: size,
                 height: size,
-                k: [[size as f64, 0.0, size as f64 / 2.0], [0.0, size as f64, size as f64 / 2.0], [0.0, 0.0, 1.0]],
-                w2c: [[c, 0.0, -s, 0.0], [0.0, 1.0, 0.0, 0.0], [s, 0.0, c, 4.0], [0.0, 0.0, 0.0, 1.0]],
+                k: Matrix3::new(f, 0.0, c, 0.0, f, c, 0.0, 0.0, 1.0),
+                w2c: w2c.to_homogeneous(),
             }
         })
         .collect()

@@ -1,12 +1,17 @@
 //! Test support (not part of the API): a fake graph runner with the bundle contract's shapes,
 //! a manifest for it, and request builders. Lets the HTTP layer be tested without ONNX Runtime.
 
+use std::path::Path;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
+use crate::backend::ort::{OrtOptions, OrtRunner};
+use ndarray::{ArrayD, Axis, Ix2, IxDyn};
+
 use crate::backend::{BackendError, BackendHandle, GraphRunner, NamedTensors, Tensor};
 use crate::bundle::{validate_manifest, Bundle, GraphKind, Manifest};
+use crate::config::GraphOptLevel;
 use crate::http::{AppState, ServiceOptions};
 use crate::pipeline::chunks::ChunkPolicy;
 use crate::pipeline::Pipeline;
@@ -90,55 +95,35 @@ fn input<'a>(inputs: &'a NamedTensors, name: &str) -> &'a Tensor {
 
 impl GraphRunner for FakeRunner {
     fn run(&mut self, graph: GraphKind, inputs: &NamedTensors) -> Result<NamedTensors, BackendError> {
-        let slot = match graph {
-            GraphKind::Encoder => 0,
-            GraphKind::Volume => 1,
-            GraphKind::Renderer => 2,
-        };
-        self.calls[slot].fetch_add(1, Ordering::SeqCst);
+        self.calls[graph.index()].fetch_add(1, Ordering::SeqCst);
         std::thread::sleep(self.delay);
         if let Some(message) = &self.fail_with {
             return Err(BackendError::Run { graph, message: message.clone() });
         }
         let c = &self.config;
+        let filled = |shape: &[usize], value: f32| ArrayD::from_elem(IxDyn(shape), value).into_shared();
         Ok(match graph {
             GraphKind::Encoder => {
                 let images = input(inputs, "images");
-                let (v, h, w) = (images.shape[0], images.shape[2] / 4, images.shape[3] / 4);
-                let mean = images.data.iter().sum::<f32>() / images.len() as f32;
-                vec![(
-                    "features".into(),
-                    Tensor::new(vec![v, c.feature_channels, h, w], vec![mean; v * c.feature_channels * h * w]),
-                )]
+                let (v, h, w) = (images.shape()[0], images.shape()[2] / 4, images.shape()[3] / 4);
+                let mean = images.iter().sum::<f32>() / images.len() as f32;
+                vec![("features".into(), filled(&[v, c.feature_channels, h, w], mean))]
             }
             GraphKind::Volume => {
                 let f = input(inputs, "features");
-                let (hp, wp) = (f.shape[2] + 2 * c.pad, f.shape[3] + 2 * c.pad);
-                let n = c.volume_channels * c.depth_planes * hp * wp;
-                vec![(
-                    "volume".into(),
-                    Tensor::new(vec![1, c.volume_channels, c.depth_planes, hp, wp], vec![f.data[0]; n]),
-                )]
+                let (hp, wp) = (f.shape()[2] + 2 * c.pad, f.shape()[3] + 2 * c.pad);
+                vec![("volume".into(), filled(&[1, c.volume_channels, c.depth_planes, hp, wp], f[[0, 0, 0, 0]]))]
             }
             GraphKind::Renderer => {
-                let dirs = input(inputs, "ray_directions");
-                let near_far = input(inputs, "near_far");
-                let range =
-                    inputs.iter().find(|(n, _)| n == "depth_range").map(|(_, t)| t.data[1] - t.data[0]).unwrap_or(1.0);
-                let r = dirs.shape[0];
-                let mut rgb = Vec::with_capacity(r * 3);
-                let mut depth = Vec::with_capacity(r);
-                let mut opacity = Vec::with_capacity(r);
-                for d in dirs.data.chunks_exact(3) {
-                    let norm = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
-                    rgb.extend(d.iter().map(|x| 0.5 * (x / norm).abs()));
-                    depth.push(near_far.data[0] + (d[0] / norm).abs() * range);
-                    opacity.push(0.5 + 0.5 * (d[1] / norm).abs());
-                }
+                let dirs = input(inputs, "ray_directions").view().into_dimensionality::<Ix2>().expect("(R, 3) rays");
+                let near = input(inputs, "near_far")[0];
+                let range = inputs.iter().find(|(n, _)| n == "depth_range").map_or(1.0, |(_, t)| t[1] - t[0]);
+                let norm = dirs.map_axis(Axis(1), |d| (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt());
+                let unit = &dirs / &norm.insert_axis(Axis(1));
                 vec![
-                    ("rgb".into(), Tensor::new(vec![r, 3], rgb)),
-                    ("depth".into(), Tensor::new(vec![r], depth)),
-                    ("opacity".into(), Tensor::new(vec![r], opacity)),
+                    ("rgb".into(), unit.mapv(|x| 0.5 * x.abs()).into_shared().into_dyn()),
+                    ("depth".into(), unit.column(0).mapv(|x| near + x.abs() * range).into_shared().into_dyn()),
+                    ("opacity".into(), unit.column(1).mapv(|x| 0.5 + 0.5 * x.abs()).into_shared().into_dyn()),
                 ]
             }
         })
@@ -169,15 +154,28 @@ pub fn state_with_options(
     queue: usize,
 ) -> AppState {
     let backend = BackendHandle::spawn(Box::new(runner), queue).expect("spawn backend");
-    let pipeline = Pipeline {
-        backend,
-        bundle: Arc::new(bundle),
-        chunking: ChunkPolicy { max_rays: 100, memory_budget_bytes: usize::MAX },
-        limits,
-    };
+    let pipeline =
+        Pipeline::new(backend, bundle, ChunkPolicy { max_rays: 100, memory_budget_bytes: usize::MAX }, limits);
+    ready_state(pipeline, options)
+}
+
+/// The router's state over `pipeline`, ready at once (no warm-up render).
+pub fn ready_state(pipeline: Pipeline, options: ServiceOptions) -> AppState {
     let state = AppState::new(pipeline, options);
     state.set_ready();
     state
+}
+
+/// A pipeline over the real graphs of the bundle in `dir` with ONNX Runtime (all CPUs, default
+/// chunking), `queue` requests admitted at once. ONNX Runtime's environment is process-wide:
+/// one such pipeline per test process, shared by its tests.
+pub fn ort_pipeline(dir: &Path, limits: Limits, queue: usize) -> Pipeline {
+    let bundle = Bundle::load(dir).unwrap_or_else(|e| panic!("{e}"));
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let opts = OrtOptions { dylib: None, intra_threads: threads, opt_level: GraphOptLevel::All, spin: false };
+    let runner = OrtRunner::load(&bundle, &opts).unwrap_or_else(|e| panic!("{e}"));
+    let backend = BackendHandle::spawn(Box::new(runner), queue).expect("spawn backend");
+    Pipeline::new(backend, bundle, ChunkPolicy::default(), limits)
 }
 
 pub fn fake_state() -> AppState {

@@ -12,7 +12,7 @@ mod common;
 
 use axum::body::Body;
 use axum::http::Request;
-use common::{b64, images, multipart_body, proto_camera, BOUNDARY};
+use common::{b64, images, multipart_body, proto_request, BOUNDARY};
 use prost::Message;
 use scnerf_proto::v1 as pb;
 use scnerf_server::bundle::ModelConfig;
@@ -107,24 +107,10 @@ fn seeds() -> Seeds {
     for (i, img) in imgs.iter().enumerate() {
         inline["sources"][i]["image"] = json!(b64(img));
     }
-    let mut scene = inline.clone();
-    scene.as_object_mut().unwrap().remove("target");
-    scene.as_object_mut().unwrap().remove("outputs");
+    let (scene, _) = scnerf_e2e::split_request(&inline);
     let target = json!({"target": request["target"], "outputs": ["rgb", "depth"]});
     let request_bytes = serde_json::to_vec(&request).unwrap();
-    let proto = pb::RenderRequest {
-        sources: (0..3)
-            .map(|i| pb::Source {
-                camera: Some(proto_camera(&request["sources"][i]["camera"])),
-                image: imgs[i].clone(),
-            })
-            .collect(),
-        target: Some(proto_camera(&request["target"])),
-        near: 2.0,
-        far: 6.0,
-        background: vec![1.0, 1.0, 1.0],
-        outputs: vec!["rgb".into(), "opacity".into()],
-    };
+    let proto = pb::RenderRequest { outputs: vec!["rgb".into(), "opacity".into()], ..proto_request(&request, &imgs) };
     let proto_scene =
         pb::SceneRequest { sources: proto.sources.clone(), near: 2.0, far: 6.0, background: vec![0.5, 0.5, 0.5] };
     let proto_target = pb::SceneRenderRequest { target: proto.target.clone(), outputs: vec!["depth".into()] };

@@ -6,7 +6,6 @@
 mod common;
 
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
 use std::time::Duration;
 
 use axum::body::Body;
@@ -17,15 +16,9 @@ use common::*;
 use prost::Message;
 use scnerf_proto::v1 as pb;
 use scnerf_server::auth::Auth;
-use scnerf_server::backend::ort::{OrtOptions, OrtRunner};
-use scnerf_server::backend::BackendHandle;
-use scnerf_server::bundle::Bundle;
-use scnerf_server::config::GraphOptLevel;
 use scnerf_server::http::{router, AppState, ServiceOptions};
-use scnerf_server::pipeline::chunks::ChunkPolicy;
-use scnerf_server::pipeline::Pipeline;
 use scnerf_server::request::Limits;
-use scnerf_server::testing::png_header;
+use scnerf_server::testing::{ort_pipeline, png_header, ready_state};
 use serde_json::{json, Value};
 
 const TOKEN: &str = "hostile-suite-token-5e1f";
@@ -51,23 +44,13 @@ fn limits() -> Limits {
 }
 
 fn app() -> (Router, AppState) {
-    let bundle = Bundle::load(&parity_dir().join("bundle")).unwrap_or_else(|e| panic!("{e}"));
-    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
-    let opts = OrtOptions { dylib: None, intra_threads: threads, opt_level: GraphOptLevel::All, spin: false };
-    let runner = OrtRunner::load(&bundle, &opts).unwrap_or_else(|e| panic!("{e}"));
-    let pipeline = Pipeline {
-        backend: BackendHandle::spawn(Box::new(runner), 8).unwrap(),
-        bundle: Arc::new(bundle),
-        chunking: ChunkPolicy::default(),
-        limits: limits(),
-    };
+    let pipeline = ort_pipeline(&parity_dir().join("bundle"), limits(), 8);
     let options = ServiceOptions {
         request_timeout: Duration::from_secs(600),
         auth: Auth::from_tokens(&[TOKEN, OTHER_TOKEN]),
         ..Default::default()
     };
-    let state = AppState::new(pipeline, options);
-    state.set_ready();
+    let state = ready_state(pipeline, options);
     (router(state.clone()), state)
 }
 
@@ -144,23 +127,15 @@ impl Make {
     }
 
     fn proto(&self, edit: impl FnOnce(&mut pb::RenderRequest)) -> Request<Body> {
-        let mut msg = proto_request(&self.request, &self.images);
+        let mut msg = proto_parity(&self.request, &self.images);
         edit(&mut msg);
         self.raw("POST", "/v1/render", "application/x-protobuf", msg.encode_to_vec())
     }
 }
 
-fn proto_request(r: &Value, images: &[Vec<u8>]) -> pb::RenderRequest {
-    pb::RenderRequest {
-        sources: (0..3)
-            .map(|i| pb::Source { camera: Some(proto_camera(&r["sources"][i]["camera"])), image: images[i].clone() })
-            .collect(),
-        target: Some(proto_camera(&r["target"])),
-        near: r["near"].as_f64().unwrap(),
-        far: r["far"].as_f64().unwrap(),
-        background: vec![],
-        outputs: vec!["rgb".into()],
-    }
+/// The parity request as protobuf: RGB only, default background.
+fn proto_parity(r: &Value, images: &[Vec<u8>]) -> pb::RenderRequest {
+    pb::RenderRequest { background: vec![], outputs: vec!["rgb".into()], ..proto_request(r, images) }
 }
 
 /// A JPEG of the given size.
@@ -524,7 +499,7 @@ fn cases() -> Vec<Case> {
         case(
             "protobuf scene with 17 sources",
             m.raw("POST", "/v1/scenes", "application/x-protobuf", {
-                let mut msg = proto_request(&m.request, &m.images);
+                let mut msg = proto_parity(&m.request, &m.images);
                 msg.sources = (0..17).map(|_| msg.sources[0].clone()).collect();
                 msg.encode_to_vec()
             }),
@@ -935,7 +910,7 @@ async fn hostile_requests_get_named_4xx_and_the_server_still_renders_correctly()
         }
     }
     assert!(failures.is_empty(), "{} cases failed:\n{}", failures.len(), failures.join("\n"));
-    assert_eq!(state.pipeline.backend.stats().admitted, 0, "no hostile request may hold the executor");
+    assert_eq!(state.pipeline().executor().stats().admitted, 0, "no hostile request may hold the executor");
 
     // Afterwards: the parity case, one-shot and from the cache, matches PyTorch.
     let m = Make::new();

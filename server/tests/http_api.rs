@@ -4,87 +4,26 @@
 
 use std::time::Duration;
 
-use axum::body::{Body, Bytes};
-use axum::http::{HeaderMap, Request, StatusCode};
+use axum::body::Body;
+use axum::http::Request;
 use axum::Router;
 use base64::Engine;
-use http_body_util::BodyExt;
 use prost::Message;
 use scnerf_proto::v1 as pb;
 use scnerf_server::http::router;
 use scnerf_server::request::Limits;
 use scnerf_server::testing::{self, bundle, camera_json, fake_state, png, request_json, state_with, FakeRunner};
 use serde_json::{json, Value};
-use tower::ServiceExt;
 
 mod common;
-use common::{multipart_body, BOUNDARY};
+use common::*;
 
 fn app() -> Router {
     router(fake_state())
 }
 
-async fn send(app: Router, req: Request<Body>) -> (StatusCode, HeaderMap, Bytes) {
-    let resp = app.oneshot(req).await.expect("infallible");
-    let status = resp.status();
-    let headers = resp.headers().clone();
-    let body = resp.into_body().collect().await.unwrap().to_bytes();
-    (status, headers, body)
-}
-
-/// Asserts DESIGN.md's error body with the given status, code and field.
-fn assert_error(got: &(StatusCode, HeaderMap, Bytes), status: u16, code: &str, field: Option<&str>) {
-    let (s, headers, body) = got;
-    let text = String::from_utf8_lossy(body);
-    assert_eq!(s.as_u16(), status, "body: {text}");
-    assert_eq!(headers["content-type"], "application/json", "{text}");
-    let v: Value = serde_json::from_slice(body).unwrap_or_else(|_| panic!("not JSON: {text}"));
-    assert_eq!(v["error"]["code"], code, "{text}");
-    assert!(v["error"]["message"].as_str().is_some_and(|m| !m.is_empty()), "{text}");
-    match field {
-        Some(f) => assert_eq!(v["error"]["field"], f, "{text}"),
-        None => assert!(v["error"]["field"].is_null(), "{text}"),
-    }
-}
-
-fn multipart_req(parts: &[(&str, &[u8])], accept: Option<&str>) -> Request<Body> {
-    let mut b = Request::post("/v1/render").header("content-type", format!("multipart/form-data; boundary={BOUNDARY}"));
-    if let Some(a) = accept {
-        b = b.header("accept", a);
-    }
-    b.body(Body::from(multipart_body(parts))).unwrap()
-}
-
-fn images(size: u32) -> Vec<Vec<u8>> {
-    (0..3).map(|i| png(size, size, [40 * i as u8, 100, 200, 255])).collect()
-}
-
-/// A multipart request with the given request JSON and three images of `size`.
-fn multipart_with(request: &Value, size: u32, accept: Option<&str>) -> Request<Body> {
-    let json = serde_json::to_vec(request).unwrap();
-    let imgs = images(size);
-    multipart_req(&[("request", &json), ("source_0", &imgs[0]), ("source_1", &imgs[1]), ("source_2", &imgs[2])], accept)
-}
-
-fn json_req(body: &Value, accept: Option<&str>) -> Request<Body> {
-    let mut b = Request::post("/v1/render").header("content-type", "application/json");
-    if let Some(a) = accept {
-        b = b.header("accept", a);
-    }
-    b.body(Body::from(serde_json::to_vec(body).unwrap())).unwrap()
-}
-
-/// DESIGN.md's JSON body: the request with base64 images.
-fn json_with_images(size: u32) -> Value {
-    let mut v = request_json(size);
-    for (i, img) in images(size).iter().enumerate() {
-        v["sources"][i]["image"] = json!(base64::engine::general_purpose::STANDARD.encode(img));
-    }
-    v
-}
-
 async fn render_multipart_error(request: Value, status: u16, code: &str, field: Option<&str>) {
-    let got = send(app(), multipart_with(&request, 32, None)).await;
+    let got = send(app(), multipart_with("/v1/render", &request, 32, &[])).await;
     assert_error(&got, status, code, field);
 }
 
@@ -93,7 +32,7 @@ async fn render_multipart_error(request: Value, status: u16, code: &str, field: 
 
 #[tokio::test]
 async fn multipart_renders_png_by_default() {
-    let (status, headers, body) = send(app(), multipart_with(&request_json(32), 32, None)).await;
+    let (status, headers, body) = send(app(), multipart_with("/v1/render", &request_json(32), 32, &[])).await;
     assert_eq!(status, 200, "{}", String::from_utf8_lossy(&body));
     assert_eq!(headers["content-type"], "image/png");
     assert!(headers["x-model-id"].to_str().unwrap().starts_with("scnerf-scnerf-"));
@@ -106,7 +45,7 @@ async fn multipart_renders_png_by_default() {
 async fn json_body_and_json_response_with_all_outputs() {
     let mut req = json_with_images(40); // not a multiple of 32: padded
     req["outputs"] = json!(["rgb", "depth", "opacity"]);
-    let (status, headers, body) = send(app(), json_req(&req, Some("application/json"))).await;
+    let (status, headers, body) = send(app(), json_to("/v1/render", &req, &[("accept", "application/json")])).await;
     assert_eq!(status, 200, "{}", String::from_utf8_lossy(&body));
     assert_eq!(headers["content-type"], "application/json");
     let v: Value = serde_json::from_slice(&body).unwrap();
@@ -130,63 +69,27 @@ async fn json_body_and_json_response_with_all_outputs() {
 async fn depth_only_defaults_to_json() {
     let mut req = request_json(32);
     req["outputs"] = json!(["depth"]);
-    let (status, headers, body) = send(app(), multipart_with(&req, 32, None)).await;
+    let (status, headers, body) = send(app(), multipart_with("/v1/render", &req, 32, &[])).await;
     assert_eq!(status, 200, "{}", String::from_utf8_lossy(&body));
     assert_eq!(headers["content-type"], "application/json");
     let v: Value = serde_json::from_slice(&body).unwrap();
     assert!(v.get("rgb").is_none() && v.get("opacity").is_none() && v["depth"].is_object());
 }
 
-fn proto_camera(c: &Value) -> pb::Camera {
-    let i = &c["intrinsics"];
-    pb::Camera {
-        width: c["width"].as_u64().unwrap() as u32,
-        height: c["height"].as_u64().unwrap() as u32,
-        intrinsics_kind: Some(pb::camera::IntrinsicsKind::Intrinsics(pb::Intrinsics {
-            fx: i["fx"].as_f64().unwrap(),
-            fy: i["fy"].as_f64().unwrap(),
-            cx: i["cx"].as_f64().unwrap(),
-            cy: i["cy"].as_f64().unwrap(),
-        })),
-        pose: Some(pb::Pose {
-            matrix: c["pose"]["matrix"]
-                .as_array()
-                .unwrap()
-                .iter()
-                .flat_map(|r| r.as_array().unwrap().iter().map(|x| x.as_f64().unwrap()))
-                .collect(),
-            kind: pb::PoseKind::CameraToWorld as i32,
-            axes: pb::Axes::Opengl as i32,
-        }),
-    }
-}
-
-fn proto_request() -> pb::RenderRequest {
-    let r = request_json(32);
-    let imgs = images(32);
-    pb::RenderRequest {
-        sources: (0..3)
-            .map(|i| pb::Source { camera: Some(proto_camera(&r["sources"][i]["camera"])), image: imgs[i].clone() })
-            .collect(),
-        target: Some(proto_camera(&r["target"])),
-        near: 2.0,
-        far: 6.0,
-        background: vec![1.0, 1.0, 1.0],
-        outputs: vec!["rgb".into(), "depth".into()],
-    }
+/// `request_json(32)` as protobuf, asking for rgb and depth.
+fn proto_render() -> pb::RenderRequest {
+    let outputs = vec!["rgb".into(), "depth".into()];
+    pb::RenderRequest { outputs, ..proto_request(&request_json(32), &images(32)) }
 }
 
 fn proto_req(msg: &pb::RenderRequest) -> Request<Body> {
-    Request::post("/v1/render")
-        .header("content-type", "application/x-protobuf")
-        .header("accept", "application/x-protobuf")
-        .body(Body::from(msg.encode_to_vec()))
-        .unwrap()
+    let accept = [("accept", "application/x-protobuf")];
+    raw_to("POST", "/v1/render", "application/x-protobuf", msg.encode_to_vec(), &accept)
 }
 
 #[tokio::test]
 async fn protobuf_in_protobuf_out_matches_multipart() {
-    let (status, headers, body) = send(app(), proto_req(&proto_request())).await;
+    let (status, headers, body) = send(app(), proto_req(&proto_render())).await;
     assert_eq!(status, 200, "{}", String::from_utf8_lossy(&body));
     assert_eq!(headers["content-type"], "application/x-protobuf");
     let resp = pb::RenderResponse::decode(body).unwrap();
@@ -195,7 +98,7 @@ async fn protobuf_in_protobuf_out_matches_multipart() {
     assert!(resp.opacity.is_none());
     assert!(resp.timings_ms.contains_key("renderer"));
     // Same request as multipart: same pixels.
-    let (_, _, png_body) = send(app(), multipart_with(&request_json(32), 32, None)).await;
+    let (_, _, png_body) = send(app(), multipart_with("/v1/render", &request_json(32), 32, &[])).await;
     assert_eq!(resp.rgb_png, png_body.to_vec());
 }
 
@@ -206,7 +109,7 @@ async fn k_matrix_and_opencv_world_to_camera_are_accepted() {
         "width": 4, "height": 4, "K": [[4.0, 0.0, 2.0], [0.0, 4.0, 2.0], [0.0, 0.0, 1.0]],
         "pose": {"matrix": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 4], [0, 0, 0, 1]], "kind": "world_to_camera", "axes": "opencv"}
     });
-    let (status, _, body) = send(app(), multipart_with(&req, 32, None)).await;
+    let (status, _, body) = send(app(), multipart_with("/v1/render", &req, 32, &[])).await;
     assert_eq!(status, 200, "{}", String::from_utf8_lossy(&body));
 }
 
@@ -216,8 +119,26 @@ async fn other_variants_and_two_pass_depth_norm() {
         let b = bundle(variant, norm);
         let runner = FakeRunner::new(&b);
         let app = router(state_with(b, runner, Limits::default(), Duration::from_secs(60)));
-        let (status, _, body) = send(app, multipart_with(&request_json(32), 32, None)).await;
+        let (status, _, body) = send(app, multipart_with("/v1/render", &request_json(32), 32, &[])).await;
         assert_eq!(status, 200, "{variant}: {}", String::from_utf8_lossy(&body));
+    }
+}
+
+/// image_minmax renders a view twice (the depth image, then the colours fed its range) only when
+/// the renderer takes that range; the rule has one home (pipeline::DepthRange).
+#[tokio::test]
+async fn two_renderer_passes_only_when_the_renderer_takes_the_depth_range() {
+    for (variant, norm, passes) in
+        [("scnerf-geometry", "image_minmax", 2), ("mvsnerf", "image_minmax", 1), ("scnerf", "near_far", 1)]
+    {
+        let b = bundle(variant, norm);
+        let runner = FakeRunner::new(&b);
+        let calls = runner.calls.clone();
+        let app = router(state_with(b, runner, Limits::default(), Duration::from_secs(60)));
+        // 8x6 rays: one renderer run per pass.
+        let (status, _, body) = send(app, multipart_with("/v1/render", &request_json(32), 32, &[])).await;
+        assert_eq!(status, 200, "{variant}: {}", String::from_utf8_lossy(&body));
+        assert_eq!(calls[2].load(std::sync::atomic::Ordering::SeqCst), passes, "{variant}, {norm}");
     }
 }
 
@@ -243,12 +164,12 @@ async fn model_health_and_readiness() {
 #[tokio::test]
 async fn not_ready_is_503_with_retry_after_but_alive() {
     let state = fake_state();
-    state.ready.store(false, std::sync::atomic::Ordering::SeqCst);
+    state.set_draining();
     let app = router(state);
     let got = send(app.clone(), Request::get("/readyz").body(Body::empty()).unwrap()).await;
     assert_error(&got, 503, "unavailable", None);
     assert!(got.1.contains_key("retry-after"));
-    let got = send(app.clone(), multipart_with(&request_json(32), 32, None)).await;
+    let got = send(app.clone(), multipart_with("/v1/render", &request_json(32), 32, &[])).await;
     assert_error(&got, 503, "unavailable", None);
     let (status, _, _) = send(app, Request::get("/healthz").body(Body::empty()).unwrap()).await;
     assert_eq!(status, 200);
@@ -260,7 +181,12 @@ async fn deadline_is_504() {
     let mut runner = FakeRunner::new(&b);
     runner.delay = Duration::from_millis(300);
     let app = router(state_with(b, runner, Limits::default(), Duration::from_millis(100)));
-    assert_error(&send(app, multipart_with(&request_json(32), 32, None)).await, 504, "deadline_exceeded", None);
+    assert_error(
+        &send(app, multipart_with("/v1/render", &request_json(32), 32, &[])).await,
+        504,
+        "deadline_exceeded",
+        None,
+    );
 }
 
 #[tokio::test]
@@ -269,7 +195,12 @@ async fn backend_failure_is_500_and_the_server_keeps_serving() {
     let mut runner = FakeRunner::new(&b);
     runner.fail_with = Some("boom".into());
     let app = router(state_with(b, runner, Limits::default(), Duration::from_secs(10)));
-    assert_error(&send(app.clone(), multipart_with(&request_json(32), 32, None)).await, 500, "internal", None);
+    assert_error(
+        &send(app.clone(), multipart_with("/v1/render", &request_json(32), 32, &[])).await,
+        500,
+        "internal",
+        None,
+    );
     let (status, _, _) = send(app, Request::get("/healthz").body(Body::empty()).unwrap()).await;
     assert_eq!(status, 200);
 }
@@ -280,8 +211,9 @@ async fn full_queue_is_503_with_retry_after() {
     let mut runner = FakeRunner::new(&b);
     runner.delay = Duration::from_millis(400);
     let app = router(testing::state_with_queue(b, runner, Limits::default(), Duration::from_secs(60), 1));
-    let tasks: Vec<_> =
-        (0..6).map(|_| tokio::spawn(send(app.clone(), multipart_with(&request_json(32), 32, None)))).collect();
+    let tasks: Vec<_> = (0..6)
+        .map(|_| tokio::spawn(send(app.clone(), multipart_with("/v1/render", &request_json(32), 32, &[]))))
+        .collect();
     let mut busy = 0;
     for t in tasks {
         let got = t.await.unwrap();
@@ -326,7 +258,7 @@ async fn content_type_errors_are_415() {
 #[tokio::test]
 async fn accept_errors() {
     assert_error(
-        &send(app(), multipart_with(&request_json(32), 32, Some("text/html"))).await,
+        &send(app(), multipart_with("/v1/render", &request_json(32), 32, &[("accept", "text/html")])).await,
         406,
         "not_acceptable",
         Some("accept"),
@@ -334,7 +266,7 @@ async fn accept_errors() {
     let mut req = request_json(32);
     req["outputs"] = json!(["rgb", "depth"]);
     assert_error(
-        &send(app(), multipart_with(&req, 32, Some("image/png"))).await,
+        &send(app(), multipart_with("/v1/render", &req, 32, &[("accept", "image/png")])).await,
         422,
         "invalid_request",
         Some("outputs"),
@@ -373,7 +305,7 @@ async fn unknown_fields_are_named() {
 async fn missing_and_mistyped_fields_are_named() {
     let mut req = request_json(32);
     req.as_object_mut().unwrap().remove("near");
-    let got = send(app(), multipart_with(&req, 32, None)).await;
+    let got = send(app(), multipart_with("/v1/render", &req, 32, &[])).await;
     assert_error(&got, 400, "malformed_request", Some("near"));
     let mut req = request_json(32);
     req["sources"][2]["camera"]["pose"].as_object_mut().unwrap().remove("axes");
@@ -402,10 +334,20 @@ async fn missing_and_mistyped_fields_are_named() {
 async fn json_body_image_errors() {
     let mut req = json_with_images(32);
     req["sources"][2]["image"] = json!("not base64 !!!");
-    assert_error(&send(app(), json_req(&req, None)).await, 400, "malformed_request", Some("sources[2].image"));
+    assert_error(
+        &send(app(), json_to("/v1/render", &req, &[])).await,
+        400,
+        "malformed_request",
+        Some("sources[2].image"),
+    );
     let mut req = json_with_images(32);
     req["sources"][1].as_object_mut().unwrap().remove("image");
-    assert_error(&send(app(), json_req(&req, None)).await, 400, "malformed_request", Some("sources[1].image"));
+    assert_error(
+        &send(app(), json_to("/v1/render", &req, &[])).await,
+        400,
+        "malformed_request",
+        Some("sources[1].image"),
+    );
 }
 
 #[tokio::test]
@@ -440,7 +382,12 @@ async fn multipart_structure_errors() {
         ),
     ];
     for (parts, field) in cases {
-        assert_error(&send(app(), multipart_req(&parts, None)).await, 400, "malformed_request", Some(field));
+        assert_error(
+            &send(app(), multipart_to("/v1/render", &parts, &[])).await,
+            400,
+            "malformed_request",
+            Some(field),
+        );
     }
     let mut with_image = request_json(32);
     with_image["sources"][0]["image"] = json!("AAAA");
@@ -467,27 +414,30 @@ async fn image_errors() {
     broken_png.extend_from_slice(b"garbage");
     let got = send(
         app(),
-        multipart_req(
+        multipart_to(
+            "/v1/render",
             &[("request", &json), ("source_0", &imgs[0]), ("source_1", &broken_png), ("source_2", &imgs[2])],
-            None,
+            &[],
         ),
     )
     .await;
     assert_error(&got, 400, "malformed_request", Some("source_1"));
     let got = send(
         app(),
-        multipart_req(
+        multipart_to(
+            "/v1/render",
             &[("request", &json), ("source_0", &imgs[0]), ("source_1", &imgs[1]), ("source_2", b"GIF89a....")],
-            None,
+            &[],
         ),
     )
     .await;
     assert_error(&got, 415, "unsupported_media_type", Some("source_2"));
     let got = send(
         app(),
-        multipart_req(
+        multipart_to(
+            "/v1/render",
             &[("request", &json), ("source_0", b"hello"), ("source_1", &imgs[1]), ("source_2", &imgs[2])],
-            None,
+            &[],
         ),
     )
     .await;
@@ -501,23 +451,23 @@ async fn protobuf_errors() {
         .body(Body::from(vec![0xff, 0xff, 0xff]))
         .unwrap();
     assert_error(&send(app(), garbage).await, 400, "malformed_request", Some("body"));
-    let mut msg = proto_request();
+    let mut msg = proto_render();
     msg.sources[1].camera.as_mut().unwrap().pose.as_mut().unwrap().kind = 0;
     assert_error(&send(app(), proto_req(&msg)).await, 400, "malformed_request", Some("sources[1].camera.pose.kind"));
-    let mut msg = proto_request();
+    let mut msg = proto_render();
     msg.target.as_mut().unwrap().pose.as_mut().unwrap().matrix.pop();
     assert_error(&send(app(), proto_req(&msg)).await, 400, "malformed_request", Some("target.pose.matrix"));
-    let mut msg = proto_request();
+    let mut msg = proto_render();
     msg.target = None;
     assert_error(&send(app(), proto_req(&msg)).await, 400, "malformed_request", Some("target"));
-    let mut msg = proto_request();
+    let mut msg = proto_render();
     msg.outputs = vec!["alpha".into()];
     assert_error(&send(app(), proto_req(&msg)).await, 400, "malformed_request", Some("outputs[0]"));
     // Protobuf can carry non-finite numbers, JSON cannot.
-    let mut msg = proto_request();
+    let mut msg = proto_render();
     msg.sources[0].camera.as_mut().unwrap().pose.as_mut().unwrap().matrix[3] = f64::NAN;
     assert_error(&send(app(), proto_req(&msg)).await, 422, "invalid_request", Some("sources[0].camera.pose.matrix"));
-    let mut msg = proto_request();
+    let mut msg = proto_render();
     msg.far = f64::INFINITY;
     assert_error(&send(app(), proto_req(&msg)).await, 422, "invalid_request", Some("far"));
 }
@@ -532,9 +482,9 @@ async fn bodies_over_the_limit_are_413() {
     let limits = Limits { max_body_bytes: 2000, ..Limits::default() };
     let app = router(state_with(b, runner, limits, Duration::from_secs(10)));
     let big = json_with_images(64);
-    assert_error(&send(app.clone(), json_req(&big, None)).await, 413, "payload_too_large", Some("body"));
+    assert_error(&send(app.clone(), json_to("/v1/render", &big, &[])).await, 413, "payload_too_large", Some("body"));
     assert_error(
-        &send(app.clone(), multipart_with(&request_json(64), 64, None)).await,
+        &send(app.clone(), multipart_with("/v1/render", &request_json(64), 64, &[])).await,
         413,
         "payload_too_large",
         Some("body"),
@@ -555,8 +505,11 @@ async fn wrong_view_count() {
     req["sources"].as_array_mut().unwrap().pop();
     let json = serde_json::to_vec(&req).unwrap();
     let imgs = images(32);
-    let got =
-        send(app(), multipart_req(&[("request", &json), ("source_0", &imgs[0]), ("source_1", &imgs[1])], None)).await;
+    let got = send(
+        app(),
+        multipart_to("/v1/render", &[("request", &json), ("source_0", &imgs[0]), ("source_1", &imgs[1])], &[]),
+    )
+    .await;
     assert_error(&got, 422, "invalid_request", Some("sources"));
 }
 
@@ -596,9 +549,10 @@ async fn size_errors() {
     let imgs = images(40);
     let got = send(
         app(),
-        multipart_req(
+        multipart_to(
+            "/v1/render",
             &[("request", &json), ("source_0", &imgs[0]), ("source_1", &imgs[1]), ("source_2", &imgs[2])],
-            None,
+            &[],
         ),
     )
     .await;
@@ -615,11 +569,11 @@ async fn pixel_limits() {
     let runner = FakeRunner::new(&b);
     let limits = Limits { max_source_pixels: 32 * 32, max_target_pixels: 40, ..Limits::default() };
     let app = router(state_with(b, runner, limits, Duration::from_secs(10)));
-    let got = send(app.clone(), multipart_with(&request_json(32), 32, None)).await;
+    let got = send(app.clone(), multipart_with("/v1/render", &request_json(32), 32, &[])).await;
     assert_error(&got, 422, "invalid_request", Some("target.width"));
     let mut req = request_json(40);
     req["target"] = camera_json(4, 4, 0.0);
-    let got = send(app.clone(), multipart_with(&req, 40, None)).await;
+    let got = send(app.clone(), multipart_with("/v1/render", &req, 40, &[])).await;
     assert_error(&got, 422, "invalid_request", Some("sources[0].camera.width"));
     // The image header is checked before decoding, even if the camera claims a small size.
     let mut req = request_json(32);
@@ -629,9 +583,10 @@ async fn pixel_limits() {
     let huge = png(64, 64, [0, 0, 0, 255]);
     let got = send(
         app,
-        multipart_req(
+        multipart_to(
+            "/v1/render",
             &[("request", &json), ("source_0", &small[0]), ("source_1", &huge), ("source_2", &small[2])],
-            None,
+            &[],
         ),
     )
     .await;

@@ -144,3 +144,36 @@ async fn openapi_document_describes_the_real_routes_and_types() {
     assert_eq!(links["RenderScene"]["operationId"], "render_scene");
     assert_eq!(links["DeleteScene"]["parameters"]["id"], "$response.body#/scene_id");
 }
+
+/// The served document is committed as docs/openapi.json (as text-generation-inference does):
+/// an API change shows in review, and a stale file fails here.
+#[tokio::test]
+async fn committed_openapi_document_is_the_served_one() {
+    let served = json_of(&send(router(fake_state()), get("/openapi.json", &[])).await);
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs/openapi.json");
+    let text = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    let committed: Value = serde_json::from_str(&text).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    if let Some(at) = first_difference(&committed, &served, "") {
+        panic!(
+            "docs/openapi.json differs from the served /openapi.json at {at}; regenerate it with\n  \
+             cargo run -q -p scnerf-server --example openapi > docs/openapi.json"
+        );
+    }
+}
+
+/// The JSON pointer of the first place where `a` and `b` differ.
+fn first_difference(a: &Value, b: &Value, at: &str) -> Option<String> {
+    match (a, b) {
+        (Value::Object(x), Value::Object(y)) => {
+            let keys: std::collections::BTreeSet<&String> = x.keys().chain(y.keys()).collect();
+            keys.into_iter().find_map(|k| match (x.get(k), y.get(k)) {
+                (Some(v), Some(w)) => first_difference(v, w, &format!("{at}/{k}")),
+                _ => Some(format!("{at}/{k}")),
+            })
+        }
+        (Value::Array(x), Value::Array(y)) if x.len() == y.len() => {
+            x.iter().zip(y).enumerate().find_map(|(i, (v, w))| first_difference(v, w, &format!("{at}/{i}")))
+        }
+        _ => (a != b).then(|| if at.is_empty() { "/".to_string() } else { at.to_string() }),
+    }
+}

@@ -120,8 +120,8 @@ async fn deadline_header_gives_504_and_the_rest_of_the_work_is_dropped() {
     let later = renderer_runs(&calls);
     assert!(later <= at_timeout + 1, "chunks kept running after the deadline: {at_timeout} -> {later}");
     assert!(later < 40, "{later} of 80 chunks ran");
-    assert_eq!(state.pipeline.backend.stats().admitted, 0);
-    assert_eq!(state.pipeline.backend.stats().queued_jobs, 0);
+    assert_eq!(state.pipeline().executor().stats().admitted, 0);
+    assert_eq!(state.pipeline().executor().stats().queued_jobs, 0);
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -170,13 +170,13 @@ async fn a_disconnected_client_s_remaining_chunks_are_dropped() {
     wait_for("the renderer to start", || renderer_runs(&calls) >= 3).await;
     drop(stream);
 
-    wait_for("the request to be released", || state.pipeline.backend.stats().admitted == 0).await;
+    wait_for("the request to be released", || state.pipeline().executor().stats().admitted == 0).await;
     let at_release = renderer_runs(&calls);
     tokio::time::sleep(Duration::from_millis(400)).await;
     let later = renderer_runs(&calls);
     assert!(later <= at_release + 1, "chunks kept running after the disconnect: {at_release} -> {later}");
     assert!(later < 40, "{later} of 80 chunks ran for a client that left");
-    assert_eq!(state.pipeline.backend.stats().queued_jobs, 0);
+    assert_eq!(state.pipeline().executor().stats().queued_jobs, 0);
 
     // The server still serves.
     let got = send(router(state), multipart_with("/v1/render", &request_json(32), 32, &[])).await;

@@ -1,6 +1,7 @@
 //! Helpers for the end-to-end tests: a minimal blocking HTTP/1.1 client (no extra dependencies;
-//! the load generator will reuse it), multipart encoding, locating and starting the server
-//! binary.
+//! the load generator will reuse it), multipart encoding (the one builder of the workspace's
+//! tests: the server's own tests use it too), test cases on disk, locating and starting the
+//! server binary.
 
 pub mod load;
 
@@ -9,6 +10,8 @@ use std::net::{SocketAddr, TcpStream};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
+
+use serde_json::Value;
 
 /// Repository root (this crate lives in `<repo>/tests`).
 pub fn repo_root() -> PathBuf {
@@ -93,7 +96,6 @@ fn dechunk(mut data: &[u8]) -> std::io::Result<Vec<u8>> {
     }
 }
 
-/// multipart/form-data body from (name, filename, content type, bytes) parts.
 /// POSTs a render body to /v1/render asking for a PNG; panics unless a 200 `image/png` comes back.
 pub fn post_render_png(addr: SocketAddr, content_type: &str, body: &[u8], timeout: Duration) -> HttpResponse {
     let resp = http_request(
@@ -110,11 +112,15 @@ pub fn post_render_png(addr: SocketAddr, content_type: &str, body: &[u8], timeou
     resp
 }
 
+/// The boundary of every multipart body built by `multipart`.
+pub const BOUNDARY: &str = "scnerf-e2e-7d1f0b3a9c";
+
+/// A multipart/form-data body from (name, filename, content type, bytes) parts, and its
+/// Content-Type.
 pub fn multipart(parts: &[(&str, Option<&str>, &str, &[u8])]) -> (String, Vec<u8>) {
-    let boundary = "scnerf-e2e-7d1f0b3a9c";
     let mut body = Vec::new();
     for (name, filename, ctype, data) in parts {
-        body.extend_from_slice(format!("--{boundary}\r\n").as_bytes());
+        body.extend_from_slice(format!("--{BOUNDARY}\r\n").as_bytes());
         let disposition = match filename {
             Some(f) => format!("Content-Disposition: form-data; name=\"{name}\"; filename=\"{f}\"\r\n"),
             None => format!("Content-Disposition: form-data; name=\"{name}\"\r\n"),
@@ -124,8 +130,45 @@ pub fn multipart(parts: &[(&str, Option<&str>, &str, &[u8])]) -> (String, Vec<u8
         body.extend_from_slice(data);
         body.extend_from_slice(b"\r\n");
     }
-    body.extend_from_slice(format!("--{boundary}--\r\n").as_bytes());
-    (format!("multipart/form-data; boundary={boundary}"), body)
+    body.extend_from_slice(format!("--{BOUNDARY}--\r\n").as_bytes());
+    (format!("multipart/form-data; boundary={BOUNDARY}"), body)
+}
+
+/// A render request split into its scene part (the body of `POST /v1/scenes`) and its view part
+/// (`{"target", "outputs"}`, the body of `POST /v1/scenes/{id}/render`).
+pub fn split_request(request: &Value) -> (Value, Value) {
+    let mut scene = request.clone();
+    let view = match scene.as_object_mut() {
+        Some(obj) => serde_json::json!({"target": obj.remove("target"), "outputs": obj.remove("outputs")}),
+        None => Value::Null,
+    };
+    (scene, view)
+}
+
+/// A test case directory (`request.json` + `source_{i}.png`, like the parity fixtures).
+pub struct Case {
+    pub request: Value,
+    pub images: Vec<Vec<u8>>,
+}
+
+impl Case {
+    pub fn load(dir: &Path) -> std::io::Result<Case> {
+        let request =
+            serde_json::from_slice(&std::fs::read(dir.join("request.json"))?).map_err(std::io::Error::other)?;
+        let images = (0..3).map(|i| std::fs::read(dir.join(format!("source_{i}.png")))).collect::<Result<_, _>>()?;
+        Ok(Case { request, images })
+    }
+
+    /// A multipart body of `json` (the case's request, or a part or variant of it) and the case's
+    /// images as parts `source_0..2`, and its Content-Type.
+    pub fn multipart(&self, json: &Value) -> (String, Vec<u8>) {
+        let json = serde_json::to_vec(json).expect("JSON values serialise");
+        let names = ["source_0", "source_1", "source_2"];
+        let mut parts: Vec<(&str, Option<&str>, &str, &[u8])> = vec![("request", None, "application/json", &json)];
+        parts
+            .extend(names.iter().zip(&self.images).map(|(n, img)| (*n, Some("view.png"), "image/png", img.as_slice())));
+        multipart(&parts)
+    }
 }
 
 /// Builds the server binary with the same profile as the tests and returns its path.

@@ -10,14 +10,13 @@
 
 use std::collections::BTreeMap;
 use std::net::SocketAddr;
-use std::path::Path;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use serde_json::{json, Value};
 
-use crate::{http_request, multipart, HttpResponse};
+use crate::{http_request, split_request, Case, HttpResponse};
 
 /// What one request of the load sends.
 #[derive(Debug, Clone)]
@@ -243,32 +242,11 @@ pub fn memory_kib(pid: u32) -> Option<(u64, u64)> {
     Some((field("VmHWM:")?, field("VmRSS:")?))
 }
 
-/// A test case directory (`request.json` + `source_{i}.png`, like the parity fixtures).
-pub struct Case {
-    pub request: Value,
-    pub images: Vec<Vec<u8>>,
-}
-
 impl Case {
-    pub fn load(dir: &Path) -> std::io::Result<Case> {
-        let request =
-            serde_json::from_slice(&std::fs::read(dir.join("request.json"))?).map_err(std::io::Error::other)?;
-        let images = (0..3).map(|i| std::fs::read(dir.join(format!("source_{i}.png")))).collect::<Result<_, _>>()?;
-        Ok(Case { request, images })
-    }
-
     /// Creates the case's scene on the server; returns its id.
     pub fn create_scene(&self, addr: SocketAddr, token: &Option<String>) -> Result<String, String> {
-        let mut scene = self.request.clone();
-        let obj = scene.as_object_mut().ok_or("request.json is not an object")?;
-        obj.remove("target");
-        obj.remove("outputs");
-        let json = serde_json::to_vec(&scene).map_err(|e| e.to_string())?;
-        let names = ["source_0", "source_1", "source_2"];
-        let mut parts: Vec<(&str, Option<&str>, &str, &[u8])> = vec![("request", None, "application/json", &json)];
-        parts
-            .extend(names.iter().zip(&self.images).map(|(n, img)| (*n, Some("view.png"), "image/png", img.as_slice())));
-        let (ctype, body) = multipart(&parts);
+        let (scene, _) = split_request(&self.request);
+        let (ctype, body) = self.multipart(&scene);
         let auth = auth_header(token);
         let mut headers = vec![("content-type", ctype.as_str())];
         if let Some(a) = &auth {

@@ -5,20 +5,19 @@
 //! The fixtures are committed, so a missing fixture directory is a failure, not a skip.
 
 use std::path::{Path, PathBuf};
-use std::sync::{Arc, OnceLock};
+use std::sync::OnceLock;
 
 use axum::body::Body;
 use axum::http::Request;
 use base64::Engine;
 use http_body_util::BodyExt;
-use scnerf_server::backend::ort::{OrtOptions, OrtRunner};
-use scnerf_server::backend::BackendHandle;
-use scnerf_server::bundle::Bundle;
-use scnerf_server::config::GraphOptLevel;
+use scnerf_e2e::{split_request, Case};
+use scnerf_server::bundle::{Bundle, DepthNorm, GraphKind};
 use scnerf_server::http::{router, AppState, ServiceOptions};
-use scnerf_server::pipeline::chunks::ChunkPolicy;
-use scnerf_server::pipeline::{Pipeline, Timings};
+use scnerf_server::pipeline::chunks::{self, ChunkPolicy};
+use scnerf_server::pipeline::{assemble, rays, Pipeline, Timings};
 use scnerf_server::request::{ImageMode, Limits, RenderRequest, ValidRequest};
+use scnerf_server::testing::{ort_pipeline, ready_state};
 use tower::ServiceExt;
 
 /// tests/fixtures/parity, or SCNERF_PARITY_FIXTURES (to check a freshly generated set).
@@ -40,16 +39,7 @@ fn pipeline() -> Pipeline {
                 "parity fixtures missing: {} (they are committed; run `scnerf-export fixtures`)",
                 dir.display()
             );
-            let bundle = Bundle::load(&dir).unwrap_or_else(|e| panic!("{e}"));
-            let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
-            let opts = OrtOptions { dylib: None, intra_threads: threads, opt_level: GraphOptLevel::All, spin: false };
-            let runner = OrtRunner::load(&bundle, &opts).unwrap_or_else(|e| panic!("{e}"));
-            Pipeline {
-                backend: BackendHandle::spawn(Box::new(runner), 16).unwrap(),
-                bundle: Arc::new(bundle),
-                chunking: ChunkPolicy::default(),
-                limits: Limits::default(),
-            }
+            ort_pipeline(&dir, Limits::default(), 16)
         })
         .clone()
 }
@@ -61,12 +51,9 @@ fn admit(p: &Pipeline) -> scnerf_server::backend::Ticket {
     p.admit(deadline, scnerf_server::backend::Work::default()).unwrap()
 }
 
-/// The real router over the ONNX Runtime pipeline, ready at once.
-fn ready_state(p: Pipeline) -> AppState {
-    let options = ServiceOptions { request_timeout: std::time::Duration::from_secs(600), ..Default::default() };
-    let state = AppState::new(p, options);
-    state.set_ready();
-    state
+/// The real router's state over the ONNX Runtime pipeline, ready at once.
+fn ready(p: Pipeline) -> AppState {
+    ready_state(p, ServiceOptions { request_timeout: std::time::Duration::from_secs(600), ..Default::default() })
 }
 
 fn cases() -> Vec<PathBuf> {
@@ -119,18 +106,34 @@ fn request(case: &Path) -> ValidRequest {
     for (i, s) in req.scene.sources.iter_mut().enumerate() {
         s.image = Some(std::fs::read(case.join(format!("source_{i}.png"))).unwrap().into());
     }
-    req.validate(&pipeline().bundle.config, &Limits::default()).unwrap()
+    req.validate(pipeline().config(), &Limits::default()).unwrap()
 }
 
-fn max_abs(a: &[f32], b: &[f32]) -> f64 {
+/// The largest `error` between the values of two equally long tensors of any shape, paired in
+/// row-major order.
+fn max_error<'a>(
+    a: impl IntoIterator<Item = &'a f32, IntoIter: ExactSizeIterator>,
+    b: impl IntoIterator<Item = &'a f32, IntoIter: ExactSizeIterator>,
+    error: impl Fn(f32, f32) -> f64,
+) -> f64 {
+    let (a, b) = (a.into_iter(), b.into_iter());
     assert_eq!(a.len(), b.len());
-    a.iter().zip(b).map(|(x, y)| f64::from((x - y).abs())).fold(0.0, f64::max)
+    a.zip(b).map(|(x, y)| error(*x, *y)).fold(0.0, f64::max)
 }
 
-/// max |a - b| / max(|b|, 1e-6)... relative to the magnitude of the reference.
-fn max_rel(a: &[f32], b: &[f32]) -> f64 {
-    assert_eq!(a.len(), b.len());
-    a.iter().zip(b).map(|(x, y)| f64::from((x - y).abs()) / f64::from(y.abs()).max(1e-3)).fold(0.0, f64::max)
+fn max_abs<'a>(
+    a: impl IntoIterator<Item = &'a f32, IntoIter: ExactSizeIterator>,
+    b: impl IntoIterator<Item = &'a f32, IntoIter: ExactSizeIterator>,
+) -> f64 {
+    max_error(a, b, |x, y| f64::from((x - y).abs()))
+}
+
+/// max |a - b| / max(|b|, 1e-3): relative to the magnitude of the reference.
+fn max_rel<'a>(
+    a: impl IntoIterator<Item = &'a f32, IntoIter: ExactSizeIterator>,
+    b: impl IntoIterator<Item = &'a f32, IntoIter: ExactSizeIterator>,
+) -> f64 {
+    max_error(a, b, |x, y| f64::from((x - y).abs()) / f64::from(y.abs()).max(1e-3))
 }
 
 fn check(case: &str, stage: &str, err: f64, tol: f64) {
@@ -152,21 +155,16 @@ async fn pipeline_matches_pytorch_stage_by_stage() {
         let scene = p.build_scene(&ticket, &req.scene.cameras(), images, near, far, &mut timings).await.unwrap();
 
         let (shape, features) = expected.tensor("features");
-        assert_eq!(scene.features.shape, shape, "{name}: features shape");
-        check(
-            &name,
-            "features",
-            max_abs(&scene.features.data, &features),
-            expected.tolerance("features_max_abs", 1e-4),
-        );
+        assert_eq!(scene.features.shape(), shape, "{name}: features shape");
+        check(&name, "features", max_abs(&scene.features, &features), expected.tolerance("features_max_abs", 1e-4));
         let (shape, volume) = expected.tensor("volume");
-        assert_eq!(scene.volume.shape, shape, "{name}: volume shape");
-        check(&name, "volume", max_abs(&scene.volume.data, &volume), expected.tolerance("volume_max_abs", 1e-4));
+        assert_eq!(scene.volume.shape(), shape, "{name}: volume shape");
+        check(&name, "volume", max_abs(&scene.volume, &volume), expected.tolerance("volume_max_abs", 1e-4));
 
         let view =
             p.render_view(&ticket, &scene, &req.view.target, req.scene.background, None, &mut timings).await.unwrap();
         assert_eq!(
-            (view.width as u64, view.height as u64),
+            (u64::from(view.width()), u64::from(view.height())),
             (expected.json["width"].as_u64().unwrap(), expected.json["height"].as_u64().unwrap())
         );
         check(&name, "rgb", max_abs(&view.rgb, &expected.tensor("rgb").1), expected.tolerance("rgb_max_abs", 1e-3));
@@ -204,24 +202,55 @@ async fn output_does_not_depend_on_chunk_size() {
     assert!(err <= 1e-6, "output depends on the chunk size: max difference {err:.3e}");
 }
 
+/// The fixture bundle declaring `depth_norm: image_minmax`, over the same executor and graphs:
+/// the setting only changes what the renderer's `depth_range` input is fed.
+fn image_minmax_pipeline() -> Pipeline {
+    let mut bundle = Bundle::load(&fixtures_dir().join("bundle")).unwrap_or_else(|e| panic!("{e}"));
+    bundle.config.depth_norm = DepthNorm::ImageMinmax;
+    Pipeline::new(pipeline().executor().clone(), bundle, ChunkPolicy::default(), Limits::default())
+}
+
+/// The two-pass `image_minmax` render through the real graphs. The committed fixtures hold no
+/// image_minmax case (the exporter writes near_far ones), so this checks the rule rather than
+/// PyTorch's numbers: the view equals a renderer pass fed the [min, max] of the one-pass depth
+/// image (which does not depend on the range), and does not depend on the chunk size.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn image_minmax_feeds_the_depth_images_range_to_a_second_pass() {
+    let (near_far, minmax) = (pipeline(), image_minmax_pipeline());
+    let req = request(&cases()[0]);
+    let (target, background) = (&req.view.target, req.scene.background);
+    let mut timings = Timings::default();
+    let ticket = admit(&near_far);
+    let scene = near_far.prepare_scene(&ticket, &req.scene, &mut timings).await.unwrap();
+    let one_pass = near_far.render_view(&ticket, &scene, target, background, None, &mut timings).await.unwrap();
+    let small = minmax.render_view(&ticket, &scene, target, background, Some(37), &mut timings).await.unwrap();
+    let large = minmax.render_view(&ticket, &scene, target, background, Some(5000), &mut timings).await.unwrap();
+
+    let finite = one_pass.depth.iter().copied().filter(|d| d.is_finite());
+    let range = [finite.clone().fold(f32::INFINITY, f32::min), finite.fold(f32::NEG_INFINITY, f32::max)];
+    let inputs = &Bundle::load(&fixtures_dir().join("bundle")).unwrap().graph(GraphKind::Renderer).inputs.clone();
+    let raw = chunks::render_rays(&ticket, &scene, inputs, &rays::generate(target), range, 512).await.unwrap();
+    let expected_rgb = assemble::composite(&raw, background);
+
+    check("image_minmax", "rgb against a pass fed the depth range", max_abs(&large.rgb, &expected_rgb), 1e-6);
+    check("image_minmax", "depth against one pass", max_abs(&large.depth, &one_pass.depth), 1e-6);
+    let chunking = max_abs(&small.rgb, &large.rgb).max(max_abs(&small.depth, &large.depth));
+    check("image_minmax", "chunk 37 against 5000", chunking.max(max_abs(&small.opacity, &large.opacity)), 1e-6);
+    let fed = max_abs(&large.rgb, &one_pass.rgb);
+    eprintln!("image_minmax: rgb differs from near_far by up to {fed:.3e} (range {range:?})");
+    assert!(fed > 1e-6, "the depth range made no difference: this case cannot tell the two rules apart");
+}
+
 /// The same cases through the real HTTP router: multipart in, JSON out (PNG rgb, float32 depth).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn http_multipart_render_matches_pytorch() {
     let p = pipeline();
-    let app = router(ready_state(p));
+    let app = router(ready(p));
     for case in cases() {
         let name = case.file_name().unwrap().to_string_lossy().to_string();
         let expected = Expected::load(&case);
-        let request_json = std::fs::read(case.join("request.json")).unwrap();
-        let images: Vec<Vec<u8>> =
-            (0..3).map(|i| std::fs::read(case.join(format!("source_{i}.png"))).unwrap()).collect();
-        let names: Vec<String> = (0..3).map(|i| format!("source_{i}")).collect();
-        let mut parts: Vec<(&str, Option<&str>, &str, &[u8])> =
-            vec![("request", None, "application/json", &request_json)];
-        for (n, img) in names.iter().zip(&images) {
-            parts.push((n, Some("view.png"), "image/png", img));
-        }
-        let (ctype, body) = scnerf_e2e::multipart(&parts);
+        let files = Case::load(&case).unwrap();
+        let (ctype, body) = files.multipart(&files.request);
         let req = Request::post("/v1/render")
             .header("content-type", ctype)
             .header("accept", "application/json")
@@ -253,24 +282,14 @@ async fn http_multipart_render_matches_pytorch() {
 /// bit-identical to the one-shot `POST /v1/render` of the same request, through the real graphs.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn cached_scene_render_is_bit_identical_to_one_shot() {
-    let app = router(ready_state(pipeline()));
-    let case = &cases()[0];
-    let request: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(case.join("request.json")).unwrap()).unwrap();
-    let images: Vec<Vec<u8>> = (0..3).map(|i| std::fs::read(case.join(format!("source_{i}.png"))).unwrap()).collect();
+    let app = router(ready(pipeline()));
+    let case = Case::load(&cases()[0]).unwrap();
     let post = |path: &str, ctype: &str, body: Vec<u8>| {
         Request::post(path)
             .header("content-type", ctype)
             .header("accept", "application/json")
             .body(Body::from(body))
             .unwrap()
-    };
-    let multipart = |json: &serde_json::Value| {
-        let json = serde_json::to_vec(json).unwrap();
-        let names = ["source_0", "source_1", "source_2"];
-        let mut parts: Vec<(&str, Option<&str>, &str, &[u8])> = vec![("request", None, "application/json", &json)];
-        parts.extend(names.iter().zip(&images).map(|(n, img)| (*n, Some("view.png"), "image/png", img.as_slice())));
-        scnerf_e2e::multipart(&parts)
     };
     let call = |req: Request<Body>| {
         let app = app.clone();
@@ -283,13 +302,11 @@ async fn cached_scene_render_is_bit_identical_to_one_shot() {
         }
     };
 
-    let (ctype, body) = multipart(&request);
+    let (ctype, body) = case.multipart(&case.request);
     let one_shot = call(post("/v1/render", &ctype, body)).await;
 
-    let mut scene = request.clone();
-    let obj = scene.as_object_mut().unwrap();
-    let view = serde_json::json!({"target": obj.remove("target").unwrap(), "outputs": obj.remove("outputs").unwrap()});
-    let (ctype, body) = multipart(&scene);
+    let (scene, view) = split_request(&case.request);
+    let (ctype, body) = case.multipart(&scene);
     let created = call(post("/v1/scenes", &ctype, body)).await;
     let id = created["scene_id"].as_str().unwrap();
     let path = format!("/v1/scenes/{id}/render");

@@ -5,7 +5,7 @@
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
-use scnerf_e2e::{http_request, multipart, repo_root, server_binary, HttpResponse, ServerProcess};
+use scnerf_e2e::{http_request, repo_root, server_binary, Case, HttpResponse, ServerProcess};
 
 fn fixtures() -> PathBuf {
     repo_root().join("tests/fixtures/parity")
@@ -13,16 +13,10 @@ fn fixtures() -> PathBuf {
 
 /// The first parity case as a multipart render request (96x64 target, a few seconds of CPU).
 fn render_body() -> (String, Vec<u8>) {
-    let case = fixtures().join("cases/opencv_64x96");
-    let json = std::fs::read(case.join("request.json")).expect("parity fixtures are committed");
-    let images: Vec<Vec<u8>> = (0..3).map(|i| std::fs::read(case.join(format!("source_{i}.png"))).unwrap()).collect();
-    let mut request: serde_json::Value = serde_json::from_slice(&json).unwrap();
+    let case = Case::load(&fixtures().join("cases/opencv_64x96")).expect("parity fixtures are committed");
+    let mut request = case.request.clone();
     request["outputs"] = serde_json::json!(["rgb"]);
-    let json = serde_json::to_vec(&request).unwrap();
-    let names = ["source_0", "source_1", "source_2"];
-    let mut parts: Vec<(&str, Option<&str>, &str, &[u8])> = vec![("request", None, "application/json", &json)];
-    parts.extend(names.iter().zip(&images).map(|(n, img)| (*n, Some("view.png"), "image/png", img.as_slice())));
-    multipart(&parts)
+    case.multipart(&request)
 }
 
 fn start(grace_secs: &str) -> ServerProcess {

@@ -27,34 +27,16 @@ use std::future::Future;
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
+use ndarray::{ArcArray, ArcArrayD, Dimension};
 use tokio::sync::oneshot;
 use tracing::Span;
 
 use crate::bundle::GraphKind;
 
-/// A dense float32 tensor, row-major. The data is shared so that large inputs (the encoding
-/// volume, the source images) are not copied for every renderer chunk.
-#[derive(Debug, Clone)]
-pub struct Tensor {
-    pub shape: Vec<usize>,
-    pub data: Arc<Vec<f32>>,
-}
-
-impl Tensor {
-    /// Panics if `data` does not hold exactly the elements of `shape` (a programming error).
-    pub fn new(shape: Vec<usize>, data: Vec<f32>) -> Tensor {
-        assert_eq!(shape.iter().product::<usize>(), data.len(), "tensor data does not match shape {shape:?}");
-        Tensor { shape, data: Arc::new(data) }
-    }
-
-    pub fn len(&self) -> usize {
-        self.data.len()
-    }
-
-    pub fn is_empty(&self) -> bool {
-        self.data.is_empty()
-    }
-}
+/// A graph input or output: float32, any rank, standard (row-major) layout. Shared, so that
+/// large inputs (the encoding volume, the source images) are not copied for every renderer
+/// chunk; ONNX Runtime reads it in place.
+pub type Tensor = ArcArrayD<f32>;
 
 /// Named graph inputs or outputs.
 pub type NamedTensors = Vec<(String, Tensor)>;
@@ -89,7 +71,7 @@ pub struct Work(pub [f64; 3]);
 impl Work {
     pub fn of(graph: GraphKind, units: f64) -> Work {
         let mut work = Work::default();
-        work.0[slot(graph)] = units;
+        work.0[graph.index()] = units;
         work
     }
 
@@ -100,14 +82,6 @@ impl Work {
     /// Estimated seconds at `rates` (unmeasured graphs count 0).
     fn secs(&self, rates: &Rates) -> f64 {
         self.0.iter().zip(&rates.0).map(|(units, rate)| units * rate.unwrap_or(0.0)).sum()
-    }
-}
-
-fn slot(graph: GraphKind) -> usize {
-    match graph {
-        GraphKind::Encoder => 0,
-        GraphKind::Volume => 1,
-        GraphKind::Renderer => 2,
     }
 }
 
@@ -123,7 +97,7 @@ impl Rates {
         if units <= 0.0 {
             return;
         }
-        let rate = &mut self.0[slot(graph)];
+        let rate = &mut self.0[graph.index()];
         let latest = took / units;
         *rate = Some(rate.map_or(latest, |r| r + RATE_WEIGHT * (latest - r)));
     }
@@ -183,7 +157,7 @@ impl Queue {
     fn done(&mut self, job: &Job, took: f64) {
         self.rates.record(job.graph, job.units, took);
         if let Some(request) = self.requests.get_mut(&job.ticket) {
-            let left = &mut request.remaining.0[slot(job.graph)];
+            let left = &mut request.remaining.0[job.graph.index()];
             *left = (*left - job.units).max(0.0);
         }
     }
@@ -404,8 +378,13 @@ pub struct Outputs {
 }
 
 impl Outputs {
-    /// Removes the named output and checks its shape (`None` = any size on that axis).
-    pub fn take(&mut self, name: &str, shape: &[Option<usize>]) -> Result<Tensor, BackendError> {
+    /// Removes the named output and checks its shape (`None` = any size on that axis), which
+    /// also fixes its rank `D`.
+    pub fn take<D: Dimension>(
+        &mut self,
+        name: &str,
+        shape: &[Option<usize>],
+    ) -> Result<ArcArray<f32, D>, BackendError> {
         let graph = self.graph;
         let idx = self
             .tensors
@@ -414,14 +393,17 @@ impl Outputs {
             .ok_or_else(|| BackendError::BadOutput { graph, message: format!("no output \"{name}\"") })?;
         let (_, tensor) = self.tensors.swap_remove(idx);
         let ok =
-            tensor.shape.len() == shape.len() && tensor.shape.iter().zip(shape).all(|(a, b)| b.is_none_or(|b| *a == b));
+            tensor.ndim() == shape.len() && tensor.shape().iter().zip(shape).all(|(a, b)| b.is_none_or(|b| *a == b));
         if !ok {
             return Err(BackendError::BadOutput {
                 graph,
-                message: format!("\"{name}\" has shape {:?}, expected {shape:?}", tensor.shape),
+                message: format!("\"{name}\" has shape {:?}, expected {shape:?}", tensor.shape()),
             });
         }
-        Ok(tensor)
+        // Cannot fail once the rank matched (`shape` has D's rank).
+        tensor
+            .into_dimensionality::<D>()
+            .map_err(|e| BackendError::BadOutput { graph, message: format!("\"{name}\": {e}") })
     }
 }
 
@@ -443,7 +425,7 @@ mod tests {
             if let Some(gate) = self.gate.take() {
                 let _ = gate.recv();
             }
-            let tag = inputs[0].1.data[0] as u32;
+            let tag = inputs[0].1.first().copied().unwrap_or_default() as u32;
             self.order.lock().unwrap().push(tag);
             std::thread::sleep(Duration::from_millis(u64::from(tag)));
             Ok(vec![])
@@ -451,7 +433,7 @@ mod tests {
     }
 
     fn tagged(tag: u32) -> NamedTensors {
-        vec![("tag".into(), Tensor::new(vec![1], vec![tag as f32]))]
+        vec![("tag".into(), ndarray::arr1(&[tag as f32]).into_shared().into_dyn())]
     }
 
     fn recorder() -> (BackendHandle, Arc<Mutex<Vec<u32>>>, mpsc::Sender<()>) {

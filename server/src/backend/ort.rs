@@ -9,7 +9,7 @@ use ort::session::builder::{GraphOptimizationLevel, SessionBuilder};
 use ort::session::Session;
 use ort::value::{TensorElementType, TensorRef, ValueType};
 
-use super::{BackendError, GraphRunner, NamedTensors, Tensor};
+use super::{BackendError, GraphRunner, NamedTensors};
 use crate::bundle::{check_signature, ActualTensor, Bundle, GraphKind};
 use crate::config::{Device, GraphOptLevel};
 
@@ -213,8 +213,7 @@ impl GraphRunner for OrtRunner {
         let mut values = Vec::with_capacity(inputs.len());
         for (name, tensor) in inputs {
             // Zero-copy views of our buffers; ONNX Runtime only reads them.
-            let view = TensorRef::from_array_view((tensor.shape.clone(), tensor.data.as_slice()))
-                .map_err(|e| err(format!("input {name}: {e}")))?;
+            let view = TensorRef::from_array_view(tensor.view()).map_err(|e| err(format!("input {name}: {e}")))?;
             values.push((std::borrow::Cow::from(name.as_str()), ort::session::SessionInputValue::from(view)));
         }
         let output_names: Vec<String> = session.outputs().iter().map(|o| o.name().to_string()).collect();
@@ -223,10 +222,9 @@ impl GraphRunner for OrtRunner {
             .into_iter()
             .map(|name| {
                 let value = outputs.get(&name).ok_or_else(|| err(format!("missing output {name}")))?;
-                let (shape, data) =
-                    value.try_extract_tensor::<f32>().map_err(|e| err(format!("output {name}: {e}")))?;
-                let shape: Vec<usize> = shape.iter().map(|&d| d.max(0) as usize).collect();
-                Ok((name, Tensor::new(shape, data.to_vec())))
+                // Copied out: the session's output buffers are gone once `outputs` is dropped.
+                let array = value.try_extract_array::<f32>().map_err(|e| err(format!("output {name}: {e}")))?;
+                Ok((name, array.to_shared()))
             })
             .collect()
     }

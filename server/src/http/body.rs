@@ -25,21 +25,7 @@ pub async fn read_render_request(
     req: Request,
     limits: &Limits,
 ) -> Result<RenderRequest, ApiError> {
-    let limit = limits.max_body_bytes;
-    let owned = limits.clone();
-    match format {
-        RequestFormat::Json => {
-            let body = read_bytes(req.into_body(), limit).await?;
-            parse_blocking(move || RenderRequest::from_json(&body, ImageMode::Inline, &owned)).await
-        }
-        RequestFormat::Protobuf => {
-            let body = read_bytes(req.into_body(), limit).await?;
-            parse_blocking(move || RenderRequest::from_protobuf(&body)).await
-        }
-        RequestFormat::Multipart => {
-            read_multipart(req, limits, |json| RenderRequest::from_json(json, ImageMode::Parts, limits)).await
-        }
-    }
+    read_with_sources(format, req, limits, RenderRequest::from_json, RenderRequest::from_protobuf).await
 }
 
 /// `POST /v1/scenes` in any of the three forms.
@@ -48,20 +34,30 @@ pub async fn read_scene_request(
     req: Request,
     limits: &Limits,
 ) -> Result<SceneRequest, ApiError> {
+    read_with_sources(format, req, limits, SceneRequest::from_json, SceneRequest::from_protobuf).await
+}
+
+/// A request that carries source images, parsed by `from_json` (JSON with base64 images, or the
+/// `request` part of a multipart body) or `from_protobuf`.
+async fn read_with_sources<T: HasSources + Send + 'static>(
+    format: RequestFormat,
+    req: Request,
+    limits: &Limits,
+    from_json: fn(&[u8], ImageMode, &Limits) -> Result<T, ApiError>,
+    from_protobuf: fn(&[u8]) -> Result<T, ApiError>,
+) -> Result<T, ApiError> {
     let limit = limits.max_body_bytes;
     let owned = limits.clone();
     match format {
         RequestFormat::Json => {
             let body = read_bytes(req.into_body(), limit).await?;
-            parse_blocking(move || SceneRequest::from_json(&body, ImageMode::Inline, &owned)).await
+            parse_blocking(move || from_json(&body, ImageMode::Inline, &owned)).await
         }
         RequestFormat::Protobuf => {
             let body = read_bytes(req.into_body(), limit).await?;
-            parse_blocking(move || SceneRequest::from_protobuf(&body)).await
+            parse_blocking(move || from_protobuf(&body)).await
         }
-        RequestFormat::Multipart => {
-            read_multipart(req, limits, |json| SceneRequest::from_json(json, ImageMode::Parts, limits)).await
-        }
+        RequestFormat::Multipart => read_multipart(req, limits, |json| from_json(json, ImageMode::Parts, limits)).await,
     }
 }
 

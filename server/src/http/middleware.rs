@@ -13,7 +13,7 @@ use axum::response::{IntoResponse, Response};
 use tokio::sync::{OwnedSemaphorePermit, Semaphore};
 
 use super::body::refuse_declared_length;
-use super::AppState;
+use super::state::AppState;
 use crate::error::ApiError;
 
 const REQUEST_ID: &str = "x-request-id";
@@ -60,7 +60,7 @@ pub async fn limit_in_flight(State(state): State<AppState>, req: Request, next: 
     if req.method() != Method::POST {
         return next.run(req).await;
     }
-    if let Err(e) = refuse_declared_length(req.body(), state.pipeline.limits.max_body_bytes) {
+    if let Err(e) = refuse_declared_length(req.body(), state.pipeline.limits().max_body_bytes) {
         return e.into_response();
     }
     let client = req.extensions().get::<ConnectInfo<SocketAddr>>().map(|c| c.0.ip());

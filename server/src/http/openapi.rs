@@ -3,51 +3,17 @@
 
 use axum::Json;
 use utoipa::openapi::security::{HttpAuthScheme, HttpBuilder, SecurityScheme};
-use utoipa::{Modify, OpenApi, ToSchema};
+use utoipa::{Modify, OpenApi};
 
+use super::respond::{FloatImageJson, PngImageJson, RenderResponseJson};
+use super::scenes::SceneCreated;
+use super::schema::{Binary, RenderMultipart, SceneMultipart};
 use crate::error::{ErrorBody, ErrorDetail};
-use crate::http::render::{FloatImageJson, PngImageJson, RenderResponseJson};
-use crate::http::scenes::SceneCreated;
-use crate::request::{
+use crate::request::wire::{
     JsonCamera, JsonFocal, JsonIntrinsicsSchema, JsonPose, JsonRenderRequest, JsonSceneRequest, JsonSource,
-    JsonTargetRequest, Matrix3Rows, Matrix4Rows, OutputKind,
+    JsonTargetRequest, Matrix3Rows, Matrix4Rows,
 };
-
-/// Raw bytes: a PNG/JPEG file, a PNG response, or a protobuf message.
-#[derive(ToSchema)]
-#[schema(value_type = String, format = Binary)]
-#[allow(dead_code)]
-pub struct Binary(Vec<u8>);
-
-/// `multipart/form-data` body of `POST /v1/render`.
-#[derive(ToSchema)]
-#[allow(dead_code)]
-pub struct RenderMultipart {
-    /// The JSON request (RenderRequest) without `image` fields.
-    #[schema(content_media_type = "application/json")]
-    request: String,
-    #[schema(value_type = String, format = Binary, content_media_type = "image/png")]
-    source_0: Vec<u8>,
-    #[schema(value_type = String, format = Binary, content_media_type = "image/png")]
-    source_1: Vec<u8>,
-    #[schema(value_type = String, format = Binary, content_media_type = "image/png")]
-    source_2: Vec<u8>,
-}
-
-/// `multipart/form-data` body of `POST /v1/scenes`.
-#[derive(ToSchema)]
-#[allow(dead_code)]
-pub struct SceneMultipart {
-    /// The JSON scene request (SceneRequest) without `image` fields.
-    #[schema(content_media_type = "application/json")]
-    request: String,
-    #[schema(value_type = String, format = Binary, content_media_type = "image/png")]
-    source_0: Vec<u8>,
-    #[schema(value_type = String, format = Binary, content_media_type = "image/png")]
-    source_1: Vec<u8>,
-    #[schema(value_type = String, format = Binary, content_media_type = "image/png")]
-    source_2: Vec<u8>,
-}
+use crate::request::OutputKind;
 
 struct BearerAuth;
 
@@ -74,10 +40,10 @@ Errors are always `{\"error\": {\"code\", \"message\", \"field\"}}`. With bearer
         crate::http::scenes::create,
         crate::http::scenes::render,
         crate::http::scenes::delete,
-        crate::http::model,
-        crate::http::healthz,
-        crate::http::readyz,
-        crate::http::metrics,
+        crate::http::service::model,
+        crate::http::service::healthz,
+        crate::http::service::readyz,
+        crate::http::service::metrics,
         serve,
     ),
     components(schemas(

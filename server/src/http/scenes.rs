@@ -11,9 +11,10 @@ use axum::response::{IntoResponse, Response};
 use serde::Serialize;
 
 use super::body::{read_scene_request, read_target_request};
+use super::deadline::Deadline;
 use super::negotiate::{request_format, response_format};
-use super::render::{deadline_of, finish, set_common_headers, with_deadline};
-use super::AppState;
+use super::respond::{finish, set_common_headers};
+use super::state::AppState;
 use crate::cache::{is_valid_id, rfc3339, Owner};
 use crate::error::ApiError;
 use crate::pipeline::Timings;
@@ -45,9 +46,9 @@ fn scene_id(path: Result<Path<String>, PathRejection>) -> Result<String, ApiErro
 #[utoipa::path(
     post, path = "/v1/scenes", tag = "render", operation_id = "create_scene",
     request_body(content(
-        (crate::http::openapi::SceneMultipart = "multipart/form-data"),
-        (crate::request::JsonSceneRequest = "application/json"),
-        (crate::http::openapi::Binary = "application/x-protobuf"),
+        (crate::http::schema::SceneMultipart = "multipart/form-data"),
+        (crate::request::wire::JsonSceneRequest = "application/json"),
+        (crate::http::schema::Binary = "application/x-protobuf"),
     ), description = "Source views + cameras, near/far (no target); protobuf: scnerf.v1.SceneRequest"),
     params(
         ("x-scnerf-deadline-ms" = Option<u64>, Header, nullable = false, minimum = 1, description = "Shortens the server's deadline for this request (ms)"),
@@ -71,34 +72,20 @@ fn scene_id(path: Result<Path<String>, PathRejection>) -> Result<String, ApiErro
     ),
     security((), ("bearer" = [])),
 )]
-pub async fn create(State(state): State<AppState>, req: Request) -> Result<Response, ApiError> {
-    let started = Instant::now();
-    state.check_ready()?;
-    let budget = deadline_of(req.headers(), state.request_timeout)?;
-    with_deadline(budget, create_within(state, req, started, started + budget)).await
+pub async fn create(State(state): State<AppState>, deadline: Deadline, req: Request) -> Result<Response, ApiError> {
+    deadline.run(create_within(state, deadline, req)).await
 }
 
-async fn create_within(
-    state: AppState,
-    req: Request,
-    started: Instant,
-    deadline: Instant,
-) -> Result<Response, ApiError> {
+async fn create_within(state: AppState, deadline: Deadline, req: Request) -> Result<Response, ApiError> {
     let format = request_format(req.headers())?;
     let owner = owner_of(&req);
     let pipeline = &state.pipeline;
-    let parsed = read_scene_request(format, req, &pipeline.limits).await?;
-    let valid = parsed.validate(&pipeline.bundle.config, &pipeline.limits)?;
-
-    let ticket = pipeline.admit(deadline, pipeline.scene_work(&valid.cameras()))?;
+    let parsed = read_scene_request(format, req, pipeline.limits()).await?;
+    let valid = parsed.validate(pipeline.config(), pipeline.limits())?;
     let mut timings = Timings::default();
-    let scene = pipeline.prepare_scene(&ticket, &valid, &mut timings).await?;
-    drop(ticket);
-    let (scene_id, expires) = state
-        .scenes
-        .insert(scene, valid.background, owner, Instant::now())
-        .map_err(|e| ApiError::invalid("sources", e.to_string()))?;
-    timings.add("total", started.elapsed());
+    let scene = pipeline.encode_scene(&valid, deadline.at(), &mut timings).await?;
+    let (scene_id, expires) = state.scenes.insert(scene, valid.background, owner, Instant::now())?;
+    timings.add("total", deadline.started().elapsed());
     tracing::info!(%scene_id, timings = ?timings.millis(), "scene cached");
     state.metrics.observe_stages(&timings);
 
@@ -108,7 +95,7 @@ async fn create_within(
     if let Ok(v) = HeaderValue::from_str(&location) {
         response.headers_mut().insert(header::LOCATION, v);
     }
-    set_common_headers(&mut response, &timings, &pipeline.bundle.manifest.model_id);
+    set_common_headers(&mut response, &timings, &pipeline.manifest().model_id);
     Ok(response)
 }
 
@@ -117,8 +104,8 @@ async fn create_within(
 #[utoipa::path(
     post, path = "/v1/scenes/{id}/render", tag = "render", operation_id = "render_scene",
     request_body(content(
-        (crate::request::JsonTargetRequest = "application/json"),
-        (crate::http::openapi::Binary = "application/x-protobuf"),
+        (crate::request::wire::JsonTargetRequest = "application/json"),
+        (crate::http::schema::Binary = "application/x-protobuf"),
     ), description = "Target camera and outputs; protobuf: scnerf.v1.SceneRenderRequest"),
     params(
         ("id" = String, Path, description = "scene_id from POST /v1/scenes", pattern = "^[0-9a-f]{32}$"),
@@ -126,9 +113,9 @@ async fn create_within(
     ),
     responses(
         (status = 200, description = "The rendered view, as for /v1/render", content(
-            (crate::http::openapi::Binary = "image/png"),
-            (crate::http::render::RenderResponseJson = "application/json"),
-            (crate::http::openapi::Binary = "application/x-protobuf"),
+            (crate::http::schema::Binary = "image/png"),
+            (crate::http::respond::RenderResponseJson = "application/json"),
+            (crate::http::schema::Binary = "application/x-protobuf"),
         ), headers(("x-scene-expires-at" = String, description = "New expiry of the scene (RFC 3339)"))),
         (status = 400, description = "Malformed request or scene id", body = crate::error::ErrorBody),
         (status = 401, description = "Missing or wrong bearer token", body = crate::error::ErrorBody),
@@ -146,39 +133,28 @@ async fn create_within(
 )]
 pub async fn render(
     State(state): State<AppState>,
+    deadline: Deadline,
     path: Result<Path<String>, PathRejection>,
     req: Request,
 ) -> Result<Response, ApiError> {
-    let started = Instant::now();
-    state.check_ready()?;
     let id = scene_id(path)?;
-    let budget = deadline_of(req.headers(), state.request_timeout)?;
-    with_deadline(budget, render_within(state, id, req, started, started + budget)).await
+    deadline.run(render_within(state, deadline, id, req)).await
 }
 
-async fn render_within(
-    state: AppState,
-    id: String,
-    req: Request,
-    started: Instant,
-    deadline: Instant,
-) -> Result<Response, ApiError> {
+async fn render_within(state: AppState, deadline: Deadline, id: String, req: Request) -> Result<Response, ApiError> {
     let format = request_format(req.headers())?;
     let headers = req.headers().clone();
     let owner = owner_of(&req);
     let pipeline = &state.pipeline;
-    let parsed = read_target_request(format, req, &pipeline.limits).await?;
-    let valid = parsed.validate(&pipeline.limits)?;
+    let parsed = read_target_request(format, req, pipeline.limits()).await?;
+    let valid = parsed.validate(pipeline.limits())?;
     let out_format = response_format(&headers, valid.outputs)?;
     let hit = state.scenes.get(&id, &owner, Instant::now()).ok_or(ApiError::SceneNotFound { id })?;
-
-    let ticket = pipeline.admit(deadline, pipeline.view_work(&valid.target))?;
     let mut timings = Timings::default();
     let cached = &hit.scene;
     let view =
-        pipeline.render_view(&ticket, &cached.scene, &valid.target, cached.background, None, &mut timings).await?;
-    drop(ticket);
-    let mut response = finish(&state, view, valid.outputs, out_format, timings, started).await?;
+        pipeline.render_scene(&cached.scene, &valid.target, cached.background, deadline.at(), &mut timings).await?;
+    let mut response = finish(&state, view, valid.outputs, out_format, timings, deadline.started()).await?;
     if let Ok(v) = HeaderValue::from_str(&rfc3339(hit.expires_at)) {
         response.headers_mut().insert("x-scene-expires-at", v);
     }

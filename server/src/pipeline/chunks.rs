@@ -5,22 +5,20 @@
 //! Rays are independent in the renderer graph (depth normalisation uses a per-request range, not
 //! per-chunk statistics), so the output does not depend on the chunk size.
 
-use super::{Scene, SceneInputs};
-use futures_util::{stream, StreamExt, TryStreamExt};
+use std::ops::Range;
 
-use crate::backend::{BackendError, NamedTensors, Tensor, Ticket};
-use crate::bundle::GraphKind;
-use crate::pipeline::rays::Rays;
+use futures_util::{stream, StreamExt, TryStreamExt};
+use ndarray::{arr1, s, ArcArray2, Array1, Array2, Ix1, Ix2};
+
+use super::rays::Rays;
+use super::Scene;
+use crate::backend::{BackendError, NamedTensors, Ticket};
+use crate::bundle::{GraphKind, TensorSpec};
 
 /// Peak bytes of renderer activations per sample point. Measured with the paper-size `scnerf`
 /// renderer (width 128, both rectifiers), ONNX Runtime 1.31 CPU: about 4.7 GB of resident memory
 /// at 2048 rays x 128 samples, i.e. ~18 KiB per point.
 pub const BYTES_PER_SAMPLE: usize = 18 * 1024;
-
-/// Default upper bound on rays per renderer run (`--max-rays-per-chunk`).
-pub const DEFAULT_MAX_RAYS: usize = 512;
-/// Default renderer memory budget in MiB (`--chunk-memory-mb`).
-pub const DEFAULT_MEMORY_MB: usize = 1024;
 
 #[derive(Debug, Clone, Copy)]
 pub struct ChunkPolicy {
@@ -30,7 +28,8 @@ pub struct ChunkPolicy {
 
 impl Default for ChunkPolicy {
     fn default() -> Self {
-        ChunkPolicy { max_rays: DEFAULT_MAX_RAYS, memory_budget_bytes: DEFAULT_MEMORY_MB << 20 }
+        // `--max-rays-per-chunk` and `--chunk-memory-mb` (1 GiB).
+        ChunkPolicy { max_rays: 512, memory_budget_bytes: 1024 << 20 }
     }
 }
 
@@ -41,12 +40,15 @@ impl ChunkPolicy {
     }
 }
 
-/// Raw renderer outputs for all rays, before background compositing.
-#[derive(Debug, Clone, Default, PartialEq)]
+/// Raw renderer outputs for all N rays, before background compositing.
+#[derive(Debug, Clone, PartialEq)]
 pub struct RawView {
-    pub rgb: Vec<f32>,
-    pub depth: Vec<f32>,
-    pub opacity: Vec<f32>,
+    /// (N, 3)
+    pub rgb: Array2<f32>,
+    /// (N)
+    pub depth: Array1<f32>,
+    /// (N)
+    pub opacity: Array1<f32>,
 }
 
 /// Renderer runs of one request queued at once. Two keep the executor busy while the previous
@@ -54,30 +56,31 @@ pub struct RawView {
 /// deadline, so queuing more does not buy a larger share).
 const CHUNKS_IN_FLIGHT: usize = 2;
 
-/// Runs the renderer over all rays, `chunk` rays at a time, and concatenates the outputs.
+/// Runs the renderer (whose inputs are `inputs`) over all rays, `chunk` rays at a time, and
+/// concatenates the outputs.
 pub async fn render_rays(
     ticket: &Ticket,
     scene: &Scene,
-    inputs: &SceneInputs,
+    inputs: &[TensorSpec],
     rays: &Rays,
     depth_range: [f32; 2],
     chunk: usize,
 ) -> Result<RawView, BackendError> {
     let n = rays.len();
-    let mut out =
-        RawView { rgb: Vec::with_capacity(n * 3), depth: Vec::with_capacity(n), opacity: Vec::with_capacity(n) };
-    let ranges = (0..n).step_by(chunk.max(1)).map(|start| (start, (start + chunk).min(n)));
+    let mut out = RawView { rgb: Array2::zeros((n, 3)), depth: Array1::zeros(n), opacity: Array1::zeros(n) };
+    let ranges = (0..n).step_by(chunk.max(1)).map(|start| start..(start + chunk).min(n));
     let mut runs = stream::iter(ranges)
-        .map(|(start, end)| {
-            let inputs = chunk_inputs(scene, inputs, rays, start, end, depth_range);
-            let run = ticket.run(GraphKind::Renderer, (end - start) as f64, inputs);
-            async move { run.await.map(|outputs| (end - start, outputs)) }
+        .map(|range| {
+            let inputs = chunk_inputs(scene, inputs, rays, range.clone(), depth_range);
+            let run = ticket.run(GraphKind::Renderer, range.len() as f64, inputs);
+            async move { run.await.map(|outputs| (range, outputs)) }
         })
         .buffered(CHUNKS_IN_FLIGHT);
-    while let Some((r, mut outputs)) = runs.try_next().await? {
-        out.rgb.extend_from_slice(&outputs.take("rgb", &[Some(r), Some(3)])?.data);
-        out.depth.extend_from_slice(&outputs.take("depth", &[Some(r)])?.data);
-        out.opacity.extend_from_slice(&outputs.take("opacity", &[Some(r)])?.data);
+    while let Some((range, mut outputs)) = runs.try_next().await? {
+        let r = Some(range.len());
+        out.rgb.slice_mut(s![range.clone(), ..]).assign(&outputs.take::<Ix2>("rgb", &[r, Some(3)])?);
+        out.depth.slice_mut(s![range.clone()]).assign(&outputs.take::<Ix1>("depth", &[r])?);
+        out.opacity.slice_mut(s![range]).assign(&outputs.take::<Ix1>("opacity", &[r])?);
     }
     Ok(out)
 }
@@ -85,31 +88,30 @@ pub async fn render_rays(
 /// Every input the renderer graph declares, by name (the bundle check guarantees we know them).
 fn chunk_inputs(
     scene: &Scene,
-    inputs: &SceneInputs,
+    inputs: &[TensorSpec],
     rays: &Rays,
-    start: usize,
-    end: usize,
+    range: Range<usize>,
     depth_range: [f32; 2],
 ) -> NamedTensors {
-    let r = end - start;
-    let near_far = Tensor::new(vec![2], vec![scene.near as f32, scene.far as f32]);
+    // The rays' rows and the scene's tensors are shared with the chunk, not copied.
+    let rows = |a: &ArcArray2<f32>| a.clone().slice_move(s![range.clone(), ..]).into_dyn();
+    let pair = |p: [f32; 2]| arr1(&p).into_shared().into_dyn();
     inputs
-        .renderer_inputs
         .iter()
-        .filter_map(|name| {
-            let t = match name.as_str() {
-                "ray_origins" => Tensor::new(vec![r, 3], rays.origins[start * 3..end * 3].to_vec()),
-                "ray_directions" => Tensor::new(vec![r, 3], rays.directions[start * 3..end * 3].to_vec()),
-                "near_far" => near_far.clone(),
-                "depth_range" => Tensor::new(vec![2], depth_range.to_vec()),
-                "volume" => scene.volume.clone(),
-                "images" => scene.images.clone(),
-                "features" => scene.features.clone(),
-                "intrinsics" => scene.intrinsics.clone(),
-                "extrinsics" => scene.extrinsics.clone(),
+        .filter_map(|spec| {
+            let t = match spec.name.as_str() {
+                "ray_origins" => rows(&rays.origins),
+                "ray_directions" => rows(&rays.directions),
+                "near_far" => pair([scene.near as f32, scene.far as f32]),
+                "depth_range" => pair(depth_range),
+                "volume" => scene.volume.clone().into_dyn(),
+                "images" => scene.images.clone().into_dyn(),
+                "features" => scene.features.clone().into_dyn(),
+                "intrinsics" => scene.intrinsics.clone().into_dyn(),
+                "extrinsics" => scene.extrinsics.clone().into_dyn(),
                 _ => return None,
             };
-            Some((name.clone(), t))
+            Some((spec.name.clone(), t))
         })
         .collect()
 }

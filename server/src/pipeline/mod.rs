@@ -1,25 +1,30 @@
-//! The render pipeline, one module per stage:
+//! The render pipeline, one module per stage, in the order the data flows:
 //!
-//! request (validated) -> source images decoded and padded -> [encoder] features ->
-//! [volume] encoding volume -> target rays -> chunks -> [renderer] -> image assembly.
+//! validated request -> [`sources`] images decoded and padded -> [`encoder`] features ->
+//! [`volume`] cost volume and encoding volume -> [`rays`] target rays -> [`chunks`] renderer
+//! runs -> [`assemble`] image.
 //!
-//! `build_scene` (sources only) and `render_view` (target only) are separate so that a scene
-//! cache can keep a `Scene` and render further views with the renderer alone.
+//! A request is admitted to the inference executor with its deadline and its estimated work
+//! (`scene_work`, `view_work`) before any graph runs. `build_scene` (sources only) and
+//! `render_view` (target only) are separate so that a scene cache can keep a `Scene` and render
+//! further views with the renderer alone.
 
 pub mod assemble;
 pub mod chunks;
 pub mod encoder;
 pub mod rays;
+pub mod sources;
 pub mod volume;
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use crate::backend::{BackendError, BackendHandle, Tensor, Ticket, Work};
-use crate::bundle::{Bundle, DepthNorm, GraphKind};
-use crate::camera::Camera;
+use ndarray::{ArcArray3, ArcArray4, ArcArray5, Array1, Array2, Array3, Array4};
+
+use crate::backend::{BackendError, BackendHandle, Ticket, Work};
+use crate::bundle::{Bundle, DepthNorm, GraphKind, Manifest, ModelConfig};
+use crate::camera::{stack_rows, Camera};
 use crate::error::ApiError;
-use crate::image_io::{self, RgbF32};
 use crate::request::{Limits, ValidRequest, ValidScene};
 use chunks::{ChunkPolicy, RawView};
 
@@ -46,18 +51,19 @@ impl Timings {
 }
 
 /// Everything the renderer needs about the sources; reusable for any number of target views.
+/// The arrays are shared: every renderer run of every view reads them without a copy.
 #[derive(Debug, Clone)]
 pub struct Scene {
     /// (V, 3, H, W) padded source images in [0, 1].
-    pub images: Tensor,
+    pub images: ArcArray4<f32>,
     /// (V, C, H/4, W/4) encoder output.
-    pub features: Tensor,
+    pub features: ArcArray4<f32>,
     /// (1, Cv, D, H/4 + 2·pad, W/4 + 2·pad) encoding volume.
-    pub volume: Tensor,
+    pub volume: ArcArray5<f32>,
     /// (V, 3, 3) full-resolution K per view.
-    pub intrinsics: Tensor,
+    pub intrinsics: ArcArray3<f32>,
     /// (V, 4, 4) OpenCV world-to-camera per view.
-    pub extrinsics: Tensor,
+    pub extrinsics: ArcArray3<f32>,
     pub near: f64,
     pub far: f64,
 }
@@ -69,55 +75,123 @@ impl Scene {
     }
 }
 
-/// Names of the renderer graph's inputs (the graph of a variant declares only what it uses).
-#[derive(Debug, Clone)]
-pub struct SceneInputs {
-    pub renderer_inputs: Vec<String>,
-}
-
-/// A rendered view: composited RGB (H·W·3, in [0, 1]), depth and opacity (H·W).
+/// A rendered view: composited RGB (H, W, 3) in [0, 1], depth and opacity (H, W).
 #[derive(Debug, Clone)]
 pub struct View {
-    pub width: u32,
-    pub height: u32,
-    pub rgb: Vec<f32>,
-    pub depth: Vec<f32>,
-    pub opacity: Vec<f32>,
+    pub rgb: Array3<f32>,
+    pub depth: Array2<f32>,
+    pub opacity: Array2<f32>,
 }
 
-/// The pipeline's shared, read-only context.
+impl View {
+    pub fn width(&self) -> u32 {
+        self.depth.ncols() as u32
+    }
+
+    pub fn height(&self) -> u32 {
+        self.depth.nrows() as u32
+    }
+}
+
+/// The pipeline's shared, read-only context: the executor, the bundle, the chunking policy and
+/// the request limits.
 #[derive(Clone)]
 pub struct Pipeline {
-    pub backend: BackendHandle,
-    pub bundle: Arc<Bundle>,
-    pub chunking: ChunkPolicy,
-    pub limits: Limits,
+    backend: BackendHandle,
+    bundle: Arc<Bundle>,
+    chunking: ChunkPolicy,
+    limits: Limits,
 }
 
-impl From<BackendError> for ApiError {
-    fn from(e: BackendError) -> Self {
-        match e {
-            BackendError::QueueFull => {
-                ApiError::Unavailable { message: "server busy: inference queue is full".into(), retry_after_secs: 2 }
-            }
-            BackendError::WouldMissDeadline { ahead_secs } => ApiError::Unavailable {
-                message: format!("server busy: {e}"),
-                retry_after_secs: ahead_secs.ceil().max(1.0) as u64,
-            },
-            // The handler's own timer normally fires first and knows the deadline; this is the
-            // executor noticing it between two graph runs.
-            BackendError::DeadlineExceeded => ApiError::DeadlineExceeded { ms: 0 },
-            other => ApiError::Internal(other.to_string()),
+/// Work units of an encoder or volume run over `images` (V, 3, H, W): its pixels.
+pub fn pixel_units(images: &ArcArray4<f32>) -> f64 {
+    (images.len() / 3) as f64
+}
+
+/// Where the renderer's `depth_range` input (the range that normalises the rectifiers' depth
+/// queries) comes from: the one home of the `depth_norm` rule.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum DepthRange {
+    /// The request's [near, far]: one renderer pass per view.
+    NearFar,
+    /// The min/max of the view's own depth image: a first pass renders the depth (which does not
+    /// depend on `depth_range`), the second the colours.
+    FirstPass,
+}
+
+impl DepthRange {
+    /// `image_minmax` needs two passes only when the renderer takes the range at all.
+    fn of(bundle: &Bundle) -> DepthRange {
+        match bundle.config.depth_norm {
+            DepthNorm::ImageMinmax if bundle.renderer_takes("depth_range") => DepthRange::FirstPass,
+            _ => DepthRange::NearFar,
+        }
+    }
+
+    fn passes(self) -> f64 {
+        match self {
+            DepthRange::NearFar => 1.0,
+            DepthRange::FirstPass => 2.0,
         }
     }
 }
 
-/// Work units of an encoder or volume run over `images` (V, 3, H, W): its pixels.
-pub fn pixel_units(images: &Tensor) -> f64 {
-    (images.len() / 3) as f64
-}
-
 impl Pipeline {
+    pub fn new(backend: BackendHandle, bundle: Bundle, chunking: ChunkPolicy, limits: Limits) -> Pipeline {
+        Pipeline { backend, bundle: Arc::new(bundle), chunking, limits }
+    }
+
+    pub fn limits(&self) -> &Limits {
+        &self.limits
+    }
+
+    pub fn config(&self) -> &ModelConfig {
+        &self.bundle.config
+    }
+
+    pub fn manifest(&self) -> &Manifest {
+        &self.bundle.manifest
+    }
+
+    /// The inference executor (its queue figures are served as metrics).
+    pub fn executor(&self) -> &BackendHandle {
+        &self.backend
+    }
+
+    /// The whole request, admitted until `deadline`: decode, encoder, volume, renderer, assembly.
+    /// A cached scene goes through exactly the same `render_view`, so its views are
+    /// bit-identical to these.
+    pub async fn render(&self, req: &ValidRequest, deadline: Instant, timings: &mut Timings) -> Result<View, ApiError> {
+        let work = self.scene_work(&req.scene.cameras()).plus(self.view_work(&req.view.target));
+        let ticket = self.admit(deadline, work)?;
+        let scene = self.prepare_scene(&ticket, &req.scene, timings).await?;
+        Ok(self.render_view(&ticket, &scene, &req.view.target, req.scene.background, None, timings).await?)
+    }
+
+    /// The scene of `POST /v1/scenes`, admitted until `deadline`: decode, encoder, volume.
+    pub async fn encode_scene(
+        &self,
+        req: &ValidScene,
+        deadline: Instant,
+        timings: &mut Timings,
+    ) -> Result<Scene, ApiError> {
+        let ticket = self.admit(deadline, self.scene_work(&req.cameras()))?;
+        self.prepare_scene(&ticket, req, timings).await
+    }
+
+    /// A view of a cached scene, admitted until `deadline`: the renderer alone.
+    pub async fn render_scene(
+        &self,
+        scene: &Scene,
+        target: &Camera,
+        background: [f32; 3],
+        deadline: Instant,
+        timings: &mut Timings,
+    ) -> Result<View, ApiError> {
+        let ticket = self.admit(deadline, self.view_work(target))?;
+        Ok(self.render_view(&ticket, scene, target, background, None, timings).await?)
+    }
+
     /// Admits a request with `work` to the inference executor until `deadline` (503 when it is
     /// full or the request could not finish in time).
     pub fn admit(&self, deadline: Instant, work: Work) -> Result<Ticket, ApiError> {
@@ -128,44 +202,35 @@ impl Pipeline {
     /// padded images).
     pub fn scene_work(&self, sources: &[Camera]) -> Work {
         let multiple = self.bundle.config.image_multiple;
-        let pixels: f64 = sources
+        let pixels: usize = sources
             .iter()
-            .map(|c| {
-                (c.width as usize).div_ceil(multiple) * (c.height as usize).div_ceil(multiple) * multiple * multiple
-            })
-            .sum::<usize>() as f64;
-        Work::of(GraphKind::Encoder, pixels).plus(Work::of(GraphKind::Volume, pixels))
+            .map(|c| sources::padded_size(c.width as usize, c.height as usize, multiple))
+            .map(|(w, h)| w * h)
+            .sum();
+        Work::of(GraphKind::Encoder, pixels as f64).plus(Work::of(GraphKind::Volume, pixels as f64))
     }
 
-    /// The work of rendering `target` (one renderer pass over its rays, two for image_minmax).
+    /// The work of rendering `target`: its rays, once per renderer pass.
     pub fn view_work(&self, target: &Camera) -> Work {
-        let passes = match self.bundle.config.depth_norm {
-            DepthNorm::NearFar => 1.0,
-            DepthNorm::ImageMinmax => 2.0,
-        };
-        Work::of(GraphKind::Renderer, passes * f64::from(target.width) * f64::from(target.height))
-    }
-
-    fn inputs(&self) -> SceneInputs {
-        let names = self.bundle.graph(GraphKind::Renderer).inputs.iter().map(|t| t.name.clone()).collect();
-        SceneInputs { renderer_inputs: names }
+        let rays = f64::from(target.width) * f64::from(target.height);
+        Work::of(GraphKind::Renderer, DepthRange::of(&self.bundle).passes() * rays)
     }
 
     /// Decodes the source images off the async runtime and stacks them padded.
-    pub async fn decode_sources(&self, req: &ValidScene) -> Result<Tensor, ApiError> {
-        let sources = req.sources.clone();
-        let background = req.background;
-        let max_pixels = self.limits.max_source_pixels;
+    pub async fn decode_sources(&self, req: &ValidScene) -> Result<Array4<f32>, ApiError> {
         let multiple = self.bundle.config.image_multiple;
-        tokio::task::spawn_blocking(move || {
-            let images = sources
-                .iter()
-                .map(|(cam, bytes, field)| decode_one(cam, bytes, field, background, max_pixels))
-                .collect::<Result<Vec<RgbF32>, ApiError>>()?;
-            Ok(image_io::stack_padded(&images, multiple, background))
-        })
-        .await
-        .map_err(|e| ApiError::Internal(format!("image decoding task failed: {e}")))?
+        sources::decode(&req.sources, req.background, self.limits.max_source_pixels, multiple).await
+    }
+
+    /// Decode, encoder, volume: the part of a request that a scene cache keeps.
+    pub async fn prepare_scene(
+        &self,
+        ticket: &Ticket,
+        req: &ValidScene,
+        timings: &mut Timings,
+    ) -> Result<Scene, ApiError> {
+        let images = timings.time("decode", self.decode_sources(req)).await?;
+        Ok(self.build_scene(ticket, &req.cameras(), images, req.near, req.far, timings).await?)
     }
 
     /// Encoder and volume net over the source views.
@@ -173,23 +238,24 @@ impl Pipeline {
         &self,
         ticket: &Ticket,
         cameras: &[Camera],
-        images: Tensor,
+        images: Array4<f32>,
         near: f64,
         far: f64,
         timings: &mut Timings,
     ) -> Result<Scene, BackendError> {
         let config = &self.bundle.config;
+        let images = images.into_shared();
         let features = timings.time("encoder", encoder::run(ticket, config, &images)).await?;
         let volume =
             timings.time("volume", volume::run(ticket, config, &features, &images, cameras, near, far)).await?;
-        let intrinsics = cameras.iter().flat_map(|c| c.k.into_iter().flatten().map(|x| x as f32)).collect();
-        let extrinsics = cameras.iter().flat_map(|c| c.w2c.into_iter().flatten().map(|x| x as f32)).collect();
+        let intrinsics: Vec<_> = cameras.iter().map(|c| c.k).collect();
+        let extrinsics: Vec<_> = cameras.iter().map(|c| c.w2c).collect();
         Ok(Scene {
             images,
             features,
             volume,
-            intrinsics: Tensor::new(vec![cameras.len(), 3, 3], intrinsics),
-            extrinsics: Tensor::new(vec![cameras.len(), 4, 4], extrinsics),
+            intrinsics: stack_rows(&intrinsics).into_shared(),
+            extrinsics: stack_rows(&extrinsics).into_shared(),
             near,
             far,
         })
@@ -209,69 +275,31 @@ impl Pipeline {
         let start = Instant::now();
         let rays = rays::generate(target);
         let chunk = chunk.unwrap_or_else(|| self.chunking.rays_per_chunk(self.bundle.config.samples)).max(1);
-        let inputs = self.inputs();
+        let inputs = &self.bundle.graph(GraphKind::Renderer).inputs;
         let near_far = [scene.near as f32, scene.far as f32];
-        let raw = match self.bundle.config.depth_norm {
-            DepthNorm::NearFar => chunks::render_rays(ticket, scene, &inputs, &rays, near_far, chunk).await?,
-            DepthNorm::ImageMinmax => {
-                // Depth does not depend on depth_range: a first pass gives the depth image whose
-                // min/max normalise the rectification queries of the colour pass.
-                let first = chunks::render_rays(ticket, scene, &inputs, &rays, near_far, chunk).await?;
-                let range = min_max(&first.depth).unwrap_or(near_far);
-                chunks::render_rays(ticket, scene, &inputs, &rays, range, chunk).await?
-            }
-        };
+        let mut raw = chunks::render_rays(ticket, scene, inputs, &rays, near_far, chunk).await?;
+        if DepthRange::of(&self.bundle) == DepthRange::FirstPass {
+            let range = min_max(&raw.depth).unwrap_or(near_far);
+            raw = chunks::render_rays(ticket, scene, inputs, &rays, range, chunk).await?;
+        }
         timings.add("renderer", start.elapsed());
         let start = Instant::now();
         let view = assemble_view(target, raw, background);
         timings.add("assemble", start.elapsed());
         Ok(view)
     }
-
-    /// Decode, encoder, volume: the part of a request that a scene cache keeps.
-    pub async fn prepare_scene(
-        &self,
-        ticket: &Ticket,
-        req: &ValidScene,
-        timings: &mut Timings,
-    ) -> Result<Scene, ApiError> {
-        let images = timings.time("decode", self.decode_sources(req)).await?;
-        Ok(self.build_scene(ticket, &req.cameras(), images, req.near, req.far, timings).await?)
-    }
-
-    /// The whole request: decode, encoder, volume, renderer, assembly. A cached scene goes
-    /// through exactly the same `render_view`, so its views are bit-identical to these.
-    pub async fn render(&self, ticket: &Ticket, req: &ValidRequest, timings: &mut Timings) -> Result<View, ApiError> {
-        let scene = self.prepare_scene(ticket, &req.scene, timings).await?;
-        Ok(self.render_view(ticket, &scene, &req.view.target, req.scene.background, None, timings).await?)
-    }
 }
 
-fn decode_one(
-    cam: &Camera,
-    bytes: &[u8],
-    field: &str,
-    background: [f32; 3],
-    max_pixels: u64,
-) -> Result<RgbF32, ApiError> {
-    // The header alone tells the size: a mismatch is refused before anything is decoded.
-    let (_, width, height) = image_io::probe(bytes, field)?;
-    if (width, height) != (cam.width, cam.height) {
-        return Err(ApiError::invalid(
-            field.to_string(),
-            format!("image is {width}x{height} but its camera says {}x{}", cam.width, cam.height),
-        ));
-    }
-    image_io::decode_source(bytes, field, background, max_pixels)
-}
-
-fn min_max(values: &[f32]) -> Option<[f32; 2]> {
+fn min_max(values: &Array1<f32>) -> Option<[f32; 2]> {
     let mut it = values.iter().copied().filter(|v| v.is_finite());
     let first = it.next()?;
     Some(it.fold([first, first], |[lo, hi], v| [lo.min(v), hi.max(v)]))
 }
 
+/// The rays' outputs as images: rays are ordered row by row.
 fn assemble_view(target: &Camera, raw: RawView, background: [f32; 3]) -> View {
-    let rgb = assemble::composite(&raw, background);
-    View { width: target.width, height: target.height, rgb, depth: raw.depth, opacity: raw.opacity }
+    let (h, w) = (target.height as usize, target.width as usize);
+    let image = |a: Array1<f32>| a.into_shape_with_order((h, w)).expect("one ray per pixel");
+    let rgb = assemble::composite(&raw, background).into_shape_with_order((h, w, 3)).expect("one ray per pixel");
+    View { rgb, depth: image(raw.depth), opacity: image(raw.opacity) }
 }

@@ -10,7 +10,7 @@ use scnerf_server::testing::{png, request_json};
 use serde_json::{json, Value};
 use tower::ServiceExt;
 
-pub const BOUNDARY: &str = "XtestBoundaryX";
+pub use scnerf_e2e::BOUNDARY;
 
 pub type Got = (StatusCode, HeaderMap, Bytes);
 
@@ -41,18 +41,16 @@ pub fn json_of(got: &Got) -> Value {
     serde_json::from_slice(&got.2).unwrap_or_else(|_| panic!("not JSON: {}", String::from_utf8_lossy(&got.2)))
 }
 
+/// A multipart body of (name, bytes) parts: the `request` part as JSON, the others as files.
 pub fn multipart_body(parts: &[(&str, &[u8])]) -> Vec<u8> {
-    let mut body = Vec::new();
-    for (name, data) in parts {
-        body.extend_from_slice(
-            format!("--{BOUNDARY}\r\nContent-Disposition: form-data; name=\"{name}\"; filename=\"{name}\"\r\n\r\n")
-                .as_bytes(),
-        );
-        body.extend_from_slice(data);
-        body.extend_from_slice(b"\r\n");
-    }
-    body.extend_from_slice(format!("--{BOUNDARY}--\r\n").as_bytes());
-    body
+    let parts: Vec<(&str, Option<&str>, &str, &[u8])> = parts
+        .iter()
+        .map(|&(name, data)| match name {
+            "request" => (name, None, "application/json", data),
+            _ => (name, Some(name), "application/octet-stream", data),
+        })
+        .collect();
+    scnerf_e2e::multipart(&parts).1
 }
 
 pub fn multipart_to(path: &str, parts: &[(&str, &[u8])], headers: &[(&str, &str)]) -> Request<Body> {
@@ -111,17 +109,12 @@ pub fn json_with_images(size: u32) -> Value {
 
 /// The scene part of `request_json` (no target, no outputs).
 pub fn scene_json(size: u32) -> Value {
-    let mut v = request_json(size);
-    let obj = v.as_object_mut().unwrap();
-    obj.remove("target");
-    obj.remove("outputs");
-    v
+    scnerf_e2e::split_request(&request_json(size)).0
 }
 
 /// The view part of `request_json`.
 pub fn target_json(size: u32) -> Value {
-    let v = request_json(size);
-    json!({"target": v["target"], "outputs": v["outputs"]})
+    scnerf_e2e::split_request(&request_json(size)).1
 }
 
 pub const ALICE: &str = "alice-token-9f8e7d6c5b4a";
@@ -173,5 +166,25 @@ pub fn proto_camera(c: &Value) -> scnerf_proto::v1::Camera {
             kind: kind as i32,
             axes: axes as i32,
         }),
+    }
+}
+
+/// A render request in DESIGN.md's JSON form with `images`, as a protobuf message (the fields
+/// the JSON leaves out stay empty).
+pub fn proto_request(r: &Value, images: &[Vec<u8>]) -> scnerf_proto::v1::RenderRequest {
+    use scnerf_proto::v1 as pb;
+    let numbers = |v: &Value| v.as_array().map(|a| a.iter().filter_map(Value::as_f64).collect()).unwrap_or_default();
+    let strings = |v: &Value| {
+        v.as_array().map(|a| a.iter().filter_map(|s| s.as_str().map(str::to_string)).collect()).unwrap_or_default()
+    };
+    pb::RenderRequest {
+        sources: (0..images.len())
+            .map(|i| pb::Source { camera: Some(proto_camera(&r["sources"][i]["camera"])), image: images[i].clone() })
+            .collect(),
+        target: Some(proto_camera(&r["target"])),
+        near: r["near"].as_f64().unwrap(),
+        far: r["far"].as_f64().unwrap(),
+        background: numbers(&r["background"]),
+        outputs: strings(&r["outputs"]),
     }
 }

@@ -1,0 +1,72 @@
+//! The start of every POST handler, as an extractor: the service must be ready (503
+//! otherwise), and the request gets its deadline, within which its whole handling (body,
+//! decoding, inference, encoding) must finish (504 past it).
+
+use std::future::Future;
+use std::time::{Duration, Instant};
+
+use axum::extract::FromRequestParts;
+use axum::http::request::Parts;
+use axum::http::HeaderMap;
+
+use super::state::AppState;
+use crate::error::ApiError;
+
+/// Header with which a client shortens its request's deadline (milliseconds).
+pub const DEADLINE_HEADER: &str = "x-scnerf-deadline-ms";
+
+/// When a request started and how long it may take.
+#[derive(Debug, Clone, Copy)]
+pub struct Deadline {
+    started: Instant,
+    budget: Duration,
+}
+
+impl FromRequestParts<AppState> for Deadline {
+    type Rejection = ApiError;
+
+    async fn from_request_parts(parts: &mut Parts, state: &AppState) -> Result<Deadline, ApiError> {
+        let started = Instant::now();
+        state.check_ready()?;
+        let budget = budget(&parts.headers, state.request_timeout)?;
+        Ok(Deadline { started, budget })
+    }
+}
+
+impl Deadline {
+    pub fn started(&self) -> Instant {
+        self.started
+    }
+
+    pub fn at(&self) -> Instant {
+        self.started + self.budget
+    }
+
+    /// Runs a request's handling within its budget. On timeout the work is dropped, and with it
+    /// its ticket: the executor drops the request's waiting graph runs.
+    pub async fn run<T>(self, work: impl Future<Output = Result<T, ApiError>>) -> Result<T, ApiError> {
+        let ms = u64::try_from(self.budget.as_millis()).unwrap_or(u64::MAX);
+        match tokio::time::timeout(self.budget, work).await {
+            Ok(Err(ApiError::DeadlineExceeded { .. })) | Err(_) => Err(ApiError::DeadlineExceeded { ms }),
+            Ok(result) => result,
+        }
+    }
+}
+
+/// The request's time budget: the configured timeout, or less when the client asks for less.
+/// The header sent twice is refused rather than one of its values picked.
+fn budget(headers: &HeaderMap, default: Duration) -> Result<Duration, ApiError> {
+    let malformed = |message| ApiError::malformed(Some(DEADLINE_HEADER.to_string()), message);
+    let mut values = headers.get_all(DEADLINE_HEADER).iter();
+    let Some(value) = values.next() else { return Ok(default) };
+    if values.next().is_some() {
+        return Err(malformed("sent more than once"));
+    }
+    let ms = value
+        .to_str()
+        .ok()
+        .and_then(|v| v.trim().parse::<u64>().ok())
+        .filter(|&ms| ms > 0)
+        .ok_or_else(|| malformed("expected a whole number of milliseconds > 0"))?;
+    Ok(default.min(Duration::from_millis(ms)))
+}

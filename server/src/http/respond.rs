@@ -1,0 +1,169 @@
+//! The response layer of the render endpoints: a rendered view encoded (PNG, float32) and
+//! answered in the negotiated format, with the headers every successful response carries. The
+//! JSON types here are also the OpenAPI schema of the responses.
+
+use std::collections::BTreeMap;
+use std::time::Instant;
+
+use axum::http::{header, HeaderValue};
+use axum::response::{IntoResponse, Response};
+use base64::Engine;
+use ndarray::Array2;
+use prost::Message;
+use serde::Serialize;
+
+use super::negotiate::ResponseFormat;
+use super::state::AppState;
+use crate::error::ApiError;
+use crate::image_io;
+use crate::pipeline::{assemble, Timings, View};
+use crate::request::OutputSet;
+
+/// Encodes a rendered view and answers in the negotiated format (shared by /v1/render and
+/// /v1/scenes/{id}/render, so both endpoints answer identically).
+pub async fn finish(
+    state: &AppState,
+    view: View,
+    outputs: OutputSet,
+    format: ResponseFormat,
+    mut timings: Timings,
+    started: Instant,
+) -> Result<Response, ApiError> {
+    let encode_start = Instant::now();
+    let rendered = encode_outputs(view, outputs).await?;
+    timings.add("encode", encode_start.elapsed());
+    timings.add("total", started.elapsed());
+    tracing::info!(timings = ?timings.millis(), "rendered");
+    state.metrics.observe_stages(&timings);
+    Ok(respond(format, rendered, &timings, &state.pipeline.manifest().model_id))
+}
+
+/// The outputs in their wire encodings: PNG for rgb, little-endian float32 for the others.
+struct Encoded {
+    width: u32,
+    height: u32,
+    rgb_png: Option<Vec<u8>>,
+    depth: Option<Vec<u8>>,
+    opacity: Option<Vec<u8>>,
+}
+
+async fn encode_outputs(view: View, outputs: OutputSet) -> Result<Encoded, ApiError> {
+    tokio::task::spawn_blocking(move || {
+        let (width, height) = (view.width(), view.height());
+        let rgb_png =
+            if outputs.rgb { Some(image_io::encode_png(width, height, &assemble::quantize(&view.rgb))?) } else { None };
+        // Row-major, as the arrays iterate.
+        let le = |v: &Array2<f32>| v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
+        Ok(Encoded {
+            width,
+            height,
+            rgb_png,
+            depth: outputs.depth.then(|| le(&view.depth)),
+            opacity: outputs.opacity.then(|| le(&view.opacity)),
+        })
+    })
+    .await
+    .map_err(|e| ApiError::Internal(format!("encoding task failed: {e}")))?
+}
+
+fn respond(format: ResponseFormat, out: Encoded, timings: &Timings, model_id: &str) -> Response {
+    let mut response = match format {
+        ResponseFormat::Png => out.rgb_png.unwrap_or_default().into_response(),
+        ResponseFormat::Json => axum::Json(json_body(&out, timings, model_id)).into_response(),
+        ResponseFormat::Protobuf => proto_body(out, timings, model_id).encode_to_vec().into_response(),
+    };
+    response.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static(format.content_type()));
+    set_common_headers(&mut response, timings, model_id);
+    response
+}
+
+/// `x-model-id` and `server-timing` (per-stage milliseconds), on every successful response.
+pub fn set_common_headers(response: &mut Response, timings: &Timings, model_id: &str) {
+    let headers = response.headers_mut();
+    if let Ok(v) = HeaderValue::from_str(model_id) {
+        headers.insert("x-model-id", v);
+    }
+    let server_timing: Vec<String> = timings.millis().iter().map(|(s, ms)| format!("{s};dur={ms:.1}")).collect();
+    if let Ok(v) = HeaderValue::from_str(&server_timing.join(", ")) {
+        headers.insert("server-timing", v);
+    }
+}
+
+/// `application/json` render response (`POST /v1/render`, `POST /v1/scenes/{id}/render`).
+#[derive(Debug, Serialize, utoipa::ToSchema)]
+#[schema(as = RenderResponse)]
+pub struct RenderResponseJson {
+    pub model_id: String,
+    pub width: u32,
+    pub height: u32,
+    /// Present when `rgb` was asked for.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub rgb: Option<PngImageJson>,
+    /// Target z-depth (`sum w_k z_k`), when `depth` was asked for.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub depth: Option<FloatImageJson>,
+    /// `sum w_k`, when `opacity` was asked for.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub opacity: Option<FloatImageJson>,
+    /// Wall time per stage: decode, encoder, volume, renderer, assemble, encode, total.
+    pub timings_ms: BTreeMap<String, f64>,
+}
+
+#[derive(Debug, Serialize, utoipa::ToSchema)]
+#[schema(as = PngImage)]
+pub struct PngImageJson {
+    /// Always `png`.
+    pub format: &'static str,
+    /// Base64 PNG (8-bit RGB).
+    pub data: String,
+}
+
+#[derive(Debug, Serialize, utoipa::ToSchema)]
+#[schema(as = FloatImage)]
+pub struct FloatImageJson {
+    pub width: u32,
+    pub height: u32,
+    /// Always `float32`.
+    pub dtype: &'static str,
+    /// Always `little`.
+    pub byte_order: &'static str,
+    /// Base64 of height x width little-endian float32, row-major.
+    pub data: String,
+}
+
+fn json_body(out: &Encoded, timings: &Timings, model_id: &str) -> RenderResponseJson {
+    let b64 = |b: &[u8]| base64::engine::general_purpose::STANDARD.encode(b);
+    let float_image = |data: &Option<Vec<u8>>| {
+        data.as_ref().map(|d| FloatImageJson {
+            width: out.width,
+            height: out.height,
+            dtype: "float32",
+            byte_order: "little",
+            data: b64(d),
+        })
+    };
+    RenderResponseJson {
+        model_id: model_id.to_string(),
+        width: out.width,
+        height: out.height,
+        rgb: out.rgb_png.as_ref().map(|png| PngImageJson { format: "png", data: b64(png) }),
+        depth: float_image(&out.depth),
+        opacity: float_image(&out.opacity),
+        timings_ms: timings.millis().into_iter().map(|(s, ms)| (s.to_string(), ms)).collect(),
+    }
+}
+
+fn proto_body(out: Encoded, timings: &Timings, model_id: &str) -> scnerf_proto::v1::RenderResponse {
+    use scnerf_proto::v1 as pb;
+    let float_image =
+        |data: Option<Vec<u8>>| data.map(|data| pb::FloatImage { width: out.width, height: out.height, data });
+    pb::RenderResponse {
+        model_id: model_id.to_string(),
+        width: out.width,
+        height: out.height,
+        rgb_png: out.rgb_png.clone().unwrap_or_default(),
+        depth: float_image(out.depth.clone()),
+        opacity: float_image(out.opacity.clone()),
+        timings_ms: timings.millis().into_iter().map(|(s, ms)| (s.to_string(), ms)).collect(),
+    }
+}

@@ -1,0 +1,102 @@
+//! The state every handler and layer shares, and the service settings it is built from.
+
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+
+use super::body::UploadPolicy;
+use super::middleware::Slots;
+use crate::auth::Auth;
+use crate::cache::{CacheConfig, SceneCache};
+use crate::error::ApiError;
+use crate::metrics::Metrics;
+use crate::pipeline::Pipeline;
+
+/// State shared by all handlers.
+#[derive(Clone)]
+pub struct AppState {
+    pub(super) pipeline: Pipeline,
+    /// Set once the warm-up render succeeded; cleared again when shutting down.
+    ready: Arc<AtomicBool>,
+    pub(super) request_timeout: Duration,
+    pub(super) scenes: Arc<SceneCache>,
+    pub(super) metrics: Arc<Metrics>,
+    pub(super) auth: Arc<Auth>,
+    /// Slots for POST requests being handled at once (bodies in memory included).
+    pub(super) in_flight: Arc<Slots>,
+    /// How slowly a request body may arrive.
+    pub(super) uploads: UploadPolicy,
+}
+
+/// Service settings besides the pipeline (from the command line, or set by tests).
+#[derive(Debug, Clone)]
+pub struct ServiceOptions {
+    pub request_timeout: Duration,
+    pub cache: CacheConfig,
+    /// POST requests handled at once; beyond it 503 before the body is read.
+    pub max_concurrent_requests: usize,
+    /// POST requests handled at once from one peer address (0: no cap); beyond it 429.
+    pub max_requests_per_client: usize,
+    pub uploads: UploadPolicy,
+    pub auth: Auth,
+}
+
+impl Default for ServiceOptions {
+    fn default() -> Self {
+        ServiceOptions {
+            request_timeout: Duration::from_secs(900),
+            cache: CacheConfig::default(),
+            max_concurrent_requests: 256,
+            max_requests_per_client: 32,
+            uploads: UploadPolicy::default(),
+            auth: Auth::disabled(),
+        }
+    }
+}
+
+impl AppState {
+    /// Not ready until `set_ready` (after the warm-up render).
+    pub fn new(pipeline: Pipeline, options: ServiceOptions) -> AppState {
+        let scenes = Arc::new(SceneCache::new(options.cache));
+        let metrics = Arc::new(Metrics::new(pipeline.executor().clone(), scenes.clone()));
+        AppState {
+            pipeline,
+            ready: Arc::new(AtomicBool::new(false)),
+            request_timeout: options.request_timeout,
+            scenes,
+            metrics,
+            auth: Arc::new(options.auth),
+            in_flight: Arc::new(Slots::new(options.max_concurrent_requests, options.max_requests_per_client)),
+            uploads: options.uploads,
+        }
+    }
+
+    pub fn pipeline(&self) -> &Pipeline {
+        &self.pipeline
+    }
+
+    pub fn scenes(&self) -> &Arc<SceneCache> {
+        &self.scenes
+    }
+
+    pub fn is_ready(&self) -> bool {
+        self.ready.load(Ordering::Acquire)
+    }
+
+    pub fn set_ready(&self) {
+        self.ready.store(true, Ordering::Release);
+    }
+
+    pub fn set_draining(&self) {
+        self.ready.store(false, Ordering::Release);
+    }
+
+    /// 503 (with Retry-After) until the model is warm, and again while shutting down.
+    pub(super) fn check_ready(&self) -> Result<(), ApiError> {
+        if self.is_ready() {
+            Ok(())
+        } else {
+            Err(ApiError::Unavailable { message: "the model is warming up".into(), retry_after_secs: 5 })
+        }
+    }
+}
