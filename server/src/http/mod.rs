@@ -7,6 +7,7 @@ pub mod openapi;
 pub mod render;
 pub mod scenes;
 pub mod serve;
+pub mod viewer;
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
