@@ -14,11 +14,14 @@ const $ = (id) => document.getElementById(id);
 
 /** Render sizes as fractions of the scene camera's, coarse first, with their names. */
 const SIZES = [
+  [1 / 16, '1/16'],
   [1 / 8, '1/8'],
   [1 / 4, '1/4'],
   [1 / 2, '1/2'],
   [1, 'full'],
 ];
+/** The first size asked for after a move: small enough to come back in seconds on a CPU. */
+const DEFAULT_COARSEST = 1 / 8;
 /** Finer than this, a paper-size model takes about a minute per view on a 2-core CPU. */
 const DEFAULT_FINEST = 1 / 2;
 const TOKEN_KEY = 'scnerf-viewer-token';
@@ -53,10 +56,10 @@ function sizeLabel(fraction) {
   return `${SIZES.find(([f]) => f === fraction)[1]} (${sizeOf(fraction)})`;
 }
 
-/** The sizes to render, coarse first, up to the chosen finest. */
+/** The sizes to render, coarse first, from the chosen coarsest to the chosen finest. */
 function fractions() {
-  const finest = Number($('finest').value);
-  return SIZES.map(([f]) => f).filter((f) => f <= finest);
+  const [coarsest, finest] = [Number($('coarsest').value), Number($('finest').value)];
+  return SIZES.map(([f]) => f).filter((f) => f >= Math.min(coarsest, finest) && f <= finest);
 }
 
 /** Source indices the server names (header or JSON field); for a 3-view scene all three. */
@@ -170,9 +173,13 @@ function fillViews() {
   $('views').replaceChildren(...buttons);
 }
 
+/** The size selectors, labelled with the scene's pixel sizes; the choices made stay. */
 function fillSizes() {
-  const chosen = Number($('finest').value) || DEFAULT_FINEST;
-  $('finest').replaceChildren(...SIZES.map(([f]) => Object.assign(document.createElement('option'), { value: String(f), textContent: sizeLabel(f), selected: f === chosen })));
+  for (const [id, fallback] of [['coarsest', DEFAULT_COARSEST], ['finest', DEFAULT_FINEST]]) {
+    const chosen = Number($(id).value) || fallback;
+    const options = SIZES.map(([f]) => Object.assign(document.createElement('option'), { value: String(f), textContent: sizeLabel(f), selected: f === chosen }));
+    $(id).replaceChildren(...options);
+  }
 }
 
 /** Uploads a scene with `load()` and views it; on failure the scene shown before stays. */
@@ -220,7 +227,8 @@ async function showModel() {
     const { body } = await api.model();
     $('model').textContent = `${body.model_id} (${body.variant})`;
   } catch (e) {
-    $('model').textContent = `Model unknown: ${e.message}`;
+    // The reason is in the error box when it matters (the scene upload is refused alike).
+    $('model').textContent = `Model unknown (${e.status ? `HTTP ${e.status}` : 'no answer'})`;
   }
 }
 
@@ -273,18 +281,16 @@ function wire() {
       redraw();
     });
   }
-  $('finest').addEventListener('change', () => state.view && setView(state.view));
+  for (const id of ['coarsest', 'finest']) $(id).addEventListener('change', () => state.view && setView(state.view));
   $('stop').addEventListener('click', stop);
   $('save').addEventListener('click', saveView);
   $('reset').addEventListener('click', reset);
   window.addEventListener('resize', () => state.scene && drawOverview());
   drawColourBar($('colour-bar'));
   dropTarget();
-  const lens = () => ({
-    up: state.geometry.up,
-    radius: state.geometry.radius,
-    focal: (canvas.clientWidth / state.scene.base.width) * intrinsicsOf(state.scene.base).fx,
-  });
+  // The view is letterboxed (object-fit: contain): its pixels are scaled by the tighter side.
+  const shown = () => Math.min(canvas.clientWidth / state.scene.base.width, canvas.clientHeight / state.scene.base.height);
+  const lens = () => ({ up: state.geometry.up, radius: state.geometry.radius, focal: shown() * intrinsicsOf(state.scene.base).fx });
   const view = { get: () => state.view, set: setView };
   attachControls(canvas, view, lens, { snap, reset, stop });
 }
