@@ -169,6 +169,17 @@ mod tests {
         assert_eq!(get(&missing, "GET", "/viewer/example/request.json").await.0, StatusCode::NOT_FOUND);
     }
 
+    #[tokio::test]
+    async fn mounted_unless_switched_off() {
+        use clap::Parser;
+        let off = Config::try_parse_from(["scnerf-server", "--viewer", "off"]).unwrap();
+        assert_eq!(get(&mount(Router::new(), &off), "GET", "/").await.0, StatusCode::NOT_FOUND);
+        let on = Config::try_parse_from(["scnerf-server", "--viewer-example", "/nonexistent"]).unwrap();
+        let app = mount(Router::new(), &on);
+        assert_eq!(get(&app, "GET", "/").await.0, StatusCode::OK);
+        assert_eq!(get(&app, "GET", "/viewer/example/request.json").await.0, StatusCode::NOT_FOUND);
+    }
+
     #[test]
     fn example_files_by_name() {
         assert_eq!(example_content_type("request.json"), Some("application/json"));
