@@ -60,7 +60,7 @@ async function waitFor(what, predicate, timeoutMs = 120_000) {
 // ---- the page ----
 
 const browser = await chromium.launch({ executablePath: CHROMIUM, args: ['--no-sandbox'] });
-const context = await browser.newContext({ viewport: { width: 1280, height: 860 }, acceptDownloads: true });
+const context = await browser.newContext({ viewport: { width: 1280, height: 860 }, acceptDownloads: true, hasTouch: true });
 const page = await context.newPage();
 const urls = [];
 const pageErrors = [];
@@ -102,9 +102,13 @@ const meanDifference = (a, b) => a.reduce((s, v, i) => s + Math.abs(v - b[i]), 0
 const sameMatrix = (a, b) => a.every((row, i) => row.every((v, j) => Math.abs(v - b[i][j]) < 1e-6));
 const shot = (name) => page.screenshot({ path: join(OUT, name) });
 
-async function drag(dx, dy) {
+async function viewCentre() {
   const box = await page.locator('#view').boundingBox();
-  const [x, y] = [box.x + box.width / 2, box.y + box.height / 2];
+  return [box.x + box.width / 2, box.y + box.height / 2];
+}
+
+async function drag(dx, dy) {
+  const [x, y] = await viewCentre();
   await page.mouse.move(x, y);
   await page.mouse.down();
   await page.mouse.move(x + dx, y + dy, { steps: 12 });
@@ -222,11 +226,34 @@ try {
   await page.keyboard.press('2');
   await waitFor('a render after the key', () => renders.length > keyed);
   check(sameMatrix(renders[keyed].matrix, cameraToWorld(example.sources[1].camera)), 'key 2 views from captured camera 2');
+  const snapped = renders[keyed];
+
+  // 7. Wheel (a trackpad's two-finger scroll), a two-finger pinch and a one-finger touch drag.
+  const cdp = await context.newCDPSession(page);
+  const touch = (type, points) => cdp.send('Input.dispatchTouchEvent', { type, touchPoints: points.map(([x, y], id) => ({ x, y, id })) });
+  const [x, y] = await viewCentre();
+  await page.mouse.move(x, y);
+  const wheeled = await gesture(() => page.mouse.wheel(0, -200));
+  check(dollied(snapped.matrix, wheeled.matrix), 'the wheel moves the camera forward along its axis');
+  const pinched = await gesture(async () => {
+    const apart = (d) => [[x - d, y], [x + d, y]];
+    await touch('touchStart', apart(40));
+    for (let i = 1; i <= 8; i++) await touch('touchMove', apart(40 + 10 * i));
+    await touch('touchEnd', []);
+  });
+  check(dollied(wheeled.matrix, pinched.matrix), 'spreading two fingers moves the camera forward');
+  const swiped = await gesture(async () => {
+    await touch('touchStart', [[x, y]]);
+    for (let i = 1; i <= 8; i++) await touch('touchMove', [[x + 15 * i, y]]);
+    await touch('touchEnd', []);
+  });
+  check(!sameMatrix(rotation(swiped.matrix), rotation(pinched.matrix)), 'a one-finger swipe turns the camera');
+
   await page.keyboard.press('Escape');
   await waitFor('the stop', async () => (await phase()) === 'stopped', 10_000);
   check(true, 'Escape stopped rendering');
 
-  // 7. Dropping a capture on a server without POST /v1/captures says so.
+  // 8. Dropping a capture on a server without POST /v1/captures says so.
   const capture = join(mkdtempSync(join(tmpdir(), 'viewer-test-')), 'capture');
   mkdirSync(join(capture, 'images'), { recursive: true });
   writeFileSync(join(capture, 'transforms.json'), '{"frames": []}');
@@ -236,7 +263,7 @@ try {
   check(/Still showing the example/.test(await page.textContent('#status')), 'a failed capture keeps the example on screen');
   await shot('06-capture-404.png');
 
-  // 8. The server's books: nothing left queued, and only the renders the page received were finished.
+  // 9. The server's books: nothing left queued, and only the renders the page received were finished.
   await waitFor('an idle executor', async () => (await metric('scnerf_inference_queue_requests')) === 0, 30_000);
   check((await metric('scnerf_inference_queue_jobs')) === 0, 'no graph runs left in the queue');
   const received = renders.filter((r) => r.status === 200).length;
@@ -247,7 +274,7 @@ try {
   check(finished === received + crossed, `the server finished the ${received} renders the page received and no other (${finished}, ${crossed} crossed an abort)`);
   log(`${renders.length} render requests: ${received} answered, ${aborted.length} aborted by the page`);
 
-  // 9. Nothing came from anywhere but the server, and the page raised no error.
+  // 10. Nothing came from anywhere but the server, and the page raised no error.
   const outside = urls.filter((u) => !u.startsWith(`${origin}/`) && !u.startsWith('data:') && !u.startsWith('blob:'));
   check(outside.length === 0, `all ${urls.length} requests went to ${origin} ${outside.join(' ')}`);
   check(pageErrors.every((e) => /status of 40[14]/.test(e)), `no script errors (${pageErrors.length} logged HTTP refusals, expected ones)`);
@@ -260,6 +287,28 @@ try {
   process.exitCode = 1;
 } finally {
   await browser.close();
+}
+
+/** The request the page sends after `act` (the last one, once the gesture's events settled). */
+async function gesture(act) {
+  const from = renders.length;
+  await act();
+  await waitFor('a render request after the gesture', () => renders.length > from);
+  await sleep(300);
+  return renders[renders.length - 1];
+}
+
+function rotation(m) {
+  return m.slice(0, 3).map((row) => row.slice(0, 3));
+}
+
+/** `after` is `before` moved forward along its optical axis (no turn, next to no sideways move). */
+function dollied(before, after) {
+  const move = [0, 1, 2].map((i) => after[i][3] - before[i][3]);
+  const forward = [0, 1, 2].map((i) => before[i][2]);
+  const ahead = move.reduce((s, v, i) => s + v * forward[i], 0);
+  const sideways = Math.hypot(...move.map((v, i) => v - ahead * forward[i]));
+  return sameMatrix(rotation(before), rotation(after)) && ahead > 0 && sideways < 0.02 * ahead;
 }
 
 /** Camera-to-world (OpenCV) of an example camera, as the page sends it. */
