@@ -18,8 +18,8 @@ cd "${repo}"
 export OUT=${OUT:-${repo}/target/viewer-test}
 export CHROMIUM=${CHROMIUM:-/usr/bin/chromium}
 export BUNDLE=${repo}/bundles/default
-rm -rf "${OUT}"
 mkdir -p "${OUT}"
+rm -f "${OUT}/failure.png"
 
 if [[ ! -x ${CHROMIUM} ]]; then
   apt-get update -qq
