@@ -1,10 +1,21 @@
 #!/usr/bin/env bash
 # Fresh machine -> a rendered view: fetch ONNX Runtime, build the server, serve the default
 # bundle, POST the committed example (three views of a procedural scene + a target camera) with
-# curl, and say where the PNG went. Only Rust (rustup), curl and python3 are needed.
+# curl, and say where the PNG went. Then keep the server up and print the browser viewer's URL
+# (the same example, docs/viewer.md) until Ctrl-C. Only Rust (rustup), curl and python3 are needed.
+#
+#   scripts/quickstart.sh [--exit]   --exit (or QUICKSTART_EXIT=1): stop the server and exit after
+#                                    the render, for scripts and CI
 set -euo pipefail
 repo=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 cd "${repo}"
+exit_after_render=${QUICKSTART_EXIT:-0}
+for arg in "$@"; do
+  case ${arg} in
+    --exit) exit_after_render=1 ;;
+    *) echo "usage: scripts/quickstart.sh [--exit]" >&2; exit 2 ;;
+  esac
+done
 addr=${SCNERF_ADDR:-127.0.0.1:8080}
 example=${EXAMPLE:-examples/tabletop}
 out=${OUT:-${repo}/target/quickstart}
@@ -13,7 +24,7 @@ mkdir -p "${out}"
 scripts/fetch-onnxruntime.sh
 cargo build --release -j2 -p scnerf-server --locked
 
-target/release/scnerf-server --addr "${addr}" > "${out}/server.log" 2>&1 &
+target/release/scnerf-server --addr "${addr}" --viewer-example "${example}" > "${out}/server.log" 2>&1 &
 server=$!
 trap 'kill ${server} 2>/dev/null; wait ${server} 2>/dev/null || true' EXIT
 for _ in $(seq 1 600); do
@@ -29,3 +40,8 @@ curl -fsS -o "${out}/view.png" \
   -H 'Accept: image/png' "http://${addr}/v1/render"
 echo "rendered ${example} with $(python3 -c 'import json,sys; print(json.load(open(sys.argv[1]))["model_id"])' "${out}/model.json")"
 echo "wrote ${out}/view.png (ground truth: ${example}/target_truth.png)"
+[[ ${exit_after_render} == 1 ]] && exit 0
+
+echo "viewer: http://${addr}/"
+echo "the server keeps running (log: ${out}/server.log); Ctrl-C stops it"
+wait ${server}

@@ -229,6 +229,18 @@ pub struct Config {
     #[arg(long, env = "SCNERF_SHUTDOWN_GRACE_SECS", default_value_t = 30)]
     pub shutdown_grace_secs: u64,
 
+    /// Serve the browser viewer at `/` (docs/viewer.md). Its page and the example scene are
+    /// public even with --auth-token (a browser cannot send a token with a page load); the API
+    /// calls it makes carry the token its user types. Accepts on/off, true/false.
+    #[arg(long, env = "SCNERF_VIEWER", default_value = "on", action = clap::ArgAction::Set,
+          value_parser = clap::builder::BoolishValueParser::new())]
+    pub viewer: bool,
+
+    /// Folder of the example scene the viewer opens on (`request.json`, `source_N.png`), served
+    /// at /viewer/example/. Default: the repository's example (`http::viewer::DEFAULT_EXAMPLE`).
+    #[arg(long, env = "SCNERF_VIEWER_EXAMPLE")]
+    pub viewer_example: Option<PathBuf>,
+
     /// Skip the warm-up render at start (tests only; /readyz is then ready at once).
     #[arg(long, env = "SCNERF_SKIP_WARMUP", default_value_t = false)]
     pub skip_warmup: bool,

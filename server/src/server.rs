@@ -85,7 +85,8 @@ pub async fn run(config: Config) -> Result<(), String> {
             }
         }
     };
-    let stopped = serve(listener, router(state), &serve_options, shutdown).await;
+    let app = crate::http::viewer::mount(router(state), &config);
+    let stopped = serve(listener, app, &serve_options, shutdown).await;
     let failure = warmup_error.lock().unwrap_or_else(|p| p.into_inner()).take();
     if let Some(e) = failure {
         return Err(format!("warm-up render failed: {e}"));

@@ -15,6 +15,7 @@ mod schema;
 pub mod serve;
 mod service;
 mod state;
+pub mod viewer;
 
 use axum::extract::DefaultBodyLimit;
 use axum::routing::{delete, get, post};

@@ -1,0 +1,321 @@
+// The viewer in headless Chromium against a running server (started by scripts/viewer-test.sh
+// with a bearer token and debug logs of the executor in JSON). Fails (exit 1) on the first
+// broken expectation; screenshots go to OUT.
+//
+// Env: VIEWER_URL (http://host:port/), SERVER_LOG (the server's JSON log), VIEWER_TOKEN,
+// OUT (screenshots), CHROMIUM (browser binary).
+
+import { mkdirSync, mkdtempSync, readFileSync, writeFileSync } from 'node:fs';
+import { tmpdir } from 'node:os';
+import { join } from 'node:path';
+import { chromium } from 'playwright-core';
+
+const { VIEWER_URL, SERVER_LOG, VIEWER_TOKEN, OUT } = process.env;
+const CHROMIUM = process.env.CHROMIUM || '/usr/bin/chromium';
+const origin = new URL(VIEWER_URL).origin;
+const started = Date.now();
+const sleep = (ms) => new Promise((r) => setTimeout(r, ms));
+
+function log(message) {
+  console.log(`[${((Date.now() - started) / 1000).toFixed(1).padStart(6)} s] ${message}`);
+}
+
+function check(condition, message) {
+  if (!condition) throw new Error(`FAILED: ${message}`);
+  log(`ok: ${message}`);
+}
+
+// ---- what the server did, from its log and /metrics ----
+
+/** The server's JSON log lines of one request id (its span carries the id the page sent). */
+function serverLines(requestId) {
+  return readFileSync(SERVER_LOG, 'utf8')
+    .split('\n')
+    .filter((l) => l.includes(requestId))
+    .map((l) => JSON.parse(l))
+    .filter((l) => l.span?.request_id === requestId);
+}
+
+/** Renderer runs (one per chunk of rays) the executor ran for a request. */
+function rendererRuns(requestId) {
+  return serverLines(requestId).filter((l) => l.fields.message === 'graph run' && l.fields.graph === 'renderer').length;
+}
+
+async function metric(name, labels = '') {
+  const text = await (await fetch(`${origin}/metrics`)).text();
+  const line = text.split('\n').find((l) => l.startsWith(labels ? `${name}{${labels}}` : `${name} `));
+  return line ? Number(line.split(' ').pop()) : 0;
+}
+
+async function waitFor(what, predicate, timeoutMs = 120_000) {
+  const until = Date.now() + timeoutMs;
+  for (;;) {
+    const value = await predicate();
+    if (value) return value;
+    if (Date.now() > until) throw new Error(`FAILED: timed out waiting for ${what}`);
+    await sleep(100);
+  }
+}
+
+// ---- the page ----
+
+const browser = await chromium.launch({ executablePath: CHROMIUM, args: ['--no-sandbox'] });
+const context = await browser.newContext({ viewport: { width: 1280, height: 860 }, acceptDownloads: true, hasTouch: true });
+const page = await context.newPage();
+const urls = [];
+const pageErrors = [];
+/** Render requests in order: {id, width, height, matrix, status ('pending', HTTP status, or the failure)}. */
+const renders = [];
+const renderOf = (request) => renders.find((r) => r.request === request);
+
+page.on('pageerror', (e) => pageErrors.push(e.message));
+page.on('console', (m) => m.type() === 'error' && pageErrors.push(m.text()));
+page.on('request', (request) => {
+  urls.push(request.url());
+  if (!request.url().endsWith('/render')) return;
+  const { target } = request.postDataJSON();
+  const id = request.headers()['x-request-id'];
+  renders.push({ request, id, width: target.width, height: target.height, matrix: target.pose.matrix, status: 'pending', at: Date.now() });
+});
+page.on('requestfinished', async (request) => {
+  const render = renderOf(request);
+  if (render) render.status = (await request.response()).status();
+});
+page.on('requestfailed', (request) => {
+  const render = renderOf(request);
+  if (render) render.status = request.failure().errorText;
+});
+
+const frames = () => page.$eval('#view', (c) => Number(c.dataset.frames));
+const phase = () => page.$eval('#view', (c) => c.dataset.state);
+/** The view canvas scaled to 64x48, as RGBA bytes: comparable whatever size was rendered. */
+const pixels = () =>
+  page.$eval('#view', (c) => {
+    const small = Object.assign(document.createElement('canvas'), { width: 64, height: 48 });
+    const ctx = small.getContext('2d');
+    ctx.drawImage(c, 0, 0, 64, 48);
+    return Array.from(ctx.getImageData(0, 0, 64, 48).data);
+  });
+/** The first render requested from index `from` on that the server answered. */
+const firstAnswered = (from) => waitFor('an answered render', () => renders.slice(from).find((r) => r.status === 200));
+const meanDifference = (a, b) => a.reduce((s, v, i) => s + Math.abs(v - b[i]), 0) / a.length;
+const sameMatrix = (a, b) => a.every((row, i) => row.every((v, j) => Math.abs(v - b[i][j]) < 1e-6));
+const shot = (name) => page.screenshot({ path: join(OUT, name) });
+
+async function viewCentre() {
+  const box = await page.locator('#view').boundingBox();
+  return [box.x + box.width / 2, box.y + box.height / 2];
+}
+
+async function drag(dx, dy) {
+  const [x, y] = await viewCentre();
+  await page.mouse.move(x, y);
+  await page.mouse.down();
+  await page.mouse.move(x + dx, y + dy, { steps: 12 });
+  await page.mouse.up();
+}
+
+/** The example the page opens on, as the server serves it. */
+const exampleFile = async (name) => Buffer.from(await (await fetch(`${origin}/viewer/example/${name}`)).arrayBuffer());
+const example = JSON.parse(await exampleFile('request.json'));
+const size = (fraction) => [Math.round(example.target.width * fraction), Math.round(example.target.height * fraction)];
+
+try {
+  log(`opening ${VIEWER_URL}`);
+  await page.goto(VIEWER_URL);
+
+  // 0. The camera maths, in the page's own module: conventions, scaling, orbits.
+  const maths = await page.evaluate(async () => {
+    const c = await import('/viewer/camera.js');
+    const gap = (p, q) => Math.hypot(p[0] - q[0], p[1] - q[1], p[2] - q[2]);
+    const matrix = [[0, -1, 0, 1], [0, 0, -1, 2], [1, 0, 0, 3], [0, 0, 0, 1]];
+    const camera = { width: 8, height: 6, intrinsics: { fx: 10, fy: 10, cx: 3.5, cy: 2.5 }, pose: { matrix, kind: 'world_to_camera', axes: 'opencv' } };
+    const pose = c.poseOf(camera);
+    // The same camera as OpenGL camera-to-world (y and z flipped) reads back as the same pose.
+    const gl = c.cameraAt(camera, pose, 1).pose.matrix.map((row) => [row[0], -row[1], -row[2], row[3]]);
+    const again = c.poseOf({ ...camera, pose: { matrix: gl, kind: 'camera_to_world', axes: 'opengl' } });
+    const view = c.viewFrom(pose, { centre: [0, 0, 0], up: [0, 0, 1], radius: 3 });
+    const turned = c.orbit(view, [0, 0, 1], 0.7, 0.3);
+    return {
+      centre: pose.centre,
+      conventions: gap(pose.centre, again.centre) + gap(pose.forward, again.forward) + gap(pose.right, again.right),
+      half: c.cameraAt(camera, pose, 0.5).intrinsics,
+      pivot: view.pivot,
+      orbit: [gap(view.pose.centre, view.pivot), gap(turned.pose.centre, turned.pivot), gap(view.pivot, turned.pivot)],
+      aim: gap(c.normalize(c.sub(turned.pivot, turned.pose.centre)), turned.pose.forward),
+    };
+  });
+  check(maths.centre.join() === '-3,1,2' && maths.conventions < 1e-12, 'world-to-camera and OpenGL camera-to-world read as one pose');
+  check(JSON.stringify(maths.half) === '{"fx":5,"fy":5,"cx":1.5,"cy":1}', 'half size halves the focal length about pixel centres');
+  check(maths.pivot.join() === '0,1,2', 'the view orbits the point of its axis nearest the scene centre');
+  const [r0, r1, moved0] = maths.orbit;
+  check(Math.abs(r0 - r1) < 1e-9 && moved0 < 1e-9 && maths.aim < 1e-9, 'an orbit keeps the distance, the pivot and the aim');
+
+  // 1. The server wants a token: the page says so in the server's own words.
+  await page.locator('#error').filter({ hasText: 'missing bearer token' }).waitFor({ timeout: 60_000 });
+  const tokenError = await page.textContent('#error');
+  check(/API token/.test(tokenError) && /HTTP 401/.test(tokenError), `a refused upload shows the server's message: "${tokenError}"`);
+  await shot('01-token-needed.png');
+
+  // 2. With the token, the example appears, coarse first, then finer sizes replace it.
+  const typed = Date.now();
+  await page.fill('#token', VIEWER_TOKEN);
+  await page.press('#token', 'Tab');
+  await page.waitForFunction(() => Number(document.querySelector('#view').dataset.frames) >= 1, null, { timeout: 120_000 });
+  log(`first render ${((Date.now() - typed) / 1000).toFixed(1)} s after the token (scene upload + coarse view)`);
+  await waitFor('the first progressive chain', async () => (await phase()) === 'idle');
+  const firstChain = renders.filter((r) => r.status === 200).map((r) => [r.width, r.height]);
+  const expected = [1 / 8, 1 / 4, 1 / 2].map(size);
+  check(JSON.stringify(firstChain) === JSON.stringify(expected), `sizes arrived coarse to fine: ${JSON.stringify(firstChain)}`);
+  check(sameMatrix(renders[0].matrix, cameraToWorld(example.target)), 'the page opens at the example\'s target view');
+  check((await frames()) === 3, 'each size was drawn');
+  const finest = renders[2];
+  const runsPerFinest = rendererRuns(finest.id);
+  check(runsPerFinest > 1, `the finest size took ${runsPerFinest} renderer runs (chunks)`);
+  const before = await pixels();
+  await shot('02-example.png');
+
+  // 3. Depth and opacity, then back to RGB; the view saves as PNG.
+  await page.check('input[value=depth]');
+  const depth = await pixels();
+  await shot('03-depth.png');
+  await page.check('input[value=opacity]');
+  const opacity = await pixels();
+  await shot('04-opacity.png');
+  await page.check('input[value=rgb]');
+  check(meanDifference(before, depth) > 5 && meanDifference(depth, opacity) > 5, 'depth and opacity draw differently from RGB');
+  check(meanDifference(before, await pixels()) === 0, 'RGB again is the same picture');
+  const [download] = await Promise.all([page.waitForEvent('download'), page.click('#save')]);
+  const png = readFileSync(await download.path());
+  check(png.subarray(1, 4).toString() === 'PNG' && png.readUInt32BE(16) === expected[2][0], `saved ${download.suggestedFilename()}`);
+
+  // 4. A drag with real mouse events renders a new pose.
+  const count = renders.length;
+  await drag(160, 40);
+  const moved = await firstAnswered(count);
+  check(!sameMatrix(moved.matrix, renders[0].matrix), `a render of a new pose arrived (${moved.width}x${moved.height})`);
+
+  // 5. Dragging again while a size is rendering aborts it, and the server drops its remaining work.
+  const inFlight = await waitFor('the next chain\'s finest size to start rendering', () => {
+    const r = renders.slice(count).find((x) => x.width === expected[2][0] && x.status === 'pending');
+    return r && rendererRuns(r.id) >= 1 && r;
+  });
+  const dragged = Date.now();
+  const next = renders.length;
+  await drag(-120, 60);
+  await waitFor('the aborted request to fail in the browser', () => inFlight.status !== 'pending', 10_000);
+  check(inFlight.status === 'net::ERR_ABORTED', `the browser aborted ${inFlight.id} (${inFlight.status})`);
+  const atAbort = rendererRuns(inFlight.id);
+  const second = await firstAnswered(next);
+  log(`the new pose's first size arrived ${((Date.now() - dragged) / 1000).toFixed(1)} s after the drag`);
+  await sleep(3000);
+  const later = rendererRuns(inFlight.id);
+  check(later <= atAbort + 1, `no renderer runs for ${inFlight.id} after the abort but the one running (${atAbort} -> ${later})`);
+  check(later < runsPerFinest, `${inFlight.id} ran ${later} of its ${runsPerFinest} chunks: the server dropped the rest`);
+  check(!serverLines(inFlight.id).some((l) => l.fields.message === 'rendered'), `the server never finished ${inFlight.id}`);
+  check(!sameMatrix(second.matrix, moved.matrix), 'the second drag rendered its own pose');
+
+  await waitFor('the chain after the drags', async () => (await phase()) === 'idle');
+  const after = await pixels();
+  check(meanDifference(before, after) > 2, `the canvas changed (mean difference ${meanDifference(before, after).toFixed(1)} of 255)`);
+  await shot('05-after-drag.png');
+
+  // 6. Keyboard: 2 snaps to the second captured view; Escape stops rendering.
+  const keyed = renders.length;
+  await page.locator('#view').focus();
+  await page.keyboard.press('2');
+  await waitFor('a render after the key', () => renders.length > keyed);
+  check(sameMatrix(renders[keyed].matrix, cameraToWorld(example.sources[1].camera)), 'key 2 views from captured camera 2');
+  const snapped = renders[keyed];
+
+  // 7. Wheel (a trackpad's two-finger scroll), a two-finger pinch and a one-finger touch drag.
+  const cdp = await context.newCDPSession(page);
+  const touch = (type, points) => cdp.send('Input.dispatchTouchEvent', { type, touchPoints: points.map(([x, y], id) => ({ x, y, id })) });
+  const [x, y] = await viewCentre();
+  await page.mouse.move(x, y);
+  const wheeled = await gesture(() => page.mouse.wheel(0, -200));
+  check(dollied(snapped.matrix, wheeled.matrix), 'the wheel moves the camera forward along its axis');
+  const pinched = await gesture(async () => {
+    const apart = (d) => [[x - d, y], [x + d, y]];
+    await touch('touchStart', apart(40));
+    for (let i = 1; i <= 8; i++) await touch('touchMove', apart(40 + 10 * i));
+    await touch('touchEnd', []);
+  });
+  check(dollied(wheeled.matrix, pinched.matrix), 'spreading two fingers moves the camera forward');
+  const swiped = await gesture(async () => {
+    await touch('touchStart', [[x, y]]);
+    for (let i = 1; i <= 8; i++) await touch('touchMove', [[x + 15 * i, y]]);
+    await touch('touchEnd', []);
+  });
+  check(!sameMatrix(rotation(swiped.matrix), rotation(pinched.matrix)), 'a one-finger swipe turns the camera');
+
+  await page.keyboard.press('Escape');
+  await waitFor('the stop', async () => (await phase()) === 'stopped', 10_000);
+  check(true, 'Escape stopped rendering');
+
+  // 8. Dropping a capture on a server without POST /v1/captures says so.
+  const capture = join(mkdtempSync(join(tmpdir(), 'viewer-test-')), 'capture');
+  mkdirSync(join(capture, 'images'), { recursive: true });
+  writeFileSync(join(capture, 'transforms.json'), '{"frames": []}');
+  writeFileSync(join(capture, 'images', 'r_0.png'), await exampleFile('source_0.png'));
+  await page.setInputFiles('#capture-input', capture);
+  await page.locator('#error').filter({ hasText: 'cannot parse captures yet' }).waitFor({ timeout: 30_000 });
+  check(/Still showing the example/.test(await page.textContent('#status')), 'a failed capture keeps the example on screen');
+  await shot('06-capture-404.png');
+
+  // 9. The server's books: nothing left queued, and only the renders the page received were finished.
+  await waitFor('an idle executor', async () => (await metric('scnerf_inference_queue_requests')) === 0, 30_000);
+  check((await metric('scnerf_inference_queue_jobs')) === 0, 'no graph runs left in the queue');
+  const received = renders.filter((r) => r.status === 200).length;
+  const aborted = renders.filter((r) => r.status === 'net::ERR_ABORTED');
+  // An abort can cross a response already on its way: such a request was finished all the same.
+  const crossed = aborted.filter((r) => serverLines(r.id).some((l) => l.fields.message === 'rendered')).length;
+  const finished = await metric('scnerf_http_requests_total', 'route="/v1/scenes/{id}/render",method="POST",status="200"');
+  check(finished === received + crossed, `the server finished the ${received} renders the page received and no other (${finished}, ${crossed} crossed an abort)`);
+  log(`${renders.length} render requests: ${received} answered, ${aborted.length} aborted by the page`);
+
+  // 10. Nothing came from anywhere but the server, and the page raised no error.
+  const outside = urls.filter((u) => !u.startsWith(`${origin}/`) && !u.startsWith('data:') && !u.startsWith('blob:'));
+  check(outside.length === 0, `all ${urls.length} requests went to ${origin} ${outside.join(' ')}`);
+  check(pageErrors.every((e) => /status of 40[14]/.test(e)), `no script errors (${pageErrors.length} logged HTTP refusals, expected ones)`);
+
+  writeFileSync(join(OUT, 'urls.txt'), `${urls.join('\n')}\n`);
+  log('PASSED');
+} catch (e) {
+  console.error(e.message);
+  await shot('failure.png').catch(() => {});
+  process.exitCode = 1;
+} finally {
+  await browser.close();
+}
+
+/** The request the page sends after `act` (the last one, once the gesture's events settled). */
+async function gesture(act) {
+  const from = renders.length;
+  await act();
+  await waitFor('a render request after the gesture', () => renders.length > from);
+  await sleep(300);
+  return renders[renders.length - 1];
+}
+
+function rotation(m) {
+  return m.slice(0, 3).map((row) => row.slice(0, 3));
+}
+
+/** `after` is `before` moved forward along its optical axis (no turn, next to no sideways move). */
+function dollied(before, after) {
+  const move = [0, 1, 2].map((i) => after[i][3] - before[i][3]);
+  const forward = [0, 1, 2].map((i) => before[i][2]);
+  const ahead = move.reduce((s, v, i) => s + v * forward[i], 0);
+  const sideways = Math.hypot(...move.map((v, i) => v - ahead * forward[i]));
+  return sameMatrix(rotation(before), rotation(after)) && ahead > 0 && sideways < 0.02 * ahead;
+}
+
+/** Camera-to-world (OpenCV) of an example camera, as the page sends it. */
+function cameraToWorld(camera) {
+  const m = camera.pose.matrix;
+  if (camera.pose.kind === 'camera_to_world') return m;
+  const r = [0, 1, 2].map((i) => [0, 1, 2].map((j) => m[j][i]));
+  const t = [0, 1, 2].map((i) => -(r[i][0] * m[0][3] + r[i][1] * m[1][3] + r[i][2] * m[2][3]));
+  return [[...r[0], t[0]], [...r[1], t[1]], [...r[2], t[2]], [0, 0, 0, 1]];
+}
