@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The browser viewer (GET /) in a real browser: builds the server, serves the default bundle with
+# The browser viewer (GET /) in a real browser: builds the server, serves a bundle with
 # a bearer token on a free port, and drives Debian's Chromium headless through
 # scripts/browser-test/viewer-test.mjs (Node's playwright-core): the token prompt, the first
 # render and its finer sizes, depth/opacity, the PNG download, a mouse drag to a new pose, a
@@ -10,6 +10,9 @@
 #
 #   OUT=DIR          screenshots, the server's log (default target/viewer-test)
 #   CHROMIUM=PATH    the browser (default /usr/bin/chromium)
+#   BUNDLE=DIR       the bundle served (default: the parity fixtures' small random-weight bundle:
+#                    the page's mechanics do not depend on the weights, and the paper-size default
+#                    takes minutes per view on two cores)
 #   PROFILE=release  build and run the release server (default debug: the graphs run in ONNX
 #                    Runtime either way)
 set -euo pipefail
@@ -17,7 +20,7 @@ repo=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 cd "${repo}"
 export OUT=${OUT:-${repo}/target/viewer-test}
 export CHROMIUM=${CHROMIUM:-/usr/bin/chromium}
-export BUNDLE=${repo}/bundles/default
+export BUNDLE=${BUNDLE:-${repo}/tests/fixtures/parity/bundle}
 mkdir -p "${OUT}"
 rm -f "${OUT}/failure.png"
 

@@ -32,7 +32,7 @@ def write_example(
     layout: str = "tabletop",
     width: int = 640,
     height: int = 512,
-    target_index: int = 7,
+    target_index: int = 11,
     target_scale: float = 0.375,
     views: int = 16,
 ) -> Path:
