@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Fresh machine -> a rendered view: fetch ONNX Runtime, build the server, serve the default
-# bundle, POST the committed example (three views of a procedural scene + a target camera) with
+# bundle, POST the committed example (three photos of a procedural tabletop + a target camera) with
 # curl, and say where the PNG went. Then keep the server up and print the browser viewer's URL
 # (the same example, docs/viewer.md) until Ctrl-C. Only Rust (rustup), curl and python3 are needed.
 #
