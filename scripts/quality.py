@@ -25,7 +25,9 @@ SCENES = {"lego": ("nerf_synthetic_lego", "blender"), "scan37": ("dtu_scan37", "
 PROTOCOLS = {"nearest": None, "fixed": ["fixed"]}
 
 
-def measure(name: str, bundle: str, out: Path, target_scale: float, threads: int | None) -> None:
+def measure(
+    name: str, bundle: str, out: Path, scale: float, target_scale: float, views: dict, threads: int | None
+) -> None:
     binary = find_server_binary()
     if binary is None:
         sys.exit("no target/release/scnerf-server: cargo build --release -p scnerf-server")
@@ -37,7 +39,14 @@ def measure(name: str, bundle: str, out: Path, target_scale: float, threads: int
                     continue
                 print(f"{name}: {scene}, {protocol} sources", flush=True)
                 summary = evaluate(
-                    None, SHARED / folder, fmt, sources=sources, target_scale=target_scale, server=server.url
+                    None,
+                    SHARED / folder,
+                    fmt,
+                    sources=sources,
+                    targets=views.get(scene),
+                    scale=scale,
+                    target_scale=target_scale,
+                    server=server.url,
                 )
                 write_json(summary, path)
 
@@ -64,13 +73,18 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("bundles", nargs="+", help="NAME=DIR")
     p.add_argument("--out", type=Path, required=True)
-    p.add_argument("--target-scale", type=float, default=0.5)
+    p.add_argument("--scale", type=float, default=1.0, help="scale of the scenes' images (sources)")
+    p.add_argument("--target-scale", type=float, default=0.5, help="scale of the targets, on top of --scale")
+    p.add_argument(
+        "--views", action="append", default=[], metavar="SCENE=V,V", help="only these targets of a scene"
+    )
     p.add_argument("--threads", type=int)
     args = p.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     pairs = [item.partition("=")[::2] for item in args.bundles]
+    views = {scene: names.split(",") for scene, _, names in (v.partition("=") for v in args.views)}
     for name, bundle in pairs:
-        measure(name, bundle, args.out, args.target_scale, args.threads)
+        measure(name, bundle, args.out, args.scale, args.target_scale, views, args.threads)
     print(table([name for name, _ in pairs], args.out))
     return 0
 
