@@ -1,4 +1,4 @@
-//! Cameras in the project's canonical form, in one place (DESIGN.md, "HTTP API"; the reference
+//! Cameras in the project's canonical form, in one place (docs/design.md, "HTTP API"; the reference
 //! implementation is `exporter/scnerf_export/datasets.py` and `cameras.py`):
 //!
 //! * OpenCV axes: x right, y down, z forward;

@@ -11,7 +11,7 @@ DEPTH_NORMS = ("near_far", "image_minmax")
 
 @dataclass(frozen=True)
 class ModelConfig:
-    """Sizes of G1, G2, M1..M4 and the rectifiers (DESIGN.md "The network").
+    """Sizes of G1, G2, M1..M4 and the rectifiers (docs/design.md "The network").
 
     Defaults are the paper's / public MVSNeRF checkpoint's sizes.
     """

@@ -77,7 +77,7 @@ impl Camera {
     }
 }
 
-/// A square matrix from its rows: matrices are row-major on the wire, as in DESIGN.md
+/// A square matrix from its rows: matrices are row-major on the wire, as in docs/design.md
 /// (nalgebra's own conversion from nested arrays reads columns).
 pub fn from_rows<const N: usize>(rows: &[[f64; N]; N]) -> SMatrix<f64, N, N> {
     SMatrix::from_fn(|r, c| rows[r][c])

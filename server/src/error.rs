@@ -1,4 +1,4 @@
-//! The one error type of the HTTP API, mapped to a status and DESIGN.md's JSON body in one place:
+//! The one error type of the HTTP API, mapped to a status and docs/design.md's JSON body in one place:
 //! `{"error": {"code", "message", "field"}}`.
 
 use axum::http::{header, HeaderValue, StatusCode};

@@ -194,7 +194,7 @@ pub fn png(width: u32, height: u32, rgba: [u8; 4]) -> Vec<u8> {
     out
 }
 
-/// A camera in DESIGN.md's JSON form: Blender-style camera-to-world, OpenGL axes, on a circle of
+/// A camera in docs/design.md's JSON form: Blender-style camera-to-world, OpenGL axes, on a circle of
 /// radius 4 around the origin at angle `angle`, looking at the origin.
 pub fn camera_json(width: u32, height: u32, angle: f64) -> serde_json::Value {
     let (s, c) = angle.sin_cos();

@@ -2,7 +2,7 @@
 cam.txt, Blender and nerfstudio transforms.json, LLFF poses_bounds.npy, COLMAP text models; one
 parser each in :mod:`.dataparsers`), views picked by name or by nearness to a target.
 
-Every scene's cameras are in the canonical form of the project (DESIGN.md, "HTTP API"): OpenCV axes
+Every scene's cameras are in the canonical form of the project (docs/design.md, "HTTP API"): OpenCV axes
 (x right, y down, z forward), world-to-camera, and intrinsics in which the centre of pixel (u, v) is
 at image coordinates (u, v). Formats whose convention puts the first pixel's centre at (0.5, 0.5)
 (COLMAP, nerfstudio) are shifted by -0.5 in cx, cy.

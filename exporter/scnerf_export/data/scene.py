@@ -2,7 +2,7 @@
 and the [near, far] that brackets them, with what every format's parser shares: image reading,
 resizing, cropping and argument checks.
 
-Cameras are in the project's canonical form (DESIGN.md, "HTTP API"; :mod:`scnerf_export.cameras`):
+Cameras are in the project's canonical form (docs/design.md, "HTTP API"; :mod:`scnerf_export.cameras`):
 OpenCV axes, world-to-camera, the centre of pixel (u, v) at image coordinates (u, v).
 """
 

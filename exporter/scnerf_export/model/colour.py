@@ -1,4 +1,4 @@
-"""Colour heads: M4 (SC-NeRF, DESIGN.md step 7) and MVSNeRF's."""
+"""Colour heads: M4 (SC-NeRF, docs/design.md step 7) and MVSNeRF's."""
 
 from __future__ import annotations
 

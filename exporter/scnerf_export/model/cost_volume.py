@@ -1,5 +1,5 @@
 """The cost volume P over D fronto-parallel planes of the reference view and G2, the 3D U-Net
-that turns it into the encoding volume V (DESIGN.md steps 2-3)."""
+that turns it into the encoding volume V (docs/design.md steps 2-3)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""G1, the image encoder (DESIGN.md step 1)."""
+"""G1, the image encoder (docs/design.md step 1)."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """Per sample point x: its reference-frustum coordinates, the volume sample s and the source
-views' colours, masks and features at its reprojections (DESIGN.md step 4)."""
+views' colours, masks and features at its reprojections (docs/design.md step 4)."""
 
 from __future__ import annotations
 

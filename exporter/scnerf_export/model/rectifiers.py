@@ -1,5 +1,5 @@
 """The geometry and appearance rectifiers: multi-head attention across the sample axis
-(DESIGN.md steps 5-6)."""
+(docs/design.md steps 5-6)."""
 
 from __future__ import annotations
 

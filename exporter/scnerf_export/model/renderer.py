@@ -1,5 +1,5 @@
 """The renderer graph: per target ray, its S points through M1, M2, compositing, the rectifiers
-and M4 (DESIGN.md steps 4-7).
+and M4 (docs/design.md steps 4-7).
 
 Data path per ray: points x -> point features f = [s, colours, masks] -> M1 -> F_r -> M2 -> sigma
 -> rendered depth D -> geometry rectification (F_r -> F_c) -> appearance rectification

@@ -1,4 +1,4 @@
-"""M1, the trunk: point features f and E(x) -> radiance features F_r (DESIGN.md step 4)."""
+"""M1, the trunk: point features f and E(x) -> radiance features F_r (docs/design.md step 4)."""
 
 from __future__ import annotations
 

@@ -40,7 +40,7 @@ def pad_images(images: np.ndarray, multiple: int, background) -> np.ndarray:
 
 def renderer_passes(cfg: ModelConfig) -> int:
     """2 for ``depth_norm: image_minmax``: a depth pass over the whole view gives the depth range that
-    normalises the rectifiers' queries in the colour pass (DESIGN.md, "Depth normalisation"); else 1.
+    normalises the rectifiers' queries in the colour pass (docs/design.md, "Depth normalisation"); else 1.
     mvsnerf's colour head reads no depth range, so it never needs the depth pass."""
     return 2 if cfg.depth_norm == "image_minmax" and cfg.variant != "mvsnerf" else 1
 

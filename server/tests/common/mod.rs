@@ -22,7 +22,7 @@ pub async fn send(app: Router, req: Request<Body>) -> Got {
     (status, headers, body)
 }
 
-/// Asserts DESIGN.md's error body with the given status, code and field.
+/// Asserts docs/design.md's error body with the given status, code and field.
 pub fn assert_error(got: &Got, status: u16, code: &str, field: Option<&str>) {
     let (s, headers, body) = got;
     let text = String::from_utf8_lossy(body);
@@ -98,7 +98,7 @@ pub fn b64(data: &[u8]) -> String {
     base64::engine::general_purpose::STANDARD.encode(data)
 }
 
-/// DESIGN.md's JSON body: the request with base64 images.
+/// docs/design.md's JSON body: the request with base64 images.
 pub fn json_with_images(size: u32) -> Value {
     let mut v = request_json(size);
     for (i, img) in images(size).iter().enumerate() {
@@ -136,7 +136,7 @@ pub fn bearer(token: &str) -> String {
     format!("Bearer {token}")
 }
 
-/// A camera of DESIGN.md's JSON form (`{fx, fy, cx, cy}` intrinsics) as a protobuf message.
+/// A camera of docs/design.md's JSON form (`{fx, fy, cx, cy}` intrinsics) as a protobuf message.
 pub fn proto_camera(c: &Value) -> scnerf_proto::v1::Camera {
     use scnerf_proto::v1 as pb;
     let f = |v: &Value| v.as_f64().unwrap();
@@ -169,7 +169,7 @@ pub fn proto_camera(c: &Value) -> scnerf_proto::v1::Camera {
     }
 }
 
-/// A render request in DESIGN.md's JSON form with `images`, as a protobuf message (the fields
+/// A render request in docs/design.md's JSON form with `images`, as a protobuf message (the fields
 /// the JSON leaves out stay empty).
 pub fn proto_request(r: &Value, images: &[Vec<u8>]) -> scnerf_proto::v1::RenderRequest {
     use scnerf_proto::v1 as pb;

@@ -13,7 +13,7 @@ Quick use::
     build_dataset("cache/train", n_scenes=96)             # npz per scene; load_scene(path)
     for ex in ProceduralDataset("train", 96, cache_dir="cache/train"): ...
 
-Cameras follow DESIGN.md: OpenCV axes, world-to-camera, pixel (u, v) centred at (u, v).
+Cameras follow docs/design.md: OpenCV axes, world-to-camera, pixel (u, v) centred at (u, v).
 """
 
 from .core import ALL_LAYOUTS, LAYOUTS, Camera, Scene, View, intrinsics, look_at

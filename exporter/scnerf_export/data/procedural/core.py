@@ -1,6 +1,6 @@
 """Data types and camera maths shared by the procedural generator.
 
-Conventions (the same as DESIGN.md and the server):
+Conventions (the same as docs/design.md and the server):
 
 * OpenCV camera axes: x right, y down, z forward.  ``w2c`` maps world points to camera points.
 * Intrinsics put the *centre* of pixel (u, v) at image coordinates (u, v).  The ray of pixel (u, v)
