@@ -106,7 +106,7 @@ def merge_earlier(results: dict, earlier: dict) -> None:
 
 
 # ---------------------------------------------------------------------------------------------
-# issue 7's targets, checked on the server's figures (the deployed path)
+# the speed targets, checked on the server's figures (the deployed path)
 
 
 def server_row(res: dict, size: str, name: str = "server") -> dict | None:
@@ -152,13 +152,13 @@ def listed(measured: dict[str, float], fmt: str) -> str:
 
 
 def targets(res: dict) -> list[str]:
-    """Issue 7's targets, checked against this run's server figures."""
+    """The speed targets, checked against this run's server figures."""
     ratios = end_to_end_ratios(res)
     fractions = renderer_fractions(res)
     seconds = reduced_precision_seconds(res)
     out = [
         "",
-        "Issue 7 targets (server = the deployed path):",
+        "Speed targets (server = the deployed path):",
         "",
         f"* end-to-end fp32 view <= 0.5x PyTorch eager: "
         f"{verdict(ratios, all(v <= 0.5 for v in ratios.values()))} ({listed(ratios, '{:.2f}x')})",

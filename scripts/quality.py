@@ -75,9 +75,7 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--scale", type=float, default=1.0, help="scale of the scenes' images (sources)")
     p.add_argument("--target-scale", type=float, default=0.5, help="scale of the targets, on top of --scale")
-    p.add_argument(
-        "--views", action="append", default=[], metavar="SCENE=V,V", help="only these targets of a scene"
-    )
+    p.add_argument("--views", action="append", default=[], metavar="SCENE=V,V", help="only these targets of a scene")
     p.add_argument("--threads", type=int)
     args = p.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)

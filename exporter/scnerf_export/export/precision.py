@@ -22,7 +22,8 @@ feeds it exactly as before (docs/bundle.md). The manifest gets a top-level ``"pr
   execution provider (tensor cores); ONNX Runtime's CPU provider runs it too.
 
 `compare_bundles` renders the same views through both bundles with ONNX Runtime and reports the
-PSNR of each against the ground truth and the drop; ``offer`` = drop <= 0.1 dB (issue 7's rule).
+PSNR of each against the ground truth and the drop; ``offer`` = drop <= 0.1 dB (a precision is offered
+only within 0.1 dB).
 """
 
 from __future__ import annotations
