@@ -12,6 +12,7 @@ use crate::error::{Error, Result};
 use crate::readers::{self, Capture, CapturedView, Format, ReadOptions};
 use crate::render::{frame_digits, render_frames, server_summary, write_atomically, write_npy};
 use crate::{eval, paths, video};
+use scnerf_capture::files::Disk;
 
 #[derive(Parser)]
 #[command(name = "scnerf", version, about = "Render posed photo captures through scnerf-serve")]
@@ -244,15 +245,7 @@ pub(crate) fn source_views<'a>(capture: &'a Capture, names: &[String]) -> Result
     if names.len() != 3 {
         return Err(Error::Usage(format!("--sources needs 3 view names, got {}", names.len())));
     }
-    names.iter().map(|n| capture.view(n)).collect()
-}
-
-/// At most `max` (>= 2) views, evenly spread over the capture order, first and last included.
-fn thin(views: &[CapturedView], max: usize) -> Vec<&CapturedView> {
-    if views.len() <= max {
-        return views.iter().collect();
-    }
-    (0..max).map(|i| &views[(i * (views.len() - 1) + (max - 1) / 2) / (max - 1)]).collect()
+    Ok(names.iter().map(|n| capture.view(n)).collect::<scnerf_capture::Result<_>>()?)
 }
 
 /// The capture's views to upload, thinned to the server's limit with a warning.
@@ -260,7 +253,8 @@ fn scene_views(capture: &Capture, max: usize) -> Result<Vec<&CapturedView>> {
     if max < 3 {
         return Err(Error::Usage(format!("--max-views must be at least 3, got {max}")));
     }
-    let views = thin(&capture.views, max);
+    let views: Vec<&CapturedView> =
+        scnerf_capture::thin_evenly(capture.views.len(), max).into_iter().map(|i| &capture.views[i]).collect();
     if views.len() < capture.views.len() {
         eprintln!(
             "warning: the capture has {} views; uploading {} of them (--max-views)",
@@ -351,7 +345,7 @@ fn view(client: &Client, args: &ViewArgs) -> Result<()> {
     let capture = load(&args.data)?;
     let pose = Path::new(&args.pose);
     let camera = if pose.is_file() {
-        paths::camera_from_json(&readers::read_json(pose)?, pose, "camera")?
+        paths::camera_from_json(&readers::read_json(&Disk, pose)?, pose, "camera")?
     } else {
         capture.view(&args.pose)?.camera.clone()
     };
@@ -380,25 +374,6 @@ fn view(client: &Client, args: &ViewArgs) -> Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn thinning_keeps_the_ends_and_spreads_the_rest() {
-        let view = |i: usize| CapturedView {
-            name: i.to_string(),
-            image_path: PathBuf::new(),
-            camera: Camera {
-                width: 1,
-                height: 1,
-                intrinsics: crate::camera::Intrinsics { fx: 1.0, fy: 1.0, cx: 0.0, cy: 0.0 },
-                w2c: crate::camera::Pose::identity(),
-            },
-        };
-        let views: Vec<CapturedView> = (0..20).map(view).collect();
-        let names = |max| thin(&views, max).iter().map(|v| v.name.clone()).collect::<Vec<_>>().join(",");
-        assert_eq!(names(3), "0,10,19");
-        assert_eq!(names(5), "0,5,10,14,19");
-        assert_eq!(thin(&views, 64).len(), 20);
-    }
 
     #[test]
     fn sizes_parse_as_width_x_height() {
