@@ -91,6 +91,11 @@ impl MemoryFiles {
         }
     }
 
+    /// Takes a file out (a reader is done with it), by any spelling of its path.
+    pub fn remove(&mut self, path: &Path) -> Option<Vec<u8>> {
+        self.files.remove(&normal(path)?)
+    }
+
     pub fn len(&self) -> usize {
         self.files.len()
     }
