@@ -77,6 +77,17 @@ struct UploadArgs {
     /// Most views to upload (the server's scene limit): a larger capture is thinned evenly.
     #[arg(long, default_value_t = 64)]
     max_views: usize,
+    /// Scene id to upload under (1-64 of A-Z a-z 0-9 . _ -; default: derived from the views'
+    /// cameras, depth range, background and image bytes, so the same upload has the same id).
+    #[arg(long)]
+    scene_id: Option<String>,
+}
+
+impl UploadArgs {
+    /// `views` of `capture` as one scene, under `--scene-id` if given.
+    fn upload(&self, capture: &Capture, views: &[&CapturedView]) -> Upload {
+        Upload { scene_id: self.scene_id.clone(), ..Upload::new(capture, views) }
+    }
 }
 
 #[derive(Args)]
@@ -248,19 +259,20 @@ pub(crate) fn source_views<'a>(capture: &'a Capture, names: &[String]) -> Result
     Ok(names.iter().map(|n| capture.view(n)).collect::<scnerf_capture::Result<_>>()?)
 }
 
-/// The capture's views to upload, thinned to the server's limit with a warning.
-fn scene_views(capture: &Capture, max: usize) -> Result<Vec<&CapturedView>> {
+/// The capture's views to upload, thinned with a warning to `--max-views` or the server's
+/// limit (`max_scene_views` of `GET /v1/model`), whichever is smaller.
+fn scene_views<'a>(client: &Client, capture: &'a Capture, max: usize) -> Result<Vec<&'a CapturedView>> {
     if max < 3 {
         return Err(Error::Usage(format!("--max-views must be at least 3, got {max}")));
     }
+    let (max, why) = match client.max_scene_views()? {
+        Some(server) if server < max => (server, format!("the server keeps at most {server} views per scene")),
+        _ => (max, "--max-views".to_string()),
+    };
     let views: Vec<&CapturedView> =
         scnerf_capture::thin_evenly(capture.views.len(), max).into_iter().map(|i| &capture.views[i]).collect();
     if views.len() < capture.views.len() {
-        eprintln!(
-            "warning: the capture has {} views; uploading {} of them (--max-views)",
-            capture.views.len(),
-            views.len()
-        );
+        eprintln!("warning: the capture has {} views; uploading {} of them ({why})", capture.views.len(), views.len());
     }
     Ok(views)
 }
@@ -315,8 +327,8 @@ fn render(client: Client, args: &RenderArgs) -> Result<()> {
     let bar = progress_bar();
     let notices = bar.clone();
     let client = client.with_notice(move |m| notify(&notices, m));
-    let views = scene_views(&capture, args.upload.max_views)?;
-    let mut scene = client.create_scene(Upload::new(&capture, &views))?;
+    let views = scene_views(&client, &capture, args.upload.max_views)?;
+    let mut scene = client.create_scene(args.upload.upload(&capture, &views))?;
     notify(&bar, &format!("uploaded {} views as scene {}", views.len(), scene.id));
     let done = render_frames(&client, &mut scene, &cameras, &args.out, !args.no_depth, &bar)?;
     bar.finish_and_clear();
@@ -355,9 +367,9 @@ fn view(client: &Client, args: &ViewArgs) -> Result<()> {
     };
     let views = match &args.sources {
         Some(names) => source_views(&capture, names)?,
-        None => scene_views(&capture, args.upload.max_views)?,
+        None => scene_views(client, &capture, args.upload.max_views)?,
     };
-    let mut scene = client.create_scene(Upload::new(&capture, &views))?;
+    let mut scene = client.create_scene(args.upload.upload(&capture, &views))?;
     let rendered = client.render(&mut scene, &camera, true)?;
     write_atomically(&args.out, &rendered.rgb_png)?;
     let depth = args.out.with_extension("depth.npy");

@@ -23,9 +23,10 @@ pub enum Error {
     #[error("unexpected answer from the server ({context}): {message}")]
     Response { context: String, message: String },
 
-    /// The server's own `{"error": {"code", "message", "field"}}`.
+    /// The server's own `{"error": {"code", "message", "field", "hint"}}`; `hint` is what the
+    /// server says to do about it (`reupload`), when it says.
     #[error("the server refused the request ({status} {code}): {message}{}", field_suffix(.field))]
-    Server { status: u16, code: String, message: String, field: Option<String> },
+    Server { status: u16, code: String, message: String, field: Option<String>, hint: Option<String> },
 
     #[error("video: {0}")]
     Video(String),
