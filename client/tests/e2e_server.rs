@@ -3,6 +3,7 @@
 //!   (deleted: the server answers a render 404 with the hint `reupload`, as for an expired or
 //!   evicted scene or a replica that never had it), the client uploads it again under the same id
 //!   by itself and the render goes on;
+//!   and `scnerf render` of a 5-view capture to frames, depth and a video, in small;
 //! - `scnerf render` of the lego capture (20 views) with the default bundle, the acceptance
 //!   command, at a small size: minutes of CPU, so ignored by default (`cargo test -p
 //!   scnerf-client --test e2e_server -- --ignored`); skipped with a message when ../shared (the
@@ -98,4 +99,46 @@ fn render_lego_orbit_to_frames_and_video() {
         assert!(out.path().join(format!("depth/frame_{i:04}.npy")).is_file());
     }
     assert!(out.path().join("video.mp4").is_file() || out.path().join("video.gif").is_file(), "{stdout}");
+}
+
+/// The acceptance command's path in small, in every test run: `scnerf render` of a 5-view capture
+/// (the Blender fixture) through its captured poses (`--path interpolate`) against the real server with the parity bundle, to PNG
+/// frames, depth maps and a video (a GIF: no ffmpeg on PATH), then once more: nothing to render.
+#[test]
+fn render_a_capture_to_frames_and_video_through_the_real_server() {
+    let bundle = repo_root().join("tests/fixtures/parity/bundle");
+    let mut server = ServerProcess::start(&server_binary(), &["--bundle", bundle.to_str().unwrap(), "--skip-warmup"]);
+    server.wait_ready(Duration::from_secs(120));
+    let data = Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/fixtures/datasets/blender");
+    let out = tempfile::tempdir().unwrap();
+    let no_tools = tempfile::tempdir().unwrap();
+    let url = format!("http://{}", server.addr);
+    let args = [
+        "render",
+        data.to_str().unwrap(),
+        "--server",
+        &url,
+        "--path",
+        "interpolate",
+        "--frames",
+        "5",
+        "--size",
+        "16x12",
+        "--out",
+        out.path().to_str().unwrap(),
+    ];
+    let run = || Command::new(env!("CARGO_BIN_EXE_scnerf")).args(args).env("PATH", no_tools.path()).output().unwrap();
+    let first = run();
+    let (stdout, stderr) = (String::from_utf8_lossy(&first.stdout), String::from_utf8_lossy(&first.stderr));
+    assert!(first.status.success(), "{stdout}\n{stderr}");
+    assert!(stderr.contains("uploaded 5 views as scene cap-"), "{stderr}");
+    assert!(stdout.contains("5 rendered, 0 already there"), "{stdout}");
+    for i in 0..5 {
+        let frame = out.path().join(format!("frames/frame_{i:04}.png"));
+        assert_eq!(image::image_dimensions(&frame).unwrap(), (16, 12));
+        assert!(out.path().join(format!("depth/frame_{i:04}.npy")).is_file());
+    }
+    assert!(out.path().join("video.gif").is_file(), "{stdout}");
+    let again = run();
+    assert!(String::from_utf8_lossy(&again.stdout).contains("0 rendered, 5 already there"));
 }
