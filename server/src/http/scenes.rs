@@ -23,7 +23,7 @@ use crate::request::ValidScene;
 
 /// Header with which a routing proxy names a scene that `POST /v1/scenes` or `POST /v1/captures`
 /// creates: the proxy picks the id, routes the request by its hash, and every later request for
-/// the scene (its id in the path) hashes to the same replica (docs/api.md, "Scenes and replicas").
+/// the scene (its id in the path) hashes to the same replica (docs/deploy.md).
 pub const SCENE_ID_HEADER: &str = "x-scnerf-scene-id";
 
 /// `201 Created` (or `200 OK`: replaced) body of `POST /v1/scenes` and `PUT /v1/scenes/{id}`.
