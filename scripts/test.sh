@@ -2,7 +2,7 @@
 # Every test of the project: the Python lint (ruff, configured in ruff.toml), the Rust workspace
 # (unit, HTTP, parity against the committed fixtures, end-to-end), the exporter's pytest suite and
 # the benchmark's, and scenes across two replicas behind Debian's nginx (scripts/proxy-test.sh:
-# ~20 s; installs nginx with apt-get when missing, says SKIPPED when it cannot). Needs network
+# 20-30 s; installs nginx with apt-get when missing, says SKIPPED when it cannot). Needs network
 # access to crates.io and PyPI on the first run only.
 set -euo pipefail
 repo=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
