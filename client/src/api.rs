@@ -1,8 +1,13 @@
-//! The HTTP side: upload a capture once as a scene (`POST /v1/scenes`, multipart), render views
-//! of it (`POST /v1/scenes/{id}/render`, JSON). 503/429 are retried after their `Retry-After`;
-//! a scene the server no longer has (404 `scene_not_found`: expired, evicted, restarted server)
-//! is uploaded again once and the render retried. Server errors come back as
-//! [`Error::Server`] with the server's own code, message and field.
+//! The HTTP side: upload a capture once as a scene (`PUT /v1/scenes/{id}`, multipart), render
+//! views of it (`POST /v1/scenes/{id}/render`, JSON). The id is the caller's
+//! ([`Upload::scene_id`], `--scene-id`) or else derived from what is uploaded (cameras, depth
+//! range, background, image bytes), so the same capture always has the same id: behind a proxy
+//! that routes scenes by the hash of their id, an upload and every render of it, and an upload
+//! again after a miss, reach the same replica. 503/429 are retried after their `Retry-After`; a
+//! render answered 404 with the server's hint `reupload` (the scene expired, was evicted, or its
+//! server restarted or is gone) uploads the scene again under the same id, once, and retries.
+//! Server errors come back as [`Error::Server`] with the server's own code, message, field and
+//! hint.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -11,6 +16,7 @@ use std::time::Duration;
 use base64::Engine;
 use serde::Deserialize;
 use serde_json::{json, Value};
+use sha2::{Digest, Sha256};
 
 use crate::camera::Camera;
 use crate::error::{read_bytes, Error, Result};
@@ -19,9 +25,14 @@ use crate::readers::{Capture, CapturedView};
 /// Header in which the server names the sources it chose for a view ("i,j,k", capture order).
 pub const SOURCES_HEADER: &str = "x-scnerf-sources";
 
+/// The server's `hint` on a 404 for a scene it does not hold: upload it again.
+pub const HINT_REUPLOAD: &str = "reupload";
+
 /// The views of a scene and what the server needs with them; kept to upload again.
 #[derive(Debug, Clone)]
 pub struct Upload {
+    /// The scene id to PUT under; `None`: derived from the content ([`content_id`]).
+    pub scene_id: Option<String>,
     pub sources: Vec<(Camera, PathBuf)>,
     pub near: f64,
     pub far: f64,
@@ -32,6 +43,7 @@ impl Upload {
     /// `views` of `capture`, in that order (the first is the reference when there are 3).
     pub fn new(capture: &Capture, views: &[&CapturedView]) -> Upload {
         Upload {
+            scene_id: None,
             sources: views.iter().map(|v| (v.camera.clone(), v.image_path.clone())).collect(),
             near: capture.near,
             far: capture.far,
@@ -92,6 +104,14 @@ impl Client {
         Ok(Scene { id, upload })
     }
 
+    /// The most views the server keeps in a scene (`GET /v1/model`), when it says.
+    pub fn max_scene_views(&self) -> Result<Option<usize>> {
+        let reply = self.send("GET", "/v1/model", None)?;
+        let model: Value = parse_json(&reply.body, "/v1/model")?;
+        Ok(model["max_scene_views"].as_u64().map(|n| n as usize))
+    }
+
+    /// PUTs the scene under its id (the caller's, else the content's); returns that id.
     fn upload(&self, upload: &Upload) -> Result<String> {
         let sources: Vec<Value> = upload.sources.iter().map(|(c, _)| json!({ "camera": camera_json(c) })).collect();
         let request = json!({
@@ -101,26 +121,28 @@ impl Client {
         for (i, (_, path)) in upload.sources.iter().enumerate() {
             parts.push(Part { name: format!("source_{i}"), file: Some(path.clone()), bytes: read_bytes(path)? });
         }
+        let id = upload.scene_id.clone().unwrap_or_else(|| content_id(&parts));
+        let path = format!("/v1/scenes/{id}");
         let (content_type, body) = multipart(&parts);
-        let response = match self.post("/v1/scenes", &content_type, &body) {
-            Err(Error::Http { url, message }) => return Err(self.refusal_during_upload(&parts[0], url, message)),
+        let response = match self.send("PUT", &path, Some((&content_type, &body))) {
+            Err(Error::Http { url, message }) => return Err(self.refusal_during_upload(&path, &parts[0], url, message)),
             other => other?,
         };
         #[derive(Deserialize)]
         struct Created {
             scene_id: String,
         }
-        let created: Created = parse_json(&response.body, "/v1/scenes")?;
+        let created: Created = parse_json(&response.body, &path)?;
         Ok(created.scene_id)
     }
 
-    /// A server that refuses an upload from its `request` part (too many views, say) answers and
-    /// closes the connection while the images are still being sent, so the answer is lost. The
-    /// `request` part alone gets the same refusal back; anything else about it (its images are
-    /// missing, of course) keeps the network error.
-    fn refusal_during_upload(&self, request: &Part, url: String, message: String) -> Error {
+    /// An upload whose connection broke: if the server refused it from its `request` part (a
+    /// server older than the one that reads a refused body to its end, or one that refuses
+    /// before reading it, as for a wrong token), the `request` part alone gets the same refusal
+    /// back; anything else about it (its images are missing, of course) keeps the network error.
+    fn refusal_during_upload(&self, path: &str, request: &Part, url: String, message: String) -> Error {
         let (content_type, body) = multipart(std::slice::from_ref(request));
-        match self.post("/v1/scenes", &content_type, &body) {
+        match self.send("PUT", path, Some((&content_type, &body))) {
             Err(Error::Server { field: Some(f), .. }) if f.starts_with("source_") => Error::Http { url, message },
             Err(refusal @ Error::Server { .. }) => refusal,
             _ => Error::Http { url, message },
@@ -134,8 +156,10 @@ impl Client {
         let mut uploaded_again = false;
         loop {
             let path = format!("/v1/scenes/{}/render", scene.id);
-            match self.post(&path, "application/json", body.as_bytes()) {
-                Err(Error::Server { status: 404, code, .. }) if code == "scene_not_found" && !uploaded_again => {
+            match self.send("POST", &path, Some(("application/json", body.as_bytes()))) {
+                Err(Error::Server { status: 404, hint: Some(hint), .. })
+                    if hint == HINT_REUPLOAD && !uploaded_again =>
+                {
                     (self.notice)("the server no longer has the scene: uploading the capture again");
                     scene.id = self.upload(&scene.upload)?;
                     uploaded_again = true;
@@ -146,19 +170,25 @@ impl Client {
         }
     }
 
-    /// POSTs `body`, waiting out 503/429 answers; any other error status becomes
-    /// [`Error::Server`].
-    fn post(&self, path: &str, content_type: &str, body: &[u8]) -> Result<Reply> {
+    /// Sends `method` with `body` (content type and bytes), waiting out 503/429 answers; any
+    /// other error status becomes [`Error::Server`].
+    fn send(&self, method: &str, path: &str, body: Option<(&str, &[u8])>) -> Result<Reply> {
         let url = format!("{}{path}", self.base);
         let mut retries = 0;
         loop {
             let mut request =
-                self.agent.post(&url).header("content-type", content_type).header("accept", "application/json");
+                ureq::http::Request::builder().method(method).uri(&url).header("accept", "application/json");
+            if let Some((content_type, _)) = body {
+                request = request.header("content-type", content_type);
+            }
             if let Some(token) = &self.token {
                 request = request.header("authorization", format!("Bearer {token}"));
             }
+            let request = request
+                .body(body.map_or(&[][..], |(_, bytes)| bytes))
+                .map_err(|e| Error::Http { url: url.clone(), message: e.to_string() })?;
             let mut response =
-                request.send(body).map_err(|e| Error::Http { url: url.clone(), message: e.to_string() })?;
+                self.agent.run(request).map_err(|e| Error::Http { url: url.clone(), message: e.to_string() })?;
             let status = response.status().as_u16();
             let header = |name: &str| response.headers().get(name).and_then(|v| v.to_str().ok()).map(str::to_string);
             let (retry_after, sources) = (header("retry-after"), header(SOURCES_HEADER));
@@ -190,7 +220,8 @@ struct Reply {
     sources: Option<String>,
 }
 
-/// The server's `{"error": {"code", "message", "field"}}`, or the status and start of the body.
+/// The server's `{"error": {"code", "message", "field", "hint"}}`, or the status and start of the
+/// body.
 fn server_error(status: u16, body: &[u8]) -> Error {
     #[derive(Deserialize)]
     struct Body {
@@ -201,12 +232,16 @@ fn server_error(status: u16, body: &[u8]) -> Error {
         code: String,
         message: String,
         field: Option<String>,
+        #[serde(default)]
+        hint: Option<String>,
     }
     match serde_json::from_slice::<Body>(body) {
-        Ok(Body { error }) => Error::Server { status, code: error.code, message: error.message, field: error.field },
+        Ok(Body { error: Detail { code, message, field, hint } }) => {
+            Error::Server { status, code, message, field, hint }
+        }
         Err(_) => {
             let text: String = String::from_utf8_lossy(body).chars().take(200).collect();
-            Error::Server { status, code: format!("http_{status}"), message: text, field: None }
+            Error::Server { status, code: format!("http_{status}"), message: text, field: None, hint: None }
         }
     }
 }
@@ -275,6 +310,17 @@ struct Part {
     name: String,
     file: Option<PathBuf>,
     bytes: Vec<u8>,
+}
+
+/// The scene id of an upload that was not given one: `cap-` and 32 hex digits of the SHA-256 of
+/// the parts (the request JSON, then each image), each preceded by its length.
+fn content_id(parts: &[Part]) -> String {
+    let mut hash = Sha256::new();
+    for part in parts {
+        hash.update((part.bytes.len() as u64).to_le_bytes());
+        hash.update(&part.bytes);
+    }
+    format!("cap-{}", hex::encode(&hash.finalize()[..16]))
 }
 
 /// multipart/form-data with a boundary that occurs in no part.

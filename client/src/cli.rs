@@ -12,6 +12,7 @@ use crate::error::{Error, Result};
 use crate::readers::{self, Capture, CapturedView, Format, ReadOptions};
 use crate::render::{frame_digits, render_frames, server_summary, write_atomically, write_npy};
 use crate::{eval, paths, video};
+use scnerf_capture::files::Disk;
 
 #[derive(Parser)]
 #[command(name = "scnerf", version, about = "Render posed photo captures through scnerf-serve")]
@@ -76,6 +77,17 @@ struct UploadArgs {
     /// Most views to upload (the server's scene limit): a larger capture is thinned evenly.
     #[arg(long, default_value_t = 64)]
     max_views: usize,
+    /// Scene id to upload under (1-64 of A-Z a-z 0-9 . _ -; default: derived from the views'
+    /// cameras, depth range, background and image bytes, so the same upload has the same id).
+    #[arg(long)]
+    scene_id: Option<String>,
+}
+
+impl UploadArgs {
+    /// `views` of `capture` as one scene, under `--scene-id` if given.
+    fn upload(&self, capture: &Capture, views: &[&CapturedView]) -> Upload {
+        Upload { scene_id: self.scene_id.clone(), ..Upload::new(capture, views) }
+    }
 }
 
 #[derive(Args)]
@@ -244,29 +256,23 @@ pub(crate) fn source_views<'a>(capture: &'a Capture, names: &[String]) -> Result
     if names.len() != 3 {
         return Err(Error::Usage(format!("--sources needs 3 view names, got {}", names.len())));
     }
-    names.iter().map(|n| capture.view(n)).collect()
+    Ok(names.iter().map(|n| capture.view(n)).collect::<scnerf_capture::Result<_>>()?)
 }
 
-/// At most `max` (>= 2) views, evenly spread over the capture order, first and last included.
-fn thin(views: &[CapturedView], max: usize) -> Vec<&CapturedView> {
-    if views.len() <= max {
-        return views.iter().collect();
-    }
-    (0..max).map(|i| &views[(i * (views.len() - 1) + (max - 1) / 2) / (max - 1)]).collect()
-}
-
-/// The capture's views to upload, thinned to the server's limit with a warning.
-fn scene_views(capture: &Capture, max: usize) -> Result<Vec<&CapturedView>> {
+/// The capture's views to upload, thinned with a warning to `--max-views` or the server's
+/// limit (`max_scene_views` of `GET /v1/model`), whichever is smaller.
+fn scene_views<'a>(client: &Client, capture: &'a Capture, max: usize) -> Result<Vec<&'a CapturedView>> {
     if max < 3 {
         return Err(Error::Usage(format!("--max-views must be at least 3, got {max}")));
     }
-    let views = thin(&capture.views, max);
+    let (max, why) = match client.max_scene_views()? {
+        Some(server) if server < max => (server, format!("the server keeps at most {server} views per scene")),
+        _ => (max, "--max-views".to_string()),
+    };
+    let views: Vec<&CapturedView> =
+        scnerf_capture::thin_evenly(capture.views.len(), max).into_iter().map(|i| &capture.views[i]).collect();
     if views.len() < capture.views.len() {
-        eprintln!(
-            "warning: the capture has {} views; uploading {} of them (--max-views)",
-            capture.views.len(),
-            views.len()
-        );
+        eprintln!("warning: the capture has {} views; uploading {} of them ({why})", capture.views.len(), views.len());
     }
     Ok(views)
 }
@@ -321,8 +327,8 @@ fn render(client: Client, args: &RenderArgs) -> Result<()> {
     let bar = progress_bar();
     let notices = bar.clone();
     let client = client.with_notice(move |m| notify(&notices, m));
-    let views = scene_views(&capture, args.upload.max_views)?;
-    let mut scene = client.create_scene(Upload::new(&capture, &views))?;
+    let views = scene_views(&client, &capture, args.upload.max_views)?;
+    let mut scene = client.create_scene(args.upload.upload(&capture, &views))?;
     notify(&bar, &format!("uploaded {} views as scene {}", views.len(), scene.id));
     let done = render_frames(&client, &mut scene, &cameras, &args.out, !args.no_depth, &bar)?;
     bar.finish_and_clear();
@@ -351,7 +357,7 @@ fn view(client: &Client, args: &ViewArgs) -> Result<()> {
     let capture = load(&args.data)?;
     let pose = Path::new(&args.pose);
     let camera = if pose.is_file() {
-        paths::camera_from_json(&readers::read_json(pose)?, pose, "camera")?
+        paths::camera_from_json(&readers::read_json(&Disk, pose)?, pose, "camera")?
     } else {
         capture.view(&args.pose)?.camera.clone()
     };
@@ -361,9 +367,9 @@ fn view(client: &Client, args: &ViewArgs) -> Result<()> {
     };
     let views = match &args.sources {
         Some(names) => source_views(&capture, names)?,
-        None => scene_views(&capture, args.upload.max_views)?,
+        None => scene_views(client, &capture, args.upload.max_views)?,
     };
-    let mut scene = client.create_scene(Upload::new(&capture, &views))?;
+    let mut scene = client.create_scene(args.upload.upload(&capture, &views))?;
     let rendered = client.render(&mut scene, &camera, true)?;
     write_atomically(&args.out, &rendered.rgb_png)?;
     let depth = args.out.with_extension("depth.npy");
@@ -380,25 +386,6 @@ fn view(client: &Client, args: &ViewArgs) -> Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn thinning_keeps_the_ends_and_spreads_the_rest() {
-        let view = |i: usize| CapturedView {
-            name: i.to_string(),
-            image_path: PathBuf::new(),
-            camera: Camera {
-                width: 1,
-                height: 1,
-                intrinsics: crate::camera::Intrinsics { fx: 1.0, fy: 1.0, cx: 0.0, cy: 0.0 },
-                w2c: crate::camera::Pose::identity(),
-            },
-        };
-        let views: Vec<CapturedView> = (0..20).map(view).collect();
-        let names = |max| thin(&views, max).iter().map(|v| v.name.clone()).collect::<Vec<_>>().join(",");
-        assert_eq!(names(3), "0,10,19");
-        assert_eq!(names(5), "0,5,10,14,19");
-        assert_eq!(thin(&views, 64).len(), 20);
-    }
 
     #[test]
     fn sizes_parse_as_width_x_height() {

@@ -23,12 +23,25 @@ pub enum Error {
     #[error("unexpected answer from the server ({context}): {message}")]
     Response { context: String, message: String },
 
-    /// The server's own `{"error": {"code", "message", "field"}}`.
+    /// The server's own `{"error": {"code", "message", "field", "hint"}}`; `hint` is what the
+    /// server says to do about it (`reupload`), when it says.
     #[error("the server refused the request ({status} {code}): {message}{}", field_suffix(.field))]
-    Server { status: u16, code: String, message: String, field: Option<String> },
+    Server { status: u16, code: String, message: String, field: Option<String>, hint: Option<String> },
 
     #[error("video: {0}")]
     Video(String),
+}
+
+/// A capture error keeps its wording: the same file and message, or a usage error for a view
+/// name the capture does not have.
+impl From<scnerf_capture::Error> for Error {
+    fn from(e: scnerf_capture::Error) -> Self {
+        match e {
+            scnerf_capture::Error::Io { path, source } => Error::Io { path, source },
+            scnerf_capture::Error::Dataset { path, message } => Error::Dataset { path, message },
+            unknown @ scnerf_capture::Error::UnknownView { .. } => Error::Usage(unknown.to_string()),
+        }
+    }
 }
 
 fn field_suffix(field: &Option<String>) -> String {
@@ -45,11 +58,6 @@ impl Error {
     pub fn io(path: impl AsRef<Path>, source: std::io::Error) -> Self {
         Error::Io { path: path.as_ref().to_path_buf(), source }
     }
-}
-
-/// `std::fs::read_to_string` whose error names the file.
-pub fn read_text(path: &Path) -> Result<String> {
-    std::fs::read_to_string(path).map_err(|e| Error::io(path, e))
 }
 
 /// `std::fs::read` whose error names the file.

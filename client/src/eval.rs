@@ -92,7 +92,7 @@ fn names(views: &[&CapturedView]) -> Vec<String> {
 /// `--targets`, or every `--holdout`-th view.
 fn targets<'a>(capture: &'a Capture, args: &EvalArgs) -> Result<Vec<&'a CapturedView>> {
     let targets: Vec<&CapturedView> = match (&args.targets, args.holdout) {
-        (Some(names), _) => names.iter().map(|n| capture.view(n)).collect::<Result<_>>()?,
+        (Some(names), _) => names.iter().map(|n| capture.view(n)).collect::<scnerf_capture::Result<_>>()?,
         (None, Some(k)) if k >= 1 => capture.views.iter().step_by(k).collect(),
         _ => return Err(Error::Usage("--holdout must be at least 1 (or give --targets)".into())),
     };
@@ -108,8 +108,8 @@ fn targets<'a>(capture: &'a Capture, args: &EvalArgs) -> Result<Vec<&'a Captured
 
 /// The 3 pool views nearest the target that face its way, nearest first.
 fn nearest<'a>(target: &CapturedView, pool: &[&'a CapturedView]) -> Result<Vec<&'a CapturedView>> {
-    let cameras: Vec<_> = pool.iter().map(|v| &v.camera).collect();
-    let ranked = rank_sources(&target.camera, &cameras);
+    let candidates: Vec<_> = pool.iter().map(|v| v.camera.viewpoint()).collect();
+    let ranked = rank_sources(&target.camera.viewpoint(), &candidates);
     if ranked.len() < 3 {
         return Err(Error::Usage(format!(
             "view {}: only {} source views face its way, 3 needed",

@@ -1,14 +1,15 @@
 //! `scnerf`, the command-line client of scnerf-serve: reads a capture (COLMAP, nerfstudio,
 //! Blender, LLFF, DTU), uploads it once as a scene, renders camera paths to frames and video, and
-//! scores held-out views.
+//! scores held-out views. Cameras and dataset readers live in `scnerf-capture`, shared with the
+//! server; they are re-exported here under their old paths.
+
+pub use scnerf_capture::{camera, readers};
 
 pub mod api;
-pub mod camera;
 pub mod cli;
 pub mod error;
 pub mod eval;
 pub mod metrics;
 pub mod paths;
-pub mod readers;
 pub mod render;
 pub mod video;

@@ -124,26 +124,11 @@ pub fn ssim(pred: &Image, gt: &Image) -> Result<f64> {
     Ok(total / count as f64)
 }
 
-/// numpy's default (linear) percentile `q` in [0, 100] of sorted values.
-pub fn percentile(sorted: &[f64], q: f64) -> f64 {
-    let pos = q / 100.0 * (sorted.len() - 1) as f64;
-    let lo = pos.floor() as usize;
-    let hi = (lo + 1).min(sorted.len() - 1);
-    sorted[lo] + (sorted[hi] - sorted[lo]) * (pos - lo as f64)
-}
+pub use scnerf_capture::percentile;
 
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn percentile_is_numpys_linear_rule() {
-        // np.percentile([1, 2, 3, 4, 10], [1, 90, 99]) = [1.04, 7.6, 9.76]
-        let v = [1.0, 2.0, 3.0, 4.0, 10.0];
-        assert!((percentile(&v, 1.0) - 1.04).abs() < 1e-12);
-        assert!((percentile(&v, 90.0) - 7.6).abs() < 1e-12);
-        assert!((percentile(&v, 99.0) - 9.76).abs() < 1e-12);
-    }
 
     #[test]
     fn downscale_box_averages() {

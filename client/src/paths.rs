@@ -161,7 +161,7 @@ pub fn spiral(cameras: &[Camera], near: f64, far: f64, frames: usize) -> Result<
 /// A JSON array of cameras in the API's form (`{width, height, intrinsics: {fx, fy, cx, cy} |
 /// K, pose: {matrix, kind, axes}}`), in the capture's world.
 pub fn from_file(path: &Path) -> Result<Vec<Camera>> {
-    let data = crate::readers::read_json(path)?;
+    let data = crate::readers::read_json(&scnerf_capture::files::Disk, path)?;
     let items = data.as_array().ok_or_else(|| Error::dataset(path, "expected a JSON array of cameras"))?;
     if items.is_empty() {
         return Err(Error::dataset(path, "the camera path is empty"));

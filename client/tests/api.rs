@@ -1,5 +1,6 @@
-//! The HTTP client against the in-process fake server: upload once, render, wait out 503 with
-//! Retry-After, upload again once on scene_not_found, server errors in plain words.
+//! The HTTP client against the in-process fake server: upload once under an id derived from the
+//! capture (or the caller's), render, wait out 503 with Retry-After, upload again once under the
+//! same id on a 404 with the hint `reupload` (and only then), server errors in plain words.
 
 mod common;
 
@@ -44,6 +45,7 @@ fn uploads_the_capture_once_and_renders_views_of_it() {
     }
     assert_eq!(server.uploads(), vec![5]);
     assert_eq!(server.renders(), 2);
+    assert!(scene.id.starts_with("cap-") && scene.id.len() == 36, "{}", scene.id);
     assert!(notices.lock().unwrap().is_empty());
     let rgb_only = client.render(&mut scene, &target, false).unwrap();
     assert!(rgb_only.depth.is_none());
@@ -90,7 +92,9 @@ fn uploads_again_once_when_the_server_lost_the_scene() {
     server.state.forget.store(1, Ordering::SeqCst);
     client.render(&mut scene, &target, false).unwrap();
     assert_eq!(server.uploads(), vec![5, 5]);
-    assert_ne!(scene.id, first_id);
+    // The same id again: behind a proxy that routes by it, the same replica.
+    assert_eq!(scene.id, first_id);
+    assert_eq!(server.ids(), vec![first_id.clone(), first_id.clone()]);
     assert!(notices.lock().unwrap()[0].contains("uploading the capture again"));
 
     // lost again right after the new upload: not a loop
@@ -98,6 +102,25 @@ fn uploads_again_once_when_the_server_lost_the_scene() {
     let err = client.render(&mut scene, &target, false).unwrap_err().to_string();
     assert!(err.contains("(404 scene_not_found): no such scene (expired?) [field: scene_id]"), "{err}");
     assert_eq!(server.uploads().len(), 3);
+
+    // a 404 without the hint is not about the scene: no upload
+    server.state.unrouted.store(1, Ordering::SeqCst);
+    let err = client.render(&mut scene, &target, false).unwrap_err().to_string();
+    assert_eq!(err, "the server refused the request (404 not_found): no route [field: path]");
+    assert_eq!(server.uploads().len(), 3);
+}
+
+#[test]
+fn a_named_scene_keeps_its_name_through_a_reupload() {
+    let server = FakeServer::start();
+    let (client, _) = client(&server);
+    let (upload, target) = fixture_upload();
+    let mut scene = client.create_scene(Upload { scene_id: Some("lego.orbit-1".into()), ..upload }).unwrap();
+    assert_eq!(scene.id, "lego.orbit-1");
+    server.state.forget.store(1, Ordering::SeqCst);
+    client.render(&mut scene, &target, false).unwrap();
+    assert_eq!(server.ids(), vec!["lego.orbit-1", "lego.orbit-1"]);
+    assert_eq!(scene.id, "lego.orbit-1");
 }
 
 #[test]
@@ -130,5 +153,22 @@ fn errors_are_plain_words() {
 
     let (upload, _) = fixture_upload();
     let err = Client::new("http://127.0.0.1:9", None).create_scene(upload).unwrap_err().to_string();
-    assert!(err.starts_with("cannot reach the server at http://127.0.0.1:9/v1/scenes: "), "{err}");
+    assert!(err.starts_with("cannot reach the server at http://127.0.0.1:9/v1/scenes/cap-"), "{err}");
+    assert!(err.contains("Connection refused"), "{err}");
+}
+
+#[test]
+fn the_scene_id_names_the_capture() {
+    let server = FakeServer::start();
+    let (client, _) = client(&server);
+    let (upload, _) = fixture_upload();
+    let a = client.create_scene(upload.clone()).unwrap().id;
+    assert_eq!(client.create_scene(upload.clone()).unwrap().id, a, "the same capture, the same id");
+    let mut other = upload.clone();
+    other.near += 0.5;
+    assert_ne!(client.create_scene(other).unwrap().id, a, "another depth range, another id");
+    let mut fewer = upload;
+    fewer.sources.pop();
+    assert_ne!(client.create_scene(fewer).unwrap().id, a, "other views, another id");
+    assert_eq!(client.max_scene_views().unwrap(), Some(common::MAX_VIEWS));
 }

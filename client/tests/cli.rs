@@ -49,7 +49,7 @@ fn render_writes_frames_depth_and_a_gif_then_resumes() {
     let (stdout, stderr) = text(&first);
     assert!(first.status.success(), "{stdout}\n{stderr}");
     assert!(stderr.contains("warning: ") && stderr.contains("2 of 7 frames have no image file; skipped"), "{stderr}");
-    assert!(stderr.contains("uploaded 5 views as scene "), "{stderr}");
+    assert!(stderr.contains("uploaded 5 views as scene cap-"), "{stderr}");
     assert!(stdout.contains("6 frames in") && stdout.contains("6 rendered, 0 already there"), "{stdout}");
     assert!(stdout.contains("video.gif") && stdout.contains("note: ffmpeg is not on PATH"), "{stdout}");
     for i in 0..6 {
@@ -82,6 +82,8 @@ fn view_renders_one_named_view_from_three_sources() {
         "16x12",
         "--sources",
         "train/r_0,train/r_2,val/r_0",
+        "--scene-id",
+        "my-view",
         "--out",
         png.to_str().unwrap(),
     ]);
@@ -95,6 +97,7 @@ fn view_renders_one_named_view_from_three_sources() {
     assert_eq!(image::image_dimensions(&png).unwrap(), (16, 12));
     assert!(dir.path().join("v.depth.npy").is_file());
     assert_eq!(server.uploads(), vec![3]);
+    assert_eq!(server.ids(), vec!["my-view"]);
 }
 
 #[test]
@@ -153,7 +156,8 @@ fn info_and_bad_input_in_plain_words() {
         "http://127.0.0.1:9",
     ]);
     let (_, stderr) = text(&out);
-    assert!(stderr.contains("error: cannot reach the server at http://127.0.0.1:9/v1/scenes"), "{stderr}");
+    // the first call asks the server for its scene limit
+    assert!(stderr.contains("error: cannot reach the server at http://127.0.0.1:9/v1/model"), "{stderr}");
 
     let out = scnerf(&["render", fixture("llff").to_str().unwrap(), "--path", "zigzag"]);
     let (_, stderr) = text(&out);

@@ -1,9 +1,15 @@
-//! Scene cache: built scenes (padded images, features, encoding volume, cameras, near/far,
-//! background) kept by id, so that further views of the same sources cost only the renderer.
+//! Scene cache: scenes (every view decoded, cameras, near/far, background) kept by id, and, per
+//! scene, the encoder features and encoding volume of each triple of views a render used, so
+//! that further views from the same triple cost only the renderer.
 //!
-//! Bounded two ways: total bytes (least recently used scenes are evicted to make room) and an
-//! idle time-to-live (a scene not rendered for `ttl` expires; every render extends it). Entries
-//! are `Arc`s: evicting a scene that a request is rendering frees it when that request ends.
+//! One byte budget for both. When room is needed, expired scenes go first, then the least
+//! recently used *volume* of any scene (a few seconds of CPU to build again from the cached
+//! views), and only then the least recently used *scene* with its volumes (its client must
+//! upload it again). A scene also expires after an idle time-to-live (every render extends it).
+//! Entries are `Arc`s: evicting what a request is rendering frees it when that request ends.
+//!
+//! Ids are the client's (`PUT /v1/scenes/{id}`) or random (`POST`), and are namespaced by owner:
+//! two tokens may hold scenes of the same id without seeing each other's.
 //!
 //! Time is passed in (`now`) rather than read here, so tests can drive expiry without sleeping.
 
@@ -11,24 +17,60 @@ use std::collections::{BTreeMap, HashMap};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant, SystemTime};
 
+use crate::pipeline::views::Views;
 use crate::pipeline::Scene;
 
 /// Who created a scene: a digest of the bearer token (never the token), or `None` when auth is
 /// off. A scene is only visible to the same owner.
 pub type Owner = Option<[u8; 32]>;
 
-/// Scene ids are 128 random bits (UUID v4) as 32 lowercase hex digits: unguessable, so without
-/// auth an id is a capability.
+/// Longest scene id.
+pub const MAX_ID_LEN: usize = 64;
+
+/// A scene id: 1 to 64 characters of `A-Z a-z 0-9 . _ -`, not `.` or `..` (which do not survive
+/// as path segments). Random ids are 32 lowercase hex digits (128 bits, a UUID v4): without auth
+/// such an id is a capability.
 pub fn is_valid_id(id: &str) -> bool {
-    id.len() == 32 && id.bytes().all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b))
+    (1..=MAX_ID_LEN).contains(&id.len())
+        && id.bytes().all(|b| b.is_ascii_alphanumeric() || b"._-".contains(&b))
+        && id != "."
+        && id != ".."
 }
 
-/// What a cached scene holds besides the tensors.
+/// A fresh random id.
+pub fn random_id() -> String {
+    uuid::Uuid::new_v4().simple().to_string()
+}
+
+/// A scene as cached: its views and, for a scene of exactly the model's view count, the volume
+/// of those views in upload order, built when it was created (as scenes always were).
 #[derive(Debug)]
 pub struct CachedScene {
-    pub scene: Scene,
+    pub views: Views,
     pub background: [f32; 3],
-    owner: Owner,
+    fixed: Option<Arc<Scene>>,
+    key: SceneKey,
+    /// Tells a scene from an earlier one of the same id (replaced meanwhile).
+    serial: u64,
+}
+
+impl CachedScene {
+    fn bytes(&self) -> usize {
+        // The fixed volume shares the views' images.
+        self.views.bytes() + self.fixed.as_ref().map_or(0, |s| s.bytes() - 4 * s.images.len())
+    }
+
+    fn is_fixed(&self, sources: &[usize]) -> bool {
+        self.fixed.is_some() && sources.iter().copied().eq(0..self.views.len())
+    }
+}
+
+/// What a new scene brings to the cache.
+pub struct NewScene {
+    pub views: Views,
+    /// The volume of the views in upload order, when built at creation.
+    pub volume: Option<Scene>,
+    pub background: [f32; 3],
 }
 
 #[derive(Debug, Clone, Copy)]
@@ -45,12 +87,21 @@ impl Default for CacheConfig {
 
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct CacheStats {
+    /// Scenes held.
     pub entries: usize,
+    /// Everything held: scenes and their volumes.
     pub bytes: usize,
     pub hits: u64,
     pub misses: u64,
     pub evictions: u64,
     pub expirations: u64,
+    /// Volumes of triples held (a 3-view scene's own volume is part of the scene).
+    pub volumes: usize,
+    pub volume_bytes: usize,
+    /// Renders whose triple's volume was cached, and those that built it.
+    pub volume_hits: u64,
+    pub volume_misses: u64,
+    pub volume_evictions: u64,
 }
 
 #[derive(Debug, thiserror::Error, PartialEq, Eq)]
@@ -60,20 +111,38 @@ pub struct SceneTooLarge {
     pub max: usize,
 }
 
-struct Entry {
+#[derive(Debug, Clone, PartialEq, Eq, Hash)]
+struct SceneKey {
+    owner: Owner,
+    id: String,
+}
+
+/// A scene's serial and the views of a triple, in volume order.
+type VolumeKey = (u64, Vec<usize>);
+
+struct SceneEntry {
     scene: Arc<CachedScene>,
     bytes: usize,
     expires: Instant,
-    /// Position in `Inner::lru` (larger = used more recently).
+    /// Position in `Inner::scene_lru` (larger = used more recently).
+    tick: u64,
+}
+
+struct VolumeEntry {
+    volume: Arc<Scene>,
+    bytes: usize,
     tick: u64,
 }
 
 #[derive(Default)]
 struct Inner {
-    entries: HashMap<String, Entry>,
-    /// tick -> id, oldest first.
-    lru: BTreeMap<u64, String>,
+    scenes: HashMap<SceneKey, SceneEntry>,
+    volumes: HashMap<VolumeKey, VolumeEntry>,
+    /// tick -> key, oldest first.
+    scene_lru: BTreeMap<u64, SceneKey>,
+    volume_lru: BTreeMap<u64, VolumeKey>,
     next_tick: u64,
+    next_serial: u64,
     stats: CacheStats,
 }
 
@@ -86,6 +155,14 @@ pub struct SceneCache {
 pub struct Hit {
     pub scene: Arc<CachedScene>,
     pub expires_at: SystemTime,
+}
+
+/// A stored scene: its id, its expiry, and whether it replaced one of the same id.
+#[derive(Debug)]
+pub struct Stored {
+    pub id: String,
+    pub expires_at: SystemTime,
+    pub replaced: bool,
 }
 
 impl SceneCache {
@@ -102,31 +179,40 @@ impl SceneCache {
         self.inner.lock().unwrap_or_else(|p| p.into_inner())
     }
 
-    /// Stores a scene under a fresh id, evicting expired and then least recently used scenes to
-    /// make room. Returns the id and the wall-clock expiry.
+    /// Stores a scene under `id` (replacing `owner`'s scene of that id) or a fresh random id,
+    /// making room as the module doc says.
     pub fn insert(
         &self,
-        scene: Scene,
-        background: [f32; 3],
+        id: Option<String>,
         owner: Owner,
+        new: NewScene,
         now: Instant,
-    ) -> Result<(String, SystemTime), SceneTooLarge> {
+    ) -> Result<Stored, SceneTooLarge> {
+        let key = SceneKey { owner, id: id.unwrap_or_else(random_id) };
+        let mut inner = self.lock();
+        let serial = inner.next_serial;
+        inner.next_serial += 1;
+        let scene = CachedScene {
+            views: new.views,
+            background: new.background,
+            fixed: new.volume.map(Arc::new),
+            key: key.clone(),
+            serial,
+        };
         let bytes = scene.bytes();
         if bytes > self.config.max_bytes {
             return Err(SceneTooLarge { needed: bytes, max: self.config.max_bytes });
         }
-        let id = uuid::Uuid::new_v4().simple().to_string();
-        let mut inner = self.lock();
         inner.purge_expired(now);
-        while inner.stats.bytes + bytes > self.config.max_bytes && inner.evict_oldest() {}
+        let replaced = inner.remove_scene(&key);
+        while inner.stats.bytes + bytes > self.config.max_bytes && inner.evict(None) {}
         let expires = now + self.config.ttl;
-        let tick = inner.touch_tick();
-        inner.lru.insert(tick, id.clone());
-        let scene = Arc::new(CachedScene { scene, background, owner });
-        inner.entries.insert(id.clone(), Entry { scene, bytes, expires, tick });
+        let tick = inner.tick();
+        inner.scene_lru.insert(tick, key.clone());
+        inner.scenes.insert(key.clone(), SceneEntry { scene: Arc::new(scene), bytes, expires, tick });
         inner.stats.bytes += bytes;
-        inner.stats.entries = inner.entries.len();
-        Ok((id, wall_clock(expires, now)))
+        inner.stats.entries = inner.scenes.len();
+        Ok(Stored { id: key.id, expires_at: wall_clock(expires, now), replaced })
     }
 
     /// Looks a scene up for `owner`, marks it recently used and extends its life by the TTL.
@@ -134,31 +220,65 @@ impl SceneCache {
     pub fn get(&self, id: &str, owner: &Owner, now: Instant) -> Option<Hit> {
         let mut inner = self.lock();
         inner.purge_expired(now);
-        let ttl = self.config.ttl;
-        let inner = &mut *inner;
-        let Some(entry) = inner.entries.get_mut(id).filter(|e| e.scene.owner == *owner) else {
+        let key = SceneKey { owner: *owner, id: id.to_string() };
+        let Some(old_tick) = inner.scenes.get(&key).map(|e| e.tick) else {
             inner.stats.misses += 1;
             return None;
         };
-        inner.lru.remove(&entry.tick);
-        let tick = inner.next_tick;
-        inner.next_tick += 1; // (not touch_tick: `entry` borrows `entries`)
-        entry.tick = tick;
-        entry.expires = now + ttl;
-        inner.lru.insert(tick, id.to_string());
+        inner.scene_lru.remove(&old_tick);
+        let tick = inner.tick();
+        inner.scene_lru.insert(tick, key.clone());
         inner.stats.hits += 1;
+        let entry = inner.scenes.get_mut(&key).expect("looked up above");
+        entry.tick = tick;
+        entry.expires = now + self.config.ttl;
         Some(Hit { scene: entry.scene.clone(), expires_at: wall_clock(entry.expires, now) })
     }
 
-    /// Deletes `owner`'s scene; false when there is no such (live) scene.
+    /// Deletes `owner`'s scene and its volumes; false when there is no such (live) scene.
     pub fn remove(&self, id: &str, owner: &Owner, now: Instant) -> bool {
         let mut inner = self.lock();
         inner.purge_expired(now);
-        let owned = inner.entries.get(id).is_some_and(|e| e.scene.owner == *owner);
-        if owned {
-            inner.remove(id);
+        inner.remove_scene(&SceneKey { owner: *owner, id: id.to_string() })
+    }
+
+    /// The volume of `scene`'s views `sources` (volume order), when cached; marks it recently
+    /// used. Counted as a volume hit or miss.
+    pub fn volume(&self, scene: &CachedScene, sources: &[usize]) -> Option<Arc<Scene>> {
+        let mut inner = self.lock();
+        let found = if scene.is_fixed(sources) {
+            scene.fixed.clone()
+        } else {
+            inner.touch_volume(&(scene.serial, sources.to_vec()))
+        };
+        match found {
+            Some(_) => inner.stats.volume_hits += 1,
+            None => inner.stats.volume_misses += 1,
         }
-        owned
+        found
+    }
+
+    /// Keeps a volume built for `scene`'s views `sources`, if the scene is still cached and the
+    /// two fit in the budget together; other volumes, then other scenes, make room.
+    pub fn insert_volume(&self, scene: &CachedScene, sources: Vec<usize>, volume: Arc<Scene>) {
+        let mut inner = self.lock();
+        let Some(scene_bytes) =
+            inner.scenes.get(&scene.key).filter(|e| e.scene.serial == scene.serial).map(|e| e.bytes)
+        else {
+            return; // deleted, replaced or evicted while the volume was built
+        };
+        let key = (scene.serial, sources);
+        let bytes = volume.bytes();
+        if scene.is_fixed(&key.1) || inner.volumes.contains_key(&key) || scene_bytes + bytes > self.config.max_bytes {
+            return;
+        }
+        while inner.stats.bytes + bytes > self.config.max_bytes && inner.evict(Some(&scene.key)) {}
+        let tick = inner.tick();
+        inner.volume_lru.insert(tick, key.clone());
+        inner.volumes.insert(key, VolumeEntry { volume, bytes, tick });
+        inner.stats.bytes += bytes;
+        inner.stats.volume_bytes += bytes;
+        inner.stats.volumes = inner.volumes.len();
     }
 
     /// Drops expired scenes (also done on every access; call periodically to free memory of an
@@ -173,33 +293,64 @@ impl SceneCache {
 }
 
 impl Inner {
-    fn touch_tick(&mut self) -> u64 {
+    fn tick(&mut self) -> u64 {
         let t = self.next_tick;
         self.next_tick += 1;
         t
     }
 
-    fn remove(&mut self, id: &str) -> Option<Entry> {
-        let entry = self.entries.remove(id)?;
-        self.lru.remove(&entry.tick);
-        self.stats.bytes -= entry.bytes;
-        self.stats.entries = self.entries.len();
-        Some(entry)
+    fn touch_volume(&mut self, key: &VolumeKey) -> Option<Arc<Scene>> {
+        let old = self.volumes.get(key)?.tick;
+        self.volume_lru.remove(&old);
+        let tick = self.tick();
+        self.volume_lru.insert(tick, key.clone());
+        let entry = self.volumes.get_mut(key)?;
+        entry.tick = tick;
+        Some(entry.volume.clone())
     }
 
-    /// Evicts the least recently used scene; false when the cache is empty.
-    fn evict_oldest(&mut self) -> bool {
-        let Some(id) = self.lru.values().next().cloned() else { return false };
-        self.remove(&id);
+    fn remove_volume(&mut self, key: &VolumeKey) {
+        if let Some(entry) = self.volumes.remove(key) {
+            self.volume_lru.remove(&entry.tick);
+            self.stats.bytes -= entry.bytes;
+            self.stats.volume_bytes -= entry.bytes;
+            self.stats.volumes = self.volumes.len();
+        }
+    }
+
+    /// Removes a scene and its volumes; false when there was none.
+    fn remove_scene(&mut self, key: &SceneKey) -> bool {
+        let Some(entry) = self.scenes.remove(key) else { return false };
+        self.scene_lru.remove(&entry.tick);
+        self.stats.bytes -= entry.bytes;
+        self.stats.entries = self.scenes.len();
+        let serial = entry.scene.serial;
+        let own: Vec<VolumeKey> = self.volumes.keys().filter(|k| k.0 == serial).cloned().collect();
+        for k in &own {
+            self.remove_volume(k);
+        }
+        true
+    }
+
+    /// Evicts the least recently used volume, else the least recently used scene but `keep`;
+    /// false when there is nothing to evict.
+    fn evict(&mut self, keep: Option<&SceneKey>) -> bool {
+        if let Some(key) = self.volume_lru.values().next().cloned() {
+            self.remove_volume(&key);
+            self.stats.volume_evictions += 1;
+            return true;
+        }
+        let Some(key) = self.scene_lru.values().find(|k| Some(*k) != keep).cloned() else { return false };
+        self.remove_scene(&key);
         self.stats.evictions += 1;
         true
     }
 
     fn purge_expired(&mut self, now: Instant) {
-        let expired: Vec<String> =
-            self.entries.iter().filter(|(_, e)| e.expires <= now).map(|(id, _)| id.clone()).collect();
-        for id in expired {
-            self.remove(&id);
+        let expired: Vec<SceneKey> =
+            self.scenes.iter().filter(|(_, e)| e.expires <= now).map(|(k, _)| k.clone()).collect();
+        for key in expired {
+            self.remove_scene(&key);
             self.stats.expirations += 1;
         }
     }
@@ -220,13 +371,19 @@ mod tests {
     use super::*;
     use ndarray::{ArcArray, Dimension, ShapeBuilder};
 
-    /// A scene holding `floats` f32 values in its volume (plus one each in images and features).
-    fn scene(floats: usize) -> Scene {
-        fn zeros<D: Dimension>(shape: impl ShapeBuilder<Dim = D>) -> ArcArray<f32, D> {
-            ArcArray::zeros(shape)
-        }
+    fn zeros<D: Dimension>(shape: impl ShapeBuilder<Dim = D>) -> ArcArray<f32, D> {
+        ArcArray::zeros(shape)
+    }
+
+    /// `n` views of one float each.
+    fn views(n: usize) -> Views {
+        Views { images: zeros((n, 1, 1, 1)), cameras: vec![crate::testing::camera(); n], near: 1.0, far: 2.0 }
+    }
+
+    /// A triple's scene holding `floats` f32 values in its volume (plus 3 image and 1 feature).
+    fn volume(floats: usize) -> Scene {
         Scene {
-            images: zeros((1, 1, 1, 1)),
+            images: zeros((3, 1, 1, 1)),
             features: zeros((1, 1, 1, 1)),
             volume: zeros((1, 1, 1, 1, floats)),
             intrinsics: zeros((1, 3, 3)),
@@ -236,42 +393,59 @@ mod tests {
         }
     }
 
+    /// A 3-view scene with its volume of `floats` floats: 4 (3 + 1 + floats) bytes.
+    fn three_views(floats: usize) -> NewScene {
+        NewScene { views: views(3), volume: Some(volume(floats)), background: [0.0; 3] }
+    }
+
+    /// A capture of `n` views, `4 n` bytes, no volume yet.
+    fn capture(n: usize) -> NewScene {
+        NewScene { views: views(n), volume: None, background: [0.0; 3] }
+    }
+
     fn cache(max_bytes: usize, ttl_secs: u64) -> SceneCache {
         SceneCache::new(CacheConfig { max_bytes, ttl: Duration::from_secs(ttl_secs) })
     }
 
+    fn put(c: &SceneCache, new: NewScene, now: Instant) -> String {
+        c.insert(None, None, new, now).unwrap().id
+    }
+
     #[test]
-    fn ids_are_hex_and_validated() {
+    fn ids_are_validated() {
         let c = cache(1 << 20, 60);
-        let (id, _) = c.insert(scene(10), [0.0; 3], None, Instant::now()).unwrap();
-        assert!(is_valid_id(&id), "{id}");
-        assert!(!is_valid_id("../etc/passwd"));
-        assert!(!is_valid_id(&id.to_uppercase()));
-        assert!(!is_valid_id(&id[1..]));
+        let id = put(&c, three_views(10), Instant::now());
+        assert!(is_valid_id(&id) && id.len() == 32, "{id}");
+        for good in ["a", "my-scene_2.v1", &"x".repeat(64), &id.to_uppercase()] {
+            assert!(is_valid_id(good), "{good}");
+        }
+        for bad in ["", ".", "..", "../etc/passwd", "a/b", "a b", "é", &"x".repeat(65)] {
+            assert!(!is_valid_id(bad), "{bad}");
+        }
     }
 
     #[test]
     fn evicts_least_recently_used_by_bytes() {
-        // Each scene is (1 + 1 + 1000) floats = 4008 bytes; room for two.
+        // Each scene is (3 + 1 + 1000) floats = 4016 bytes; room for two.
         let c = cache(9000, 60);
         let now = Instant::now();
-        let (a, _) = c.insert(scene(1000), [0.0; 3], None, now).unwrap();
-        let (b, _) = c.insert(scene(1000), [0.0; 3], None, now).unwrap();
+        let a = put(&c, three_views(1000), now);
+        let b = put(&c, three_views(1000), now);
         assert!(c.get(&a, &None, now).is_some()); // a is now the most recently used
-        let (d, _) = c.insert(scene(1000), [0.0; 3], None, now).unwrap();
+        let d = put(&c, three_views(1000), now);
         assert!(c.get(&b, &None, now).is_none(), "b was least recently used");
         assert!(c.get(&a, &None, now).is_some());
         assert!(c.get(&d, &None, now).is_some());
         let s = c.stats();
-        assert_eq!((s.entries, s.bytes, s.evictions), (2, 2 * 4008, 1));
+        assert_eq!((s.entries, s.bytes, s.evictions), (2, 2 * 4016, 1));
         assert_eq!((s.hits, s.misses), (3, 1));
     }
 
     #[test]
     fn refuses_a_scene_larger_than_the_cache() {
         let c = cache(100, 60);
-        let err = c.insert(scene(1000), [0.0; 3], None, Instant::now()).unwrap_err();
-        assert_eq!(err, SceneTooLarge { needed: 4008, max: 100 });
+        let err = c.insert(None, None, three_views(1000), Instant::now()).unwrap_err();
+        assert_eq!(err, SceneTooLarge { needed: 4016, max: 100 });
         assert_eq!(c.stats().entries, 0);
     }
 
@@ -279,8 +453,8 @@ mod tests {
     fn idle_scenes_expire_and_use_extends_life() {
         let c = cache(1 << 20, 10);
         let t0 = Instant::now();
-        let (a, _) = c.insert(scene(10), [0.0; 3], None, t0).unwrap();
-        let (b, _) = c.insert(scene(10), [0.0; 3], None, t0).unwrap();
+        let a = put(&c, three_views(10), t0);
+        let b = put(&c, three_views(10), t0);
         assert!(c.get(&a, &None, t0 + Duration::from_secs(8)).is_some()); // a now lives to t0+18
         assert!(c.get(&b, &None, t0 + Duration::from_secs(10)).is_none(), "b expired at t0+10");
         assert!(c.get(&a, &None, t0 + Duration::from_secs(17)).is_some());
@@ -290,19 +464,109 @@ mod tests {
     }
 
     #[test]
-    fn scenes_are_private_to_their_owner() {
+    fn scenes_are_private_to_their_owner_and_ids_are_namespaced() {
         let c = cache(1 << 20, 60);
         let now = Instant::now();
-        let alice = Some([1u8; 32]);
-        let bob = Some([2u8; 32]);
-        let (id, _) = c.insert(scene(10), [0.0; 3], alice, now).unwrap();
+        let (alice, bob) = (Some([1u8; 32]), Some([2u8; 32]));
+        let id = c.insert(None, alice, three_views(10), now).unwrap().id;
         assert!(c.get(&id, &bob, now).is_none());
         assert!(c.get(&id, &None, now).is_none());
         assert!(!c.remove(&id, &bob, now));
-        assert!(c.get(&id, &alice, now).is_some());
+        // Bob names a scene with Alice's id: a scene of his own, hers unchanged.
+        let stored = c.insert(Some(id.clone()), bob, capture(5), now).unwrap();
+        assert!(!stored.replaced);
+        assert_eq!(c.get(&id, &alice, now).unwrap().scene.views.len(), 3);
+        assert_eq!(c.get(&id, &bob, now).unwrap().scene.views.len(), 5);
         assert!(c.remove(&id, &alice, now));
         assert!(c.get(&id, &alice, now).is_none());
         assert!(!c.remove(&id, &alice, now));
+        assert!(c.get(&id, &bob, now).is_some());
+    }
+
+    #[test]
+    fn a_named_scene_is_replaced_with_its_volumes() {
+        let c = cache(1 << 20, 60);
+        let now = Instant::now();
+        let first = c.insert(Some("tabletop".into()), None, capture(4), now).unwrap();
+        assert_eq!((first.id.as_str(), first.replaced), ("tabletop", false));
+        let old = c.get("tabletop", &None, now).unwrap().scene;
+        c.insert_volume(&old, vec![0, 1, 2], Arc::new(volume(100)));
+        assert_eq!(c.stats().volumes, 1);
+        let second = c.insert(Some("tabletop".into()), None, capture(6), now).unwrap();
+        assert!(second.replaced);
+        let s = c.stats();
+        assert_eq!((s.entries, s.volumes, s.bytes, s.volume_bytes), (1, 0, 4 * 6, 0));
+        let new = c.get("tabletop", &None, now).unwrap().scene;
+        assert_eq!(new.views.len(), 6);
+        assert!(c.volume(&new, &[0, 1, 2]).is_none(), "the old scene's volume is gone");
+        // A volume still being built for the replaced scene is not kept.
+        c.insert_volume(&old, vec![0, 1, 2], Arc::new(volume(100)));
+        assert_eq!(c.stats().volumes, 0);
+    }
+
+    #[test]
+    fn volumes_are_kept_per_triple_and_counted() {
+        let c = cache(1 << 20, 60);
+        let now = Instant::now();
+        let id = put(&c, capture(8), now);
+        let scene = c.get(&id, &None, now).unwrap().scene;
+        assert!(c.volume(&scene, &[0, 1, 2]).is_none());
+        c.insert_volume(&scene, vec![0, 1, 2], Arc::new(volume(100)));
+        assert!(c.volume(&scene, &[0, 1, 2]).is_some());
+        assert!(c.volume(&scene, &[1, 0, 2]).is_none(), "another reference: another volume");
+        let s = c.stats();
+        assert_eq!((s.volume_hits, s.volume_misses, s.volumes), (1, 2, 1));
+        assert_eq!((s.volume_bytes, s.bytes), (4 * 104, 4 * 104 + 4 * 8));
+        // A 3-view scene's own volume is part of it: a hit, never stored twice.
+        let id3 = put(&c, three_views(10), now);
+        let three = c.get(&id3, &None, now).unwrap().scene;
+        assert!(c.volume(&three, &[0, 1, 2]).is_some());
+        c.insert_volume(&three, vec![0, 1, 2], Arc::new(volume(100)));
+        assert_eq!(c.stats().volumes, 1);
+        assert!(c.remove(&id, &None, now));
+        assert_eq!((c.stats().volumes, c.stats().volume_bytes), (0, 0), "volumes go with their scene");
+    }
+
+    /// Many triples of one capture: the bytes held never exceed the budget, the oldest volumes
+    /// go first, and the capture itself stays.
+    #[test]
+    fn the_bound_holds_with_many_triples() {
+        let max = 4 * (20 + 3 * 104); // the capture and three volumes
+        let c = cache(max, 60);
+        let now = Instant::now();
+        let id = put(&c, capture(20), now);
+        let scene = c.get(&id, &None, now).unwrap().scene;
+        for i in 0..18 {
+            c.insert_volume(&scene, vec![i, i + 1, i + 2], Arc::new(volume(100)));
+            assert!(c.stats().bytes <= max, "after triple {i}: {:?}", c.stats());
+        }
+        let s = c.stats();
+        assert_eq!((s.entries, s.volumes, s.volume_evictions, s.evictions), (1, 3, 15, 0));
+        assert!(c.volume(&scene, &[17, 18, 19]).is_some() && c.volume(&scene, &[14, 15, 16]).is_none());
+        // A volume that cannot fit beside its scene is not kept (and evicts nothing).
+        c.insert_volume(&scene, vec![0, 2, 4], Arc::new(volume(10_000)));
+        assert_eq!(c.stats().volumes, 3);
+    }
+
+    #[test]
+    fn volumes_are_evicted_before_scenes() {
+        // Room for three captures and a volume, less one byte.
+        let c = cache(4 * (3 * 8 + 104) - 1, 60);
+        let now = Instant::now();
+        let a = put(&c, capture(8), now);
+        let b = put(&c, capture(8), now);
+        let scene_a = c.get(&a, &None, now).unwrap().scene;
+        c.insert_volume(&scene_a, vec![0, 1, 2], Arc::new(volume(100)));
+        // A third capture needs room: a's volume goes, both scenes stay.
+        let d = put(&c, capture(8), now);
+        assert!([&a, &b, &d].iter().all(|id| c.get(id, &None, now).is_some()));
+        let s = c.stats();
+        assert_eq!((s.volumes, s.volume_evictions, s.evictions), (0, 1, 0));
+        // Another volume for a evicts the least recently used other scene (b), never a itself.
+        let _ = c.get(&d, &None, now);
+        c.insert_volume(&scene_a, vec![0, 1, 2], Arc::new(volume(100)));
+        assert!(c.get(&b, &None, now).is_none() && c.get(&a, &None, now).is_some());
+        assert_eq!(c.stats().evictions, 1);
     }
 
     #[test]

@@ -69,6 +69,11 @@ impl Camera {
         self.k[(1, 2)]
     }
 
+    /// Centre and optical axis, for choosing sources (the rule shared with the client).
+    pub fn viewpoint(&self) -> scnerf_capture::camera::Viewpoint {
+        scnerf_capture::camera::Viewpoint::of_w2c(&self.w2c)
+    }
+
     /// Camera-to-world transform: the general inverse of `w2c` (as numpy.linalg.inv in the
     /// exporter), not the rigid one, since validation accepts rotations orthonormal to 1e-3.
     pub fn c2w(&self) -> Matrix4<f64> {

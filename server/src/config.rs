@@ -150,6 +150,16 @@ pub struct Config {
     #[arg(long, env = "SCNERF_MAX_JSON_DEPTH", default_value_t = Limits::default().max_json_depth)]
     pub max_json_depth: usize,
 
+    /// Most views a scene may hold (POST /v1/scenes with a whole capture; at least 3). Each view
+    /// is kept decoded (3 x W x H float32); per target the server renders from the 3 nearest.
+    #[arg(long, env = "SCNERF_MAX_SCENE_VIEWS", default_value_t = Limits::default().max_scene_views as u64,
+          value_parser = clap::value_parser!(u64).range(3..=4096))]
+    pub max_scene_views: u64,
+
+    /// Largest body of POST /v1/captures (a capture folder's files), in bytes (413 beyond).
+    #[arg(long, env = "SCNERF_MAX_CAPTURE_BYTES", default_value_t = Limits::default().max_capture_bytes)]
+    pub max_capture_bytes: usize,
+
     /// Memory for cached scenes (POST /v1/scenes), in MiB; least recently used scenes are evicted
     /// beyond it. A paper-size scene of 640x512 sources takes ~150 MiB.
     #[arg(long, env = "SCNERF_SCENE_CACHE_MB", default_value_t = CacheConfig::default().max_bytes >> 20)]
@@ -275,6 +285,8 @@ impl Config {
             max_target_pixels: self.max_target_pixels,
             max_json_bytes: self.max_json_bytes,
             max_json_depth: self.max_json_depth,
+            max_scene_views: self.max_scene_views as usize,
+            max_capture_bytes: self.max_capture_bytes,
         }
     }
 

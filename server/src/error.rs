@@ -37,9 +37,10 @@ pub enum ApiError {
     #[error("not found: {path}")]
     NotFound { path: String },
 
-    /// No live scene with this id for this client (unknown, expired, evicted, deleted, or
-    /// created with another token: these are deliberately indistinguishable).
-    #[error("no scene {id} (unknown, expired or evicted: create it again with POST /v1/scenes)")]
+    /// No live scene with this id for this client here (unknown, expired, evicted, deleted,
+    /// created with another token, or held by another replica: these are deliberately
+    /// indistinguishable). Its hint tells the client to upload it again.
+    #[error("no scene {id} here (unknown, expired, evicted, or on another replica): upload it again (PUT /v1/scenes/{id}) and retry")]
     SceneNotFound { id: String },
 
     #[error("method not allowed")]
@@ -133,6 +134,14 @@ impl ApiError {
         }
     }
 
+    /// What the client should do, when that is one thing (`ErrorDetail::hint`).
+    pub fn hint(&self) -> Option<&'static str> {
+        match self {
+            Self::SceneNotFound { .. } => Some(HINT_REUPLOAD),
+            _ => None,
+        }
+    }
+
     /// The message as sent and logged: client data quoted in it is clipped (see `clip_quoted`).
     pub fn message(&self) -> String {
         clip_quoted(&self.to_string())
@@ -144,6 +153,7 @@ impl ApiError {
                 code: self.code().to_string(),
                 message: self.message(),
                 field: self.field().map(clip_quoted),
+                hint: self.hint().map(str::to_string),
             },
         }
     }
@@ -189,7 +199,14 @@ pub struct ErrorDetail {
     /// The offending field (`sources[1].camera.pose.matrix`, `source_2`, `near`, `content-type`,
     /// `authorization`, ...), or null when the error is not about the request.
     pub field: Option<String>,
+    /// What to do about it, when that is one thing: `reupload` (404 `scene_not_found`: upload
+    /// the scene again, e.g. `PUT /v1/scenes/{id}` with the same id, and retry). Absent otherwise.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub hint: Option<String>,
 }
+
+/// `ErrorDetail::hint` of a scene this server does not hold.
+pub const HINT_REUPLOAD: &str = "reupload";
 
 /// Longest quoted client string kept in an error message.
 const MAX_QUOTED_CHARS: usize = 32;

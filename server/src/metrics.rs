@@ -129,11 +129,26 @@ impl Collector for StateCollector {
         gauge(&mut e, "inference_queue_jobs", "Graph runs waiting for the inference executor", n(q.queued_jobs))?;
         gauge(&mut e, "inference_queue_capacity", "Requests the executor admits at once", n(q.capacity))?;
         gauge(&mut e, "scene_cache_entries", "Scenes in the cache", n(c.entries))?;
-        gauge(&mut e, "scene_cache_bytes", "Memory held by cached scenes", n(c.bytes))?;
+        gauge(
+            &mut e,
+            "scene_cache_bytes",
+            "Memory held by cached scenes, their triples' volumes included",
+            n(c.bytes),
+        )?;
         counter(&mut e, "scene_cache_hits", "Scene lookups that found the scene", c.hits)?;
         counter(&mut e, "scene_cache_misses", "Scene lookups for unknown, expired or other clients' scenes", c.misses)?;
         counter(&mut e, "scene_cache_evictions", "Scenes evicted to stay within the byte limit", c.evictions)?;
         counter(&mut e, "scene_cache_expirations", "Scenes dropped after their idle TTL", c.expirations)?;
+        gauge(&mut e, "volume_cache_entries", "Volumes of source triples cached in scenes", n(c.volumes))?;
+        gauge(
+            &mut e,
+            "volume_cache_bytes",
+            "Memory held by cached volumes (part of scene_cache_bytes)",
+            n(c.volume_bytes),
+        )?;
+        counter(&mut e, "volume_cache_hits", "Scene renders whose sources' volume was cached", c.volume_hits)?;
+        counter(&mut e, "volume_cache_misses", "Scene renders that built their sources' volume", c.volume_misses)?;
+        counter(&mut e, "volume_cache_evictions", "Volumes evicted to stay within the byte limit", c.volume_evictions)?;
         Ok(())
     }
 }

@@ -139,8 +139,10 @@ pub async fn warm_up(pipeline: &Pipeline) -> Result<Duration, String> {
     // Warm-up runs before readiness, alone on the executor; the deadline only bounds a hang.
     let work = pipeline.scene_work(&cameras).plus(pipeline.view_work(&target));
     let ticket = pipeline.admit(Instant::now() + Duration::from_secs(3600), work).map_err(|e| e.to_string())?;
-    let scene =
-        pipeline.build_scene(&ticket, &cameras, images, 2.0, 6.0, &mut timings).await.map_err(|e| e.to_string())?;
+    let scene = pipeline
+        .build_scene(&ticket, &cameras, images.into_shared(), 2.0, 6.0, &mut timings)
+        .await
+        .map_err(|e| e.to_string())?;
     let view = pipeline
         .render_view(&ticket, &scene, &target, [0.0; 3], None, &mut timings)
         .await

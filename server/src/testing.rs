@@ -184,6 +184,16 @@ pub fn fake_state() -> AppState {
     state_with(bundle, runner, Limits::default(), Duration::from_secs(60))
 }
 
+/// A canonical camera: 8x6, at the origin looking along +z.
+pub fn camera() -> crate::camera::Camera {
+    crate::camera::Camera {
+        width: 8,
+        height: 6,
+        k: nalgebra::Matrix3::new(8.0, 0.0, 4.0, 0.0, 8.0, 3.0, 0.0, 0.0, 1.0),
+        w2c: nalgebra::Matrix4::identity(),
+    }
+}
+
 /// A PNG of the given size and colour.
 pub fn png(width: u32, height: u32, rgba: [u8; 4]) -> Vec<u8> {
     let img = image::RgbaImage::from_pixel(width, height, image::Rgba(rgba));

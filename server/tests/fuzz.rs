@@ -113,7 +113,8 @@ fn seeds() -> Seeds {
     let proto = pb::RenderRequest { outputs: vec!["rgb".into(), "opacity".into()], ..proto_request(&request, &imgs) };
     let proto_scene =
         pb::SceneRequest { sources: proto.sources.clone(), near: 2.0, far: 6.0, background: vec![0.5, 0.5, 0.5] };
-    let proto_target = pb::SceneRenderRequest { target: proto.target.clone(), outputs: vec!["depth".into()] };
+    let proto_target =
+        pb::SceneRenderRequest { target: proto.target.clone(), outputs: vec!["depth".into()], sources: vec![] };
     Seeds {
         json_render: serde_json::to_vec(&inline).unwrap(),
         json_scene: serde_json::to_vec(&scene).unwrap(),
@@ -147,7 +148,7 @@ fn exercise(which: usize, data: Vec<u8>, config: &ModelConfig, limits: &Limits, 
         3 => rt
             .block_on(read_render_request(RequestFormat::Multipart, request(data, &multipart), limits))
             .and_then(|r| r.validate(config, limits).map(drop)),
-        4 => RenderRequest::from_protobuf(&data).and_then(|r| r.validate(config, limits).map(drop)),
+        4 => RenderRequest::from_protobuf(&data, limits).and_then(|r| r.validate(config, limits).map(drop)),
         5 => rt
             .block_on(read_scene_request(RequestFormat::Protobuf, request(data, "application/x-protobuf"), limits))
             .and_then(|r| r.validate(config, limits).map(drop)),
@@ -213,8 +214,8 @@ fn the_seeds_are_valid_requests() {
     RenderRequest::from_json(&s.json_render, ImageMode::Inline, &limits).unwrap().validate(&config, &limits).unwrap();
     SceneRequest::from_json(&s.json_scene, ImageMode::Inline, &limits).unwrap().validate(&config, &limits).unwrap();
     TargetRequest::from_json(&s.json_target, &limits).unwrap().validate(&limits).unwrap();
-    RenderRequest::from_protobuf(&s.proto_render).unwrap().validate(&config, &limits).unwrap();
-    SceneRequest::from_protobuf(&s.proto_scene).unwrap().validate(&config, &limits).unwrap();
+    RenderRequest::from_protobuf(&s.proto_render, &limits).unwrap().validate(&config, &limits).unwrap();
+    SceneRequest::from_protobuf(&s.proto_scene, &limits).unwrap().validate(&config, &limits).unwrap();
     TargetRequest::from_protobuf(&s.proto_target).unwrap().validate(&limits).unwrap();
     let rt = tokio::runtime::Builder::new_current_thread().enable_all().build().unwrap();
     let multipart = format!("multipart/form-data; boundary={BOUNDARY}");

@@ -40,6 +40,8 @@ fn limits() -> Limits {
         max_target_pixels: 512 * 512,
         max_json_bytes: 64 << 10,
         max_json_depth: 16,
+        max_scene_views: 16,
+        max_capture_bytes: 4 << 20,
     }
 }
 
@@ -780,16 +782,30 @@ fn cases() -> Vec<Case> {
             "scene_id",
         ),
         case(
-            "scene id in upper case",
-            m.raw(
-                "POST",
-                "/v1/scenes/0123456789ABCDEF0123456789ABCDEF/render",
-                "application/json",
-                serde_json::to_vec(&view).unwrap(),
-            ),
+            "scene id with a character outside A-Za-z0-9._-",
+            m.raw("POST", "/v1/scenes/scene%20one/render", "application/json", serde_json::to_vec(&view).unwrap()),
             400,
             BAD,
             "scene_id",
+        ),
+        case(
+            "scene id of dots only",
+            m.raw("PUT", "/v1/scenes/..", "application/json", serde_json::to_vec(&view).unwrap()),
+            400,
+            BAD,
+            "scene_id",
+        ),
+        case(
+            "pinned source out of range",
+            m.raw(
+                "POST",
+                &format!("{unknown_scene}/render"),
+                "application/json",
+                serde_json::to_vec(&serde_json::json!({"target": view["target"], "sources": [0, 1, "2"]})).unwrap(),
+            ),
+            400,
+            BAD,
+            "sources[2]",
         ),
         case(
             "scene id too long",

@@ -126,6 +126,7 @@ async fn protobuf_scene_and_protobuf_view() {
             }),
         }),
         outputs: vec!["depth".into()],
+        sources: vec![2, 0, 1],
     };
     let req = raw_to(
         "POST",
@@ -136,8 +137,10 @@ async fn protobuf_scene_and_protobuf_view() {
     );
     let got = send(app, req).await;
     assert_eq!(got.0, 200, "{}", String::from_utf8_lossy(&got.2));
+    assert_eq!(got.1["x-scnerf-sources"], "2,0,1");
     let resp = pb::RenderResponse::decode(got.2).unwrap();
     assert_eq!((resp.width, resp.height), (4, 4));
+    assert_eq!(resp.sources, vec![2, 0, 1], "pinned: another reference");
     assert_eq!(resp.depth.unwrap().data.len(), 4 * 4 * 4);
     assert!(resp.rgb_png.is_empty());
 }
@@ -179,9 +182,13 @@ async fn scene_request_errors_name_the_field() {
 async fn bad_and_unknown_scene_ids() {
     let app = router(fake_state());
     let unknown = "0123456789abcdef0123456789abcdef";
-    let got = send(app.clone(), render_req(unknown, &target_json(32), None)).await;
-    assert_error(&got, 404, "scene_not_found", Some("scene_id"));
-    for bad in ["xyz", "0123456789ABCDEF0123456789ABCDEF", "%2e%2e", "0123456789abcdef0123456789abcdef0"] {
+    for id in [unknown, "xyz", "My-Scene_1.v2"] {
+        let got = send(app.clone(), render_req(id, &target_json(32), None)).await;
+        assert_error(&got, 404, "scene_not_found", Some("scene_id"));
+        assert_eq!(json_of(&got)["error"]["hint"], "reupload", "a machine-readable hint to upload again");
+    }
+    let too_long = "a".repeat(65);
+    for bad in ["a%20b", "%2e%2e", "caf%C3%A9", too_long.as_str()] {
         let got = send(app.clone(), render_req(bad, &target_json(32), None)).await;
         assert_error(&got, 400, "malformed_request", Some("scene_id"));
     }

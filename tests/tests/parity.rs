@@ -152,7 +152,8 @@ async fn pipeline_matches_pytorch_stage_by_stage() {
         let ticket = admit(&p);
         let images = p.decode_sources(&req.scene).await.unwrap();
         let (near, far) = (req.scene.near, req.scene.far);
-        let scene = p.build_scene(&ticket, &req.scene.cameras(), images, near, far, &mut timings).await.unwrap();
+        let scene =
+            p.build_scene(&ticket, &req.scene.cameras(), images.into_shared(), near, far, &mut timings).await.unwrap();
 
         let (shape, features) = expected.tensor("features");
         assert_eq!(scene.features.shape(), shape, "{name}: features shape");
@@ -317,4 +318,64 @@ async fn cached_scene_render_is_bit_identical_to_one_shot() {
         assert_eq!(cached[key], one_shot[key], "{key} differs between the cached and the one-shot render");
     }
     eprintln!("one-shot timings {}; cached timings {}", one_shot["timings_ms"], cached["timings_ms"]);
+}
+
+/// A capture scene renders exactly what `/v1/render` renders from the same triple in the same
+/// order, whether the server chose the triple or the request pinned it: the parity case's three
+/// sources among two far-away extra views (indices 1, 2, 4 of five), through the real graphs.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn capture_scene_render_is_bit_identical_to_one_shot_of_its_triple() {
+    let app = router(ready(pipeline()));
+    let case = Case::load(&cases()[0]).unwrap();
+    let call = |path: String, ctype: String, body: Vec<u8>| {
+        let app = app.clone();
+        async move {
+            let req = Request::post(path)
+                .header("content-type", ctype)
+                .header("accept", "application/json")
+                .body(Body::from(body))
+                .unwrap();
+            let resp = app.oneshot(req).await.unwrap();
+            let status = resp.status().as_u16();
+            let bytes = resp.into_body().collect().await.unwrap().to_bytes();
+            assert!(status < 300, "{status}: {}", String::from_utf8_lossy(&bytes));
+            serde_json::from_slice::<serde_json::Value>(&bytes).unwrap()
+        }
+    };
+    let (scene, view) = split_request(&case.request);
+    // Views: [extra, source 0, source 1, extra, source 2]; an extra is source 0's camera moved
+    // 20 units back along its axis, far from the target.
+    let mut extra = scene["sources"][0].clone();
+    extra["camera"]["pose"]["matrix"][2][3] = serde_json::json!(23.0);
+    let order = [None, Some(0), Some(1), None, Some(2)];
+    let mut capture = scene.clone();
+    capture["sources"] = order.iter().map(|o| o.map_or(extra.clone(), |i| scene["sources"][i].clone())).collect();
+    let images: Vec<&[u8]> = order.iter().map(|o| case.images[o.unwrap_or(0)].as_slice()).collect();
+    let json = serde_json::to_vec(&capture).unwrap();
+    let names: Vec<String> = (0..5).map(|i| format!("source_{i}")).collect();
+    let mut parts: Vec<(&str, Option<&str>, &str, &[u8])> = vec![("request", None, "application/json", &json)];
+    parts.extend(names.iter().zip(&images).map(|(n, img)| (n.as_str(), Some("view.png"), "image/png", *img)));
+    let (ctype, body) = scnerf_e2e::multipart(&parts);
+    let created = call("/v1/scenes".into(), ctype, body).await;
+    let path = format!("/v1/scenes/{}/render", created["scene_id"].as_str().unwrap());
+
+    let mut pinned = view.clone();
+    pinned["sources"] = serde_json::json!([4, 1, 2]);
+    for body in [view, pinned] {
+        let rendered = call(path.clone(), "application/json".into(), serde_json::to_vec(&body).unwrap()).await;
+        let chosen: Vec<usize> =
+            rendered["sources"].as_array().unwrap().iter().map(|v| v.as_u64().unwrap() as usize).collect();
+        let triple: Vec<usize> = chosen.iter().map(|&i| order[i].expect("one of the case's sources")).collect();
+        let mut request = case.request.clone();
+        request["sources"] = triple.iter().map(|&i| case.request["sources"][i].clone()).collect();
+        let reordered =
+            Case { request: request.clone(), images: triple.iter().map(|&i| case.images[i].clone()).collect() };
+        let (ctype, body) = reordered.multipart(&request);
+        let one_shot = call("/v1/render".into(), ctype, body).await;
+        for key in ["width", "height", "model_id", "rgb", "depth", "opacity"] {
+            assert!(!one_shot[key].is_null(), "{key} missing");
+            assert_eq!(rendered[key], one_shot[key], "{key} differs from /v1/render of sources {triple:?}");
+        }
+        eprintln!("capture scene rendered from views {chosen:?} = case sources {triple:?}");
+    }
 }

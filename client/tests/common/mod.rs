@@ -1,8 +1,10 @@
 //! A small in-process stand-in for scnerf-server's capture-scene API (axum on a loopback port):
-//! `POST /v1/scenes` (multipart: `request` JSON + `source_i` images) and
-//! `POST /v1/scenes/{id}/render` (JSON), answering like the real server, plus scripted failures:
-//! the next renders can answer 503 with Retry-After, or 404 `scene_not_found` (the scene is
-//! forgotten, as after expiry), or 422 for a target wider than 4096; a scene of more than
+//! `PUT /v1/scenes/{id}` (multipart: `request` JSON + `source_i` images; 201 new, 200
+//! replaced), `POST /v1/scenes/{id}/render` (JSON) and `GET /v1/model` (`max_scene_views`),
+//! answering like the real server, plus scripted failures:
+//! the next renders can answer 503 with Retry-After, or 404 `scene_not_found` with the hint
+//! `reupload` (the scene is forgotten, as after expiry), or a plain 404 without the hint (as a
+//! proxy in front of no scene API would), or 422 for a target wider than 4096; a scene of more than
 //! `MAX_VIEWS` views is refused from its `request` part, before the images are read.
 
 #![allow(dead_code)] // each test binary uses part of it
@@ -15,7 +17,7 @@ use std::sync::{Arc, Mutex};
 use axum::extract::{Multipart, Path, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
-use axum::routing::post;
+use axum::routing::{get, post, put};
 use axum::{Json, Router};
 use base64::Engine;
 use serde::Deserialize;
@@ -28,10 +30,14 @@ pub const MAX_VIEWS: usize = 8;
 pub struct FakeState {
     /// Number of views of every upload, in order.
     pub uploads: Mutex<Vec<usize>>,
+    /// The scene id of every upload, in order.
+    pub ids: Mutex<Vec<String>>,
     /// Renders answered 200.
     pub renders: AtomicUsize,
     /// The next this many renders answer 503 (Retry-After: 1).
     pub busy: AtomicUsize,
+    /// The next this many renders answer 404 `not_found` without a hint.
+    pub unrouted: AtomicUsize,
     /// The next this many renders forget their scene and answer 404 scene_not_found.
     pub forget: AtomicUsize,
     scenes: Mutex<HashSet<String>>,
@@ -50,8 +56,9 @@ impl FakeServer {
         let listener = runtime.block_on(tokio::net::TcpListener::bind("127.0.0.1:0")).unwrap();
         let url = format!("http://{}", listener.local_addr().unwrap());
         let app = Router::new()
-            .route("/v1/scenes", post(create))
+            .route("/v1/scenes/{id}", put(create))
             .route("/v1/scenes/{id}/render", post(render))
+            .route("/v1/model", get(|| async { Json(json!({"model_id": "fake", "max_scene_views": MAX_VIEWS})) }))
             .with_state(state.clone());
         runtime.spawn(async move { axum::serve(listener, app).await.unwrap() });
         FakeServer { url, state, _runtime: runtime }
@@ -61,6 +68,10 @@ impl FakeServer {
         self.state.uploads.lock().unwrap().clone()
     }
 
+    pub fn ids(&self) -> Vec<String> {
+        self.state.ids.lock().unwrap().clone()
+    }
+
     pub fn renders(&self) -> usize {
         self.state.renders.load(Ordering::SeqCst)
     }
@@ -68,6 +79,13 @@ impl FakeServer {
 
 fn error(status: StatusCode, code: &str, message: &str, field: Option<&str>) -> Response {
     (status, Json(json!({"error": {"code": code, "message": message, "field": field}}))).into_response()
+}
+
+/// The real server's answer for a scene it does not hold.
+fn scene_not_found() -> Response {
+    let body = json!({"error": {"code": "scene_not_found", "message": "no such scene (expired?)",
+                                "field": "scene_id", "hint": "reupload"}});
+    (StatusCode::NOT_FOUND, Json(body)).into_response()
 }
 
 /// The server's JSON camera, strictly (unknown fields are refused as the real parser does).
@@ -127,7 +145,7 @@ fn check(c: &Camera) {
     assert_eq!(c.pose.matrix[3], [0.0, 0.0, 0.0, 1.0]);
 }
 
-async fn create(State(state): State<Arc<FakeState>>, mut multipart: Multipart) -> Response {
+async fn create(State(state): State<Arc<FakeState>>, Path(id): Path<String>, mut multipart: Multipart) -> Response {
     let mut request: Option<SceneRequest> = None;
     let mut images = Vec::new();
     while let Some(field) = multipart.next_field().await.unwrap() {
@@ -158,9 +176,9 @@ async fn create(State(state): State<Arc<FakeState>>, mut multipart: Multipart) -
         check(&s.camera);
     }
     state.uploads.lock().unwrap().push(images.len());
-    let id = format!("{:032x}", state.uploads.lock().unwrap().len());
-    state.scenes.lock().unwrap().insert(id.clone());
-    (StatusCode::CREATED, Json(json!({"scene_id": id, "expires_at": "2026-12-01T00:00:00.000Z"}))).into_response()
+    state.ids.lock().unwrap().push(id.clone());
+    let status = if state.scenes.lock().unwrap().insert(id.clone()) { StatusCode::CREATED } else { StatusCode::OK };
+    (status, Json(json!({"scene_id": id, "expires_at": "2026-12-01T00:00:00.000Z"}))).into_response()
 }
 
 /// Takes one from a counter of scripted failures.
@@ -174,11 +192,14 @@ async fn render(State(state): State<Arc<FakeState>>, Path(id): Path<String>, bod
         r.headers_mut().insert("retry-after", HeaderValue::from_static("1"));
         return r;
     }
+    if take(&state.unrouted) {
+        return error(StatusCode::NOT_FOUND, "not_found", "no route", Some("path"));
+    }
     if take(&state.forget) {
         state.scenes.lock().unwrap().remove(&id);
     }
     if !state.scenes.lock().unwrap().contains(&id) {
-        return error(StatusCode::NOT_FOUND, "scene_not_found", "no such scene (expired?)", Some("scene_id"));
+        return scene_not_found();
     }
     let request: RenderRequest = match serde_json::from_str(&body) {
         Ok(r) => r,

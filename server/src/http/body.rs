@@ -15,9 +15,7 @@ use http_body::{Frame, SizeHint};
 
 use super::negotiate::RequestFormat;
 use crate::error::ApiError;
-use crate::request::{
-    check_json_size, HasSources, ImageMode, Limits, RenderRequest, SceneRequest, TargetRequest, MAX_SOURCES,
-};
+use crate::request::{check_json_size, HasSources, ImageMode, Limits, RenderRequest, SceneRequest, TargetRequest};
 
 /// `POST /v1/render` in any of the three forms.
 pub async fn read_render_request(
@@ -44,7 +42,7 @@ async fn read_with_sources<T: HasSources + Send + 'static>(
     req: Request,
     limits: &Limits,
     from_json: fn(&[u8], ImageMode, &Limits) -> Result<T, ApiError>,
-    from_protobuf: fn(&[u8]) -> Result<T, ApiError>,
+    from_protobuf: fn(&[u8], &Limits) -> Result<T, ApiError>,
 ) -> Result<T, ApiError> {
     let limit = limits.max_body_bytes;
     let owned = limits.clone();
@@ -55,7 +53,7 @@ async fn read_with_sources<T: HasSources + Send + 'static>(
         }
         RequestFormat::Protobuf => {
             let body = read_bytes(req.into_body(), limit).await?;
-            parse_blocking(move || from_protobuf(&body)).await
+            parse_blocking(move || from_protobuf(&body, &owned)).await
         }
         RequestFormat::Multipart => read_multipart(req, limits, |json| from_json(json, ImageMode::Parts, limits)).await,
     }
@@ -106,6 +104,77 @@ pub async fn read_bytes(body: Body, limit: usize) -> Result<Bytes, ApiError> {
     Ok(Bytes::from(buf))
 }
 
+/// Path of the one route with its own body limit (`--max-capture-bytes`).
+pub const CAPTURES_PATH: &str = "/v1/captures";
+
+/// The largest body a route takes: a capture's files, or any other request.
+pub fn body_limit(limits: &Limits, path: &str) -> usize {
+    if path == CAPTURES_PATH {
+        limits.max_capture_bytes
+    } else {
+        limits.max_body_bytes
+    }
+}
+
+/// `body`, and the part of it that is left unread when it is dropped before its end.
+///
+/// Why: a handler that refuses a request from its first bytes (a bad `request` part, too many
+/// views) returns while the client is still sending. Closing the connection then makes the
+/// client's kernel see a reset, and the client a broken pipe instead of the answer. The
+/// in-flight layer reads what is left (see [`drain`]) before the answer goes out.
+pub fn keep_rest(body: Body) -> (Body, tokio::sync::oneshot::Receiver<Body>) {
+    let (tx, rx) = tokio::sync::oneshot::channel();
+    (Body::new(KeepRest { inner: Some(body), rest: Some(tx) }), rx)
+}
+
+/// Reads and discards `body` up to `limit` bytes (it already runs under the upload policy, so
+/// a trickle ends in its error).
+pub async fn drain(body: Body, limit: usize) {
+    let mut frames = body.into_data_stream();
+    let mut seen = 0usize;
+    while let Some(Ok(frame)) = frames.next().await {
+        seen += frame.len();
+        if seen > limit {
+            break;
+        }
+    }
+}
+
+struct KeepRest {
+    inner: Option<Body>,
+    rest: Option<tokio::sync::oneshot::Sender<Body>>,
+}
+
+impl HttpBody for KeepRest {
+    type Data = Bytes;
+    type Error = axum::Error;
+
+    fn poll_frame(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<Option<Result<Frame<Bytes>, axum::Error>>> {
+        match self.inner.as_mut() {
+            Some(inner) => Pin::new(inner).poll_frame(cx),
+            None => Poll::Ready(None),
+        }
+    }
+
+    fn is_end_stream(&self) -> bool {
+        self.inner.as_ref().is_none_or(HttpBody::is_end_stream)
+    }
+
+    fn size_hint(&self) -> SizeHint {
+        self.inner.as_ref().map(HttpBody::size_hint).unwrap_or_default()
+    }
+}
+
+impl Drop for KeepRest {
+    fn drop(&mut self) {
+        if let (Some(inner), Some(rest)) = (self.inner.take(), self.rest.take()) {
+            if !inner.is_end_stream() {
+                let _ = rest.send(inner);
+            }
+        }
+    }
+}
+
 /// A body whose Content-Length exceeds `limit` is refused before any of it is read.
 pub fn refuse_declared_length(body: &Body, limit: usize) -> Result<(), ApiError> {
     if body.size_hint().lower() > limit as u64 {
@@ -134,7 +203,7 @@ fn too_large(field: &str, limit: usize) -> ApiError {
 }
 
 /// multipart/form-data: a `request` part (the JSON request without images) and parts
-/// `source_0` .. `source_{V-1}` holding the image files.
+/// `source_0` .. `source_{V-1}` holding the image files (V at most `--max-scene-views`).
 async fn read_multipart<T: HasSources>(
     req: Request,
     limits: &Limits,
@@ -161,6 +230,9 @@ async fn read_multipart<T: HasSources>(
                 return Err(ApiError::malformed(Some(name), "part sent twice"));
             }
         } else if let Some(index) = source_index(&name) {
+            if index >= limits.max_scene_views {
+                return Err(too_many_views(&name, limits.max_scene_views));
+            }
             if images.insert(index, data).is_some() {
                 return Err(ApiError::malformed(Some(name), "part sent twice"));
             }
@@ -187,16 +259,23 @@ async fn read_multipart<T: HasSources>(
     Ok(request)
 }
 
+/// The index of a part named `source_<i>` (decimal, no leading zeros).
 fn source_index(name: &str) -> Option<usize> {
     let digits = name.strip_prefix("source_")?;
-    if digits.is_empty() || digits.len() > 2 || !digits.bytes().all(|b| b.is_ascii_digit()) {
+    let canonical = digits == "0" || !digits.starts_with('0');
+    if digits.is_empty() || digits.len() > 9 || !canonical || !digits.bytes().all(|b| b.is_ascii_digit()) {
         return None;
     }
-    digits.parse().ok().filter(|&i| i < MAX_SOURCES)
+    digits.parse().ok()
+}
+
+/// A part beyond the scene limit: refused as it arrives, before its image is read.
+fn too_many_views(part: &str, max: usize) -> ApiError {
+    ApiError::invalid(part, format!("a scene holds at most {max} views (parts source_0 .. source_{})", max - 1))
 }
 
 /// `field`: the part being read, or `body` between parts.
-fn multipart_error(e: axum::extract::multipart::MultipartError, field: &str, limit: usize) -> ApiError {
+pub(super) fn multipart_error(e: axum::extract::multipart::MultipartError, field: &str, limit: usize) -> ApiError {
     if e.status() == StatusCode::PAYLOAD_TOO_LARGE {
         return too_large(field, limit);
     }
@@ -305,9 +384,11 @@ mod tests {
     fn source_part_names() {
         assert_eq!(source_index("source_0"), Some(0));
         assert_eq!(source_index("source_12"), Some(12));
+        assert_eq!(source_index("source_640"), Some(640));
         assert_eq!(source_index("source_"), None);
         assert_eq!(source_index("source_x"), None);
-        assert_eq!(source_index("source_99"), None);
+        assert_eq!(source_index("source_01"), None);
+        assert_eq!(source_index("source_99999999999"), None);
         assert_eq!(source_index("image_0"), None);
     }
 }

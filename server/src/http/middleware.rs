@@ -12,7 +12,7 @@ use axum::response::{IntoResponse, Response};
 
 use tokio::sync::{OwnedSemaphorePermit, Semaphore};
 
-use super::body::refuse_declared_length;
+use super::body::{body_limit, drain, keep_rest, refuse_declared_length};
 use super::state::AppState;
 use crate::error::ApiError;
 
@@ -53,14 +53,18 @@ pub async fn record_metrics(State(state): State<AppState>, req: Request, next: N
     response
 }
 
-/// Bounds the POST requests handled at once, in all and per client (their bodies are held in
-/// memory while they wait for the executor), and holds each upload to the minimum rate. A body
-/// declared larger than the limit is refused at once: 413 before anything is read.
+/// Bounds the requests with a body (POST, PUT) handled at once, in all and per client (their
+/// bodies are held in memory while they wait for the executor), and holds each upload to the
+/// minimum rate. A body declared larger than the route's limit is refused at once: 413 before
+/// anything is read. A request refused before its body was read to the end has the rest read
+/// (up to the limit, at the upload rate) before the answer goes out, so that a client still
+/// sending receives the answer (see `body::keep_rest`).
 pub async fn limit_in_flight(State(state): State<AppState>, req: Request, next: Next) -> Response {
-    if req.method() != Method::POST {
+    if req.method() != Method::POST && req.method() != Method::PUT {
         return next.run(req).await;
     }
-    if let Err(e) = refuse_declared_length(req.body(), state.pipeline.limits().max_body_bytes) {
+    let limit = body_limit(state.pipeline.limits(), req.uri().path());
+    if let Err(e) = refuse_declared_length(req.body(), limit) {
         return e.into_response();
     }
     let client = req.extensions().get::<ConnectInfo<SocketAddr>>().map(|c| c.0.ip());
@@ -69,7 +73,15 @@ pub async fn limit_in_flight(State(state): State<AppState>, req: Request, next: 
         Err(e) => return e.into_response(),
     };
     let policy = state.uploads;
-    next.run(req.map(|body| policy.apply(body))).await
+    let (parts, body) = req.into_parts();
+    let (body, mut rest) = keep_rest(policy.apply(body));
+    let response = next.run(Request::from_parts(parts, body)).await;
+    if !response.status().is_success() {
+        if let Ok(rest) = rest.try_recv() {
+            drain(rest, limit).await;
+        }
+    }
+    response
 }
 
 /// Slots for requests being handled: `total` in all, `per_client` (0: any) per peer address.

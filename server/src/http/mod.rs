@@ -4,6 +4,7 @@
 //! `openapi`.
 
 pub mod body;
+mod captures;
 mod deadline;
 pub mod middleware;
 pub mod negotiate;
@@ -18,7 +19,7 @@ mod state;
 pub mod viewer;
 
 use axum::extract::DefaultBodyLimit;
-use axum::routing::{delete, get, post};
+use axum::routing::{get, post};
 use axum::Router;
 use tower_http::catch_panic::CatchPanicLayer;
 use tower_http::request_id::{MakeRequestUuid, PropagateRequestIdLayer, SetRequestIdLayer};
@@ -31,6 +32,7 @@ pub use state::{AppState, ServiceOptions};
 /// in-flight limit, the body limit, the handler.
 pub fn router(state: AppState) -> Router {
     let body_limit = state.pipeline.limits().max_body_bytes;
+    let capture_limit = state.pipeline.limits().max_capture_bytes;
     Router::new()
         .route("/healthz", get(service::healthz))
         .route("/readyz", get(service::readyz))
@@ -39,11 +41,13 @@ pub fn router(state: AppState) -> Router {
         .route("/v1/model", get(service::model))
         .route("/v1/render", post(render::render))
         .route("/v1/scenes", post(scenes::create))
-        .route("/v1/scenes/{id}", delete(scenes::delete))
+        .route(body::CAPTURES_PATH, post(captures::create).layer(DefaultBodyLimit::max(capture_limit)))
+        .route("/v1/scenes/{id}", axum::routing::put(scenes::put).delete(scenes::delete))
         .route("/v1/scenes/{id}/render", post(scenes::render))
         .fallback(service::not_found)
         .method_not_allowed_fallback(service::method_not_allowed)
-        // Multipart reads this limit; JSON and protobuf bodies are read with the same limit.
+        // Multipart reads this limit (the captures route its own); JSON and protobuf bodies are
+        // read with the same limit.
         .layer(DefaultBodyLimit::max(body_limit))
         .layer(axum::middleware::from_fn_with_state(state.clone(), middleware::limit_in_flight))
         .layer(axum::middleware::from_fn_with_state(state.auth.clone(), crate::auth::require_token))

@@ -5,9 +5,10 @@ use axum::Json;
 use utoipa::openapi::security::{HttpAuthScheme, HttpBuilder, SecurityScheme};
 use utoipa::{Modify, OpenApi};
 
+use super::captures::CaptureCreated;
 use super::respond::{FloatImageJson, PngImageJson, RenderResponseJson};
 use super::scenes::SceneCreated;
-use super::schema::{Binary, RenderMultipart, SceneMultipart};
+use super::schema::{Binary, CaptureMultipart, RenderMultipart, SceneMultipart};
 use crate::error::{ErrorBody, ErrorDetail};
 use crate::request::wire::{
     JsonCamera, JsonFocal, JsonIntrinsicsSchema, JsonPose, JsonRenderRequest, JsonSceneRequest, JsonSource,
@@ -38,8 +39,10 @@ Errors are always `{\"error\": {\"code\", \"message\", \"field\"}}`. With bearer
     paths(
         crate::http::render::render,
         crate::http::scenes::create,
+        crate::http::scenes::put,
         crate::http::scenes::render,
         crate::http::scenes::delete,
+        crate::http::captures::create,
         crate::http::service::model,
         crate::http::service::healthz,
         crate::http::service::readyz,
@@ -49,7 +52,8 @@ Errors are always `{\"error\": {\"code\", \"message\", \"field\"}}`. With bearer
     components(schemas(
         JsonRenderRequest, JsonSceneRequest, JsonTargetRequest, JsonSource, JsonCamera, JsonFocal,
         JsonIntrinsicsSchema, JsonPose, OutputKind, RenderResponseJson, PngImageJson, FloatImageJson, SceneCreated,
-        ErrorBody, ErrorDetail, RenderMultipart, SceneMultipart, Binary, Matrix3Rows, Matrix4Rows,
+        CaptureCreated, ErrorBody, ErrorDetail, RenderMultipart, SceneMultipart, CaptureMultipart, Binary, Matrix3Rows,
+        Matrix4Rows,
     )),
     modifiers(&BearerAuth),
     tags(

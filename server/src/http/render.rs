@@ -6,7 +6,7 @@ use axum::response::Response;
 use super::body::read_render_request;
 use super::deadline::Deadline;
 use super::negotiate::{request_format, response_format};
-use super::respond::finish;
+use super::respond::{finish, Rendered};
 use super::state::AppState;
 use crate::error::ApiError;
 use crate::pipeline::Timings;
@@ -54,5 +54,6 @@ async fn render_within(state: AppState, deadline: Deadline, req: Request) -> Res
     let out_format = response_format(&headers, valid.view.outputs)?;
     let mut timings = Timings::default();
     let view = pipeline.render(&valid, deadline.at(), &mut timings).await?;
-    finish(&state, view, valid.view.outputs, out_format, timings, deadline.started()).await
+    let rendered = Rendered { view, sources: (0..valid.scene.sources.len()).collect() };
+    finish(&state, rendered, valid.view.outputs, out_format, timings, deadline.started()).await
 }

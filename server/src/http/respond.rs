@@ -19,23 +19,33 @@ use crate::image_io;
 use crate::pipeline::{assemble, Timings, View};
 use crate::request::OutputSet;
 
+/// Header naming the views a render used: `i,j,k`, indices into the scene's views, the volume's
+/// reference first.
+pub const SOURCES_HEADER: &str = "x-scnerf-sources";
+
+/// A rendered view and the views it was rendered from.
+pub struct Rendered {
+    pub view: View,
+    pub sources: Vec<usize>,
+}
+
 /// Encodes a rendered view and answers in the negotiated format (shared by /v1/render and
 /// /v1/scenes/{id}/render, so both endpoints answer identically).
 pub async fn finish(
     state: &AppState,
-    view: View,
+    rendered: Rendered,
     outputs: OutputSet,
     format: ResponseFormat,
     mut timings: Timings,
     started: Instant,
 ) -> Result<Response, ApiError> {
     let encode_start = Instant::now();
-    let rendered = encode_outputs(view, outputs).await?;
+    let encoded = encode_outputs(rendered.view, outputs, &rendered.sources).await?;
     timings.add("encode", encode_start.elapsed());
     timings.add("total", started.elapsed());
-    tracing::info!(timings = ?timings.millis(), "rendered");
+    tracing::info!(timings = ?timings.millis(), sources = ?rendered.sources, "rendered");
     state.metrics.observe_stages(&timings);
-    Ok(respond(format, rendered, &timings, &state.pipeline.manifest().model_id))
+    Ok(respond(format, encoded, &timings, &state.pipeline.manifest().model_id))
 }
 
 /// The outputs in their wire encodings: PNG for rgb, little-endian float32 for the others.
@@ -45,9 +55,11 @@ struct Encoded {
     rgb_png: Option<Vec<u8>>,
     depth: Option<Vec<u8>>,
     opacity: Option<Vec<u8>>,
+    sources: Vec<u32>,
 }
 
-async fn encode_outputs(view: View, outputs: OutputSet) -> Result<Encoded, ApiError> {
+async fn encode_outputs(view: View, outputs: OutputSet, sources: &[usize]) -> Result<Encoded, ApiError> {
+    let sources: Vec<u32> = sources.iter().map(|&i| i as u32).collect();
     tokio::task::spawn_blocking(move || {
         let (width, height) = (view.width(), view.height());
         let rgb_png =
@@ -60,6 +72,7 @@ async fn encode_outputs(view: View, outputs: OutputSet) -> Result<Encoded, ApiEr
             rgb_png,
             depth: outputs.depth.then(|| le(&view.depth)),
             opacity: outputs.opacity.then(|| le(&view.opacity)),
+            sources,
         })
     })
     .await
@@ -70,9 +83,14 @@ fn respond(format: ResponseFormat, out: Encoded, timings: &Timings, model_id: &s
     let mut response = match format {
         ResponseFormat::Png => out.rgb_png.unwrap_or_default().into_response(),
         ResponseFormat::Json => axum::Json(json_body(&out, timings, model_id)).into_response(),
-        ResponseFormat::Protobuf => proto_body(out, timings, model_id).encode_to_vec().into_response(),
+        ResponseFormat::Protobuf => proto_body(&out, timings, model_id).encode_to_vec().into_response(),
     };
-    response.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static(format.content_type()));
+    let headers = response.headers_mut();
+    headers.insert(header::CONTENT_TYPE, HeaderValue::from_static(format.content_type()));
+    let sources: Vec<String> = out.sources.iter().map(u32::to_string).collect();
+    if let Ok(v) = HeaderValue::from_str(&sources.join(",")) {
+        headers.insert(SOURCES_HEADER, v);
+    }
     set_common_headers(&mut response, timings, model_id);
     response
 }
@@ -107,6 +125,9 @@ pub struct RenderResponseJson {
     pub opacity: Option<FloatImageJson>,
     /// Wall time per stage: decode, encoder, volume, renderer, assemble, encode, total.
     pub timings_ms: BTreeMap<String, f64>,
+    /// The views rendered from: indices into the scene's views, the volume's reference first
+    /// (`[0, 1, 2]` for /v1/render). Also in the `x-scnerf-sources` header.
+    pub sources: Vec<u32>,
 }
 
 #[derive(Debug, Serialize, utoipa::ToSchema)]
@@ -150,10 +171,11 @@ fn json_body(out: &Encoded, timings: &Timings, model_id: &str) -> RenderResponse
         depth: float_image(&out.depth),
         opacity: float_image(&out.opacity),
         timings_ms: timings.millis().into_iter().map(|(s, ms)| (s.to_string(), ms)).collect(),
+        sources: out.sources.clone(),
     }
 }
 
-fn proto_body(out: Encoded, timings: &Timings, model_id: &str) -> scnerf_proto::v1::RenderResponse {
+fn proto_body(out: &Encoded, timings: &Timings, model_id: &str) -> scnerf_proto::v1::RenderResponse {
     use scnerf_proto::v1 as pb;
     let float_image =
         |data: Option<Vec<u8>>| data.map(|data| pb::FloatImage { width: out.width, height: out.height, data });
@@ -165,5 +187,6 @@ fn proto_body(out: Encoded, timings: &Timings, model_id: &str) -> scnerf_proto::
         depth: float_image(out.depth.clone()),
         opacity: float_image(out.opacity.clone()),
         timings_ms: timings.millis().into_iter().map(|(s, ms)| (s.to_string(), ms)).collect(),
+        sources: out.sources.clone(),
     }
 }

@@ -1,28 +1,36 @@
-//! The scene cache endpoints: `POST /v1/scenes` (encode the sources once),
-//! `POST /v1/scenes/{id}/render` (a view of a cached scene: the renderer only) and
-//! `DELETE /v1/scenes/{id}`.
+//! The scene endpoints: `POST /v1/scenes` (a new scene under a random id), `PUT /v1/scenes/{id}`
+//! (under the client's id, replacing one of that id), `POST /v1/scenes/{id}/render` (a view of
+//! it: the renderer alone once its sources' volume is cached) and `DELETE /v1/scenes/{id}`.
 
 use std::time::Instant;
 
 use axum::extract::rejection::PathRejection;
 use axum::extract::{Path, Request, State};
-use axum::http::{header, HeaderValue, StatusCode};
+use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
 use serde::Serialize;
 
 use super::body::{read_scene_request, read_target_request};
 use super::deadline::Deadline;
 use super::negotiate::{request_format, response_format};
-use super::respond::{finish, set_common_headers};
+use super::respond::{finish, set_common_headers, Rendered};
 use super::state::AppState;
-use crate::cache::{is_valid_id, rfc3339, Owner};
+use crate::cache::{is_valid_id, rfc3339, NewScene, Owner, Stored};
 use crate::error::ApiError;
+use crate::pipeline::views::choose;
 use crate::pipeline::Timings;
+use crate::request::ValidScene;
 
-/// `201 Created` body of `POST /v1/scenes`.
+/// Header with which a routing proxy names a scene that `POST /v1/scenes` or `POST /v1/captures`
+/// creates: the proxy picks the id, routes the request by its hash, and every later request for
+/// the scene (its id in the path) hashes to the same replica (docs/deploy.md).
+pub const SCENE_ID_HEADER: &str = "x-scnerf-scene-id";
+
+/// `201 Created` (or `200 OK`: replaced) body of `POST /v1/scenes` and `PUT /v1/scenes/{id}`.
 #[derive(Debug, Serialize, serde::Deserialize, utoipa::ToSchema)]
 pub struct SceneCreated {
-    /// 32 hex digits; use it in `/v1/scenes/{id}/render` and `DELETE /v1/scenes/{id}`.
+    /// The scene's id: the client's (PUT), else 32 random hex digits. Use it in
+    /// `/v1/scenes/{id}/render` and `DELETE /v1/scenes/{id}`.
     pub scene_id: String,
     /// RFC 3339 UTC. The scene expires this long after its last use; every render extends it
     /// (the new time is in the render response's `x-scene-expires-at` header).
@@ -30,28 +38,79 @@ pub struct SceneCreated {
 }
 
 /// Who is asking (set by the auth layer; `None` when auth is off).
-fn owner_of(req: &Request) -> Owner {
+pub(super) fn owner_of(req: &Request) -> Owner {
     req.extensions().get::<crate::auth::Principal>().and_then(|p| p.owner())
 }
 
-fn scene_id(path: Result<Path<String>, PathRejection>) -> Result<String, ApiError> {
-    let Path(id) = path.map_err(|e| ApiError::malformed(Some("scene_id".to_string()), e.body_text()))?;
+fn valid_id(id: String, field: &str) -> Result<String, ApiError> {
     if !is_valid_id(&id) {
-        return Err(ApiError::malformed(Some("scene_id".to_string()), "a scene id is 32 lowercase hex digits"));
+        return Err(ApiError::malformed(
+            Some(field.to_string()),
+            "a scene id is 1 to 64 characters of A-Z, a-z, 0-9, '.', '_' and '-' (not '.' or '..')",
+        ));
     }
     Ok(id)
 }
 
-/// `POST /v1/scenes`: decode the sources, run the encoder and the volume net, keep the result.
+fn scene_id(path: Result<Path<String>, PathRejection>) -> Result<String, ApiError> {
+    let Path(id) = path.map_err(|e| ApiError::malformed(Some("scene_id".to_string()), e.body_text()))?;
+    valid_id(id, "scene_id")
+}
+
+/// The id a routing proxy chose for a new scene, if it sent one (see [`SCENE_ID_HEADER`]).
+pub(super) fn proxy_scene_id(headers: &HeaderMap) -> Result<Option<String>, ApiError> {
+    let Some(value) = headers.get(SCENE_ID_HEADER) else { return Ok(None) };
+    let id = value.to_str().map_err(|_| ApiError::malformed(Some(SCENE_ID_HEADER.to_string()), "not ASCII"))?;
+    valid_id(id.to_string(), SCENE_ID_HEADER).map(Some)
+}
+
+/// Decodes a validated scene's views (and, for 3 views, builds its volume) and caches it under
+/// `id` (`None`: a random id).
+pub(super) async fn store_scene(
+    state: &AppState,
+    valid: ValidScene,
+    id: Option<String>,
+    owner: Owner,
+    deadline: &Deadline,
+    timings: &mut Timings,
+) -> Result<Stored, ApiError> {
+    let (views, volume) = state.pipeline.encode_scene(&valid, deadline.at(), timings).await?;
+    let new = NewScene { views, volume, background: valid.background };
+    let stored = state.scenes.insert(id, owner, new, Instant::now())?;
+    timings.add("total", deadline.started().elapsed());
+    tracing::info!(scene_id = %stored.id, replaced = stored.replaced, views = valid.sources.len(),
+                   timings = ?timings.millis(), "scene cached");
+    state.metrics.observe_stages(timings);
+    Ok(stored)
+}
+
+/// A scene endpoint's success: `body` with `Location: /v1/scenes/{id}` and the common headers.
+pub(super) fn scene_response(
+    state: &AppState,
+    status: StatusCode,
+    id: &str,
+    body: impl Serialize,
+    timings: &Timings,
+) -> Response {
+    let mut response = (status, axum::Json(body)).into_response();
+    if let Ok(v) = HeaderValue::from_str(&format!("/v1/scenes/{id}")) {
+        response.headers_mut().insert(header::LOCATION, v);
+    }
+    set_common_headers(&mut response, timings, &state.pipeline.manifest().model_id);
+    response
+}
+
+/// `POST /v1/scenes`: decode the sources (3 views: and build their volume) and keep them.
 #[utoipa::path(
     post, path = "/v1/scenes", tag = "render", operation_id = "create_scene",
     request_body(content(
         (crate::http::schema::SceneMultipart = "multipart/form-data"),
         (crate::request::wire::JsonSceneRequest = "application/json"),
         (crate::http::schema::Binary = "application/x-protobuf"),
-    ), description = "Source views + cameras, near/far (no target); protobuf: scnerf.v1.SceneRequest"),
+    ), description = "Source views + cameras, near/far (no target): 3 views, or a capture of up to max_scene_views (GET /v1/model); protobuf: scnerf.v1.SceneRequest"),
     params(
         ("x-scnerf-deadline-ms" = Option<u64>, Header, nullable = false, minimum = 1, description = "Shortens the server's deadline for this request (ms)"),
+        ("x-scnerf-scene-id" = Option<String>, Header, nullable = false, pattern = "^[A-Za-z0-9._-]{1,64}$", description = "Set by a routing proxy: the id to give the new scene (replacing this client's scene of that id)"),
     ),
     responses(
         (status = 201, description = "Scene cached", body = SceneCreated,
@@ -73,42 +132,77 @@ fn scene_id(path: Result<Path<String>, PathRejection>) -> Result<String, ApiErro
     security((), ("bearer" = [])),
 )]
 pub async fn create(State(state): State<AppState>, deadline: Deadline, req: Request) -> Result<Response, ApiError> {
-    deadline.run(create_within(state, deadline, req)).await
+    let id = proxy_scene_id(req.headers())?;
+    deadline.run(put_within(state, deadline, id, req)).await
 }
 
-async fn create_within(state: AppState, deadline: Deadline, req: Request) -> Result<Response, ApiError> {
+/// `PUT /v1/scenes/{id}`: the same as `POST /v1/scenes`, under the client's id.
+#[utoipa::path(
+    put, path = "/v1/scenes/{id}", tag = "render", operation_id = "put_scene",
+    request_body(content(
+        (crate::http::schema::SceneMultipart = "multipart/form-data"),
+        (crate::request::wire::JsonSceneRequest = "application/json"),
+        (crate::http::schema::Binary = "application/x-protobuf"),
+    ), description = "As for POST /v1/scenes"),
+    params(
+        ("id" = String, Path, description = "The client's name for the scene, private to its token", pattern = "^[A-Za-z0-9._-]{1,64}$"),
+        ("x-scnerf-deadline-ms" = Option<u64>, Header, nullable = false, minimum = 1, description = "Shortens the server's deadline for this request (ms)"),
+    ),
+    responses(
+        (status = 201, description = "Scene cached under a new id", body = SceneCreated,
+         headers(("location" = String, description = "/v1/scenes/{scene_id}"))),
+        (status = 200, description = "Scene cached, replacing the scene of this id", body = SceneCreated,
+         headers(("location" = String, description = "/v1/scenes/{scene_id}"))),
+        (status = 400, description = "Malformed request or scene id", body = crate::error::ErrorBody),
+        (status = 401, description = "Missing or wrong bearer token", body = crate::error::ErrorBody),
+        (status = 408, description = "The body arrived too slowly", body = crate::error::ErrorBody),
+        (status = 413, description = "Body or JSON document too large", body = crate::error::ErrorBody),
+        (status = 415, description = "Unsupported content type or image format", body = crate::error::ErrorBody),
+        (status = 422, description = "Semantically invalid", body = crate::error::ErrorBody),
+        (status = 429, description = "This client has too many requests in flight (Retry-After)", body = crate::error::ErrorBody),
+        (status = 503, description = "Warming up, overloaded, or the request cannot finish by its deadline (Retry-After)", body = crate::error::ErrorBody),
+        (status = 504, description = "Deadline exceeded", body = crate::error::ErrorBody),
+    ),
+    security((), ("bearer" = [])),
+)]
+pub async fn put(
+    State(state): State<AppState>,
+    deadline: Deadline,
+    path: Result<Path<String>, PathRejection>,
+    req: Request,
+) -> Result<Response, ApiError> {
+    let id = scene_id(path)?;
+    deadline.run(put_within(state, deadline, Some(id), req)).await
+}
+
+async fn put_within(
+    state: AppState,
+    deadline: Deadline,
+    id: Option<String>,
+    req: Request,
+) -> Result<Response, ApiError> {
     let format = request_format(req.headers())?;
     let owner = owner_of(&req);
     let pipeline = &state.pipeline;
     let parsed = read_scene_request(format, req, pipeline.limits()).await?;
     let valid = parsed.validate(pipeline.config(), pipeline.limits())?;
     let mut timings = Timings::default();
-    let scene = pipeline.encode_scene(&valid, deadline.at(), &mut timings).await?;
-    let (scene_id, expires) = state.scenes.insert(scene, valid.background, owner, Instant::now())?;
-    timings.add("total", deadline.started().elapsed());
-    tracing::info!(%scene_id, timings = ?timings.millis(), "scene cached");
-    state.metrics.observe_stages(&timings);
-
-    let location = format!("/v1/scenes/{scene_id}");
-    let body = SceneCreated { scene_id, expires_at: rfc3339(expires) };
-    let mut response = (StatusCode::CREATED, axum::Json(body)).into_response();
-    if let Ok(v) = HeaderValue::from_str(&location) {
-        response.headers_mut().insert(header::LOCATION, v);
-    }
-    set_common_headers(&mut response, &timings, &pipeline.manifest().model_id);
-    Ok(response)
+    let stored = store_scene(&state, valid, id, owner, &deadline, &mut timings).await?;
+    let status = if stored.replaced { StatusCode::OK } else { StatusCode::CREATED };
+    let body = SceneCreated { scene_id: stored.id.clone(), expires_at: rfc3339(stored.expires_at) };
+    Ok(scene_response(&state, status, &stored.id, body, &timings))
 }
 
 /// `POST /v1/scenes/{id}/render`: a target view of a cached scene, answered exactly like
-/// `/v1/render`.
+/// `/v1/render`, from the views the request pins or the server chooses.
 #[utoipa::path(
     post, path = "/v1/scenes/{id}/render", tag = "render", operation_id = "render_scene",
     request_body(content(
         (crate::request::wire::JsonTargetRequest = "application/json"),
         (crate::http::schema::Binary = "application/x-protobuf"),
-    ), description = "Target camera and outputs; protobuf: scnerf.v1.SceneRenderRequest"),
+    ), description = "Target camera, outputs and optionally the views to render from; protobuf: scnerf.v1.SceneRenderRequest"),
     params(
-        ("id" = String, Path, description = "scene_id from POST /v1/scenes", pattern = "^[0-9a-f]{32}$"),
+        ("id" = String, Path, description = "The scene's id", pattern = "^[A-Za-z0-9._-]{1,64}$"),
         ("x-scnerf-deadline-ms" = Option<u64>, Header, nullable = false, minimum = 1, description = "Shortens the server's deadline for this request (ms)"),
     ),
     responses(
@@ -116,15 +210,18 @@ async fn create_within(state: AppState, deadline: Deadline, req: Request) -> Res
             (crate::http::schema::Binary = "image/png"),
             (crate::http::respond::RenderResponseJson = "application/json"),
             (crate::http::schema::Binary = "application/x-protobuf"),
-        ), headers(("x-scene-expires-at" = String, description = "New expiry of the scene (RFC 3339)"))),
+        ), headers(
+            ("x-scene-expires-at" = String, description = "New expiry of the scene (RFC 3339)"),
+            ("x-scnerf-sources" = String, description = "The views rendered from, i,j,k (the volume's reference first)"),
+        )),
         (status = 400, description = "Malformed request or scene id", body = crate::error::ErrorBody),
         (status = 401, description = "Missing or wrong bearer token", body = crate::error::ErrorBody),
-        (status = 404, description = "No such scene (unknown, expired, evicted, or another token's)", body = crate::error::ErrorBody),
+        (status = 404, description = "No such scene here (unknown, expired, evicted, another token's, or on another replica): `hint: reupload`", body = crate::error::ErrorBody),
         (status = 406, description = "Accept cannot be satisfied", body = crate::error::ErrorBody),
         (status = 408, description = "The body arrived too slowly", body = crate::error::ErrorBody),
         (status = 413, description = "JSON document too large", body = crate::error::ErrorBody),
         (status = 415, description = "Unsupported content type", body = crate::error::ErrorBody),
-        (status = 422, description = "Semantically invalid target", body = crate::error::ErrorBody),
+        (status = 422, description = "Semantically invalid target, or bad `sources`", body = crate::error::ErrorBody),
         (status = 429, description = "This client has too many requests in flight (Retry-After)", body = crate::error::ErrorBody),
         (status = 503, description = "Warming up, overloaded, or the request cannot finish by its deadline (Retry-After)", body = crate::error::ErrorBody),
         (status = 504, description = "Deadline exceeded", body = crate::error::ErrorBody),
@@ -150,11 +247,18 @@ async fn render_within(state: AppState, deadline: Deadline, id: String, req: Req
     let valid = parsed.validate(pipeline.limits())?;
     let out_format = response_format(&headers, valid.outputs)?;
     let hit = state.scenes.get(&id, &owner, Instant::now()).ok_or(ApiError::SceneNotFound { id })?;
+    let scene = &hit.scene;
+    let sources = choose(&scene.views.cameras, &valid.target, valid.sources.as_deref(), pipeline.config().views)?;
+    let cached = state.scenes.volume(scene, &sources);
     let mut timings = Timings::default();
-    let cached = &hit.scene;
-    let view =
-        pipeline.render_scene(&cached.scene, &valid.target, cached.background, deadline.at(), &mut timings).await?;
-    let mut response = finish(&state, view, valid.outputs, out_format, timings, deadline.started()).await?;
+    let (view, built) = pipeline
+        .render_sources(&scene.views, &sources, cached, &valid.target, scene.background, deadline.at(), &mut timings)
+        .await?;
+    if let Some(volume) = built {
+        state.scenes.insert_volume(scene, sources.clone(), volume);
+    }
+    let rendered = Rendered { view, sources };
+    let mut response = finish(&state, rendered, valid.outputs, out_format, timings, deadline.started()).await?;
     if let Ok(v) = HeaderValue::from_str(&rfc3339(hit.expires_at)) {
         response.headers_mut().insert("x-scene-expires-at", v);
     }
@@ -164,7 +268,7 @@ async fn render_within(state: AppState, deadline: Deadline, id: String, req: Req
 /// `DELETE /v1/scenes/{id}`: 204, or 404 when there is no such scene (for this client).
 #[utoipa::path(
     delete, path = "/v1/scenes/{id}", tag = "render", operation_id = "delete_scene",
-    params(("id" = String, Path, description = "scene_id from POST /v1/scenes", pattern = "^[0-9a-f]{32}$")),
+    params(("id" = String, Path, description = "The scene's id", pattern = "^[A-Za-z0-9._-]{1,64}$")),
     responses(
         (status = 204, description = "Deleted"),
         (status = 400, description = "Malformed scene id", body = crate::error::ErrorBody),

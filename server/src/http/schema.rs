@@ -25,7 +25,17 @@ pub struct RenderMultipart {
     source_2: Vec<u8>,
 }
 
-/// `multipart/form-data` body of `POST /v1/scenes`.
+/// `multipart/form-data` body of `POST /v1/captures`: one part per file of the capture folder,
+/// each named `file`, its filename the file's path in the folder (`images/r_0.png`).
+#[derive(ToSchema)]
+#[allow(dead_code)]
+pub struct CaptureMultipart {
+    #[schema(value_type = Vec<String>, format = Binary)]
+    file: Vec<Vec<u8>>,
+}
+
+/// `multipart/form-data` body of `POST /v1/scenes` (parts `source_0` .. `source_{N-1}`, N up
+/// to max_scene_views).
 #[derive(ToSchema)]
 #[allow(dead_code)]
 pub struct SceneMultipart {

@@ -37,7 +37,8 @@ pub async fn metrics(State(state): State<AppState>) -> Response {
     response
 }
 
-/// The served model: id, variant, hyper-parameters and provenance from the manifest.
+/// The served model: id, variant, hyper-parameters and provenance from the manifest, and the
+/// most views a scene may hold (`max_scene_views`: clients thin larger captures to it).
 #[utoipa::path(get, path = "/v1/model", tag = "render", operation_id = "model", responses(
     (status = 200, description = "Model description", body = Object),
     (status = 401, description = "Missing or wrong bearer token", body = crate::error::ErrorBody),
@@ -50,6 +51,7 @@ pub async fn model(State(state): State<AppState>) -> Json<serde_json::Value> {
         "format_version": m.format_version,
         "config": m.config,
         "provenance": m.provenance,
+        "max_scene_views": state.pipeline.limits().max_scene_views,
     }))
 }
 

@@ -1,8 +1,8 @@
 //! The render pipeline, one module per stage, in the order the data flows:
 //!
-//! validated request -> [`sources`] images decoded and padded -> [`encoder`] features ->
-//! [`volume`] cost volume and encoding volume -> [`rays`] target rays -> [`chunks`] renderer
-//! runs -> [`assemble`] image.
+//! validated request -> [`sources`] images decoded and padded -> ([`views`]: a scene's views,
+//! and the three a target is rendered from) -> [`encoder`] features -> [`volume`] cost volume
+//! and encoding volume -> [`rays`] target rays -> [`chunks`] renderer runs -> [`assemble`] image.
 //!
 //! A request is admitted to the inference executor with its deadline and its estimated work
 //! (`scene_work`, `view_work`) before any graph runs. `build_scene` (sources only) and
@@ -14,12 +14,14 @@ pub mod chunks;
 pub mod encoder;
 pub mod rays;
 pub mod sources;
+pub mod views;
 pub mod volume;
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use ndarray::{ArcArray3, ArcArray4, ArcArray5, Array1, Array2, Array3, Array4};
+use views::Views;
 
 use crate::backend::{BackendError, BackendHandle, Ticket, Work};
 use crate::bundle::{Bundle, DepthNorm, GraphKind, Manifest, ModelConfig};
@@ -50,8 +52,9 @@ impl Timings {
     }
 }
 
-/// Everything the renderer needs about the sources; reusable for any number of target views.
-/// The arrays are shared: every renderer run of every view reads them without a copy.
+/// Everything the renderer needs about the sources it renders from (the model's view count:
+/// three); reusable for any number of target views. The arrays are shared: every renderer run
+/// of every view reads them without a copy.
 #[derive(Debug, Clone)]
 pub struct Scene {
     /// (V, 3, H, W) padded source images in [0, 1].
@@ -168,28 +171,62 @@ impl Pipeline {
         Ok(self.render_view(&ticket, &scene, &req.view.target, req.scene.background, None, timings).await?)
     }
 
-    /// The scene of `POST /v1/scenes`, admitted until `deadline`: decode, encoder, volume.
+    /// The scene of `POST /v1/scenes`: its views decoded; a scene of exactly the model's view
+    /// count also gets its encoder features and volume now (admitted until `deadline`), as scenes
+    /// always did. A larger one (a capture) builds the volume of each triple a render needs.
     pub async fn encode_scene(
         &self,
         req: &ValidScene,
         deadline: Instant,
         timings: &mut Timings,
-    ) -> Result<Scene, ApiError> {
-        let ticket = self.admit(deadline, self.scene_work(&req.cameras()))?;
-        self.prepare_scene(&ticket, req, timings).await
+    ) -> Result<(Views, Option<Scene>), ApiError> {
+        let cameras = req.cameras();
+        let ticket = match cameras.len() == self.bundle.config.views {
+            true => Some(self.admit(deadline, self.scene_work(&cameras))?),
+            false => None,
+        };
+        let images = timings.time("decode", self.decode_sources(req)).await?.into_shared();
+        let views = Views { images, cameras, near: req.near, far: req.far };
+        let scene = match ticket {
+            Some(ticket) => {
+                Some(self.build_scene(&ticket, &views.cameras, views.images.clone(), req.near, req.far, timings).await?)
+            }
+            None => None,
+        };
+        Ok((views, scene))
     }
 
-    /// A view of a cached scene, admitted until `deadline`: the renderer alone.
-    pub async fn render_scene(
+    /// A view of a scene rendered from `sources`, admitted until `deadline`: the renderer alone
+    /// when their scene is `cached`, else the encoder and volume net first; a scene built here is
+    /// returned for the cache.
+    #[allow(clippy::too_many_arguments)]
+    pub async fn render_sources(
         &self,
-        scene: &Scene,
+        views: &Views,
+        sources: &[usize],
+        cached: Option<Arc<Scene>>,
         target: &Camera,
         background: [f32; 3],
         deadline: Instant,
         timings: &mut Timings,
-    ) -> Result<View, ApiError> {
-        let ticket = self.admit(deadline, self.view_work(target))?;
-        Ok(self.render_view(&ticket, scene, target, background, None, timings).await?)
+    ) -> Result<(View, Option<Arc<Scene>>), ApiError> {
+        let cameras = views.cameras_of(sources);
+        let work = match cached {
+            Some(_) => self.view_work(target),
+            None => self.scene_work(&cameras).plus(self.view_work(target)),
+        };
+        let ticket = self.admit(deadline, work)?;
+        let (scene, built) = match cached {
+            Some(scene) => (scene, None),
+            None => {
+                let images = views.images_of(sources);
+                let scene =
+                    Arc::new(self.build_scene(&ticket, &cameras, images, views.near, views.far, timings).await?);
+                (scene.clone(), Some(scene))
+            }
+        };
+        let view = self.render_view(&ticket, &scene, target, background, None, timings).await?;
+        Ok((view, built))
     }
 
     /// Admits a request with `work` to the inference executor until `deadline` (503 when it is
@@ -230,7 +267,7 @@ impl Pipeline {
         timings: &mut Timings,
     ) -> Result<Scene, ApiError> {
         let images = timings.time("decode", self.decode_sources(req)).await?;
-        Ok(self.build_scene(ticket, &req.cameras(), images, req.near, req.far, timings).await?)
+        Ok(self.build_scene(ticket, &req.cameras(), images.into_shared(), req.near, req.far, timings).await?)
     }
 
     /// Encoder and volume net over the source views.
@@ -238,13 +275,12 @@ impl Pipeline {
         &self,
         ticket: &Ticket,
         cameras: &[Camera],
-        images: Array4<f32>,
+        images: ArcArray4<f32>,
         near: f64,
         far: f64,
         timings: &mut Timings,
     ) -> Result<Scene, BackendError> {
         let config = &self.bundle.config;
-        let images = images.into_shared();
         let features = timings.time("encoder", encoder::run(ticket, config, &images)).await?;
         let volume =
             timings.time("volume", volume::run(ticket, config, &features, &images, cameras, near, far)).await?;

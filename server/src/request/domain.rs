@@ -61,6 +61,9 @@ pub struct SceneRequest {
 pub struct TargetRequest {
     pub target: CameraSpec,
     pub outputs: Option<Vec<OutputKind>>,
+    /// Views of the scene to render from (indices, the volume's reference first) instead of the
+    /// server's choice; checked against the scene when it is rendered.
+    pub sources: Option<Vec<u32>>,
 }
 
 /// A parsed, not yet validated, render request (`POST /v1/render`): a scene and a view of it.
@@ -116,6 +119,8 @@ impl ValidScene {
 pub struct ValidTarget {
     pub target: Camera,
     pub outputs: OutputSet,
+    /// Pinned views, not yet checked against a scene (see `pipeline::views::choose`).
+    pub sources: Option<Vec<u32>>,
 }
 
 /// A validated render request.

@@ -29,6 +29,11 @@ pub struct Limits {
     /// Deepest accepted nesting of JSON arrays/objects; checked before parsing so that a
     /// pathological document costs one linear scan, not recursion.
     pub max_json_depth: usize,
+    /// Most views a scene may hold (a capture); also the most source entries or parts any
+    /// request may carry, counted before anything is decoded.
+    pub max_scene_views: usize,
+    /// Largest body of `POST /v1/captures` (every file of a capture).
+    pub max_capture_bytes: usize,
 }
 
 impl Default for Limits {
@@ -39,10 +44,8 @@ impl Default for Limits {
             max_target_pixels: 2048 * 2048,
             max_json_bytes: 1 << 20,
             max_json_depth: 16,
+            max_scene_views: 64,
+            max_capture_bytes: 256 << 20,
         }
     }
 }
-
-/// Most source views a request may carry, in any form (multipart parts `source_0..15`, protobuf
-/// `sources` entries); the model's own view count is checked after parsing.
-pub const MAX_SOURCES: usize = 16;

@@ -4,7 +4,7 @@ use bytes::Bytes;
 use prost::Message;
 use scnerf_proto::v1 as pb;
 
-use super::{OutputKind, RenderRequest, SceneRequest, SourceSpec, TargetRequest, MAX_SOURCES};
+use super::{Limits, OutputKind, RenderRequest, SceneRequest, SourceSpec, TargetRequest};
 use nalgebra::SMatrix;
 
 use crate::camera::{Axes, CameraSpec, Intrinsics, Pose, PoseKind};
@@ -12,23 +12,24 @@ use crate::error::ApiError;
 
 impl RenderRequest {
     /// Parses the protobuf form.
-    pub fn from_protobuf(body: &[u8]) -> Result<RenderRequest, ApiError> {
-        request_from_proto(decode(body, &[SOURCES, OUTPUTS], "RenderRequest")?)
+    pub fn from_protobuf(body: &[u8], limits: &Limits) -> Result<RenderRequest, ApiError> {
+        request_from_proto(decode(body, &[sources(limits), OUTPUTS], "RenderRequest")?)
     }
 }
 
 impl SceneRequest {
-    pub fn from_protobuf(body: &[u8]) -> Result<SceneRequest, ApiError> {
-        scene_from_proto(decode(body, &[SOURCES], "SceneRequest")?)
+    pub fn from_protobuf(body: &[u8], limits: &Limits) -> Result<SceneRequest, ApiError> {
+        scene_from_proto(decode(body, &[sources(limits)], "SceneRequest")?)
     }
 }
 
 impl TargetRequest {
     pub fn from_protobuf(body: &[u8]) -> Result<TargetRequest, ApiError> {
-        let msg: pb::SceneRenderRequest = decode(body, &[OUTPUTS], "SceneRenderRequest")?;
+        let msg: pb::SceneRenderRequest = decode(body, &[OUTPUTS, PINNED], "SceneRenderRequest")?;
         Ok(TargetRequest {
             target: camera_from_proto(msg.target, "target")?,
             outputs: outputs_from_proto(&msg.outputs)?,
+            sources: (!msg.sources.is_empty()).then_some(msg.sources),
         })
     }
 }
@@ -42,8 +43,13 @@ fn decode<M: Message + Default>(body: &[u8], bounds: &[Bound], name: &str) -> Re
 /// A repeated field of the request messages: number, name, most entries a request can use.
 type Bound = (u64, &'static str, usize);
 /// Field numbers are shared by RenderRequest, SceneRequest and SceneRenderRequest.
-const SOURCES: Bound = (1, "sources", MAX_SOURCES);
+fn sources(limits: &Limits) -> Bound {
+    (1, "sources", limits.max_scene_views)
+}
 const OUTPUTS: Bound = (6, "outputs", 3);
+/// SceneRenderRequest's pinned views, when sent unpacked (packed, they are one entry of a body
+/// bounded by `--max-json-bytes`).
+const PINNED: Bound = (7, "sources", 3);
 
 /// Refuses a message whose repeated fields hold more entries than a request can use, before
 /// prost materialises them: an empty `sources` entry is 2 bytes on the wire and a struct of
@@ -98,8 +104,11 @@ fn request_from_proto(msg: pb::RenderRequest) -> Result<RenderRequest, ApiError>
         far: msg.far,
         background: (!msg.background.is_empty()).then_some(msg.background),
     };
-    let view =
-        TargetRequest { target: camera_from_proto(msg.target, "target")?, outputs: outputs_from_proto(&msg.outputs)? };
+    let view = TargetRequest {
+        target: camera_from_proto(msg.target, "target")?,
+        outputs: outputs_from_proto(&msg.outputs)?,
+        sources: None,
+    };
     Ok(RenderRequest { scene, view })
 }
 
@@ -184,16 +193,20 @@ mod tests {
 
     #[test]
     fn protobuf_repeated_fields_are_counted_before_decoding() {
+        let limits = Limits { max_scene_views: 16, ..Limits::default() };
         let empty_sources = [0x0a, 0x00].repeat(17);
-        let err = RenderRequest::from_protobuf(&empty_sources).unwrap_err();
+        let err = RenderRequest::from_protobuf(&empty_sources, &limits).unwrap_err();
         assert_eq!((err.status().as_u16(), err.field()), (422, Some("sources")));
         // Other fields in between are skipped by wire type: varint, 64-bit, bytes, 32-bit.
         let mut outputs = vec![0x18, 0x96, 0x01, 0x21, 0, 0, 0, 0, 0, 0, 0, 0, 0x2d, 0, 0, 0, 0];
         outputs.extend([0x32, 0x03, b'r', b'g', b'b'].repeat(4));
         let err = TargetRequest::from_protobuf(&outputs).unwrap_err();
         assert_eq!(err.field(), Some("outputs"));
-        assert!(check_repeated(&[0x0a, 0x00].repeat(16), &[SOURCES]).is_ok());
+        assert!(check_repeated(&[0x0a, 0x00].repeat(16), &[sources(&limits)]).is_ok());
         // Truncated input is prost's to report.
-        assert!(check_repeated(&[0x0a, 0x05, 0x00], &[SOURCES]).is_ok());
+        assert!(check_repeated(&[0x0a, 0x05, 0x00], &[sources(&limits)]).is_ok());
+        // Pinned views sent unpacked, one varint each: at most 3 entries.
+        let err = TargetRequest::from_protobuf(&[0x38, 0x01].repeat(4)).unwrap_err();
+        assert_eq!(err.field(), Some("sources"));
     }
 }

@@ -14,7 +14,13 @@ impl RenderRequest {
     /// Checks the request against the bundle and the limits and converts the cameras.
     pub fn validate(self, config: &ModelConfig, limits: &Limits) -> Result<ValidRequest, ApiError> {
         // Cheap whole-request checks first, then the target, then the (costlier) sources.
-        let background = self.scene.validate_header(config)?;
+        if self.scene.sources.len() != config.views {
+            return Err(ApiError::invalid(
+                "sources",
+                format!("this model takes exactly {} source views, got {}", config.views, self.scene.sources.len()),
+            ));
+        }
+        let background = self.scene.validate_header()?;
         let view = self.view.validate(limits)?;
         let scene = self.scene.validate_sources(background, limits)?;
         Ok(ValidRequest { scene, view })
@@ -22,19 +28,22 @@ impl RenderRequest {
 }
 
 impl SceneRequest {
+    /// A scene holds from the model's view count (3, rendered from as they are) up to
+    /// `max_scene_views` (a capture, from which each render picks 3).
     pub fn validate(self, config: &ModelConfig, limits: &Limits) -> Result<ValidScene, ApiError> {
-        let background = self.validate_header(config)?;
+        let (count, range) = (self.sources.len(), config.views..=limits.max_scene_views.max(config.views));
+        if !range.contains(&count) {
+            return Err(ApiError::invalid(
+                "sources",
+                format!("a scene holds {} to {} source views, got {count}", range.start(), range.end()),
+            ));
+        }
+        let background = self.validate_header()?;
         self.validate_sources(background, limits)
     }
 
-    /// View count, depth range and background: everything but the cameras and images.
-    fn validate_header(&self, config: &ModelConfig) -> Result<[f32; 3], ApiError> {
-        if self.sources.len() != config.views {
-            return Err(ApiError::invalid(
-                "sources",
-                format!("this model takes exactly {} source views, got {}", config.views, self.sources.len()),
-            ));
-        }
+    /// Depth range and background: everything but the view count, cameras and images.
+    fn validate_header(&self) -> Result<[f32; 3], ApiError> {
         check_depth_range(self.near, self.far)?;
         check_background(self.background.as_deref())
     }
@@ -96,7 +105,7 @@ impl TargetRequest {
                 ),
             ));
         }
-        Ok(ValidTarget { target, outputs })
+        Ok(ValidTarget { target, outputs, sources: self.sources })
     }
 }
 

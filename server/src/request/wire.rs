@@ -37,13 +37,15 @@ pub struct JsonRenderRequest {
     outputs: Option<Vec<OutputKind>>,
 }
 
-/// `POST /v1/scenes` JSON body (and the `request` part of a multipart body): a render request
-/// without `target` and `outputs`.
+/// `POST /v1/scenes` and `PUT /v1/scenes/{id}` JSON body (and the `request` part of a multipart
+/// body): a render request without `target` and `outputs`, with 3 views or a whole capture.
 #[derive(Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
 #[schema(as = SceneRequest)]
 pub struct JsonSceneRequest {
-    #[schema(min_items = 3, max_items = 3)]
+    /// 3 views (rendered from in this order, view 0 the reference), or a capture of up to
+    /// `max_scene_views` (GET /v1/model) views, from which each render picks 3.
+    #[schema(min_items = 3)]
     sources: Vec<JsonSource>,
     #[schema(exclusive_minimum = 0.0)]
     near: f64,
@@ -63,6 +65,12 @@ pub struct JsonTargetRequest {
     #[serde(default)]
     #[schema(min_items = 1, max_items = 3)]
     outputs: Option<Vec<OutputKind>>,
+    /// The scene's views to render from (indices in upload order, the volume's reference
+    /// first). Default: a scene of 3 views renders from them in upload order; a larger scene
+    /// from the 3 views nearest the target by camera-centre distance, among those facing its way.
+    #[serde(default)]
+    #[schema(min_items = 3, max_items = 3)]
+    sources: Option<Vec<u32>>,
 }
 
 #[derive(Deserialize, utoipa::ToSchema)]
@@ -333,7 +341,7 @@ impl RenderRequest {
             far: parsed.far,
             background: parsed.background,
         };
-        let view = TargetRequest { target: parsed.target.into_spec("target")?, outputs: parsed.outputs };
+        let view = TargetRequest { target: parsed.target.into_spec("target")?, outputs: parsed.outputs, sources: None };
         Ok(RenderRequest { scene, view })
     }
 }
@@ -353,7 +361,11 @@ impl SceneRequest {
 impl TargetRequest {
     pub fn from_json(body: &[u8], limits: &Limits) -> Result<TargetRequest, ApiError> {
         let parsed: JsonTargetRequest = parse_json(body, limits.max_json_depth, "scene render request", "body")?;
-        Ok(TargetRequest { target: parsed.target.into_spec("target")?, outputs: parsed.outputs })
+        Ok(TargetRequest {
+            target: parsed.target.into_spec("target")?,
+            outputs: parsed.outputs,
+            sources: parsed.sources,
+        })
     }
 }
 

@@ -3,8 +3,10 @@
 //! of the same name in `exporter/scnerf_export/datasets.py`; the fixtures under
 //! `tests/fixtures/datasets/` are read by both and compared with what the Python loader wrote.
 //!
-//! Readers do not decode images: they read image headers for sizes, and the client uploads the
-//! files as they are (the server composites alpha on `background`).
+//! Readers read through [`Files`]: a folder on disk ([`load`]) or files held in memory
+//! ([`load_from`] with [`crate::files::MemoryFiles`]). They do not decode images: they read image
+//! headers for sizes, and the images are sent as they are (the server composites alpha on
+//! `background`).
 
 pub mod blender;
 pub mod colmap;
@@ -17,6 +19,7 @@ use std::path::{Path, PathBuf};
 
 use crate::camera::Camera;
 use crate::error::{Error, Result};
+use crate::files::{Disk, Files};
 
 #[derive(Debug, Clone)]
 pub struct CapturedView {
@@ -40,9 +43,9 @@ pub struct Capture {
 
 impl Capture {
     pub fn view(&self, name: &str) -> Result<&CapturedView> {
-        self.views.iter().find(|v| v.name == name).ok_or_else(|| {
-            let names: Vec<&str> = self.views.iter().map(|v| v.name.as_str()).collect();
-            Error::Usage(format!("view {name:?} is not in the capture; its views are: {}", names.join(", ")))
+        self.views.iter().find(|v| v.name == name).ok_or_else(|| Error::UnknownView {
+            name: name.to_string(),
+            known: self.views.iter().map(|v| v.name.clone()).collect(),
         })
     }
 }
@@ -58,7 +61,7 @@ pub struct ReadOptions {
     pub ignore_distortion: bool,
 }
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Format {
     Colmap,
     Nerfstudio,
@@ -81,31 +84,31 @@ impl Format {
 
 /// Which layout a folder holds. The order matters: LLFF and nerfstudio folders often carry the
 /// COLMAP model they were made from, so COLMAP is the last guess.
-pub fn detect(path: &Path) -> Result<Format> {
-    if path.is_file() {
+pub fn detect(fs: &dyn Files, path: &Path) -> Result<Format> {
+    if fs.is_file(path) {
         // a transforms file given directly
         return match path.extension().and_then(|e| e.to_str()) {
-            Some("json") if is_blender_json(path)? => Ok(Format::Blender),
+            Some("json") if is_blender_json(fs, path)? => Ok(Format::Blender),
             Some("json") => Ok(Format::Nerfstudio),
             _ => Err(Error::dataset(path, "not a dataset folder or transforms JSON file")),
         };
     }
-    if !path.is_dir() {
+    if !fs.is_dir(path) {
         return Err(Error::dataset(path, "no such dataset folder"));
     }
-    let format = if path.join("poses_bounds.npy").is_file() {
+    let format = if fs.is_file(&path.join("poses_bounds.npy")) {
         Format::Llff
-    } else if path.join("Cameras").is_dir() {
+    } else if fs.is_dir(&path.join("Cameras")) {
         Format::Dtu
-    } else if ["train", "val", "test"].iter().any(|s| path.join(format!("transforms_{s}.json")).is_file()) {
+    } else if ["train", "val", "test"].iter().any(|s| fs.is_file(&path.join(format!("transforms_{s}.json")))) {
         Format::Blender
-    } else if path.join("transforms.json").is_file() {
-        if is_blender_json(&path.join("transforms.json"))? {
+    } else if fs.is_file(&path.join("transforms.json")) {
+        if is_blender_json(fs, &path.join("transforms.json"))? {
             Format::Blender
         } else {
             Format::Nerfstudio
         }
-    } else if colmap::find_model(path).is_some() {
+    } else if colmap::find_model(fs, path).is_some() {
         Format::Colmap
     } else {
         return Err(Error::dataset(
@@ -119,23 +122,29 @@ pub fn detect(path: &Path) -> Result<Format> {
 }
 
 /// Blender files give `camera_angle_x`; nerfstudio files give `fl_x`.
-fn is_blender_json(path: &Path) -> Result<bool> {
-    let data = read_json(path)?;
+fn is_blender_json(fs: &dyn Files, path: &Path) -> Result<bool> {
+    let data = read_json(fs, path)?;
     Ok(data.get("camera_angle_x").is_some() && data.get("fl_x").is_none())
 }
 
-/// Reads a capture; `format` `None` detects it.
+/// Reads a capture folder on disk; `format` `None` detects it.
 pub fn load(path: &Path, format: Option<Format>, opts: ReadOptions) -> Result<Capture> {
+    load_from(&Disk, path, format, opts)
+}
+
+/// Reads the capture at `path` of `fs` (`""`: the root of an in-memory file set); `format`
+/// `None` detects it.
+pub fn load_from(fs: &dyn Files, path: &Path, format: Option<Format>, opts: ReadOptions) -> Result<Capture> {
     let format = match format {
         Some(f) => f,
-        None => detect(path)?,
+        None => detect(fs, path)?,
     };
     let capture = match format {
-        Format::Colmap => colmap::load(path, opts),
-        Format::Nerfstudio => nerfstudio::load(path, opts),
-        Format::Blender => blender::load(path, opts),
-        Format::Llff => llff::load(path, opts),
-        Format::Dtu => dtu::load(path, opts),
+        Format::Colmap => colmap::load(fs, path, opts),
+        Format::Nerfstudio => nerfstudio::load(fs, path, opts),
+        Format::Blender => blender::load(fs, path, opts),
+        Format::Llff => llff::load(fs, path, opts),
+        Format::Dtu => dtu::load(fs, path, opts),
     }?;
     if capture.views.len() < 3 {
         return Err(Error::dataset(
@@ -153,16 +162,8 @@ fn has_image_extension(path: &Path) -> bool {
     path.extension().and_then(|e| e.to_str()).is_some_and(|e| IMAGE_EXTENSIONS.contains(&e))
 }
 
-/// (width, height) from the image header.
-pub fn image_size(path: &Path) -> Result<(u32, u32)> {
-    image::image_dimensions(path).map_err(|e| match e {
-        image::ImageError::IoError(io) => Error::io(path, io),
-        other => Error::dataset(path, format!("cannot read the image header: {other}")),
-    })
-}
-
-pub fn read_json(path: &Path) -> Result<serde_json::Value> {
-    let text = crate::error::read_text(path)?;
+pub fn read_json(fs: &dyn Files, path: &Path) -> Result<serde_json::Value> {
+    let text = fs.read_text(path)?;
     serde_json::from_str(&text).map_err(|e| Error::dataset(path, format!("invalid JSON: {e}")))
 }
 
@@ -183,15 +184,15 @@ fn depth_range(opts: ReadOptions, from_data: (Option<f64>, Option<f64>), source:
 
 /// The image a transforms.json `file_path` refers to: the path itself, else with one of the
 /// image extensions appended (Blender files omit it). datasets.py `_resolve_image`.
-fn resolve_image(base: &Path, file_path: &str) -> Option<PathBuf> {
+fn resolve_image(fs: &dyn Files, base: &Path, file_path: &str) -> Option<PathBuf> {
     let p = base.join(file_path);
-    if p.exists() {
+    if fs.is_file(&p) {
         return Some(p);
     }
     if has_image_extension(&p) {
         return None;
     }
-    IMAGE_EXTENSIONS.iter().map(|ext| PathBuf::from(format!("{}.{ext}", p.display()))).find(|q| q.exists())
+    IMAGE_EXTENSIONS.iter().map(|ext| PathBuf::from(format!("{}.{ext}", p.display()))).find(|q| fs.is_file(q))
 }
 
 /// Distortion coefficients that are not zero: an error, or with `--ignore-distortion` a warning

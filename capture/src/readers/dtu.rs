@@ -12,9 +12,10 @@ use std::path::{Path, PathBuf};
 
 use nalgebra::Matrix4;
 
-use super::{depth_range, image_size, Capture, CapturedView, Format, ReadOptions};
+use super::{depth_range, Capture, CapturedView, Format, ReadOptions};
 use crate::camera::{pose_from_matrix, Camera, Intrinsics};
-use crate::error::{read_text, Error, Result};
+use crate::error::{Error, Result};
+use crate::files::Files;
 
 /// MVSNeRF's world scale: millimetres x 1/200.
 const SCALE: f64 = 1.0 / 200.0;
@@ -22,24 +23,25 @@ const SCALE: f64 = 1.0 / 200.0;
 const NUM_DEPTHS: f64 = 192.0;
 const SIZE: (u32, u32) = (640, 512);
 
-pub fn load(path: &Path, opts: ReadOptions) -> Result<Capture> {
-    if !path.is_dir() {
+pub fn load(fs: &dyn Files, path: &Path, opts: ReadOptions) -> Result<Capture> {
+    if !fs.is_dir(path) {
         return Err(Error::dataset(path, "DTU scene folder not found"));
     }
-    let cam_dir = if path.join("Cameras/train").is_dir() { path.join("Cameras/train") } else { path.join("Cameras") };
-    let cam_files = camera_files(&cam_dir)?;
-    let image_dir = image_dir(path)?;
+    let train = path.join("Cameras/train");
+    let cam_dir = if fs.is_dir(&train) { train } else { path.join("Cameras") };
+    let cam_files = camera_files(fs, &cam_dir)?;
+    let image_dir = image_dir(fs, path)?;
     let (mut views, mut nears, mut fars, mut skipped) = (Vec::new(), Vec::new(), Vec::new(), 0);
     for (id, file) in &cam_files {
         let image_path = image_dir.join(format!("rect_{:03}_3_r5000.png", id + 1));
-        if !image_path.exists() {
+        if !fs.is_file(&image_path) {
             skipped += 1;
             continue;
         }
-        let cam = parse_cam(file)?;
+        let cam = parse_cam(fs, file)?;
         nears.push(cam.depth_min * SCALE);
         fars.push((cam.depth_min + cam.depth_interval * NUM_DEPTHS) * SCALE);
-        if image_size(&image_path)? != SIZE {
+        if fs.image_size(&image_path)? != SIZE {
             return Err(Error::dataset(&image_path, "expected a 640x512 image (MVSNeRF's DTU)"));
         }
         let camera = Camera { width: SIZE.0, height: SIZE.1, intrinsics: cam.intrinsics, w2c: cam.w2c };
@@ -59,9 +61,8 @@ pub fn load(path: &Path, opts: ReadOptions) -> Result<Capture> {
 }
 
 /// `NNNNNNNN_cam.txt` files with their view numbers, sorted by file name.
-fn camera_files(dir: &Path) -> Result<Vec<(u32, PathBuf)>> {
-    let entries = std::fs::read_dir(dir).map_err(|e| Error::io(dir, e))?;
-    let mut files: Vec<PathBuf> = entries.filter_map(|e| e.ok().map(|e| e.path())).collect();
+fn camera_files(fs: &dyn Files, dir: &Path) -> Result<Vec<(u32, PathBuf)>> {
+    let mut files = fs.list(dir)?;
     files.sort();
     let numbered: Vec<(u32, PathBuf)> = files
         .into_iter()
@@ -80,11 +81,9 @@ fn camera_files(dir: &Path) -> Result<Vec<(u32, PathBuf)>> {
 
 /// `Rectified/scanS_train` or `Rectified/scanS` for a folder named like `scanS`, else the one
 /// sub-folder of `Rectified`, else `Rectified` itself when it holds the images.
-fn image_dir(root: &Path) -> Result<PathBuf> {
+fn image_dir(fs: &dyn Files, root: &Path) -> Result<PathBuf> {
     let rect = root.join("Rectified");
-    let entries = std::fs::read_dir(&rect).map_err(|e| Error::io(&rect, e))?;
-    let mut candidates: Vec<PathBuf> =
-        entries.filter_map(|e| e.ok().map(|e| e.path())).filter(|p| p.is_dir()).collect();
+    let mut candidates: Vec<PathBuf> = fs.list(&rect)?.into_iter().filter(|p| fs.is_dir(p)).collect();
     candidates.sort();
     if let Some(scan) = scan_number(root) {
         let preferred: Vec<PathBuf> = candidates
@@ -101,15 +100,15 @@ fn image_dir(root: &Path) -> Result<PathBuf> {
     }
     match candidates.as_slice() {
         [one] => Ok(one.clone()),
-        [] if has_rect_images(&rect) => Ok(rect),
+        [] if has_rect_images(fs, &rect) => Ok(rect),
         _ => Err(Error::dataset(&rect, format!("cannot tell which folder holds the images: {candidates:?}"))),
     }
 }
 
-fn has_rect_images(dir: &Path) -> bool {
-    std::fs::read_dir(dir).is_ok_and(|entries| {
-        entries.filter_map(|e| e.ok()).any(|e| {
-            let name = e.file_name().to_string_lossy().into_owned();
+fn has_rect_images(fs: &dyn Files, dir: &Path) -> bool {
+    fs.list(dir).is_ok_and(|entries| {
+        entries.iter().filter_map(|p| p.file_name()).any(|n| {
+            let name = n.to_string_lossy();
             name.starts_with("rect_") && name.ends_with(".png")
         })
     })
@@ -133,8 +132,8 @@ struct DtuCamera {
 
 /// MVSNet cam.txt: "extrinsic" then 16 numbers, "intrinsic" then 9 numbers, then depth_min and
 /// depth_interval; scaled to MVSNeRF's units.
-fn parse_cam(path: &Path) -> Result<DtuCamera> {
-    let text = read_text(path)?;
+fn parse_cam(fs: &dyn Files, path: &Path) -> Result<DtuCamera> {
+    let text = fs.read_text(path)?;
     let low = text.to_lowercase();
     let (i_ext, i_int) = match (low.find("extrinsic"), low.find("intrinsic")) {
         (Some(e), Some(i)) if e < i => (e, i),

@@ -7,7 +7,8 @@
 //!   first pixel centre is at (0.5, 0.5) (COLMAP, nerfstudio) are shifted by -0.5 when read.
 //!
 //! Every reader converts its cameras to this form once; paths, the API and the metrics see
-//! nothing else. Written so that the server could share it (nalgebra only).
+//! nothing else. The source-ranking rule ([`rank_sources`]) lives here too: the client's
+//! evaluation and the server's choice of sources per target are this one function.
 
 use nalgebra::{Matrix3, Matrix4, Point3, Rotation3, Translation3, Unit, Vector3};
 
@@ -57,6 +58,10 @@ impl Camera {
     /// Unit optical axis in world coordinates (the third row of the rotation).
     pub fn forward(&self) -> Vector3<f64> {
         self.w2c.rotation.matrix().row(2).transpose()
+    }
+
+    pub fn viewpoint(&self) -> Viewpoint {
+        Viewpoint::of_w2c(&self.w2c.to_homogeneous())
     }
 
     /// The same view resampled to `width` x `height`: f' = f s, c' = (c + 0.5) s - 0.5, so that
@@ -153,16 +158,34 @@ pub fn unit(v: Vector3<f64>) -> Option<Vector3<f64>> {
     Unit::try_new(v, 1e-12).map(Unit::into_inner)
 }
 
+/// Where a camera is and which way it looks: all that source ranking needs.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Viewpoint {
+    pub centre: Point3<f64>,
+    /// The optical axis (+z of the camera) in world coordinates.
+    pub forward: Vector3<f64>,
+}
+
+impl Viewpoint {
+    /// Of a world-to-camera matrix [R | t] (OpenCV axes), as cameras.py computes them:
+    /// centre = -Rᵀ t, forward = the third row of R.
+    pub fn of_w2c(w2c: &Matrix4<f64>) -> Viewpoint {
+        let r = w2c.fixed_view::<3, 3>(0, 0);
+        let t = w2c.fixed_view::<3, 1>(0, 3);
+        Viewpoint { centre: Point3::from(-(r.transpose() * t)), forward: r.row(2).transpose() }
+    }
+}
+
 /// Source ranking, MVSNeRF's rule (cameras.py `rank_sources`): candidates by the distance of
 /// their centre to the target's, nearest first, ties to the lower index; a candidate whose
-/// optical axis makes 90 degrees or more with the target's sees the other side and is left out.
-pub fn rank_sources(target: &Camera, candidates: &[&Camera]) -> Vec<usize> {
-    let (centre, forward) = (target.center(), target.forward());
+/// optical axis makes 90 degrees or more with the target's (dot of the forward axes <= 0) sees
+/// the other side and is left out. The first becomes the volume's reference view.
+pub fn rank_sources(target: &Viewpoint, candidates: &[Viewpoint]) -> Vec<usize> {
     let mut ranked: Vec<(f64, usize)> = candidates
         .iter()
         .enumerate()
-        .filter(|(_, c)| c.forward().dot(&forward) > 0.0)
-        .map(|(i, c)| ((c.center() - centre).norm(), i))
+        .filter(|(_, c)| c.forward.dot(&target.forward) > 0.0)
+        .map(|(i, c)| ((c.centre - target.centre).norm(), i))
         .collect();
     ranked.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
     ranked.into_iter().map(|(_, i)| i).collect()
@@ -217,6 +240,37 @@ mod tests {
         assert!(pose_from_matrix(&m).is_none());
     }
 
+    /// A rig of exactly representable cameras with ties in distance, views facing away and one
+    /// at exactly 90 degrees. The expected order is what cameras.py `rank_sources` printed for
+    /// the same matrices (exporter of the main tree, `PYTHONPATH=exporter .venv/bin/python`):
+    /// `[5, 6, 0, 1, 7, 4]`.
+    #[test]
+    fn ranking_matches_the_python_rule_on_a_rig() {
+        let identity = Matrix3::identity();
+        let back = Matrix3::from_diagonal(&Vector3::new(1.0, -1.0, -1.0)); // looks along -z
+        let side = Matrix3::new(0.0, 0.0, -1.0, 0.0, 1.0, 0.0, 1.0, 0.0, 0.0); // looks along +x
+        let rolled = Matrix3::new(0.0, 1.0, 0.0, -1.0, 0.0, 0.0, 0.0, 0.0, 1.0); // still along +z
+        let w2c = |centre: [f64; 3], r: Matrix3<f64>| {
+            let mut m = Matrix4::identity();
+            m.fixed_view_mut::<3, 3>(0, 0).copy_from(&r);
+            m.fixed_view_mut::<3, 1>(0, 3).copy_from(&-(r * Vector3::from(centre)));
+            Viewpoint::of_w2c(&m)
+        };
+        let rig = [
+            w2c([2.0, 0.0, 0.0], identity),
+            w2c([0.0, 2.0, 0.0], identity),
+            w2c([1.0, 0.0, 0.0], back),
+            w2c([0.0, 0.0, 1.0], side),
+            w2c([0.0, 0.0, -3.0], identity),
+            w2c([-1.0, 1.0, 0.0], identity),
+            w2c([1.0, -1.0, 0.0], rolled),
+            w2c([0.0, -2.0, 0.0], identity),
+            w2c([0.5, 0.0, 0.0], back),
+        ];
+        let target = w2c([0.0; 3], identity);
+        assert_eq!(rank_sources(&target, &rig), vec![5, 6, 0, 1, 7, 4]);
+    }
+
     #[test]
     fn ranking_is_by_distance_then_index_and_skips_opposite_views() {
         let target = camera_at([4.0, 0.0, 0.0], [0.0, 0.0, 0.0]);
@@ -225,6 +279,7 @@ mod tests {
         let near = camera_at([4.0, 1.0, 0.0], [0.0, 0.0, 0.0]);
         let behind = camera_at([-4.0, 0.0, 0.0], [0.0, 0.0, 0.0]); // faces the target
         let side = camera_at([0.0, 4.0, 0.0], [0.0, 0.0, 0.0]); // exactly 90 degrees: left out
-        assert_eq!(rank_sources(&target, &[&a, &b, &near, &behind, &side]), vec![2, 0, 1]);
+        let candidates: Vec<Viewpoint> = [a, b, near, behind, side].iter().map(Camera::viewpoint).collect();
+        assert_eq!(rank_sources(&target.viewpoint(), &candidates), vec![2, 0, 1]);
     }
 }

@@ -11,14 +11,15 @@ use std::path::{Path, PathBuf};
 
 use nalgebra::{Matrix4, Vector3};
 
-use super::{depth_range, has_image_extension, image_size, Capture, CapturedView, Format, ReadOptions};
+use super::{depth_range, has_image_extension, Capture, CapturedView, Format, ReadOptions};
 use crate::camera::{w2c_from_c2w, Camera, Intrinsics};
-use crate::error::{read_bytes, Error, Result};
+use crate::error::{Error, Result};
+use crate::files::Files;
 
-pub fn load(path: &Path, opts: ReadOptions) -> Result<Capture> {
+pub fn load(fs: &dyn Files, path: &Path, opts: ReadOptions) -> Result<Capture> {
     let npy = path.join("poses_bounds.npy");
-    let rows = read_rows(&npy)?;
-    let images = list_images(&path.join("images"))?;
+    let rows = read_rows(fs, &npy)?;
+    let images = list_images(fs, &path.join("images"))?;
     if images.len() != rows.len() {
         return Err(Error::dataset(
             &npy,
@@ -40,7 +41,7 @@ pub fn load(path: &Path, opts: ReadOptions) -> Result<Capture> {
         c2w.fixed_view_mut::<3, 1>(0, 3).copy_from(&column(3));
         let w2c = w2c_from_c2w(&c2w)
             .ok_or_else(|| Error::dataset(&npy, format!("row {i}: the pose is not a rigid transform")))?;
-        let (w, h) = image_size(&image)?;
+        let (w, h) = fs.image_size(&image)?;
         let f = focal * f64::from(w) / w0;
         let intrinsics = Intrinsics { fx: f, fy: f, cx: f64::from(w) / 2.0, cy: f64::from(h) / 2.0 };
         let name = image.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
@@ -53,8 +54,8 @@ pub fn load(path: &Path, opts: ReadOptions) -> Result<Capture> {
 }
 
 /// The N rows of 17 finite numbers (float64 or float32, either byte or memory order).
-fn read_rows(npy: &Path) -> Result<Vec<[f64; 17]>> {
-    let bytes = read_bytes(npy)?;
+fn read_rows(fs: &dyn Files, npy: &Path) -> Result<Vec<[f64; 17]>> {
+    let bytes = fs.read(npy)?;
     let bad = |what: String| Error::dataset(npy, what);
     let file = npyz::NpyFile::new(&bytes[..]).map_err(|e| bad(format!("not a .npy file ({e})")))?;
     let shape = file.shape().to_vec();
@@ -84,11 +85,11 @@ fn read_rows(npy: &Path) -> Result<Vec<[f64; 17]>> {
 }
 
 /// Image files of a folder, sorted by name, hidden files left out (datasets.py `_list_images`).
-pub(super) fn list_images(dir: &Path) -> Result<Vec<PathBuf>> {
-    let entries = std::fs::read_dir(dir).map_err(|e| Error::io(dir, e))?;
-    let mut files: Vec<PathBuf> = entries
-        .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| p.is_file() && has_image_extension(p))
+fn list_images(fs: &dyn Files, dir: &Path) -> Result<Vec<PathBuf>> {
+    let mut files: Vec<PathBuf> = fs
+        .list(dir)?
+        .into_iter()
+        .filter(|p| fs.is_file(p) && has_image_extension(p))
         .filter(|p| !p.file_name().is_some_and(|n| n.to_string_lossy().starts_with('.')))
         .collect();
     files.sort();

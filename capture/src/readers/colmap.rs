@@ -18,12 +18,12 @@ use std::path::{Path, PathBuf};
 use nalgebra::{Point3, Quaternion, Translation3, UnitQuaternion};
 
 use super::{
-    check_distortion, depth_range, image_size, natural_cmp, without_extension, Capture, CapturedView, Format,
-    ReadOptions,
+    check_distortion, depth_range, natural_cmp, without_extension, Capture, CapturedView, Format, ReadOptions,
 };
 use crate::camera::{Camera, Intrinsics, Pose};
-use crate::error::{read_bytes, read_text, Error, Result};
-use crate::metrics::percentile;
+use crate::error::{Error, Result};
+use crate::files::Files;
+use crate::percentile;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Encoding {
@@ -33,11 +33,11 @@ pub enum Encoding {
 
 /// The folder and encoding of the model: text anywhere first (the Python loader's rule), then
 /// binary.
-pub fn find_model(root: &Path) -> Option<(PathBuf, Encoding)> {
+pub fn find_model(fs: &dyn Files, root: &Path) -> Option<(PathBuf, Encoding)> {
     let dirs = [root.to_path_buf(), root.join("sparse").join("0"), root.join("sparse")];
     [(Encoding::Text, "txt"), (Encoding::Binary, "bin")].into_iter().find_map(|(encoding, ext)| {
         dirs.iter()
-            .find(|d| d.join(format!("cameras.{ext}")).is_file() && d.join(format!("images.{ext}")).is_file())
+            .find(|d| fs.is_file(&d.join(format!("cameras.{ext}"))) && fs.is_file(&d.join(format!("images.{ext}"))))
             .map(|d| (d.clone(), encoding))
     })
 }
@@ -62,18 +62,18 @@ struct Points {
     tracks: Vec<Vec<i64>>,
 }
 
-pub fn load(path: &Path, opts: ReadOptions) -> Result<Capture> {
-    let (dir, encoding) = find_model(path).ok_or_else(|| {
+pub fn load(fs: &dyn Files, path: &Path, opts: ReadOptions) -> Result<Capture> {
+    let (dir, encoding) = find_model(fs, path).ok_or_else(|| {
         Error::dataset(path, "no COLMAP model (cameras + images, .txt or .bin) in ., sparse/0 or sparse")
     })?;
     let ext = if encoding == Encoding::Text { "txt" } else { "bin" };
     let (cameras_file, images_file) = (dir.join(format!("cameras.{ext}")), dir.join(format!("images.{ext}")));
     let (cameras, mut images) = match encoding {
-        Encoding::Text => (text::cameras(&cameras_file)?, text::images(&images_file)?),
-        Encoding::Binary => (binary::cameras(&cameras_file)?, binary::images(&images_file)?),
+        Encoding::Text => (text::cameras(fs, &cameras_file)?, text::images(fs, &images_file)?),
+        Encoding::Binary => (binary::cameras(fs, &cameras_file)?, binary::images(fs, &images_file)?),
     };
     let image_dir = path.join("images");
-    if !image_dir.is_dir() {
+    if !fs.is_dir(&image_dir) {
         return Err(Error::dataset(&image_dir, "COLMAP images folder not found"));
     }
     let mut warnings = Vec::new();
@@ -89,11 +89,11 @@ pub fn load(path: &Path, opts: ReadOptions) -> Result<Capture> {
             Error::dataset(&images_file, format!("image {} uses unknown camera {}", img.name, img.camera_id))
         })?;
         let image_path = image_dir.join(&img.name);
-        if !image_path.exists() {
+        if !fs.is_file(&image_path) {
             continue;
         }
         let declared = Camera { width: declared.0, height: declared.1, intrinsics: *cam, w2c: img.w2c };
-        let (w, h) = image_size(&image_path)?;
+        let (w, h) = fs.image_size(&image_path)?;
         let camera = if (w, h) == (declared.width, declared.height) { declared } else { declared.resized(w, h) };
         views.push(CapturedView { name: without_extension(&img.name), image_path, camera });
     }
@@ -113,10 +113,10 @@ pub fn load(path: &Path, opts: ReadOptions) -> Result<Capture> {
         ));
     }
     let points_file = dir.join(format!("points3D.{ext}"));
-    let from_points = if points_file.is_file() {
+    let from_points = if fs.is_file(&points_file) {
         let points = match encoding {
-            Encoding::Text => text::points(&points_file)?,
-            Encoding::Binary => binary::points(&points_file)?,
+            Encoding::Text => text::points(fs, &points_file)?,
+            Encoding::Binary => binary::points(fs, &points_file)?,
         };
         points_near_far(&points, &images)
     } else {
@@ -226,17 +226,17 @@ mod text {
     use super::*;
 
     /// Lines with their 1-based numbers, comments and blank lines kept (images.txt needs them).
-    fn lines(path: &Path) -> Result<Vec<String>> {
-        Ok(read_text(path)?.lines().map(str::to_string).collect())
+    fn lines(fs: &dyn Files, path: &Path) -> Result<Vec<String>> {
+        Ok(fs.read_text(path)?.lines().map(str::to_string).collect())
     }
 
     fn malformed(path: &Path, line: usize, what: &str, text: &str) -> Error {
         Error::dataset(path, format!("line {line}: malformed {what} line: {text:?}"))
     }
 
-    pub(super) fn cameras(path: &Path) -> Result<Vec<(i64, CameraModel)>> {
+    pub(super) fn cameras(fs: &dyn Files, path: &Path) -> Result<Vec<(i64, CameraModel)>> {
         let mut out = Vec::new();
-        for (i, line) in lines(path)?.iter().enumerate() {
+        for (i, line) in lines(fs, path)?.iter().enumerate() {
             let s = line.trim();
             if s.is_empty() || s.starts_with('#') {
                 continue;
@@ -262,8 +262,8 @@ mod text {
 
     /// Every image takes two lines; the second (its 2D points) may be empty, so records are read
     /// in pairs instead of filtering blank lines.
-    pub(super) fn images(path: &Path) -> Result<Vec<ImageRecord>> {
-        let lines = lines(path)?;
+    pub(super) fn images(fs: &dyn Files, path: &Path) -> Result<Vec<ImageRecord>> {
+        let lines = lines(fs, path)?;
         let mut out = Vec::new();
         let mut i = 0;
         while i < lines.len() {
@@ -293,9 +293,9 @@ mod text {
         Ok(out)
     }
 
-    pub(super) fn points(path: &Path) -> Result<Points> {
+    pub(super) fn points(fs: &dyn Files, path: &Path) -> Result<Points> {
         let mut points = Points { xyz: Vec::new(), tracks: Vec::new() };
-        for (i, line) in lines(path)?.iter().enumerate() {
+        for (i, line) in lines(fs, path)?.iter().enumerate() {
             let s = line.trim();
             if s.is_empty() || s.starts_with('#') {
                 continue;
@@ -341,8 +341,8 @@ mod binary {
     }
 
     impl<'a> Reader<'a> {
-        fn open(path: &'a Path) -> Result<Self> {
-            Ok(Reader { path, bytes: read_bytes(path)?, at: 0 })
+        fn open(fs: &dyn Files, path: &'a Path) -> Result<Self> {
+            Ok(Reader { path, bytes: fs.read(path)?.into_owned(), at: 0 })
         }
 
         fn take<const N: usize>(&mut self) -> Result<[u8; N]> {
@@ -408,8 +408,8 @@ mod binary {
         }
     }
 
-    pub(super) fn cameras(path: &Path) -> Result<Vec<(i64, CameraModel)>> {
-        let mut r = Reader::open(path)?;
+    pub(super) fn cameras(fs: &dyn Files, path: &Path) -> Result<Vec<(i64, CameraModel)>> {
+        let mut r = Reader::open(fs, path)?;
         let n = r.count(24)?;
         let mut out = Vec::with_capacity(n);
         for k in 0..n {
@@ -431,8 +431,8 @@ mod binary {
         Ok(out)
     }
 
-    pub(super) fn images(path: &Path) -> Result<Vec<ImageRecord>> {
-        let mut r = Reader::open(path)?;
+    pub(super) fn images(fs: &dyn Files, path: &Path) -> Result<Vec<ImageRecord>> {
+        let mut r = Reader::open(fs, path)?;
         let n = r.count(73)?;
         let mut out = Vec::with_capacity(n);
         for _ in 0..n {
@@ -452,8 +452,8 @@ mod binary {
         Ok(out)
     }
 
-    pub(super) fn points(path: &Path) -> Result<Points> {
-        let mut r = Reader::open(path)?;
+    pub(super) fn points(fs: &dyn Files, path: &Path) -> Result<Points> {
+        let mut r = Reader::open(fs, path)?;
         let n = r.count(51)?;
         let mut points = Points { xyz: Vec::with_capacity(n), tracks: Vec::with_capacity(n) };
         for _ in 0..n {

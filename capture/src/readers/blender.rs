@@ -9,11 +9,12 @@
 use std::path::{Path, PathBuf};
 
 use super::{
-    depth_range, image_size, json_f64, json_matrix4, read_json, resolve_image, skipped_warning, Capture, CapturedView,
-    Format, ReadOptions,
+    depth_range, json_f64, json_matrix4, read_json, resolve_image, skipped_warning, Capture, CapturedView, Format,
+    ReadOptions,
 };
 use crate::camera::{w2c_from_opengl_c2w, Camera, Intrinsics, Pose};
 use crate::error::{Error, Result};
+use crate::files::Files;
 
 const NEAR_FAR: (f64, f64) = (2.0, 6.0);
 
@@ -26,14 +27,14 @@ struct Entry {
     angle_y: Option<f64>,
 }
 
-pub fn load(path: &Path, opts: ReadOptions) -> Result<Capture> {
-    let files = transforms_files(path)?;
+pub fn load(fs: &dyn Files, path: &Path, opts: ReadOptions) -> Result<Capture> {
+    let files = transforms_files(fs, path)?;
     let mut entries = Vec::new();
     let (mut listed, mut skipped) = (0, 0);
     for file in &files {
-        let (data, frames) = frames_of(file)?;
+        let (data, frames) = frames_of(fs, file)?;
         listed += frames.len();
-        skipped += frames.len() - read_entries(file, &data, &frames, &mut entries)?;
+        skipped += frames.len() - read_entries(fs, file, &data, &frames, &mut entries)?;
     }
     if entries.is_empty() {
         return Err(Error::dataset(path, "none of the frames listed in the transforms files has an image file"));
@@ -41,7 +42,7 @@ pub fn load(path: &Path, opts: ReadOptions) -> Result<Capture> {
     let names = unique_names(&entries, path)?;
     let mut views = Vec::with_capacity(entries.len());
     for (name, e) in names.into_iter().zip(entries) {
-        let (w, h) = image_size(&e.image)?;
+        let (w, h) = fs.image_size(&e.image)?;
         let fx = 0.5 * f64::from(w) / (0.5 * e.angle_x).tan();
         let fy = e.angle_y.map_or(fx, |ay| 0.5 * f64::from(h) / (0.5 * ay).tan());
         let intrinsics = Intrinsics { fx, fy, cx: f64::from(w) / 2.0, cy: f64::from(h) / 2.0 };
@@ -58,31 +59,31 @@ pub fn load(path: &Path, opts: ReadOptions) -> Result<Capture> {
 }
 
 /// transforms_{train,val,test}.json in that order, else transforms.json, else the file given.
-fn transforms_files(path: &Path) -> Result<Vec<PathBuf>> {
-    if path.is_file() {
+fn transforms_files(fs: &dyn Files, path: &Path) -> Result<Vec<PathBuf>> {
+    if fs.is_file(path) {
         return Ok(vec![path.to_path_buf()]);
     }
-    if !path.is_dir() {
+    if !fs.is_dir(path) {
         return Err(Error::dataset(path, "Blender scene not found"));
     }
     let splits: Vec<PathBuf> = ["train", "val", "test"]
         .iter()
         .map(|s| path.join(format!("transforms_{s}.json")))
-        .filter(|p| p.exists())
+        .filter(|p| fs.is_file(p))
         .collect();
     if !splits.is_empty() {
         return Ok(splits);
     }
     let single = path.join("transforms.json");
-    if single.exists() {
+    if fs.is_file(&single) {
         return Ok(vec![single]);
     }
     Err(Error::dataset(path, "no transforms_{train,val,test}.json or transforms.json"))
 }
 
 /// The file's JSON object and its `frames` list.
-pub(super) fn frames_of(file: &Path) -> Result<(serde_json::Value, Vec<serde_json::Value>)> {
-    let data = read_json(file)?;
+pub(super) fn frames_of(fs: &dyn Files, file: &Path) -> Result<(serde_json::Value, Vec<serde_json::Value>)> {
+    let data = read_json(fs, file)?;
     let frames = data
         .get("frames")
         .and_then(|f| f.as_array())
@@ -93,6 +94,7 @@ pub(super) fn frames_of(file: &Path) -> Result<(serde_json::Value, Vec<serde_jso
 
 /// Appends the frames of one file that have an image; returns how many it appended.
 fn read_entries(
+    fs: &dyn Files,
     file: &Path,
     data: &serde_json::Value,
     frames: &[serde_json::Value],
@@ -119,7 +121,7 @@ fn read_entries(
     let before = entries.len();
     for (i, frame) in frames.iter().enumerate() {
         let file_path = frame_file_path(frame, file, i)?;
-        let Some(image) = resolve_image(base, file_path) else { continue };
+        let Some(image) = resolve_image(fs, base, file_path) else { continue };
         let matrix = json_matrix4(&frame["transform_matrix"], file, &format!("frames[{i}].transform_matrix"))?;
         let w2c = w2c_from_opengl_c2w(&matrix).ok_or_else(|| {
             Error::dataset(file, format!("frames[{i}].transform_matrix is not a rigid camera-to-world transform"))

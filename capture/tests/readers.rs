@@ -4,7 +4,8 @@
 
 use std::path::{Path, PathBuf};
 
-use scnerf_client::readers::{self, Capture, Format, ReadOptions};
+use scnerf_capture::files::{Disk, MemoryFiles};
+use scnerf_capture::readers::{self, Capture, Format, ReadOptions};
 use serde_json::Value;
 
 fn fixtures() -> PathBuf {
@@ -114,11 +115,11 @@ fn auto_detects_every_format() {
         ("colmap_binary", Format::Colmap),
         ("dtu", Format::Dtu),
     ] {
-        assert_eq!(readers::detect(&fixtures().join(folder)).unwrap(), format, "{folder}");
+        assert_eq!(readers::detect(&Disk, &fixtures().join(folder)).unwrap(), format, "{folder}");
         assert_eq!(load(folder, None).format, format);
     }
     let file = fixtures().join("nerfstudio/transforms.json");
-    assert_eq!(readers::detect(&file).unwrap(), Format::Nerfstudio);
+    assert_eq!(readers::detect(&Disk, &file).unwrap(), Format::Nerfstudio);
 }
 
 #[test]
@@ -237,4 +238,61 @@ fn malformed_files_name_the_file_and_field() {
 
     let err = error_of(&fixtures().join("no-such-folder"));
     assert!(err.contains("no such dataset folder"), "{err}");
+}
+
+/// Every file under `dir`, keyed by its path relative to `dir` (what a browser sends as the
+/// filenames of a dropped folder).
+fn in_memory(dir: &Path) -> MemoryFiles {
+    fn walk(root: &Path, dir: &Path, files: &mut MemoryFiles) {
+        for entry in std::fs::read_dir(dir).unwrap() {
+            let path = entry.unwrap().path();
+            if path.is_dir() {
+                walk(root, &path, files);
+            } else {
+                let rel = path.strip_prefix(root).unwrap().to_str().unwrap().to_string();
+                assert!(files.insert(&rel, std::fs::read(&path).unwrap()));
+            }
+        }
+    }
+    let mut files = MemoryFiles::new();
+    walk(dir, dir, &mut files);
+    files
+}
+
+/// The server reads uploaded captures from memory: every fixture gives the same capture as
+/// from disk, with image paths relative to the capture's root.
+#[test]
+fn captures_in_memory_read_as_on_disk() {
+    for folder in ["blender", "nerfstudio", "llff", "colmap", "colmap_binary", "dtu"] {
+        let dir = fixtures().join(folder);
+        let files = in_memory(&dir);
+        let from_memory = readers::load_from(&files, Path::new(""), None, ReadOptions::default()).unwrap();
+        let from_disk = load(folder, None);
+        assert_eq!(from_memory.format, from_disk.format, "{folder}");
+        assert_eq!((from_memory.near, from_memory.far), (from_disk.near, from_disk.far), "{folder}");
+        assert_eq!(from_memory.background, from_disk.background, "{folder}");
+        assert_eq!(from_memory.warnings.len(), from_disk.warnings.len(), "{folder}");
+        assert_eq!(from_memory.views.len(), from_disk.views.len(), "{folder}");
+        for (m, d) in from_memory.views.iter().zip(&from_disk.views) {
+            assert_eq!((&m.name, &m.camera), (&d.name, &d.camera), "{folder}");
+            assert_eq!(dir.join(&m.image_path).canonicalize().unwrap(), d.image_path.canonicalize().unwrap());
+            assert!(files.get(&m.image_path).is_some(), "{folder}: {}", m.image_path.display());
+        }
+    }
+}
+
+#[test]
+fn captures_in_memory_name_the_missing_file() {
+    let mut files = in_memory(&fixtures().join("llff"));
+    let err = readers::load_from(&MemoryFiles::new(), Path::new(""), None, ReadOptions::default()).unwrap_err();
+    assert!(err.to_string().contains("no such dataset folder"), "{err}");
+    // images without poses: nothing tells the format
+    let mut images_only = MemoryFiles::new();
+    assert!(images_only.insert("images/a.png", vec![0]));
+    let err = readers::load_from(&images_only, Path::new(""), None, ReadOptions::default()).unwrap_err();
+    assert!(err.to_string().contains("cannot tell the dataset format"), "{err}");
+    // LLFF with one image more than its poses
+    assert!(files.insert("images/zzz_extra.png", std::fs::read(fixtures().join("blender/train/r_0.png")).unwrap()));
+    let err = readers::load_from(&files, Path::new(""), None, ReadOptions::default()).unwrap_err();
+    assert!(err.to_string().starts_with("poses_bounds.npy: "), "{err}");
 }

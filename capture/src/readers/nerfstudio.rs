@@ -14,21 +14,22 @@ use serde_json::Value;
 
 use super::blender::{all_unique, frame_file_path, frames_of};
 use super::{
-    base_name, check_distortion, depth_range, image_size, json_f64, json_matrix4, resolve_image, skipped_warning,
+    base_name, check_distortion, depth_range, json_f64, json_matrix4, resolve_image, skipped_warning,
     without_extension, Capture, CapturedView, Format, ReadOptions,
 };
 use crate::camera::{w2c_from_opengl_c2w, Camera, Intrinsics};
 use crate::error::{Error, Result};
+use crate::files::Files;
 
 const DISTORTION: [&str; 6] = ["k1", "k2", "k3", "k4", "p1", "p2"];
 const MODELS: [&str; 3] = ["OPENCV", "PINHOLE", "SIMPLE_PINHOLE"];
 
-pub fn load(path: &Path, opts: ReadOptions) -> Result<Capture> {
-    let file = if path.is_dir() { path.join("transforms.json") } else { path.to_path_buf() };
-    if !file.exists() {
+pub fn load(fs: &dyn Files, path: &Path, opts: ReadOptions) -> Result<Capture> {
+    let file = if fs.is_dir(path) { path.join("transforms.json") } else { path.to_path_buf() };
+    if !fs.is_file(&file) {
         return Err(Error::dataset(&file, "nerfstudio transforms.json not found"));
     }
-    let (data, frames) = frames_of(&file)?;
+    let (data, frames) = frames_of(fs, &file)?;
     let model = data.get("camera_model").and_then(Value::as_str).unwrap_or("OPENCV").to_uppercase();
     if !MODELS.contains(&model.as_str()) {
         return Err(Error::dataset(&file, format!("camera_model {model} is not supported (pinhole/OpenCV only)")));
@@ -38,7 +39,7 @@ pub fn load(path: &Path, opts: ReadOptions) -> Result<Capture> {
     let mut entries = Vec::new(); // (path without extension, view)
     for (i, frame) in frames.iter().enumerate() {
         let file_path = frame_file_path(frame, &file, i)?;
-        let Some(image) = resolve_image(base, file_path) else { continue };
+        let Some(image) = resolve_image(fs, base, file_path) else { continue };
         let param = |key: &str| -> Result<f64> {
             let value = frame.get(key).or_else(|| data.get(key)).ok_or_else(|| {
                 Error::dataset(&file, format!("frames[{i}] has no '{key}' (neither per frame nor at the top level)"))
@@ -70,7 +71,7 @@ pub fn load(path: &Path, opts: ReadOptions) -> Result<Capture> {
             intrinsics: Intrinsics { fx, fy, cx: cx - 0.5, cy: cy - 0.5 },
             w2c,
         };
-        let (aw, ah) = image_size(&image)?;
+        let (aw, ah) = fs.image_size(&image)?;
         let camera = if (aw, ah) == (declared.width, declared.height) { declared } else { declared.resized(aw, ah) };
         entries.push((without_extension(file_path), CapturedView { name: String::new(), image_path: image, camera }));
     }

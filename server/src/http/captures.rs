@@ -1,0 +1,248 @@
+//! `POST /v1/captures`: a capture folder's files (multipart, every part named `file`, its
+//! filename the file's path in the folder: `transforms.json`, `images/r_0.png`,
+//! `sparse/0/cameras.txt`, ...) read in memory by the readers the `scnerf` client uses
+//! (`scnerf_capture`: COLMAP, nerfstudio, Blender, LLFF, DTU), thinned to `--max-scene-views`
+//! and kept as a scene. Nothing is written to disk.
+
+use std::path::Path;
+
+use axum::extract::rejection::QueryRejection;
+use axum::extract::{FromRequest, Multipart, Query, Request, State};
+use axum::http::StatusCode;
+use axum::response::Response;
+use bytes::Bytes;
+use scnerf_capture::files::MemoryFiles;
+use scnerf_capture::readers::{self, Capture, ReadOptions};
+use serde::{Deserialize, Serialize};
+
+use super::body::multipart_error;
+use super::deadline::Deadline;
+use super::negotiate::{request_format, RequestFormat};
+use super::scenes::{owner_of, proxy_scene_id, scene_response, store_scene};
+use super::state::AppState;
+use crate::cache::rfc3339;
+use crate::camera::{Axes, Camera, CameraSpec, Intrinsics, Pose, PoseKind};
+use crate::error::ApiError;
+use crate::pipeline::Timings;
+use crate::request::{SceneRequest, SourceSpec};
+
+/// What the readers take from the command line in the client, as query parameters.
+#[derive(Debug, Default, Deserialize, utoipa::IntoParams)]
+#[serde(deny_unknown_fields)]
+#[into_params(parameter_in = Query)]
+pub struct CaptureOptions {
+    /// Near depth, overriding the capture's (needed for COLMAP models without points3D and
+    /// nerfstudio files without near/far; the readers' messages call it `--near`).
+    near: Option<f64>,
+    /// Far depth, overriding the capture's.
+    far: Option<f64>,
+    /// Use cameras with lens distortion as pinhole instead of refusing them.
+    #[serde(default)]
+    ignore_distortion: bool,
+}
+
+/// `201 Created` body of `POST /v1/captures`: the scene, and what the capture was read as.
+#[derive(Debug, Serialize, utoipa::ToSchema)]
+pub struct CaptureCreated {
+    pub scene_id: String,
+    /// RFC 3339 UTC, as for `POST /v1/scenes`.
+    pub expires_at: String,
+    /// Every view of the scene (canonical: OpenCV world-to-camera), in the order of the indices
+    /// that renders report in `sources` and may pin.
+    #[schema(value_type = Vec<crate::request::wire::JsonCamera>)]
+    pub cameras: Vec<serde_json::Value>,
+    /// The image file of each camera (its path in the capture).
+    pub names: Vec<String>,
+    pub near: f64,
+    pub far: f64,
+    /// colmap, nerfstudio, blender, llff or dtu.
+    pub format: String,
+    /// What the reader skipped or ignored, and whether the capture was thinned.
+    pub warnings: Vec<String>,
+}
+
+#[utoipa::path(
+    post, path = "/v1/captures", tag = "render", operation_id = "create_capture_scene",
+    request_body(content((crate::http::schema::CaptureMultipart = "multipart/form-data")),
+        description = "A capture folder's files: COLMAP (cameras/images/points3D .txt or .bin, in ., sparse/0 or sparse; images/), nerfstudio or Blender (transforms*.json + images), LLFF (poses_bounds.npy + images/), DTU (Cameras/ + Rectified/)"),
+    params(
+        CaptureOptions,
+        ("x-scnerf-deadline-ms" = Option<u64>, Header, nullable = false, minimum = 1, description = "Shortens the server's deadline for this request (ms)"),
+        ("x-scnerf-scene-id" = Option<String>, Header, nullable = false, pattern = "^[A-Za-z0-9._-]{1,64}$", description = "Set by a routing proxy: the id to give the new scene"),
+    ),
+    responses(
+        (status = 201, description = "The capture is a scene", body = CaptureCreated,
+         headers(("location" = String, description = "/v1/scenes/{scene_id}"))),
+        (status = 400, description = "Malformed body, a part not named `file`, a file without a filename or sent twice", body = crate::error::ErrorBody),
+        (status = 401, description = "Missing or wrong bearer token", body = crate::error::ErrorBody),
+        (status = 408, description = "The body arrived too slowly", body = crate::error::ErrorBody),
+        (status = 413, description = "Body over --max-capture-bytes", body = crate::error::ErrorBody),
+        (status = 415, description = "Not multipart/form-data, or an image format other than PNG/JPEG", body = crate::error::ErrorBody),
+        (status = 422, description = "Not a usable capture; `field` names the file (missing poses, unknown format, distorted camera, too few images, ...)", body = crate::error::ErrorBody),
+        (status = 429, description = "This client has too many requests in flight (Retry-After)", body = crate::error::ErrorBody),
+        (status = 503, description = "Warming up or overloaded (Retry-After)", body = crate::error::ErrorBody),
+        (status = 504, description = "Deadline exceeded", body = crate::error::ErrorBody),
+    ),
+    security((), ("bearer" = [])),
+)]
+pub async fn create(
+    State(state): State<AppState>,
+    deadline: Deadline,
+    query: Result<Query<CaptureOptions>, QueryRejection>,
+    req: Request,
+) -> Result<Response, ApiError> {
+    let Query(options) = query.map_err(|e| ApiError::malformed(Some("query".to_string()), e.body_text()))?;
+    let id = proxy_scene_id(req.headers())?;
+    deadline.run(create_within(state, deadline, options, id, req)).await
+}
+
+async fn create_within(
+    state: AppState,
+    deadline: Deadline,
+    options: CaptureOptions,
+    id: Option<String>,
+    req: Request,
+) -> Result<Response, ApiError> {
+    if request_format(req.headers())? != RequestFormat::Multipart {
+        return Err(ApiError::UnsupportedMediaType {
+            field: Some("content-type".into()),
+            message: "a capture is sent as multipart/form-data, one part named `file` per file".into(),
+        });
+    }
+    let owner = owner_of(&req);
+    let files = read_files(req, state.pipeline.limits().max_capture_bytes).await?;
+    let (config, limits) = (state.pipeline.config().clone(), state.pipeline.limits().clone());
+    let parsed = tokio::task::spawn_blocking(move || -> Result<_, ApiError> {
+        let read = read_capture(files, &options, limits.max_scene_views)?;
+        let names = read.names.clone();
+        let valid = read.request.validate(&config, &limits).map_err(|e| name_the_file(e, &names))?;
+        Ok((valid, read.names, read.format, read.warnings))
+    })
+    .await
+    .map_err(|e| ApiError::Internal(format!("capture parsing task failed: {e}")))??;
+    let (valid, names, format, warnings) = parsed;
+    let cameras = valid.sources.iter().map(|s| camera_json(&s.camera)).collect();
+    let (near, far) = (valid.near, valid.far);
+    let mut timings = Timings::default();
+    let stored = store_scene(&state, valid, id, owner, &deadline, &mut timings).await?;
+    let body = CaptureCreated {
+        scene_id: stored.id.clone(),
+        expires_at: rfc3339(stored.expires_at),
+        cameras,
+        names,
+        near,
+        far,
+        format,
+        warnings,
+    };
+    let status = if stored.replaced { StatusCode::OK } else { StatusCode::CREATED };
+    Ok(scene_response(&state, status, &stored.id, body, &timings))
+}
+
+/// Every `file` part, by its filename.
+async fn read_files(req: Request, limit: usize) -> Result<MemoryFiles, ApiError> {
+    let mut multipart = Multipart::from_request(req, &()).await.map_err(|e| {
+        ApiError::malformed(Some("content-type".to_string()), format!("invalid multipart request: {}", e.body_text()))
+    })?;
+    let mut files = MemoryFiles::new();
+    while let Some(field) = multipart.next_field().await.map_err(|e| multipart_error(e, "body", limit))? {
+        let name = field.name().unwrap_or_default().to_string();
+        if name != "file" {
+            return Err(ApiError::malformed(
+                Some(name.clone()),
+                format!("unknown multipart part \"{name}\": every part is a file named `file`"),
+            ));
+        }
+        let filename = field.file_name().map(str::to_string).ok_or_else(|| {
+            ApiError::malformed(Some("file".to_string()), "a file part needs a filename: its path in the capture")
+        })?;
+        let data = field.bytes().await.map_err(|e| multipart_error(e, &filename, limit))?;
+        if !files.insert(&filename, Vec::from(data)) {
+            return Err(ApiError::malformed(
+                Some(filename),
+                "sent twice, or not a relative path inside the capture folder",
+            ));
+        }
+    }
+    if files.is_empty() {
+        return Err(ApiError::invalid("file", "no files: send the capture folder's files as parts named `file`"));
+    }
+    Ok(files)
+}
+
+/// A capture read from `files`, as a scene request (at most `max_views` views).
+struct ReadCapture {
+    request: SceneRequest,
+    names: Vec<String>,
+    format: String,
+    warnings: Vec<String>,
+}
+
+fn read_capture(mut files: MemoryFiles, options: &CaptureOptions, max_views: usize) -> Result<ReadCapture, ApiError> {
+    let opts = ReadOptions { near: options.near, far: options.far, ignore_distortion: options.ignore_distortion };
+    let capture = readers::load_from(&files, Path::new(""), None, opts).map_err(capture_error)?;
+    let Capture { format, views, near, far, background, mut warnings } = capture;
+    let kept = scnerf_capture::thin_evenly(views.len(), max_views);
+    if kept.len() < views.len() {
+        warnings.push(format!(
+            "the capture has {} views; the scene keeps {} of them, evenly spread (the server's --max-scene-views)",
+            views.len(),
+            kept.len()
+        ));
+    }
+    let (mut sources, mut names) = (Vec::with_capacity(kept.len()), Vec::with_capacity(kept.len()));
+    for view in kept.into_iter().map(|i| &views[i]) {
+        let name = MemoryFiles::normal_path(&view.image_path).unwrap_or_default().to_string_lossy().into_owned();
+        let image = files.remove(&view.image_path).ok_or_else(|| {
+            ApiError::invalid(name.clone(), format!("{name}: the image of two views (\"{}\" and another)", view.name))
+        })?;
+        let (c, i) = (&view.camera, view.camera.intrinsics);
+        let camera = CameraSpec {
+            width: c.width,
+            height: c.height,
+            intrinsics: Intrinsics::Focal { fx: i.fx, fy: i.fy, cx: i.cx, cy: i.cy },
+            pose: Pose { matrix: c.w2c.to_homogeneous(), kind: PoseKind::WorldToCamera, axes: Axes::Opencv },
+        };
+        sources.push(SourceSpec { camera, image: Some(Bytes::from(image)), image_field: name.clone() });
+        names.push(name);
+    }
+    let background = Some(background.to_vec());
+    Ok(ReadCapture {
+        request: SceneRequest { sources, near, far, background },
+        names,
+        format: format.name().to_string(),
+        warnings,
+    })
+}
+
+/// A capture the readers refuse: 422 naming the file (relative to the capture's folder).
+fn capture_error(e: scnerf_capture::Error) -> ApiError {
+    let field = e.path().map(|p| p.to_string_lossy().into_owned()).filter(|p| !p.is_empty());
+    ApiError::invalid(field.unwrap_or_else(|| "file".to_string()), e.to_string())
+}
+
+/// Validation names a view `sources[i]...`; a capture's client knows it by its file.
+fn name_the_file(e: ApiError, names: &[String]) -> ApiError {
+    let file = |field: &str| {
+        let index: usize = field.strip_prefix("sources[")?.split(']').next()?.parse().ok()?;
+        names.get(index).cloned()
+    };
+    match e {
+        ApiError::Invalid { field, message } => match file(&field) {
+            Some(name) => ApiError::Invalid { message: format!("{name}: {message} ({field})"), field: name },
+            None => ApiError::Invalid { field, message },
+        },
+        other => other,
+    }
+}
+
+/// A canonical camera in the API's JSON form.
+fn camera_json(c: &Camera) -> serde_json::Value {
+    let rows: Vec<[f64; 4]> = (0..4).map(|r| [c.w2c[(r, 0)], c.w2c[(r, 1)], c.w2c[(r, 2)], c.w2c[(r, 3)]]).collect();
+    serde_json::json!({
+        "width": c.width,
+        "height": c.height,
+        "intrinsics": {"fx": c.fx(), "fy": c.fy(), "cx": c.cx(), "cy": c.cy()},
+        "pose": {"matrix": rows, "kind": "world_to_camera", "axes": "opencv"},
+    })
+}
