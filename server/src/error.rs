@@ -165,10 +165,9 @@ impl From<BackendError> for ApiError {
             BackendError::QueueFull => {
                 ApiError::Unavailable { message: "server busy: inference queue is full".into(), retry_after_secs: 2 }
             }
-            BackendError::WouldMissDeadline { ahead_secs } => ApiError::Unavailable {
-                message: format!("server busy: {e}"),
-                retry_after_secs: ahead_secs.ceil().max(1.0) as u64,
-            },
+            BackendError::WouldMissDeadline { ahead_secs, .. } => {
+                ApiError::Unavailable { message: e.to_string(), retry_after_secs: ahead_secs.ceil().max(1.0) as u64 }
+            }
             // The handler's own timer normally fires first and knows the deadline; this is the
             // executor noticing it between two graph runs.
             BackendError::DeadlineExceeded => ApiError::DeadlineExceeded { ms: 0 },

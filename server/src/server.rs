@@ -150,6 +150,7 @@ pub async fn warm_up(pipeline: &Pipeline) -> Result<Duration, String> {
     if view.rgb.iter().chain(&view.depth).chain(&view.opacity).any(|v| !v.is_finite()) {
         return Err("the warm-up render produced non-finite values".into());
     }
+    pipeline.executor().forget_rates();
     Ok(start.elapsed())
 }
 

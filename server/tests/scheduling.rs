@@ -68,6 +68,19 @@ async fn a_view_due_sooner_overtakes_a_big_one() {
     assert_eq!(renderer_runs(&calls), 80 + 1);
 }
 
+/// The warm-up's tiny runs are mostly fixed cost: per ray, its 16-ray renderer run costs six times
+/// what a 100-ray chunk does. Extrapolated, they would refuse the first real request on an idle
+/// server; the warm-up leaves the graphs unmeasured instead.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_warm_up_does_not_refuse_the_first_request() {
+    let (state, _calls) = slow_state(Duration::from_millis(20), Duration::from_secs(60));
+    scnerf_server::server::warm_up(state.pipeline()).await.unwrap();
+    // 50 chunks of 20 ms: 1 s of work, estimated 6 s at the warm-up's rate, due in 3 s.
+    let due = [("x-scnerf-deadline-ms", "3000")];
+    let got = send(router(state), multipart_with("/v1/render", &request_with_target(100, 50), 32, &due)).await;
+    assert_eq!(got.0, 200, "{}", String::from_utf8_lossy(&got.2));
+}
+
 /// Sixteen concurrent renders of 10 graph runs of 20 ms (200 ms each) due in 1 s. Served round
 /// robin they all finished together, after ~3.2 s: sixteen 504s. Earliest deadline first, with
 /// admission by estimated finish time: the first few finish in time and the others are refused

@@ -49,8 +49,11 @@ pub enum BackendError {
     BadOutput { graph: GraphKind, message: String },
     #[error("the inference queue is full")]
     QueueFull,
-    #[error("the request cannot finish before its deadline (about {ahead_secs:.1} s of work ahead of it)")]
-    WouldMissDeadline { ahead_secs: f64 },
+    #[error(
+        "the request cannot finish before its deadline: about {work_secs:.1} s of work, after {ahead_secs:.1} s \
+         of work admitted ahead of it"
+    )]
+    WouldMissDeadline { work_secs: f64, ahead_secs: f64 },
     #[error("the request's deadline passed before its graph runs finished")]
     DeadlineExceeded,
     #[error("the inference thread has stopped")]
@@ -169,7 +172,8 @@ impl Queue {
         let mut queue: Vec<(Instant, f64)> =
             self.requests.values().map(|r| (r.deadline, r.remaining.secs(&self.rates))).collect();
         queue.sort_by_key(|&(due, _)| due);
-        let ahead: f64 = queue.iter().take_while(|(due, _)| *due <= deadline).map(|(_, secs)| secs).sum();
+        // Folded from +0.0: a sum of no f64 is -0.0, which would print as "-0.0 s".
+        let ahead = queue.iter().take_while(|(due, _)| *due <= deadline).fold(0.0, |sum, (_, secs)| sum + secs);
         let misses = |finish: f64, due: Instant| {
             let finish = Duration::try_from_secs_f64(finish).unwrap_or(Duration::MAX);
             now.checked_add(finish).is_none_or(|at| at > due)
@@ -257,12 +261,19 @@ impl BackendHandle {
             return Err(BackendError::QueueFull);
         }
         if let Some(ahead_secs) = q.would_miss(Instant::now(), deadline, work) {
-            return Err(BackendError::WouldMissDeadline { ahead_secs });
+            return Err(BackendError::WouldMissDeadline { work_secs: work.secs(&q.rates), ahead_secs });
         }
         q.next_ticket += 1;
         let id = q.next_ticket;
         q.requests.insert(id, Admitted { deadline, remaining: work, jobs: VecDeque::new() });
         Ok(Ticket { id, deadline, shared: self.shared.clone() })
+    }
+
+    /// Forgets the measured rates: the graphs count as unmeasured (admitted without an estimate)
+    /// until they run again. The warm-up calls it: its tiny runs are mostly fixed cost, and their
+    /// seconds per unit, extrapolated to a real request, would refuse it on an idle server.
+    pub fn forget_rates(&self) {
+        self.shared.lock().rates = Rates::default();
     }
 
     pub fn stats(&self) -> QueueStats {
@@ -497,13 +508,27 @@ mod tests {
         let b = backend.admit(ms(600), rays(300.0)).unwrap();
         // After both: 800 ms of work ahead.
         match backend.admit(ms(900), rays(200.0)) {
-            Err(BackendError::WouldMissDeadline { ahead_secs }) => {
+            Err(BackendError::WouldMissDeadline { ahead_secs, .. }) => {
                 assert!((0.7..1.0).contains(&ahead_secs), "{ahead_secs}")
             }
             other => panic!("{:?}", other.err()),
         }
         assert!(backend.admit(far(), rays(200.0)).is_ok());
         drop((a, b));
+    }
+
+    #[tokio::test]
+    async fn forgotten_rates_admit_what_they_would_have_refused() {
+        let (backend, _order, open) = recorder();
+        open.send(()).unwrap();
+        let probe = backend.admit(far(), NONE).unwrap();
+        probe.run(GraphKind::Renderer, 1.0, tagged(20)).await.unwrap();
+        drop(probe);
+        let soon = || Instant::now() + Duration::from_millis(200);
+        let rays = Work::of(GraphKind::Renderer, 100.0);
+        assert!(matches!(backend.admit(soon(), rays), Err(BackendError::WouldMissDeadline { .. })));
+        backend.forget_rates();
+        assert!(backend.admit(soon(), rays).is_ok());
     }
 
     #[tokio::test]
