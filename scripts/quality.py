@@ -2,8 +2,9 @@
 """The quality table of docs/results.md: bundles side by side on the real validation scenes,
 rendered through the real server (its scene API), scored the paper's way.
 
-For every bundle, a fresh server; lego's val views and DTU scan37's test views at half size, with
-per-target nearest sources (the paper's protocol) and with each scene's fixed triple. Writes one
+For every bundle, a fresh server; lego's val views and DTU scan37's test views (targets at half
+size unless told otherwise), with per-target nearest sources (the paper's protocol) and with each
+scene's fixed triple. Writes one
 `scnerf-export eval` JSON per bundle, scene and protocol into OUT and prints the markdown table.
 
     .venv/bin/python scripts/quality.py --out results/quality \\
@@ -26,12 +27,13 @@ PROTOCOLS = {"nearest": None, "fixed": ["fixed"]}
 
 
 def measure(
-    name: str, bundle: str, out: Path, scale: float, target_scale: float, views: dict, threads: int | None
+    name: str, bundle: str, out: Path, scales: dict, target_scales: dict, views: dict, threads: int | None
 ) -> None:
     binary = find_server_binary()
     if binary is None:
         sys.exit("no target/release/scnerf-server: cargo build --release -p scnerf-server")
-    with ServerProcess(binary, bundle, threads=threads) as server:
+    # Paper-size views take minutes on a few cores: a deadline far beyond the default 900 s.
+    with ServerProcess(binary, bundle, threads=threads, extra=("--request-timeout-secs", "7200")) as server:
         for scene, (folder, fmt) in SCENES.items():
             for protocol, sources in PROTOCOLS.items():
                 path = out / f"{name}-{scene}-{protocol}.json"
@@ -44,8 +46,8 @@ def measure(
                     fmt,
                     sources=sources,
                     targets=views.get(scene),
-                    scale=scale,
-                    target_scale=target_scale,
+                    scale=scales.get(scene, 1.0),
+                    target_scale=target_scales.get(scene, 0.5),
                     server=server.url,
                 )
                 write_json(summary, path)
@@ -73,16 +75,26 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("bundles", nargs="+", help="NAME=DIR")
     p.add_argument("--out", type=Path, required=True)
-    p.add_argument("--scale", type=float, default=1.0, help="scale of the scenes' images (sources)")
-    p.add_argument("--target-scale", type=float, default=0.5, help="scale of the targets, on top of --scale")
+    p.add_argument(
+        "--scale", action="append", default=[], metavar="SCENE=S", help="scale of a scene's images (default 1)"
+    )
+    p.add_argument(
+        "--target-scale",
+        action="append",
+        default=[],
+        metavar="SCENE=S",
+        help="scale of a scene's targets, on top of --scale (default 0.5)",
+    )
     p.add_argument("--views", action="append", default=[], metavar="SCENE=V,V", help="only these targets of a scene")
     p.add_argument("--threads", type=int)
     args = p.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     pairs = [item.partition("=")[::2] for item in args.bundles]
     views = {scene: names.split(",") for scene, _, names in (v.partition("=") for v in args.views)}
+    scales = {scene: float(s) for scene, _, s in (v.partition("=") for v in args.scale)}
+    target_scales = {scene: float(s) for scene, _, s in (v.partition("=") for v in args.target_scale)}
     for name, bundle in pairs:
-        measure(name, bundle, args.out, args.scale, args.target_scale, views, args.threads)
+        measure(name, bundle, args.out, scales, target_scales, views, args.threads)
     print(table([name for name, _ in pairs], args.out))
     return 0
 
