@@ -27,7 +27,14 @@ PROTOCOLS = {"nearest": None, "fixed": ["fixed"]}
 
 
 def measure(
-    name: str, bundle: str, out: Path, scales: dict, target_scales: dict, views: dict, threads: int | None
+    name: str,
+    bundle: str,
+    out: Path,
+    scales: dict,
+    target_scales: dict,
+    views: dict,
+    protocols: list[str],
+    threads: int | None,
 ) -> None:
     binary = find_server_binary()
     if binary is None:
@@ -35,7 +42,8 @@ def measure(
     # Paper-size views take minutes on a few cores: a deadline far beyond the default 900 s.
     with ServerProcess(binary, bundle, threads=threads, extra=("--request-timeout-secs", "7200")) as server:
         for scene, (folder, fmt) in SCENES.items():
-            for protocol, sources in PROTOCOLS.items():
+            for protocol in protocols:
+                sources = PROTOCOLS[protocol]
                 path = out / f"{name}-{scene}-{protocol}.json"
                 if path.is_file():
                     continue
@@ -53,10 +61,10 @@ def measure(
                 write_json(summary, path)
 
 
-def table(names: list[str], out: Path) -> str:
+def table(names: list[str], out: Path, protocols: list[str]) -> str:
     lines = ["| scene, sources | view | " + " | ".join(names) + " |", "|---|---|" + "---|" * len(names)]
     for scene in SCENES:
-        for protocol in PROTOCOLS:
+        for protocol in protocols:
             runs = [json.loads((out / f"{n}-{scene}-{protocol}.json").read_text()) for n in names]
             for view in [*runs[0]["views"], "mean"]:
                 cells = []
@@ -86,6 +94,7 @@ def main(argv=None) -> int:
         help="scale of a scene's targets, on top of --scale (default 0.5)",
     )
     p.add_argument("--views", action="append", default=[], metavar="SCENE=V,V", help="only these targets of a scene")
+    p.add_argument("--protocols", type=lambda t: t.split(","), default=list(PROTOCOLS), help="nearest,fixed")
     p.add_argument("--threads", type=int)
     args = p.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -94,8 +103,8 @@ def main(argv=None) -> int:
     scales = {scene: float(s) for scene, _, s in (v.partition("=") for v in args.scale)}
     target_scales = {scene: float(s) for scene, _, s in (v.partition("=") for v in args.target_scale)}
     for name, bundle in pairs:
-        measure(name, bundle, args.out, scales, target_scales, views, args.threads)
-    print(table([name for name, _ in pairs], args.out))
+        measure(name, bundle, args.out, scales, target_scales, views, args.protocols, args.threads)
+    print(table([name for name, _ in pairs], args.out, args.protocols))
     return 0
 
 
