@@ -1,9 +1,10 @@
 #!/usr/bin/env bash
-# Every test of the project: the Python lint (ruff, configured in ruff.toml), the Rust workspace
-# (unit, HTTP, parity against the committed fixtures, end-to-end), the exporter's pytest suite and
-# the benchmark's, and scenes across two replicas behind Debian's nginx (scripts/proxy-test.sh:
-# 20-30 s; installs nginx with apt-get when missing, says SKIPPED when it cannot). Needs network
-# access to crates.io and PyPI on the first run only.
+# Every test of the project: the lint gate (ruff, clippy, rustfmt), the Rust workspace (unit, HTTP,
+# parity against the committed fixtures, end-to-end), scenes across two replicas behind Debian's
+# nginx (scripts/proxy-test.sh), the exporter's pytest suite, the benchmark's, and the viewer in
+# headless Chromium (scripts/viewer-test.sh). Both scripts install what they miss with apt-get
+# (nginx, Chromium) and npm; the proxy test says SKIPPED when nginx cannot be installed. Needs
+# crates.io, PyPI, npm and Debian's packages on the first run only.
 set -euo pipefail
 repo=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 cd "${repo}"
@@ -17,3 +18,4 @@ cargo fmt --all --check
 scripts/proxy-test.sh
 .venv/bin/python -m pytest -q -p no:cacheprovider exporter/tests
 .venv/bin/python -m pytest -q -p no:cacheprovider bench/tests
+scripts/viewer-test.sh

@@ -253,15 +253,28 @@ try {
   await waitFor('the stop', async () => (await phase()) === 'stopped', 10_000);
   check(true, 'Escape stopped rendering');
 
-  // 8. Dropping a capture on a server without POST /v1/captures says so.
-  const capture = join(mkdtempSync(join(tmpdir(), 'viewer-test-')), 'capture');
-  mkdirSync(join(capture, 'images'), { recursive: true });
-  writeFileSync(join(capture, 'transforms.json'), '{"frames": []}');
-  writeFileSync(join(capture, 'images', 'r_0.png'), await exampleFile('source_0.png'));
-  await page.setInputFiles('#capture-input', capture);
-  await page.locator('#error').filter({ hasText: 'cannot parse captures yet' }).waitFor({ timeout: 30_000 });
-  check(/Still showing the example/.test(await page.textContent('#status')), 'a failed capture keeps the example on screen');
-  await shot('06-capture-404.png');
+  // 8. A capture folder: a broken one is refused in the server's words and the example stays; a
+  //    nerfstudio capture of the example's three photos opens as a scene of its own and renders.
+  const broken = await captureFolder('{"frames": []}', ['source_0.png']);
+  await page.setInputFiles('#capture-input', broken);
+  const refused = await page.locator('#error').filter({ hasText: 'HTTP 422' }).textContent({ timeout: 60_000 });
+  check(/transforms\.json/.test(refused), `a broken capture shows the server's message: "${refused.trim()}"`);
+  check(/Still showing the example/.test(await page.textContent('#status')), 'a refused capture keeps the example on screen');
+  await shot('06-capture-refused.png');
+
+  const exampleScene = renders[0].request.url();
+  const dropped = renders.length;
+  await page.setInputFiles('#capture-input', await captureFolder(nerfstudio(example), ['source_0.png', 'source_1.png', 'source_2.png']));
+  const captured = await firstAnswered(dropped);
+  check(captured.request.url() !== exampleScene, `the capture rendered as a scene of its own (${new URL(captured.request.url()).pathname})`);
+  const info = await waitFor('the capture\'s first view in the panel', async () => {
+    const text = await page.textContent('#info');
+    return /photo_/.test(text) && text;
+  });
+  check(/photo_1/.test(info) && /photo_2/.test(info) && /photo_3/.test(info), `the page names the sources the server picked: "${info.match(/views [^R]*/)?.[0]}"`);
+  check((await page.locator('#views button').count()) === 3, 'the capture\'s three cameras can be snapped to');
+  await shot('07-capture.png');
+  await page.keyboard.press('Escape');
 
   // 9. The server's books: nothing left queued, and only the renders the page received were finished.
   await waitFor('an idle executor', async () => (await metric('scnerf_inference_queue_requests')) === 0, 30_000);
@@ -277,7 +290,7 @@ try {
   // 10. Nothing came from anywhere but the server, and the page raised no error.
   const outside = urls.filter((u) => !u.startsWith(`${origin}/`) && !u.startsWith('data:') && !u.startsWith('blob:'));
   check(outside.length === 0, `all ${urls.length} requests went to ${origin} ${outside.join(' ')}`);
-  check(pageErrors.every((e) => /status of 40[14]/.test(e)), `no script errors (${pageErrors.length} logged HTTP refusals, expected ones)`);
+  check(pageErrors.every((e) => /status of (401|422)/.test(e)), `no script errors (${pageErrors.length} logged HTTP refusals, expected ones)`);
 
   writeFileSync(join(OUT, 'urls.txt'), `${urls.join('\n')}\n`);
   log('PASSED');
@@ -296,6 +309,28 @@ async function gesture(act) {
   await waitFor('a render request after the gesture', () => renders.length > from);
   await sleep(300);
   return renders[renders.length - 1];
+}
+
+/** A capture folder in a fresh temporary directory: `transforms` as transforms.json, and the
+ *  example's `photos` as images/photo_1.png, photo_2.png, ... */
+async function captureFolder(transforms, photos) {
+  const folder = join(mkdtempSync(join(tmpdir(), 'viewer-test-')), 'capture');
+  mkdirSync(join(folder, 'images'), { recursive: true });
+  writeFileSync(join(folder, 'transforms.json'), transforms);
+  for (const [i, name] of photos.entries()) writeFileSync(join(folder, 'images', `photo_${i + 1}.png`), await exampleFile(name));
+  return folder;
+}
+
+/** The example's sources as a nerfstudio transforms.json: OpenGL camera-to-world, pixel centres
+ *  at +0.5 (nerfstudio's convention), the example's depth range. */
+function nerfstudio(request) {
+  const { intrinsics, width, height } = request.sources[0].camera;
+  const frames = request.sources.map(({ camera }, i) => ({
+    file_path: `images/photo_${i + 1}.png`,
+    transform_matrix: cameraToWorld(camera).map((row) => [row[0], -row[1], -row[2], row[3]]),
+  }));
+  const { fx, fy, cx, cy } = intrinsics;
+  return JSON.stringify({ fl_x: fx, fl_y: fy, cx: cx + 0.5, cy: cy + 0.5, w: width, h: height, near: request.near, far: request.far, frames });
 }
 
 function rotation(m) {
