@@ -15,6 +15,7 @@ use scnerf_e2e::{split_request, Case};
 use scnerf_server::bundle::{Bundle, DepthNorm, GraphKind};
 use scnerf_server::http::{router, AppState, ServiceOptions};
 use scnerf_server::pipeline::chunks::{self, ChunkPolicy};
+use scnerf_server::pipeline::volume::SlabPolicy;
 use scnerf_server::pipeline::{assemble, rays, Pipeline, Timings};
 use scnerf_server::request::{ImageMode, Limits, RenderRequest, ValidRequest};
 use scnerf_server::testing::{ort_pipeline, ready_state};
@@ -48,7 +49,7 @@ fn pipeline() -> Pipeline {
 /// by estimated finish time is not what these tests check).
 fn admit(p: &Pipeline) -> scnerf_server::backend::Ticket {
     let deadline = std::time::Instant::now() + std::time::Duration::from_secs(600);
-    p.admit(deadline, scnerf_server::backend::Work::default()).unwrap()
+    p.admit(deadline, scnerf_server::backend::Work::default(), 0).unwrap()
 }
 
 /// The real router's state over the ONNX Runtime pipeline, ready at once.
@@ -207,7 +208,13 @@ async fn output_does_not_depend_on_chunk_size() {
 fn image_minmax_pipeline() -> Pipeline {
     let mut bundle = Bundle::load(&fixtures_dir().join("bundle")).unwrap_or_else(|e| panic!("{e}"));
     bundle.config.depth_norm = DepthNorm::ImageMinmax;
-    Pipeline::new(pipeline().executor().clone(), bundle, ChunkPolicy::default(), Limits::default())
+    Pipeline::new(
+        pipeline().executor().clone(),
+        bundle,
+        ChunkPolicy::default(),
+        SlabPolicy::default(),
+        Limits::default(),
+    )
 }
 
 /// The two-pass `image_minmax` render through the real graphs. The committed fixtures hold no

@@ -31,8 +31,9 @@ pub struct OrtOptions {
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct ExecOptions {
     pub device: Device,
-    /// ONNX Runtime's CPU memory arena: keeps freed buffers for reuse (faster repeated runs,
-    /// but the process keeps its peak working set); off returns memory to the allocator.
+    /// ONNX Runtime's CPU memory arena for the renderer (see `uses_arena`): keeps freed buffers
+    /// for reuse (faster repeated runs, but the process keeps a run's working set); off returns
+    /// memory to the allocator.
     pub cpu_arena: bool,
 }
 
@@ -116,12 +117,12 @@ impl OrtRunner {
         }
         tracing::info!(device = %exec.device, cpu_arena = exec.cpu_arena, "execution settings");
         let mut sessions = HashMap::new();
-        for kind in GraphKind::ALL {
+        for kind in bundle.graphs() {
             let path = bundle.graph_path(kind);
             let builder = Session::builder(&env)
                 .and_then(|b| b.with_optimization_level(opt_level(opts.opt_level)).map_err(Into::into))
                 .map_err(|e| format!("cannot load {}: {e}", path.display()))?;
-            let mut builder = with_execution_providers(builder, exec)?;
+            let mut builder = with_execution_providers(builder, exec, uses_arena(kind, exec))?;
             let session =
                 builder.commit_from_file(&path).map_err(|e| format!("cannot load {}: {e}", path.display()))?;
             let entry = bundle.graph(kind);
@@ -133,15 +134,28 @@ impl OrtRunner {
     }
 }
 
+/// Whether a graph's session keeps ONNX Runtime's CPU arena. Only the renderer does (when
+/// `--ort-arena` is on): it runs many times per request on buffers of the same sizes, which the
+/// arena serves without page faults. The graphs that run once per request (the encoder and the
+/// volume's) allocate their working memory from the system and give it back when the run ends;
+/// in an arena it would stay held at the largest request's peak for the life of the process.
+fn uses_arena(kind: GraphKind, exec: &ExecOptions) -> bool {
+    exec.cpu_arena && kind == GraphKind::Renderer
+}
+
 /// Registers the execution providers of `exec` on a session builder: CUDA (when asked; failing
 /// to register is an error) and the CPU provider (always, last: it runs whatever CUDA cannot, and
-/// carries the arena setting).
-fn with_execution_providers(builder: SessionBuilder, exec: &ExecOptions) -> Result<SessionBuilder, String> {
+/// carries the arena setting, `arena`).
+fn with_execution_providers(
+    builder: SessionBuilder,
+    exec: &ExecOptions,
+    arena: bool,
+) -> Result<SessionBuilder, String> {
     let mut providers = Vec::new();
     if let Device::Cuda { device_id } = exec.device {
         providers.push(ep::CUDA::default().with_device_id(device_id).build().error_on_failure());
     }
-    providers.push(ep::CPU::default().with_arena_allocator(exec.cpu_arena).build().error_on_failure());
+    providers.push(ep::CPU::default().with_arena_allocator(arena).build().error_on_failure());
     builder.with_execution_providers(providers).map_err(|e| match exec.device {
         Device::Cuda { device_id } => format!(
             "--device {}: ONNX Runtime could not register the CUDA execution provider on GPU {device_id}: {e} \
