@@ -108,8 +108,9 @@ pub struct Config {
     pub device: Device,
 
     /// ONNX Runtime's CPU memory arena for the renderer (on: a chunk's buffers are kept for the
-    /// next chunk; off: returned to the allocator). The encoder and the volume's graphs, which run
-    /// once per request, never keep theirs. Accepts on/off, true/false.
+    /// next chunk, and released after a request's last chunk when nothing else waits; off:
+    /// returned to the allocator after every chunk). The encoder and the volume's graphs, which
+    /// run once per request, never keep theirs. Accepts on/off, true/false.
     #[arg(long, env = "SCNERF_ORT_ARENA", default_value = "on", action = clap::ArgAction::Set,
           value_parser = clap::builder::BoolishValueParser::new())]
     pub ort_arena: bool,

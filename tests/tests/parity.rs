@@ -236,7 +236,7 @@ async fn image_minmax_feeds_the_depth_images_range_to_a_second_pass() {
     let finite = one_pass.depth.iter().copied().filter(|d| d.is_finite());
     let range = [finite.clone().fold(f32::INFINITY, f32::min), finite.fold(f32::NEG_INFINITY, f32::max)];
     let inputs = &Bundle::load(&fixtures_dir().join("bundle")).unwrap().graph(GraphKind::Renderer).inputs.clone();
-    let raw = chunks::render_rays(&ticket, &scene, inputs, &rays::generate(target), range, 512).await.unwrap();
+    let raw = chunks::render_rays(&ticket, &scene, inputs, &rays::generate(target), range, 512, true).await.unwrap();
     let expected_rgb = assemble::composite(&raw, background);
 
     check("image_minmax", "rgb against a pass fed the depth range", max_abs(&large.rgb, &expected_rgb), 1e-6);

@@ -73,6 +73,14 @@ pub enum BackendError {
 /// Runs one graph to completion. Implemented by the ONNX Runtime backend and by test fakes.
 pub trait GraphRunner: Send + 'static {
     fn run(&mut self, graph: GraphKind, inputs: &NamedTensors) -> Result<NamedTensors, BackendError>;
+
+    /// `run`, then gives back what the runner keeps for the graph's next run (ONNX Runtime's
+    /// arena). The executor asks after a request's last renderer run when no other job waits:
+    /// the process then returns to its resting size between requests, and a busy executor keeps
+    /// the arena warm.
+    fn run_and_release(&mut self, graph: GraphKind, inputs: &NamedTensors) -> Result<NamedTensors, BackendError> {
+        self.run(graph, inputs)
+    }
 }
 
 /// Work of graph runs, in units per graph (`GraphKind::ALL` order): what a run's time grows
@@ -124,6 +132,9 @@ struct Job {
     reply: oneshot::Sender<Result<NamedTensors, BackendError>>,
     span: Span,
     deadline: Instant,
+    /// The request's last run of this graph: release what the runner keeps for the next run
+    /// when nothing else waits (`GraphRunner::run_and_release`).
+    last: bool,
 }
 
 /// An admitted request: its deadline, the work it has not finished, the memory it may use at
@@ -436,8 +447,29 @@ impl Ticket {
         units: f64,
         inputs: NamedTensors,
     ) -> impl Future<Output = Result<Outputs, BackendError>> + Send + 'static {
+        self.run_job(graph, units, inputs, false)
+    }
+
+    /// [`Ticket::run`] for the request's last run of `graph` (see `GraphRunner::run_and_release`).
+    pub fn run_last(
+        &self,
+        graph: GraphKind,
+        units: f64,
+        inputs: NamedTensors,
+    ) -> impl Future<Output = Result<Outputs, BackendError>> + Send + 'static {
+        self.run_job(graph, units, inputs, true)
+    }
+
+    fn run_job(
+        &self,
+        graph: GraphKind,
+        units: f64,
+        inputs: NamedTensors,
+        last: bool,
+    ) -> impl Future<Output = Result<Outputs, BackendError>> + Send + 'static {
         let (reply, rx) = oneshot::channel();
-        let job = Job { ticket: self.id, graph, units, inputs, reply, span: Span::current(), deadline: self.deadline };
+        let span = Span::current();
+        let job = Job { ticket: self.id, graph, units, inputs, reply, span, deadline: self.deadline, last };
         let queued = {
             let mut q = self.shared.lock();
             if q.stopped {
@@ -462,12 +494,15 @@ impl Drop for Ticket {
     }
 }
 
-/// Waits for the next job; `None` once the queue is closed and empty.
-fn next_job(shared: &Shared) -> Option<Job> {
+/// Waits for the next job and says whether it is the last of its request's runs of its graph
+/// with no other job waiting (then the runner releases what it keeps); `None` once the queue is
+/// closed and empty.
+fn next_job(shared: &Shared) -> Option<(Job, bool)> {
     let mut q = shared.lock();
     loop {
         if let Some(job) = q.pop() {
-            return Some(job);
+            let release = job.last && q.queued_jobs == 0;
+            return Some((job, release));
         }
         if q.closed {
             q.stopped = true;
@@ -478,7 +513,7 @@ fn next_job(shared: &Shared) -> Option<Job> {
 }
 
 fn worker(mut runner: Box<dyn GraphRunner>, shared: Arc<Shared>) {
-    while let Some(job) = next_job(&shared) {
+    while let Some((job, release)) = next_job(&shared) {
         // The request went away (client disconnected, deadline passed): skip its work.
         if job.reply.is_closed() {
             continue;
@@ -490,7 +525,7 @@ fn worker(mut runner: Box<dyn GraphRunner>, shared: Arc<Shared>) {
         let _entered = job.span.enter();
         let probe = shared.probe.as_deref().map(MemoryProbe::start);
         let started = Instant::now();
-        let result = run_guarded(runner.as_mut(), job.graph, &job.inputs);
+        let result = run_guarded(runner.as_mut(), job.graph, &job.inputs, release);
         let took = started.elapsed().as_secs_f64();
         if let Some(probe) = probe {
             probe.finish(job.graph.name());
@@ -506,8 +541,10 @@ fn run_guarded(
     runner: &mut dyn GraphRunner,
     graph: GraphKind,
     inputs: &NamedTensors,
+    release: bool,
 ) -> Result<NamedTensors, BackendError> {
-    std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| runner.run(graph, inputs))).unwrap_or_else(|panic| {
+    let run = || if release { runner.run_and_release(graph, inputs) } else { runner.run(graph, inputs) };
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(run)).unwrap_or_else(|panic| {
         let message = panic
             .downcast_ref::<String>()
             .cloned()
@@ -731,6 +768,54 @@ mod tests {
             }
             other => panic!("{:?}", other.err()),
         }
+    }
+
+    /// Records (tag, released) per run; the first run waits for a signal.
+    struct Releases {
+        runs: Arc<Mutex<Vec<(u32, bool)>>>,
+        gate: Option<mpsc::Receiver<()>>,
+    }
+
+    impl Releases {
+        fn record(&mut self, inputs: &NamedTensors, released: bool) -> Result<NamedTensors, BackendError> {
+            if let Some(gate) = self.gate.take() {
+                let _ = gate.recv();
+            }
+            let tag = inputs[0].1.first().copied().unwrap_or_default() as u32;
+            self.runs.lock().unwrap().push((tag, released));
+            Ok(vec![])
+        }
+    }
+
+    impl GraphRunner for Releases {
+        fn run(&mut self, _graph: GraphKind, inputs: &NamedTensors) -> Result<NamedTensors, BackendError> {
+            self.record(inputs, false)
+        }
+
+        fn run_and_release(&mut self, _graph: GraphKind, inputs: &NamedTensors) -> Result<NamedTensors, BackendError> {
+            self.record(inputs, true)
+        }
+    }
+
+    /// A request's last run releases the runner's kept memory only when no other job waits: a
+    /// busy executor keeps its arena for the next request.
+    #[tokio::test]
+    async fn the_last_run_releases_only_when_nothing_else_waits() {
+        let runs = Arc::new(Mutex::new(Vec::new()));
+        let (open, gate) = mpsc::channel();
+        let runner = Releases { runs: runs.clone(), gate: Some(gate) };
+        let backend = BackendHandle::spawn(Box::new(runner), ExecutorOptions::with_capacity(4)).unwrap();
+        let a = backend.admit(in_secs(10), NONE, 0).unwrap();
+        let b = backend.admit(in_secs(20), NONE, 0).unwrap();
+        let held = a.run(GraphKind::Encoder, 0.0, tagged(0)); // waits at the gate
+        tokio::time::sleep(Duration::from_millis(50)).await;
+        let a_last = a.run_last(GraphKind::Renderer, 0.0, tagged(1)); // b's run still waits after it
+        let b_last = b.run_last(GraphKind::Renderer, 0.0, tagged(2)); // nothing after it
+        open.send(()).unwrap();
+        held.await.unwrap();
+        a_last.await.unwrap();
+        b_last.await.unwrap();
+        assert_eq!(*runs.lock().unwrap(), vec![(0, false), (1, false), (2, true)]);
     }
 
     #[tokio::test]

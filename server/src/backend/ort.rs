@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use ort::environment::{Environment, GlobalThreadPoolOptions};
 use ort::ep;
 use ort::session::builder::{GraphOptimizationLevel, SessionBuilder};
-use ort::session::Session;
+use ort::session::{RunOptions, Session};
 use ort::value::{TensorElementType, TensorRef, ValueType};
 
 use super::{BackendError, GraphRunner, NamedTensors};
@@ -96,6 +96,10 @@ pub fn init_environment(opts: &OrtOptions) -> Result<Environment, String> {
 
 pub struct OrtRunner {
     sessions: HashMap<GraphKind, Session>,
+    /// The graphs whose session keeps the CPU arena (`uses_arena`).
+    arenas: Vec<GraphKind>,
+    /// Run options that shrink the CPU arena once the run is done (`run_and_release`).
+    shrink: RunOptions,
     _env: Environment,
 }
 
@@ -117,6 +121,13 @@ impl OrtRunner {
         }
         tracing::info!(device = %exec.device, cpu_arena = exec.cpu_arena, "execution settings");
         let mut sessions = HashMap::new();
+        let arenas: Vec<GraphKind> = bundle.graphs().into_iter().filter(|&k| uses_arena(k, exec)).collect();
+        // ONNX Runtime frees the arena's unused chunks at the end of a run with this option;
+        // "cpu:0" names the CPU arena (the option must not name an arena that is off).
+        let mut shrink = RunOptions::new().map_err(|e| format!("ONNX Runtime run options: {e}"))?;
+        shrink
+            .set("memory.enable_memory_arena_shrinkage", "cpu:0")
+            .map_err(|e| format!("ONNX Runtime run options: {e}"))?;
         for kind in bundle.graphs() {
             let path = bundle.graph_path(kind);
             let builder = Session::builder(&env)
@@ -130,7 +141,7 @@ impl OrtRunner {
             check_signature(kind, "output", &entry.outputs, &describe(session.outputs()))?;
             sessions.insert(kind, session);
         }
-        Ok(OrtRunner { sessions, _env: env })
+        Ok(OrtRunner { sessions, arenas, shrink, _env: env })
     }
 }
 
@@ -222,6 +233,23 @@ fn dtype_name(ty: TensorElementType) -> String {
 
 impl GraphRunner for OrtRunner {
     fn run(&mut self, graph: GraphKind, inputs: &NamedTensors) -> Result<NamedTensors, BackendError> {
+        self.run_with(graph, inputs, false)
+    }
+
+    /// The renderer's arena back to the system after a request's last chunk (docs/results-memory.md).
+    fn run_and_release(&mut self, graph: GraphKind, inputs: &NamedTensors) -> Result<NamedTensors, BackendError> {
+        let shrink = self.arenas.contains(&graph);
+        self.run_with(graph, inputs, shrink)
+    }
+}
+
+impl OrtRunner {
+    fn run_with(
+        &mut self,
+        graph: GraphKind,
+        inputs: &NamedTensors,
+        shrink: bool,
+    ) -> Result<NamedTensors, BackendError> {
         let err = |message: String| BackendError::Run { graph, message };
         let session = self.sessions.get_mut(&graph).ok_or_else(|| err("no session".into()))?;
         let mut values = Vec::with_capacity(inputs.len());
@@ -231,7 +259,11 @@ impl GraphRunner for OrtRunner {
             values.push((std::borrow::Cow::from(name.as_str()), ort::session::SessionInputValue::from(view)));
         }
         let output_names: Vec<String> = session.outputs().iter().map(|o| o.name().to_string()).collect();
-        let outputs = session.run(values).map_err(|e| err(e.to_string()))?;
+        let outputs = match shrink {
+            true => session.run_with_options(values, &self.shrink),
+            false => session.run(values),
+        };
+        let outputs = outputs.map_err(|e| err(e.to_string()))?;
         output_names
             .into_iter()
             .map(|name| {

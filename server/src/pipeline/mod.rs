@@ -331,10 +331,11 @@ impl Pipeline {
         let chunk = chunk.unwrap_or_else(|| self.chunking.rays_per_chunk(self.bundle.config.samples)).max(1);
         let inputs = &self.bundle.graph(GraphKind::Renderer).inputs;
         let near_far = [scene.near as f32, scene.far as f32];
-        let mut raw = chunks::render_rays(ticket, scene, inputs, &rays, near_far, chunk).await?;
-        if DepthRange::of(&self.bundle) == DepthRange::FirstPass {
+        let two_passes = DepthRange::of(&self.bundle) == DepthRange::FirstPass;
+        let mut raw = chunks::render_rays(ticket, scene, inputs, &rays, near_far, chunk, !two_passes).await?;
+        if two_passes {
             let range = min_max(&raw.depth).unwrap_or(near_far);
-            raw = chunks::render_rays(ticket, scene, inputs, &rays, range, chunk).await?;
+            raw = chunks::render_rays(ticket, scene, inputs, &rays, range, chunk, true).await?;
         }
         timings.add("renderer", start.elapsed());
         let start = Instant::now();
