@@ -155,6 +155,14 @@ def cmd_reexport(args) -> None:
     print(f"wrote {args.out} ({manifest['model_id']}; renderer agrees with {args.bundle} to {diff:.2g})")
 
 
+def cmd_split_volume(args) -> None:
+    from .export.split_volume import split_volume_bundle
+
+    manifest = split_volume_bundle(args.bundle, args.out)
+    diff = manifest["provenance"]["volume_split"]["volume_max_abs_difference"]
+    print(f"wrote {args.out} ({manifest['model_id']}; the volume agrees with {args.bundle} to {diff:.2g})")
+
+
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="scnerf-export", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
@@ -280,6 +288,13 @@ def parser() -> argparse.ArgumentParser:
     r.add_argument("--bundle", required=True, type=Path)
     r.add_argument("--out", required=True, type=Path)
     r.set_defaults(func=cmd_reexport)
+
+    s = sub.add_parser(
+        "split-volume", help="bundle with one volume graph -> the same model with the volume built slab by slab"
+    )
+    s.add_argument("--bundle", required=True, type=Path)
+    s.add_argument("--out", required=True, type=Path)
+    s.set_defaults(func=cmd_split_volume)
     return p
 
 

@@ -1,4 +1,4 @@
-//! Model bundle: `manifest.json` + three ONNX graphs (docs/bundle.md).
+//! Model bundle: `manifest.json` + its ONNX graphs (docs/bundle.md).
 //!
 //! Loading checks everything that can be checked before ONNX Runtime sees the files: format
 //! version, variant, hyper-parameters, every file's sha256, and each graph's declared inputs and
@@ -24,16 +24,22 @@ pub struct BundleError {
     pub message: String,
 }
 
-/// The three sub-graphs, in pipeline order.
+/// The sub-graphs, in pipeline order. A bundle has the encoder, the renderer, and the graphs of
+/// one way to build the encoding volume (`VolumeBuild`): `volume` (the cost volume and G2 in one
+/// run), or `cost_slab` (the cost volume of a slab of depth planes and G2's first convolution
+/// over it) and `volume_net` (the rest of G2, over the whole volume).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub enum GraphKind {
     Encoder,
     Volume,
+    CostSlab,
+    VolumeNet,
     Renderer,
 }
 
 impl GraphKind {
-    pub const ALL: [GraphKind; 3] = [GraphKind::Encoder, GraphKind::Volume, GraphKind::Renderer];
+    pub const ALL: [GraphKind; 5] =
+        [GraphKind::Encoder, GraphKind::Volume, GraphKind::CostSlab, GraphKind::VolumeNet, GraphKind::Renderer];
 
     /// Position in `ALL` (pipeline order): indexes per-graph arrays.
     pub fn index(self) -> usize {
@@ -44,8 +50,44 @@ impl GraphKind {
         match self {
             GraphKind::Encoder => "encoder",
             GraphKind::Volume => "volume",
+            GraphKind::CostSlab => "cost_slab",
+            GraphKind::VolumeNet => "volume_net",
             GraphKind::Renderer => "renderer",
         }
+    }
+}
+
+/// How a bundle builds the encoding volume.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum VolumeBuild {
+    /// `volume.onnx`: the whole cost volume at once (what `scnerf-export export` writes).
+    Whole,
+    /// `cost_slab.onnx` over slabs of depth planes, then `volume_net.onnx`.
+    Slabs,
+}
+
+impl VolumeBuild {
+    pub fn graphs(self) -> &'static [GraphKind] {
+        match self {
+            VolumeBuild::Whole => &[GraphKind::Volume],
+            VolumeBuild::Slabs => &[GraphKind::CostSlab, GraphKind::VolumeNet],
+        }
+    }
+
+    /// The way the graphs a manifest names build the volume.
+    fn of(graphs: &BTreeMap<String, GraphEntry>) -> Result<VolumeBuild, String> {
+        let has = |kind: GraphKind| graphs.contains_key(kind.name());
+        match (has(GraphKind::Volume), has(GraphKind::CostSlab), has(GraphKind::VolumeNet)) {
+            (true, false, false) => Ok(VolumeBuild::Whole),
+            (false, true, true) => Ok(VolumeBuild::Slabs),
+            (false, false, false) => Err("graphs.volume: missing (or graphs.cost_slab and graphs.volume_net)".into()),
+            _ => Err("graphs: either volume, or cost_slab and volume_net, not both or one of the two".into()),
+        }
+    }
+
+    /// The bundle's graphs in pipeline order.
+    pub fn bundle_graphs(self) -> Vec<GraphKind> {
+        [GraphKind::Encoder].iter().chain(self.graphs()).chain(&[GraphKind::Renderer]).copied().collect()
     }
 }
 
@@ -142,15 +184,25 @@ impl Bundle {
         let manifest: Manifest =
             serde_json::from_str(&text).map_err(|e| err(format!("manifest.json is not a valid manifest: {e}")))?;
         let config = validate_manifest(&manifest).map_err(err)?;
-        for kind in GraphKind::ALL {
-            let entry = &manifest.graphs[kind.name()];
-            verify_file(dir, kind, entry).map_err(err)?;
+        let bundle = Bundle { dir: dir.to_path_buf(), manifest, config };
+        for kind in bundle.graphs() {
+            verify_file(dir, kind, bundle.graph(kind)).map_err(err)?;
         }
-        Ok(Bundle { dir: dir.to_path_buf(), manifest, config })
+        Ok(bundle)
     }
 
+    /// How the volume is built (validate_manifest checked that the graphs are one of the ways).
+    pub fn volume_build(&self) -> VolumeBuild {
+        VolumeBuild::of(&self.manifest.graphs).unwrap_or(VolumeBuild::Whole)
+    }
+
+    /// The bundle's graphs in pipeline order.
+    pub fn graphs(&self) -> Vec<GraphKind> {
+        self.volume_build().bundle_graphs()
+    }
+
+    /// A graph of the bundle (one of `graphs()`).
     pub fn graph(&self, kind: GraphKind) -> &GraphEntry {
-        // validate_manifest guarantees the three entries exist.
         &self.manifest.graphs[kind.name()]
     }
 
@@ -180,10 +232,12 @@ pub fn validate_manifest(m: &Manifest) -> Result<ModelConfig, String> {
     validate_config(&config)?;
     for name in m.graphs.keys() {
         if !GraphKind::ALL.iter().any(|k| k.name() == name) {
-            return Err(format!("graphs.{name}: unknown graph (expected encoder, volume, renderer)"));
+            return Err(format!(
+                "graphs.{name}: unknown graph (expected encoder, volume or cost_slab and volume_net, renderer)"
+            ));
         }
     }
-    for kind in GraphKind::ALL {
+    for kind in VolumeBuild::of(&m.graphs)?.bundle_graphs() {
         let entry = m.graphs.get(kind.name()).ok_or_else(|| format!("graphs.{kind}: missing"))?;
         check_declared_io(kind, entry, &config)?;
     }
@@ -270,17 +324,27 @@ fn expected_io(kind: GraphKind, c: &ModelConfig) -> (Vec<Expected>, Vec<Expected
     let features = vec![v.clone(), fixed(c.feature_channels), named("h"), named("w")];
     let volume = vec![fixed(1), fixed(c.volume_channels), fixed(c.depth_planes), named("Hp"), named("Wp")];
     let e = |name, required, shape| Expected { name, required, shape };
+    let sources = |planes: Dim| {
+        vec![
+            e("features", true, features.clone()),
+            e("images", true, images.clone()),
+            e("projections", true, vec![v.clone(), fixed(4), fixed(4)]),
+            e("depth_planes", true, vec![planes]),
+        ]
+    };
     match kind {
         GraphKind::Encoder => (vec![e("images", true, images)], vec![e("features", true, features)]),
-        GraphKind::Volume => (
-            vec![
-                e("features", true, features),
-                e("images", true, images),
-                e("projections", true, vec![v.clone(), fixed(4), fixed(4)]),
-                e("depth_planes", true, vec![fixed(c.depth_planes)]),
-            ],
-            vec![e("volume", true, volume)],
-        ),
+        GraphKind::Volume => (sources(fixed(c.depth_planes)), vec![e("volume", true, volume)]),
+        GraphKind::CostSlab => {
+            let mut inputs = sources(named("Dh"));
+            inputs.push(e("plane_inside", true, vec![named("Dh")]));
+            let conv0 = vec![fixed(1), fixed(c.volume_channels), named("Ds"), named("Hp"), named("Wp")];
+            (inputs, vec![e("conv0", true, conv0)])
+        }
+        GraphKind::VolumeNet => {
+            let conv0 = vec![fixed(1), fixed(c.volume_channels), fixed(c.depth_planes), named("Hp"), named("Wp")];
+            (vec![e("conv0", true, conv0)], vec![e("volume", true, volume)])
+        }
         GraphKind::Renderer => (
             vec![
                 e("ray_origins", true, vec![named("R"), fixed(3)]),
@@ -501,6 +565,43 @@ mod tests {
         let mut m = sample_manifest();
         m.model_id = "scnerf-scnerf-000000000000".into();
         assert!(validate_manifest(&m).unwrap_err().contains("model_id"));
+    }
+
+    /// The manifest of a bundle that builds its volume slab by slab (`scnerf-export split-volume`).
+    fn slab_manifest() -> Manifest {
+        let mut m = sample_manifest();
+        let volume = m.graphs.remove("volume").unwrap();
+        let t = |name: &str, shape: serde_json::Value| {
+            serde_json::from_value::<TensorSpec>(serde_json::json!({"name": name, "shape": shape, "dtype": "float32"}))
+                .unwrap()
+        };
+        let mut inputs = volume.inputs.clone();
+        inputs[3] = t("depth_planes", serde_json::json!(["Dh"]));
+        inputs.push(t("plane_inside", serde_json::json!(["Dh"])));
+        let conv0 = |planes: serde_json::Value| t("conv0", serde_json::json!([1, 8, planes, "Hp", "Wp"]));
+        let graph =
+            |file: &str, inputs, outputs| GraphEntry { file: file.into(), sha256: "00".into(), inputs, outputs };
+        m.graphs.insert("cost_slab".into(), graph("cost_slab.onnx", inputs, vec![conv0(serde_json::json!("Ds"))]));
+        m.graphs
+            .insert("volume_net".into(), graph("volume_net.onnx", vec![conv0(serde_json::json!(128))], volume.outputs));
+        m
+    }
+
+    #[test]
+    fn accepts_either_way_to_build_the_volume_but_not_a_mix() {
+        let m = slab_manifest();
+        validate_manifest(&m).unwrap();
+        assert_eq!(VolumeBuild::of(&m.graphs), Ok(VolumeBuild::Slabs));
+        assert_eq!(VolumeBuild::of(&sample_manifest().graphs), Ok(VolumeBuild::Whole));
+        let mut half = slab_manifest();
+        half.graphs.remove("volume_net");
+        assert!(validate_manifest(&half).unwrap_err().contains("not both or one of the two"));
+        let mut both = slab_manifest();
+        both.graphs.insert("volume".into(), sample_manifest().graphs["volume"].clone());
+        assert!(validate_manifest(&both).unwrap_err().contains("not both"));
+        let mut wrong = slab_manifest();
+        wrong.graphs.get_mut("cost_slab").unwrap().inputs.pop();
+        assert!(validate_manifest(&wrong).unwrap_err().contains("\"plane_inside\" is missing"));
     }
 
     #[test]

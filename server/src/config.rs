@@ -4,18 +4,22 @@
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
+use std::sync::Arc;
 use std::time::Duration;
 
 use clap::{Parser, ValueEnum};
 
 use crate::auth::Auth;
 use crate::backend::ort::{ExecOptions, OrtOptions};
+use crate::backend::{ExecutorOptions, MemoryBudget};
 use crate::cache::CacheConfig;
 use crate::http::body::UploadPolicy;
 use crate::http::serve::ServeOptions;
 use crate::http::ServiceOptions;
 use crate::pipeline::chunks::ChunkPolicy;
+use crate::pipeline::volume::SlabPolicy;
 use crate::request::Limits;
+use crate::sysmem;
 
 /// Where the server looks for the default bundle when `--bundle` is not given: the repository's
 /// `bundles/default`, resolved when the binary is compiled (the binary is built from the repo).
@@ -103,8 +107,10 @@ pub struct Config {
     #[arg(long, env = "SCNERF_DEVICE", default_value = "cpu")]
     pub device: Device,
 
-    /// ONNX Runtime's CPU memory arena (on: freed buffers are kept for the next run; off: returned
-    /// to the allocator, lower resident memory between requests). Accepts on/off, true/false.
+    /// ONNX Runtime's CPU memory arena for the renderer (on: a chunk's buffers are kept for the
+    /// next chunk, and released after a request's last chunk when nothing else waits; off:
+    /// returned to the allocator after every chunk). The encoder and the volume's graphs, which
+    /// run once per request, never keep theirs. Accepts on/off, true/false.
     #[arg(long, env = "SCNERF_ORT_ARENA", default_value = "on", action = clap::ArgAction::Set,
           value_parser = clap::builder::BoolishValueParser::new())]
     pub ort_arena: bool,
@@ -127,6 +133,12 @@ pub struct Config {
     /// bundle's samples per ray (see pipeline::chunks).
     #[arg(long, env = "SCNERF_CHUNK_MEMORY_MB", default_value_t = ChunkPolicy::default().memory_budget_bytes >> 20)]
     pub chunk_memory_mb: usize,
+
+    /// Working memory of one cost-volume slab run in MiB, for bundles that build the volume slab
+    /// by slab (cost_slab.onnx): the planes per run are derived from it and the sources' size
+    /// (see pipeline::volume).
+    #[arg(long, env = "SCNERF_VOLUME_SLAB_MB", default_value_t = SlabPolicy::default().memory_budget_bytes >> 20)]
+    pub volume_slab_mb: usize,
 
     /// Largest accepted request body in bytes.
     #[arg(long, env = "SCNERF_MAX_BODY_BYTES", default_value_t = Limits::default().max_body_bytes)]
@@ -179,6 +191,21 @@ pub struct Config {
     /// in the round-robin over requests); beyond it new requests get 503 + Retry-After.
     #[arg(long, env = "SCNERF_QUEUE_CAPACITY", default_value_t = 32)]
     pub queue_capacity: usize,
+
+    /// Memory the whole process may use, in MiB: what it holds at rest (measured after the
+    /// warm-up), the scene cache (--scene-cache-mb) and the estimated peaks of the requests in
+    /// progress. A request that would exceed it waits for none: 503 + Retry-After; one that could
+    /// never fit: 422. Default: 3/4 of the cgroup's memory limit, or of physical memory.
+    #[arg(long, env = "SCNERF_MEMORY_BUDGET_MB")]
+    pub memory_budget_mb: Option<u64>,
+
+    /// Measure each stage's memory (the process's peak resident set while a graph runs or the
+    /// sources are decoded, and what it holds after), served in /metrics as
+    /// scnerf_stage_peak_resident_bytes and scnerf_stage_resident_after_bytes. A diagnostic: exact
+    /// only with one request at a time. Accepts on/off, true/false.
+    #[arg(long, env = "SCNERF_MEMORY_PROBE", default_value = "off", action = clap::ArgAction::Set,
+          value_parser = clap::builder::BoolishValueParser::new())]
+    pub memory_probe: bool,
 
     /// POST requests handled at once (their bodies are in memory meanwhile); beyond it 503 +
     /// Retry-After before the body is read.
@@ -316,6 +343,28 @@ impl Config {
             max_header_bytes: self.max_header_bytes.max(1024),
             shutdown_grace: Duration::from_secs(self.shutdown_grace_secs),
         }
+    }
+
+    /// `--memory-budget-mb` in bytes, or the default (3/4 of the memory limit), and where it
+    /// comes from; no bound where the limit cannot be read.
+    pub fn memory_budget(&self) -> (u64, String) {
+        match (self.memory_budget_mb, sysmem::memory_limit()) {
+            (Some(mb), _) => (mb.saturating_mul(1 << 20), "--memory-budget-mb".into()),
+            (None, Some((limit, source))) => (limit / 4 * 3, format!("3/4 of the {source} limit")),
+            (None, None) => (u64::MAX, "no memory limit found".into()),
+        }
+    }
+
+    pub fn executor_options(&self) -> ExecutorOptions {
+        ExecutorOptions {
+            capacity: self.queue_capacity,
+            memory: MemoryBudget { total: self.memory_budget().0, reserved: 0 },
+            probe: self.memory_probe.then(Arc::default),
+        }
+    }
+
+    pub fn slabs(&self) -> SlabPolicy {
+        SlabPolicy { memory_budget_bytes: self.volume_slab_mb.saturating_mul(1024 * 1024) }
     }
 
     pub fn chunking(&self) -> ChunkPolicy {

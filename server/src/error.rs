@@ -168,6 +168,12 @@ impl From<BackendError> for ApiError {
             BackendError::WouldMissDeadline { ahead_secs, .. } => {
                 ApiError::Unavailable { message: e.to_string(), retry_after_secs: ahead_secs.ceil().max(1.0) as u64 }
             }
+            BackendError::MemoryBusy { ahead_secs, .. } => ApiError::Unavailable {
+                message: format!("server busy: {e}"),
+                retry_after_secs: ahead_secs.ceil().max(1.0) as u64,
+            },
+            // `Pipeline::admit` names the sizes that make a request too large; this is the rule.
+            BackendError::TooLarge { .. } => ApiError::invalid("sources", format!("the request needs {e}")),
             // The handler's own timer normally fires first and knows the deadline; this is the
             // executor noticing it between two graph runs.
             BackendError::DeadlineExceeded => ApiError::DeadlineExceeded { ms: 0 },

@@ -21,5 +21,6 @@ pub mod metrics;
 pub mod pipeline;
 pub mod request;
 pub mod server;
+pub mod sysmem;
 #[doc(hidden)]
 pub mod testing;

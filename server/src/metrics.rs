@@ -18,6 +18,7 @@ use prometheus_client::registry::{Registry, Unit};
 use crate::backend::BackendHandle;
 use crate::cache::SceneCache;
 use crate::pipeline::Timings;
+use crate::sysmem;
 
 /// Content type of the exposition format written by `Metrics::render`.
 pub const CONTENT_TYPE: &str = "application/openmetrics-text; version=1.0.0; charset=utf-8";
@@ -120,6 +121,31 @@ fn counter(encoder: &mut DescriptorEncoder, name: &str, help: &str, value: u64) 
     metric.encode(encoder.encode_descriptor(name, help, None, metric.metric_type())?)
 }
 
+/// One metric with a value per label set.
+fn family<L: EncodeLabelSet, M: EncodeMetric>(
+    encoder: &mut DescriptorEncoder,
+    name: &str,
+    help: &str,
+    values: &[(L, M)],
+) -> Result<(), std::fmt::Error> {
+    let Some((_, first)) = values.first() else { return Ok(()) };
+    let mut metric = encoder.encode_descriptor(name, help, None, first.metric_type())?;
+    for (labels, value) in values {
+        value.encode(metric.encode_family(labels)?)?;
+    }
+    Ok(())
+}
+
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct ReasonLabels {
+    reason: &'static str,
+}
+
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct StageName {
+    stage: &'static str,
+}
+
 impl Collector for StateCollector {
     fn encode(&self, mut e: DescriptorEncoder) -> Result<(), std::fmt::Error> {
         let q = self.backend.stats();
@@ -128,6 +154,53 @@ impl Collector for StateCollector {
         gauge(&mut e, "inference_queue_requests", "Requests admitted to the inference executor", n(q.admitted))?;
         gauge(&mut e, "inference_queue_jobs", "Graph runs waiting for the inference executor", n(q.queued_jobs))?;
         gauge(&mut e, "inference_queue_capacity", "Requests the executor admits at once", n(q.capacity))?;
+        let bytes = |v: u64| i64::try_from(v).unwrap_or(i64::MAX);
+        gauge(&mut e, "memory_budget_bytes", "Memory the process may use (--memory-budget-mb)", bytes(q.memory.total))?;
+        gauge(
+            &mut e,
+            "memory_reserved_bytes",
+            "Part of the budget held apart from requests: the process at rest and the scene cache",
+            bytes(q.memory.reserved),
+        )?;
+        gauge(
+            &mut e,
+            "memory_admitted_bytes",
+            "Sum of the estimated peak memory of the requests admitted now",
+            bytes(q.memory_in_use),
+        )?;
+        let refusals = [
+            (ReasonLabels { reason: "busy" }, ConstCounter::new(q.refusals.busy)),
+            (ReasonLabels { reason: "too_large" }, ConstCounter::new(q.refusals.too_large)),
+        ];
+        family(
+            &mut e,
+            "memory_refusals",
+            "Requests refused for memory: busy (503, the budget is in use), too_large (422, larger than the budget)",
+            &refusals,
+        )?;
+        if let Some(r) = sysmem::resident() {
+            gauge(&mut e, "process_resident_bytes", "Resident set of the process", bytes(r.now))?;
+            gauge(&mut e, "process_peak_resident_bytes", "Peak resident set of the process (VmHWM)", bytes(r.peak))?;
+        }
+        if let Some(probe) = self.backend.probe() {
+            let stages = probe.stages();
+            let peaks: Vec<_> =
+                stages.iter().map(|(stage, m)| (StageName { stage }, ConstGauge::new(bytes(m.peak)))).collect();
+            let after: Vec<_> =
+                stages.iter().map(|(stage, m)| (StageName { stage }, ConstGauge::new(bytes(m.after)))).collect();
+            family(
+                &mut e,
+                "stage_peak_resident_bytes",
+                "--memory-probe: the process's peak resident set while the stage ran (largest over its runs)",
+                &peaks,
+            )?;
+            family(
+                &mut e,
+                "stage_resident_after_bytes",
+                "--memory-probe: the process's resident set after the stage's latest run",
+                &after,
+            )?;
+        }
         gauge(&mut e, "scene_cache_entries", "Scenes in the cache", n(c.entries))?;
         gauge(
             &mut e,

@@ -9,13 +9,14 @@ use ndarray::Array4;
 use tokio::net::TcpListener;
 
 use crate::backend::ort::OrtRunner;
-use crate::backend::BackendHandle;
+use crate::backend::{BackendHandle, MemoryBudget};
 use crate::bundle::Bundle;
 use crate::camera::Camera;
 use crate::config::Config;
 use crate::http::serve::{ensure_file_limit, serve};
 use crate::http::{router, AppState};
 use crate::pipeline::{Pipeline, Timings};
+use crate::sysmem;
 
 pub async fn run(config: Config) -> Result<(), String> {
     let signals = shutdown_signals()?;
@@ -38,8 +39,10 @@ pub async fn run(config: Config) -> Result<(), String> {
             .map_err(|e| e.to_string())?
             .map_err(|e| format!("bundle {}: {e}", bundle_dir.display()))?
     };
-    let backend = BackendHandle::spawn(Box::new(runner), config.queue_capacity).map_err(|e| e.to_string())?;
-    let pipeline = Pipeline::new(backend, bundle, config.chunking(), config.limits());
+    let (budget, budget_source) = config.memory_budget();
+    tracing::info!(budget_mib = budget >> 20, source = %budget_source, "memory budget");
+    let backend = BackendHandle::spawn(Box::new(runner), config.executor_options()).map_err(|e| e.to_string())?;
+    let pipeline = Pipeline::new(backend, bundle, config.chunking(), config.slabs(), config.limits());
     let state = AppState::new(pipeline, options);
     spawn_cache_sweeper(&state);
 
@@ -53,13 +56,20 @@ pub async fn run(config: Config) -> Result<(), String> {
 
     let (failed_tx, failed_rx) = tokio::sync::oneshot::channel::<String>();
     if config.skip_warmup {
+        reserve_memory(&state)?;
         state.set_ready();
     } else {
         let state = state.clone();
         tokio::spawn(async move {
-            match warm_up(state.pipeline()).await {
-                Ok(elapsed) => {
-                    tracing::info!(ms = elapsed.as_millis() as u64, "warm-up render done; ready");
+            let warmed = warm_up(state.pipeline()).await.map_err(|e| format!("warm-up render failed: {e}"));
+            match warmed.and_then(|elapsed| Ok((elapsed, reserve_memory(&state)?))) {
+                Ok((elapsed, memory)) => {
+                    tracing::info!(
+                        ms = elapsed.as_millis() as u64,
+                        reserved_mib = memory.reserved >> 20,
+                        for_requests_mib = memory.for_requests() >> 20,
+                        "warm-up render done; ready"
+                    );
                     state.set_ready();
                 }
                 Err(e) => {
@@ -89,13 +99,21 @@ pub async fn run(config: Config) -> Result<(), String> {
     let stopped = serve(listener, app, &serve_options, shutdown).await;
     let failure = warmup_error.lock().unwrap_or_else(|p| p.into_inner()).take();
     if let Some(e) = failure {
-        return Err(format!("warm-up render failed: {e}"));
+        return Err(e);
     }
     if stopped.cut > 0 {
         return Err(format!("the shutdown grace period ran out: {} requests in flight were answered 503", stopped.cut));
     }
     tracing::info!("shut down");
     Ok(())
+}
+
+/// Sets aside the memory held apart from requests: the process at rest after the warm-up (the
+/// sessions, their weights, the renderer's arena) and the scene cache at its limit.
+fn reserve_memory(state: &AppState) -> Result<MemoryBudget, String> {
+    let at_rest = sysmem::resident().map_or(0, |r| r.now);
+    let cache = state.scenes().config().max_bytes as u64;
+    state.pipeline().executor().reserve(at_rest + cache)
 }
 
 /// Expired scenes are also dropped on every cache access; this frees their memory when the
@@ -138,7 +156,7 @@ pub async fn warm_up(pipeline: &Pipeline) -> Result<Duration, String> {
     target.height = 4;
     // Warm-up runs before readiness, alone on the executor; the deadline only bounds a hang.
     let work = pipeline.scene_work(&cameras).plus(pipeline.view_work(&target));
-    let ticket = pipeline.admit(Instant::now() + Duration::from_secs(3600), work).map_err(|e| e.to_string())?;
+    let ticket = pipeline.admit(Instant::now() + Duration::from_secs(3600), work, 0).map_err(|e| e.to_string())?;
     let scene = pipeline
         .build_scene(&ticket, &cameras, images.into_shared(), 2.0, 6.0, &mut timings)
         .await

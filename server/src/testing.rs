@@ -9,11 +9,12 @@ use std::time::Duration;
 use crate::backend::ort::{OrtOptions, OrtRunner};
 use ndarray::{ArrayD, Axis, Ix2, IxDyn};
 
-use crate::backend::{BackendError, BackendHandle, GraphRunner, NamedTensors, Tensor};
+use crate::backend::{BackendError, BackendHandle, ExecutorOptions, GraphRunner, NamedTensors, Tensor};
 use crate::bundle::{validate_manifest, Bundle, GraphKind, Manifest};
 use crate::config::GraphOptLevel;
 use crate::http::{AppState, ServiceOptions};
 use crate::pipeline::chunks::ChunkPolicy;
+use crate::pipeline::volume::SlabPolicy;
 use crate::pipeline::Pipeline;
 use crate::request::Limits;
 
@@ -79,8 +80,8 @@ pub struct FakeRunner {
     pub fail_with: Option<String>,
     /// Sleep per call (to test deadlines and scheduling).
     pub delay: Duration,
-    /// Graph runs so far, by kind: encoder, volume, renderer (to see which work was dropped).
-    pub calls: Arc<[AtomicUsize; 3]>,
+    /// Graph runs so far, by kind (`GraphKind::index`), to see which work was dropped.
+    pub calls: Arc<[AtomicUsize; GraphKind::ALL.len()]>,
 }
 
 impl FakeRunner {
@@ -109,10 +110,18 @@ impl GraphRunner for FakeRunner {
                 let mean = images.iter().sum::<f32>() / images.len() as f32;
                 vec![("features".into(), filled(&[v, c.feature_channels, h, w], mean))]
             }
-            GraphKind::Volume => {
+            GraphKind::Volume | GraphKind::CostSlab => {
                 let f = input(inputs, "features");
                 let (hp, wp) = (f.shape()[2] + 2 * c.pad, f.shape()[3] + 2 * c.pad);
-                vec![("volume".into(), filled(&[1, c.volume_channels, c.depth_planes, hp, wp], f[[0, 0, 0, 0]]))]
+                let (name, planes) = match graph {
+                    GraphKind::Volume => ("volume", c.depth_planes),
+                    _ => ("conv0", input(inputs, "depth_planes").len() - 2),
+                };
+                vec![(name.into(), filled(&[1, c.volume_channels, planes, hp, wp], f[[0, 0, 0, 0]]))]
+            }
+            GraphKind::VolumeNet => {
+                let conv0 = input(inputs, "conv0");
+                vec![("volume".into(), filled(conv0.shape(), conv0[[0, 0, 0, 0, 0]]))]
             }
             GraphKind::Renderer => {
                 let dirs = input(inputs, "ray_directions").view().into_dimensionality::<Ix2>().expect("(R, 3) rays");
@@ -153,9 +162,20 @@ pub fn state_with_options(
     options: ServiceOptions,
     queue: usize,
 ) -> AppState {
-    let backend = BackendHandle::spawn(Box::new(runner), queue).expect("spawn backend");
-    let pipeline =
-        Pipeline::new(backend, bundle, ChunkPolicy { max_rays: 100, memory_budget_bytes: usize::MAX }, limits);
+    state_with_executor(bundle, runner, limits, options, ExecutorOptions::with_capacity(queue))
+}
+
+/// [`state_with_options`] with any executor settings (a memory budget).
+pub fn state_with_executor(
+    bundle: Bundle,
+    runner: FakeRunner,
+    limits: Limits,
+    options: ServiceOptions,
+    executor: ExecutorOptions,
+) -> AppState {
+    let backend = BackendHandle::spawn(Box::new(runner), executor).expect("spawn backend");
+    let chunking = ChunkPolicy { max_rays: 100, memory_budget_bytes: usize::MAX };
+    let pipeline = Pipeline::new(backend, bundle, chunking, SlabPolicy::default(), limits);
     ready_state(pipeline, options)
 }
 
@@ -170,12 +190,17 @@ pub fn ready_state(pipeline: Pipeline, options: ServiceOptions) -> AppState {
 /// chunking), `queue` requests admitted at once. ONNX Runtime's environment is process-wide:
 /// one such pipeline per test process, shared by its tests.
 pub fn ort_pipeline(dir: &Path, limits: Limits, queue: usize) -> Pipeline {
+    ort_pipeline_with(dir, limits, ExecutorOptions::with_capacity(queue))
+}
+
+/// [`ort_pipeline`] with any executor settings (a memory budget).
+pub fn ort_pipeline_with(dir: &Path, limits: Limits, executor: ExecutorOptions) -> Pipeline {
     let bundle = Bundle::load(dir).unwrap_or_else(|e| panic!("{e}"));
     let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
     let opts = OrtOptions { dylib: None, intra_threads: threads, opt_level: GraphOptLevel::All, spin: false };
     let runner = OrtRunner::load(&bundle, &opts).unwrap_or_else(|e| panic!("{e}"));
-    let backend = BackendHandle::spawn(Box::new(runner), queue).expect("spawn backend");
-    Pipeline::new(backend, bundle, ChunkPolicy::default(), limits)
+    let backend = BackendHandle::spawn(Box::new(runner), executor).expect("spawn backend");
+    Pipeline::new(backend, bundle, ChunkPolicy::default(), SlabPolicy::default(), limits)
 }
 
 pub fn fake_state() -> AppState {

@@ -14,6 +14,7 @@ use axum::body::Body;
 use axum::http::Request;
 use axum::Router;
 use common::*;
+use scnerf_server::bundle::GraphKind;
 use scnerf_server::cache::CacheConfig;
 use scnerf_server::http::{router, ServiceOptions};
 use scnerf_server::request::Limits;
@@ -25,8 +26,8 @@ const ANGLES: [f64; 8] = [-0.6, -0.4, -0.2, 0.0, 0.2, 0.4, 0.6, 0.8];
 
 struct App {
     router: Router,
-    /// Graph runs so far: encoder, volume, renderer.
-    calls: std::sync::Arc<[std::sync::atomic::AtomicUsize; 3]>,
+    /// Graph runs so far, per graph (`GraphKind::index`).
+    calls: std::sync::Arc<[std::sync::atomic::AtomicUsize; GraphKind::ALL.len()]>,
 }
 
 impl App {
@@ -42,7 +43,7 @@ impl App {
     }
 
     fn volumes_built(&self) -> usize {
-        self.calls[1].load(Ordering::SeqCst)
+        self.calls[GraphKind::Volume.index()].load(Ordering::SeqCst)
     }
 
     async fn metric(&self, name: &str) -> f64 {

@@ -10,6 +10,7 @@ use axum::Router;
 use base64::Engine;
 use prost::Message;
 use scnerf_proto::v1 as pb;
+use scnerf_server::bundle::GraphKind;
 use scnerf_server::http::router;
 use scnerf_server::request::Limits;
 use scnerf_server::testing::{self, bundle, camera_json, fake_state, png, request_json, state_with, FakeRunner};
@@ -138,7 +139,11 @@ async fn two_renderer_passes_only_when_the_renderer_takes_the_depth_range() {
         // 8x6 rays: one renderer run per pass.
         let (status, _, body) = send(app, multipart_with("/v1/render", &request_json(32), 32, &[])).await;
         assert_eq!(status, 200, "{variant}: {}", String::from_utf8_lossy(&body));
-        assert_eq!(calls[2].load(std::sync::atomic::Ordering::SeqCst), passes, "{variant}, {norm}");
+        assert_eq!(
+            calls[GraphKind::Renderer.index()].load(std::sync::atomic::Ordering::SeqCst),
+            passes,
+            "{variant}, {norm}"
+        );
     }
 }
 

@@ -12,6 +12,7 @@ use std::time::{Duration, Instant};
 use axum::body::Body;
 use axum::http::Request;
 use common::*;
+use scnerf_server::bundle::GraphKind;
 use scnerf_server::http::{router, AppState, ServiceOptions};
 use scnerf_server::request::Limits;
 use scnerf_server::testing::{bundle, camera_json, request_json, state_with_options, FakeRunner};
@@ -19,7 +20,7 @@ use serde_json::Value;
 use std::io::Write;
 
 /// Every graph run takes `delay`; renderer chunks are 100 rays (testing::state_with_options).
-fn slow_state(delay: Duration, timeout: Duration) -> (AppState, Arc<[AtomicUsize; 3]>) {
+fn slow_state(delay: Duration, timeout: Duration) -> (AppState, Arc<[AtomicUsize; GraphKind::ALL.len()]>) {
     let b = bundle("scnerf", "near_far");
     let mut runner = FakeRunner::new(&b);
     runner.delay = delay;
@@ -28,8 +29,8 @@ fn slow_state(delay: Duration, timeout: Duration) -> (AppState, Arc<[AtomicUsize
     (state_with_options(b, runner, Limits::default(), options, 8), calls)
 }
 
-fn renderer_runs(calls: &[AtomicUsize; 3]) -> usize {
-    calls[2].load(Ordering::SeqCst)
+fn renderer_runs(calls: &[AtomicUsize; GraphKind::ALL.len()]) -> usize {
+    calls[GraphKind::Renderer.index()].load(Ordering::SeqCst)
 }
 
 /// A request whose target is `w` x `h` (w·h/100 renderer chunks).
@@ -230,7 +231,7 @@ async fn posts_beyond_the_in_flight_limit_get_503_before_their_body_is_read() {
     let options = ServiceOptions { max_concurrent_requests: 1, ..Default::default() };
     let app = router(state_with_options(b, runner, Limits::default(), options, 8));
     let busy = tokio::spawn(send(app.clone(), multipart_with("/v1/render", &request_with_target(40, 20), 32, &[])));
-    wait_for("the first request to start", || calls[0].load(Ordering::SeqCst) >= 1).await;
+    wait_for("the first request to start", || calls[GraphKind::Encoder.index()].load(Ordering::SeqCst) >= 1).await;
     let got = send(app.clone(), multipart_with("/v1/render", &request_json(32), 32, &[])).await;
     assert_error(&got, 503, "unavailable", None);
     assert_eq!(got.1["retry-after"], "1");

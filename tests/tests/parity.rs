@@ -15,6 +15,7 @@ use scnerf_e2e::{split_request, Case};
 use scnerf_server::bundle::{Bundle, DepthNorm, GraphKind};
 use scnerf_server::http::{router, AppState, ServiceOptions};
 use scnerf_server::pipeline::chunks::{self, ChunkPolicy};
+use scnerf_server::pipeline::volume::SlabPolicy;
 use scnerf_server::pipeline::{assemble, rays, Pipeline, Timings};
 use scnerf_server::request::{ImageMode, Limits, RenderRequest, ValidRequest};
 use scnerf_server::testing::{ort_pipeline, ready_state};
@@ -48,7 +49,7 @@ fn pipeline() -> Pipeline {
 /// by estimated finish time is not what these tests check).
 fn admit(p: &Pipeline) -> scnerf_server::backend::Ticket {
     let deadline = std::time::Instant::now() + std::time::Duration::from_secs(600);
-    p.admit(deadline, scnerf_server::backend::Work::default()).unwrap()
+    p.admit(deadline, scnerf_server::backend::Work::default(), 0).unwrap()
 }
 
 /// The real router's state over the ONNX Runtime pipeline, ready at once.
@@ -208,7 +209,13 @@ async fn output_does_not_depend_on_chunk_size() {
 fn image_minmax_pipeline() -> Pipeline {
     let mut bundle = Bundle::load(&fixtures_dir().join("bundle")).unwrap_or_else(|e| panic!("{e}"));
     bundle.config.depth_norm = DepthNorm::ImageMinmax;
-    Pipeline::new(pipeline().executor().clone(), bundle, ChunkPolicy::default(), Limits::default())
+    Pipeline::new(
+        pipeline().executor().clone(),
+        bundle,
+        ChunkPolicy::default(),
+        SlabPolicy::default(),
+        Limits::default(),
+    )
 }
 
 /// The two-pass `image_minmax` render through the real graphs. The committed fixtures hold no
@@ -230,7 +237,7 @@ async fn image_minmax_feeds_the_depth_images_range_to_a_second_pass() {
     let finite = one_pass.depth.iter().copied().filter(|d| d.is_finite());
     let range = [finite.clone().fold(f32::INFINITY, f32::min), finite.fold(f32::NEG_INFINITY, f32::max)];
     let inputs = &Bundle::load(&fixtures_dir().join("bundle")).unwrap().graph(GraphKind::Renderer).inputs.clone();
-    let raw = chunks::render_rays(&ticket, &scene, inputs, &rays::generate(target), range, 512).await.unwrap();
+    let raw = chunks::render_rays(&ticket, &scene, inputs, &rays::generate(target), range, 512, true).await.unwrap();
     let expected_rgb = assemble::composite(&raw, background);
 
     check("image_minmax", "rgb against a pass fed the depth range", max_abs(&large.rgb, &expected_rgb), 1e-6);

@@ -15,6 +15,7 @@ from torch.export import Dim
 
 from .. import __version__
 from ..model.checkpoint import sha256_file
+from ..model.cost_volume import build_cost_volume, slab_halo
 from ..model.network import SCNeRF
 from ..rigs import synthetic_rig
 from .manifest import model_id, write_manifest
@@ -45,6 +46,35 @@ class VolumeGraph(nn.Module):
 
     def forward(self, features, images, projections, depth_planes):
         return self.model.build_volume(features, images, projections, depth_planes)
+
+
+class CostSlabGraph(nn.Module):
+    """The cost volume of a slab of planes and G2's first convolution over it."""
+
+    def __init__(self, model: SCNeRF):
+        super().__init__()
+        self.model = model
+
+    def forward(self, features, images, projections, depth_planes, plane_inside):
+        return self.model.volume_slab(features, images, projections, depth_planes, plane_inside)
+
+
+class VolumeNetGraph(nn.Module):
+    """G2 from its first convolution over the whole volume (the slabs' outputs, concatenated)."""
+
+    def __init__(self, model: SCNeRF):
+        super().__init__()
+        self.model = model
+
+    def forward(self, conv0):
+        return self.model.volume_from_slabs(conv0)
+
+
+# The graphs an export writes, in pipeline order. The volume is one graph (the cost volume and G2
+# in one run); `scnerf-export split-volume` turns it into VOLUME_GRAPHS, which build the same
+# volume slab by slab of depth planes in a fraction of the memory (split_volume.py).
+GRAPHS = ("encoder", "volume", "renderer")
+VOLUME_GRAPHS = ("cost_slab", "volume_net")
 
 
 def renderer_input_names(model: SCNeRF) -> list[str]:
@@ -96,6 +126,7 @@ def graph_signatures(model: SCNeRF) -> dict[str, dict[str, list]]:
         "intrinsics": [v, 3, 3],
         "extrinsics": [v, 4, 4],
     }
+    conv0 = [1, cfg.volume_channels, d, "Hp", "Wp"]
     return {
         "encoder": {"inputs": {"images": [v, 3, "H", "W"]}, "outputs": {"features": [v, c, "h", "w"]}},
         "volume": {
@@ -107,6 +138,17 @@ def graph_signatures(model: SCNeRF) -> dict[str, dict[str, list]]:
             },
             "outputs": {"volume": vol},
         },
+        "cost_slab": {
+            "inputs": {
+                "features": [v, c, "h", "w"],
+                "images": [v, 3, "H", "W"],
+                "projections": [v, 4, 4],
+                "depth_planes": ["Dh"],
+                "plane_inside": ["Dh"],
+            },
+            "outputs": {"conv0": [1, cfg.volume_channels, "Ds", "Hp", "Wp"]},
+        },
+        "volume_net": {"inputs": {"conv0": conv0}, "outputs": {"volume": vol}},
         "renderer": {
             "inputs": {n: renderer_inputs[n] for n in renderer_input_names(model)},
             "outputs": {"rgb": ["R", 3], "depth": ["R"], "opacity": ["R"]},
@@ -124,9 +166,15 @@ def example_inputs(
     images of ``blocks`` x 32 pixels, ``rays`` target rays."""
     cfg = model.cfg
     rig = synthetic_rig(cfg, 32 * blocks[0], 32 * blocks[1], seed=seed)
+    d = cfg.depth_planes
+    # The first slab, with its halo plane outside the volume (and a size of its own, 5 planes).
+    index, inside = slab_halo(d, 0, min(5, d))
     with torch.no_grad():
         features = model.encode(rig["images"])
         volume = model.build_volume(features, rig["images"], rig["projections"], rig["depth_planes"])
+        conv0 = model.volume_net.conv0.conv(
+            build_cost_volume(features, rig["images"], rig["projections"], rig["depth_planes"], cfg.pad)
+        )
     rays = {
         "ray_origins": rig["ray_origins"][:rays],
         "ray_directions": rig["ray_directions"][:rays],
@@ -147,6 +195,14 @@ def example_inputs(
             "projections": rig["projections"],
             "depth_planes": rig["depth_planes"],
         },
+        "cost_slab": {
+            "features": features,
+            "images": rig["images"],
+            "projections": rig["projections"],
+            "depth_planes": rig["depth_planes"][torch.from_numpy(index)],
+            "plane_inside": torch.from_numpy(inside),
+        },
+        "volume_net": {"conv0": conv0},
         "renderer": {n: rays[n] for n in renderer_input_names(model)},
     }
 
@@ -155,6 +211,7 @@ def _dynamic_shapes(model: SCNeRF, graph: str) -> dict:
     pad = model.cfg.pad
     hb, wb, rays = Dim("hb", min=1, max=512), Dim("wb", min=1, max=512), Dim("R", min=1)
     spatial = {
+        "Dh": Dim("Dh", min=3, max=model.cfg.depth_planes + 2),
         "H": 32 * hb,
         "W": 32 * wb,
         "h": 8 * hb,
@@ -237,19 +294,7 @@ def export_bundle(model: SCNeRF, out_dir: str | Path, provenance: dict) -> dict:
     model = model.eval()
     inputs = example_inputs(model)
     checks = example_inputs(model, blocks=CHECK_BLOCKS, rays=CHECK_RAYS)
-    modules = {"encoder": EncoderGraph(model), "volume": VolumeGraph(model), "renderer": RendererGraph(model)}
-    signatures = graph_signatures(model)
-    graphs, errors = {}, {}
-    for name, module in modules.items():
-        path = out / f"{name}.onnx"
-        export_graph(module, inputs[name], model, name, path)
-        errors[name] = max(validate_graph(path, module, example[name], tolerance=1e-4) for example in (inputs, checks))
-        graphs[name] = {
-            "file": path.name,
-            "sha256": sha256_file(path),
-            "inputs": io_spec(signatures[name]["inputs"]),
-            "outputs": io_spec(signatures[name]["outputs"]),
-        }
+    graphs, errors = export_graphs(model, out, GRAPHS, (inputs, checks))
     provenance = write_licences(out, provenance)
     manifest = {
         "format_version": FORMAT_VERSION,
@@ -271,6 +316,36 @@ def export_bundle(model: SCNeRF, out_dir: str | Path, provenance: dict) -> dict:
     }
     write_manifest(out, manifest)
     return manifest
+
+
+def graph_modules(model: SCNeRF) -> dict[str, nn.Module]:
+    return {
+        "encoder": EncoderGraph(model),
+        "volume": VolumeGraph(model),
+        "cost_slab": CostSlabGraph(model),
+        "volume_net": VolumeNetGraph(model),
+        "renderer": RendererGraph(model),
+    }
+
+
+def export_graphs(
+    model: SCNeRF, out: Path, names: tuple[str, ...], examples: tuple[dict, ...]
+) -> tuple[dict[str, dict], dict[str, float]]:
+    """Writes the graphs ``names`` of ``model`` into ``out``, each checked against PyTorch on every
+    example's inputs (traced on the first); their manifest entries and largest errors."""
+    modules, signatures = graph_modules(model), graph_signatures(model)
+    graphs, errors = {}, {}
+    for name in names:
+        path = out / f"{name}.onnx"
+        export_graph(modules[name], examples[0][name], model, name, path)
+        errors[name] = max(validate_graph(path, modules[name], example[name], tolerance=1e-4) for example in examples)
+        graphs[name] = {
+            "file": path.name,
+            "sha256": sha256_file(path),
+            "inputs": io_spec(signatures[name]["inputs"]),
+            "outputs": io_spec(signatures[name]["outputs"]),
+        }
+    return graphs, errors
 
 
 def write_licences(bundle_dir: Path, provenance: dict) -> dict:

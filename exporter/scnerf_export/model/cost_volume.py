@@ -3,6 +3,7 @@ that turns it into the encoding volume V (docs/design.md steps 2-3)."""
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -98,10 +99,31 @@ class VolumeNetG2(nn.Module):
             raise ValueError("the U-Net's first stage width is the volume's channel count")
 
     def forward(self, cost: torch.Tensor) -> torch.Tensor:
-        conv0 = self.conv0(cost)
+        return self.from_first_conv(self.conv0.conv(cost))
+
+    def first_conv_of_slab(self, cost: torch.Tensor) -> torch.Tensor:
+        """conv0's convolution (before its norm) over a slab of planes that carries one plane of
+        halo on each side: (1, C, Dh, Hp, Wp) -> (1, C0, Dh - 2, Hp, Wp), each output plane the one
+        that the whole volume's convolution gives (planes outside the volume arrive as zeros)."""
+        return F.conv3d(cost, self.conv0.conv.weight, padding=(0, 1, 1))
+
+    def from_first_conv(self, conv0: torch.Tensor) -> torch.Tensor:
+        """The rest of G2 from conv0's convolution over the whole volume: the norm statistics are
+        the whole volume's, as in ``forward``."""
+        conv0 = self.conv0.bn(conv0)
         conv2 = self.conv2(self.conv1(conv0))
         conv4 = self.conv4(self.conv3(conv2))
         x = self.conv6(self.conv5(conv4))
         x = conv4 + self.conv7(x)
         x = conv2 + self.conv9(x)
         return conv0 + self.conv11(x)
+
+
+def slab_halo(depth_planes: int, start: int, stop: int) -> tuple[np.ndarray, np.ndarray]:
+    """Which planes feed the cost slab graph for planes ``start..stop`` of ``depth_planes``: the
+    indices of those planes with one plane of halo on each side, and 1/0 for each of them inside
+    or outside the volume. A halo plane outside the volume repeats the end plane's depth (a depth
+    of 0 or below would divide by zero in the warp; its cost is multiplied by 0 anyway)."""
+    index = np.arange(start - 1, stop + 1)
+    inside = ((index >= 0) & (index < depth_planes)).astype(np.float32)
+    return index.clip(0, depth_planes - 1), inside

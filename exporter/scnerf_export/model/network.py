@@ -29,3 +29,22 @@ class SCNeRF(nn.Module):
     ) -> torch.Tensor:
         cost = build_cost_volume(features, images, projections, depth_planes, self.cfg.pad)
         return self.volume_net(cost)
+
+    def volume_slab(
+        self,
+        features: torch.Tensor,
+        images: torch.Tensor,
+        projections: torch.Tensor,
+        depth_planes: torch.Tensor,
+        plane_inside: torch.Tensor,
+    ) -> torch.Tensor:
+        """G2's first convolution over the cost volume of a slab of planes (``slab_planes``: the
+        slab with one plane of halo each side, and which of them lie inside the volume). The cost
+        volume's variance is per plane, so the slabs together give exactly ``build_volume``'s
+        first convolution, while only one slab's warped features exist at a time."""
+        cost = build_cost_volume(features, images, projections, depth_planes, self.cfg.pad)
+        return self.volume_net.first_conv_of_slab(cost * plane_inside.view(1, 1, -1, 1, 1))
+
+    def volume_from_slabs(self, conv0: torch.Tensor) -> torch.Tensor:
+        """The encoding volume from the slabs' first convolution, concatenated over the planes."""
+        return self.volume_net.from_first_conv(conv0)

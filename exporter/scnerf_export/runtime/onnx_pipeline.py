@@ -15,6 +15,7 @@ from ..config import ModelConfig
 from ..export.manifest import read_manifest
 from .chunks import rays_per_run
 from .view import Rendering, pad_images, render_in_passes
+from .volume_slabs import build_volume
 
 
 def session_options(threads: int | None) -> ort.SessionOptions:
@@ -50,16 +51,15 @@ class OnnxBundle:
         padded = pad_images(images.astype(np.float32), self.cfg.image_multiple, background)
         imgs = np.ascontiguousarray(padded.transpose(0, 3, 1, 2))
         (features,) = self._timed("encoder", "encoder", {"images": imgs})
-        (volume,) = self._timed(
-            "volume",
-            "volume",
-            {
-                "features": features,
-                "images": imgs,
-                "projections": cams.feature_projections(cameras),
-                "depth_planes": cams.depth_planes(near, far, self.cfg.depth_planes),
-            },
-        )
+        feeds = {
+            "features": features,
+            "images": imgs,
+            "projections": cams.feature_projections(cameras),
+            "depth_planes": cams.depth_planes(near, far, self.cfg.depth_planes),
+        }
+        start = time.perf_counter()
+        volume = build_volume(self.sessions, feeds, self.cfg.pad)
+        self.timings["volume"] = self.timings.get("volume", 0.0) + time.perf_counter() - start
         return {
             "images": imgs,
             "features": features,

@@ -19,6 +19,14 @@
 //! admitted). At most `capacity` requests are admitted at once (`QueueFull`). Jobs whose request
 //! is gone (client disconnected: the handler future and its `Ticket` were dropped) or past its
 //! deadline are dropped unrun.
+//!
+//! Admission by memory. Each request comes with an estimate of the most memory it adds to the
+//! process (`pipeline::memory`), and the executor admits requests while the estimates of the
+//! admitted ones add up to at most its memory budget (`MemoryBudget`): beyond it the request is
+//! refused at once (`MemoryBusy`, 503 + Retry-After: the seconds until enough admitted work has
+//! finished), and a request whose estimate alone exceeds the budget is refused for good
+//! (`TooLarge`, 422). Summing peaks over-counts (graph runs take turns on the one executor
+//! thread, so only one run's working memory exists at a time) but cannot under-count.
 
 pub mod ort;
 
@@ -32,6 +40,7 @@ use tokio::sync::oneshot;
 use tracing::Span;
 
 use crate::bundle::GraphKind;
+use crate::sysmem::MemoryProbe;
 
 /// A graph input or output: float32, any rank, standard (row-major) layout. Shared, so that
 /// large inputs (the encoding volume, the source images) are not copied for every renderer
@@ -56,6 +65,10 @@ pub enum BackendError {
     WouldMissDeadline { work_secs: f64, ahead_secs: f64 },
     #[error("the request's deadline passed before its graph runs finished")]
     DeadlineExceeded,
+    #[error("not enough memory: the requests in progress hold {in_use_mib} of {budget_mib} MiB")]
+    MemoryBusy { in_use_mib: u64, budget_mib: u64, ahead_secs: f64 },
+    #[error("an estimated {needed_mib} MiB, more than the {budget_mib} MiB a request may have")]
+    TooLarge { needed_mib: u64, budget_mib: u64 },
     #[error("the inference thread has stopped")]
     Stopped,
 }
@@ -63,13 +76,21 @@ pub enum BackendError {
 /// Runs one graph to completion. Implemented by the ONNX Runtime backend and by test fakes.
 pub trait GraphRunner: Send + 'static {
     fn run(&mut self, graph: GraphKind, inputs: &NamedTensors) -> Result<NamedTensors, BackendError>;
+
+    /// `run`, then gives back what the runner keeps for the graph's next run (ONNX Runtime's
+    /// arena). The executor asks after a request's last renderer run when no other job waits:
+    /// the process then returns to its resting size between requests, and a busy executor keeps
+    /// the arena warm.
+    fn run_and_release(&mut self, graph: GraphKind, inputs: &NamedTensors) -> Result<NamedTensors, BackendError> {
+        self.run(graph, inputs)
+    }
 }
 
 /// Work of graph runs, in units per graph (`GraphKind::ALL` order): what a run's time grows
-/// with, source pixels (V·H·W of the padded images) for the encoder and the volume net, rays for
-/// the renderer.
+/// with, source pixels (V·H·W of the padded images) for the encoder and the volume graphs (for a
+/// cost slab, times its share of the depth planes), rays for the renderer.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
-pub struct Work(pub [f64; 3]);
+pub struct Work(pub [f64; GraphKind::ALL.len()]);
 
 impl Work {
     pub fn of(graph: GraphKind, units: f64) -> Work {
@@ -90,7 +111,7 @@ impl Work {
 
 /// Measured seconds per unit of work, per graph: an exponential moving average over runs.
 #[derive(Debug, Clone, Copy, Default)]
-struct Rates([Option<f64>; 3]);
+struct Rates([Option<f64>; GraphKind::ALL.len()]);
 
 /// Weight of the latest run in the moving average: a few runs follow a change of load.
 const RATE_WEIGHT: f64 = 0.3;
@@ -114,12 +135,17 @@ struct Job {
     reply: oneshot::Sender<Result<NamedTensors, BackendError>>,
     span: Span,
     deadline: Instant,
+    /// The request's last run of this graph: release what the runner keeps for the next run
+    /// when nothing else waits (`GraphRunner::run_and_release`).
+    last: bool,
 }
 
-/// An admitted request: its deadline, the work it has not finished, its waiting jobs.
+/// An admitted request: its deadline, the work it has not finished, the memory it may use at
+/// most, its waiting jobs.
 struct Admitted {
     deadline: Instant,
     remaining: Work,
+    memory: u64,
     jobs: VecDeque<Job>,
 }
 
@@ -131,6 +157,9 @@ struct Queue {
     queued_jobs: usize,
     next_ticket: u64,
     rates: Rates,
+    /// Sum of the admitted requests' memory estimates, bytes.
+    memory_in_use: u64,
+    refusals: MemoryRefusals,
     /// Every handle is gone: the executor finishes the queued jobs and stops.
     closed: bool,
     /// The executor thread has ended; new jobs fail with `Stopped`.
@@ -191,11 +220,75 @@ impl Queue {
         None
     }
 
+    /// Seconds of admitted work, in the order the executor runs it (earliest deadline first),
+    /// until requests holding `needed` bytes of estimates have finished.
+    fn secs_until_freed(&self, needed: u64) -> f64 {
+        let mut queue: Vec<(Instant, f64, u64)> =
+            self.requests.values().map(|r| (r.deadline, r.remaining.secs(&self.rates), r.memory)).collect();
+        queue.sort_by_key(|&(due, _, _)| due);
+        let (mut secs, mut freed) = (0.0, 0u64);
+        for (_, took, memory) in queue {
+            if freed >= needed {
+                break;
+            }
+            secs += took;
+            freed += memory;
+        }
+        secs
+    }
+
     /// Forgets a finished request and drops the jobs it left behind.
     fn release(&mut self, ticket: u64) {
         if let Some(request) = self.requests.remove(&ticket) {
             self.queued_jobs -= request.jobs.len();
+            self.memory_in_use -= request.memory;
         }
+    }
+}
+
+/// Requests refused for memory since the start (for /metrics).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct MemoryRefusals {
+    /// Would have exceeded the budget with the requests in progress (503).
+    pub busy: u64,
+    /// Larger than the whole budget (422).
+    pub too_large: u64,
+}
+
+/// The executor's memory budget: the bytes that the admitted requests' estimates may add up to.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct MemoryBudget {
+    /// What the process may use in all (`--memory-budget-mb`).
+    pub total: u64,
+    /// Held apart from requests: the process at rest and the scene cache. Set once the server
+    /// has warmed up (`BackendHandle::reserve`).
+    pub reserved: u64,
+}
+
+impl MemoryBudget {
+    /// No bound (tests, and the warm-up before the budget is known).
+    pub const UNLIMITED: MemoryBudget = MemoryBudget { total: u64::MAX, reserved: 0 };
+
+    /// What requests may have between them.
+    pub fn for_requests(&self) -> u64 {
+        self.total.saturating_sub(self.reserved)
+    }
+}
+
+/// Settings of the executor.
+#[derive(Debug, Clone)]
+pub struct ExecutorOptions {
+    /// Requests admitted at once (`--queue-capacity`).
+    pub capacity: usize,
+    pub memory: MemoryBudget,
+    /// Measures each graph run's memory (`--memory-probe`).
+    pub probe: Option<Arc<MemoryProbe>>,
+}
+
+impl ExecutorOptions {
+    /// `capacity` requests at once, no memory bound, no probe.
+    pub fn with_capacity(capacity: usize) -> ExecutorOptions {
+        ExecutorOptions { capacity, memory: MemoryBudget::UNLIMITED, probe: None }
     }
 }
 
@@ -203,6 +296,8 @@ struct Shared {
     queue: Mutex<Queue>,
     wake: Condvar,
     capacity: usize,
+    memory: Mutex<MemoryBudget>,
+    probe: Option<Arc<MemoryProbe>>,
 }
 
 impl Shared {
@@ -210,6 +305,10 @@ impl Shared {
     /// (every update is a single push/pop), so keep serving.
     fn lock(&self) -> MutexGuard<'_, Queue> {
         self.queue.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    fn memory(&self) -> MemoryBudget {
+        *self.memory.lock().unwrap_or_else(|p| p.into_inner())
     }
 }
 
@@ -231,41 +330,67 @@ pub struct BackendHandle {
 }
 
 /// How busy the executor is (for /metrics).
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct QueueStats {
     pub admitted: usize,
     pub queued_jobs: usize,
     pub capacity: usize,
+    pub memory: MemoryBudget,
+    /// Sum of the admitted requests' memory estimates.
+    pub memory_in_use: u64,
+    pub refusals: MemoryRefusals,
 }
 
 impl BackendHandle {
-    /// Starts the executor thread; `capacity` requests may be admitted at once. The thread ends
-    /// when every handle is dropped.
-    pub fn spawn(runner: Box<dyn GraphRunner>, capacity: usize) -> std::io::Result<BackendHandle> {
-        let shared = Arc::new(Shared { queue: Mutex::default(), wake: Condvar::new(), capacity: capacity.max(1) });
+    /// Starts the executor thread. The thread ends when every handle is dropped.
+    pub fn spawn(runner: Box<dyn GraphRunner>, options: ExecutorOptions) -> std::io::Result<BackendHandle> {
+        let shared = Arc::new(Shared {
+            queue: Mutex::default(),
+            wake: Condvar::new(),
+            capacity: options.capacity.max(1),
+            memory: Mutex::new(options.memory),
+            probe: options.probe,
+        });
         let worker_shared = shared.clone();
         std::thread::Builder::new().name("scnerf-inference".into()).spawn(move || worker(runner, worker_shared))?;
         Ok(BackendHandle { _closer: Arc::new(Closer(shared.clone())), shared })
     }
 
-    /// Admits a request whose graph runs, `work` in all, must finish by `deadline`:
-    /// `QueueFull` when `capacity` requests are already admitted, `WouldMissDeadline` when the
+    /// Admits a request whose graph runs, `work` in all, must finish by `deadline`, and which
+    /// adds at most `memory` bytes to the process: `TooLarge` when `memory` exceeds the whole
+    /// budget, `QueueFull` when `capacity` requests are already admitted, `MemoryBusy` when the
+    /// admitted requests' estimates leave less than `memory`, `WouldMissDeadline` when the
     /// estimate says it cannot finish in time (see the module doc). The request leaves when the
     /// ticket is dropped.
-    pub fn admit(&self, deadline: Instant, work: Work) -> Result<Ticket, BackendError> {
+    pub fn admit(&self, deadline: Instant, work: Work, memory: u64) -> Result<Ticket, BackendError> {
+        let budget = self.shared.memory().for_requests();
         let mut q = self.shared.lock();
         if q.stopped {
             return Err(BackendError::Stopped);
         }
+        if memory > budget {
+            q.refusals.too_large += 1;
+            return Err(BackendError::TooLarge { needed_mib: memory.div_ceil(1 << 20), budget_mib: budget >> 20 });
+        }
         if q.requests.len() >= self.shared.capacity {
             return Err(BackendError::QueueFull);
+        }
+        if q.memory_in_use + memory > budget {
+            q.refusals.busy += 1;
+            let ahead_secs = q.secs_until_freed(q.memory_in_use + memory - budget);
+            return Err(BackendError::MemoryBusy {
+                in_use_mib: q.memory_in_use >> 20,
+                budget_mib: budget >> 20,
+                ahead_secs,
+            });
         }
         if let Some(ahead_secs) = q.would_miss(Instant::now(), deadline, work) {
             return Err(BackendError::WouldMissDeadline { work_secs: work.secs(&q.rates), ahead_secs });
         }
         q.next_ticket += 1;
         let id = q.next_ticket;
-        q.requests.insert(id, Admitted { deadline, remaining: work, jobs: VecDeque::new() });
+        q.memory_in_use += memory;
+        q.requests.insert(id, Admitted { deadline, remaining: work, memory, jobs: VecDeque::new() });
         Ok(Ticket { id, deadline, shared: self.shared.clone() })
     }
 
@@ -276,9 +401,38 @@ impl BackendHandle {
         self.shared.lock().rates = Rates::default();
     }
 
+    /// Sets aside `bytes` of the memory budget for what is held apart from requests (the
+    /// process at rest, the scene cache); fails when that leaves nothing for requests.
+    pub fn reserve(&self, bytes: u64) -> Result<MemoryBudget, String> {
+        let mut memory = self.shared.memory.lock().unwrap_or_else(|p| p.into_inner());
+        if bytes >= memory.total {
+            return Err(format!(
+                "the memory budget ({} MiB) leaves nothing for requests: the server holds {} MiB at rest \
+                 with the scene cache",
+                memory.total >> 20,
+                bytes >> 20
+            ));
+        }
+        memory.reserved = bytes;
+        Ok(*memory)
+    }
+
+    /// The per-stage memory probe, when `--memory-probe` is on.
+    pub fn probe(&self) -> Option<&MemoryProbe> {
+        self.shared.probe.as_deref()
+    }
+
     pub fn stats(&self) -> QueueStats {
+        let memory = self.shared.memory();
         let q = self.shared.lock();
-        QueueStats { admitted: q.requests.len(), queued_jobs: q.queued_jobs, capacity: self.shared.capacity }
+        QueueStats {
+            admitted: q.requests.len(),
+            queued_jobs: q.queued_jobs,
+            capacity: self.shared.capacity,
+            memory,
+            memory_in_use: q.memory_in_use,
+            refusals: q.refusals,
+        }
     }
 }
 
@@ -304,8 +458,29 @@ impl Ticket {
         units: f64,
         inputs: NamedTensors,
     ) -> impl Future<Output = Result<Outputs, BackendError>> + Send + 'static {
+        self.run_job(graph, units, inputs, false)
+    }
+
+    /// [`Ticket::run`] for the request's last run of `graph` (see `GraphRunner::run_and_release`).
+    pub fn run_last(
+        &self,
+        graph: GraphKind,
+        units: f64,
+        inputs: NamedTensors,
+    ) -> impl Future<Output = Result<Outputs, BackendError>> + Send + 'static {
+        self.run_job(graph, units, inputs, true)
+    }
+
+    fn run_job(
+        &self,
+        graph: GraphKind,
+        units: f64,
+        inputs: NamedTensors,
+        last: bool,
+    ) -> impl Future<Output = Result<Outputs, BackendError>> + Send + 'static {
         let (reply, rx) = oneshot::channel();
-        let job = Job { ticket: self.id, graph, units, inputs, reply, span: Span::current(), deadline: self.deadline };
+        let span = Span::current();
+        let job = Job { ticket: self.id, graph, units, inputs, reply, span, deadline: self.deadline, last };
         let queued = {
             let mut q = self.shared.lock();
             if q.stopped {
@@ -330,12 +505,15 @@ impl Drop for Ticket {
     }
 }
 
-/// Waits for the next job; `None` once the queue is closed and empty.
-fn next_job(shared: &Shared) -> Option<Job> {
+/// Waits for the next job and says whether it is the last of its request's runs of its graph
+/// with no other job waiting (then the runner releases what it keeps); `None` once the queue is
+/// closed and empty.
+fn next_job(shared: &Shared) -> Option<(Job, bool)> {
     let mut q = shared.lock();
     loop {
         if let Some(job) = q.pop() {
-            return Some(job);
+            let release = job.last && q.queued_jobs == 0;
+            return Some((job, release));
         }
         if q.closed {
             q.stopped = true;
@@ -346,7 +524,7 @@ fn next_job(shared: &Shared) -> Option<Job> {
 }
 
 fn worker(mut runner: Box<dyn GraphRunner>, shared: Arc<Shared>) {
-    while let Some(job) = next_job(&shared) {
+    while let Some((job, release)) = next_job(&shared) {
         // The request went away (client disconnected, deadline passed): skip its work.
         if job.reply.is_closed() {
             continue;
@@ -356,9 +534,13 @@ fn worker(mut runner: Box<dyn GraphRunner>, shared: Arc<Shared>) {
             continue;
         }
         let _entered = job.span.enter();
+        let probe = shared.probe.as_deref().map(MemoryProbe::start);
         let started = Instant::now();
-        let result = run_guarded(runner.as_mut(), job.graph, &job.inputs);
+        let result = run_guarded(runner.as_mut(), job.graph, &job.inputs, release);
         let took = started.elapsed().as_secs_f64();
+        if let Some(probe) = probe {
+            probe.finish(job.graph.name());
+        }
         tracing::debug!(graph = %job.graph, ms = took * 1e3, "graph run");
         shared.lock().done(&job, took);
         let _ = job.reply.send(result);
@@ -370,8 +552,10 @@ fn run_guarded(
     runner: &mut dyn GraphRunner,
     graph: GraphKind,
     inputs: &NamedTensors,
+    release: bool,
 ) -> Result<NamedTensors, BackendError> {
-    std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| runner.run(graph, inputs))).unwrap_or_else(|panic| {
+    let run = || if release { runner.run_and_release(graph, inputs) } else { runner.run(graph, inputs) };
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(run)).unwrap_or_else(|panic| {
         let message = panic
             .downcast_ref::<String>()
             .cloned()
@@ -450,7 +634,11 @@ mod tests {
     fn recorder() -> (BackendHandle, Arc<Mutex<Vec<u32>>>, mpsc::Sender<()>) {
         let order = Arc::new(Mutex::new(Vec::new()));
         let (open, gate) = mpsc::channel();
-        let backend = BackendHandle::spawn(Box::new(Recorder { order: order.clone(), gate: Some(gate) }), 4).unwrap();
+        let backend = BackendHandle::spawn(
+            Box::new(Recorder { order: order.clone(), gate: Some(gate) }),
+            ExecutorOptions::with_capacity(4),
+        )
+        .unwrap();
         (backend, order, open)
     }
 
@@ -462,16 +650,16 @@ mod tests {
         in_secs(60)
     }
 
-    const NONE: Work = Work([0.0; 3]);
+    const NONE: Work = Work([0.0; GraphKind::ALL.len()]);
 
     #[tokio::test]
     async fn jobs_run_earliest_deadline_first() {
         let (backend, order, open) = recorder();
-        let blocker = backend.admit(far(), NONE).unwrap();
+        let blocker = backend.admit(far(), NONE, 0).unwrap();
         let first = blocker.run(GraphKind::Encoder, 0.0, tagged(0)); // holds the executor at the gate
         tokio::time::sleep(Duration::from_millis(50)).await;
-        let late = backend.admit(in_secs(30), NONE).unwrap();
-        let soon = backend.admit(in_secs(10), NONE).unwrap();
+        let late = backend.admit(in_secs(30), NONE, 0).unwrap();
+        let soon = backend.admit(in_secs(10), NONE, 0).unwrap();
         let mut pending: Vec<_> = (0..3).map(|_| late.run(GraphKind::Renderer, 0.0, tagged(1))).collect();
         pending.extend((0..2).map(|_| soon.run(GraphKind::Renderer, 0.0, tagged(2))));
         assert_eq!(backend.stats().queued_jobs, 5);
@@ -488,7 +676,7 @@ mod tests {
     async fn admission_refuses_work_that_cannot_finish_by_its_deadline() {
         let (backend, _order, open) = recorder();
         open.send(()).unwrap();
-        let probe = backend.admit(far(), NONE).unwrap();
+        let probe = backend.admit(far(), NONE, 0).unwrap();
         for _ in 0..3 {
             probe.run(GraphKind::Renderer, 20.0, tagged(20)).await.unwrap();
         }
@@ -496,24 +684,24 @@ mod tests {
         let ms = |ms: u64| Instant::now() + Duration::from_millis(ms);
         let rays = |n: f64| Work::of(GraphKind::Renderer, n);
         // Unmeasured graphs cost nothing yet.
-        assert!(backend.admit(ms(1), Work::of(GraphKind::Encoder, 1e9)).is_ok());
+        assert!(backend.admit(ms(1), Work::of(GraphKind::Encoder, 1e9), 0).is_ok());
         // 500 ms of work due in 200 ms: refused at once.
-        let refused = backend.admit(ms(200), rays(500.0));
+        let refused = backend.admit(ms(200), rays(500.0), 0);
         assert!(matches!(refused, Err(BackendError::WouldMissDeadline { .. })), "{:?}", refused.err());
-        let a = backend.admit(ms(1000), rays(500.0)).unwrap();
+        let a = backend.admit(ms(1000), rays(500.0), 0).unwrap();
         // Fits before `a` but would push `a` past its deadline: refused to protect `a`.
-        let pushy = backend.admit(ms(600), rays(550.0));
+        let pushy = backend.admit(ms(600), rays(550.0), 0);
         assert!(matches!(pushy, Err(BackendError::WouldMissDeadline { .. })));
         // Fits before `a`, and `a` still meets its deadline.
-        let b = backend.admit(ms(600), rays(300.0)).unwrap();
+        let b = backend.admit(ms(600), rays(300.0), 0).unwrap();
         // After both: 800 ms of work ahead.
-        match backend.admit(ms(900), rays(200.0)) {
+        match backend.admit(ms(900), rays(200.0), 0) {
             Err(BackendError::WouldMissDeadline { ahead_secs, .. }) => {
                 assert!((0.7..1.0).contains(&ahead_secs), "{ahead_secs}")
             }
             other => panic!("{:?}", other.err()),
         }
-        assert!(backend.admit(far(), rays(200.0)).is_ok());
+        assert!(backend.admit(far(), rays(200.0), 0).is_ok());
         drop((a, b));
     }
 
@@ -521,38 +709,151 @@ mod tests {
     async fn forgotten_rates_admit_what_they_would_have_refused() {
         let (backend, _order, open) = recorder();
         open.send(()).unwrap();
-        let probe = backend.admit(far(), NONE).unwrap();
+        let probe = backend.admit(far(), NONE, 0).unwrap();
         probe.run(GraphKind::Renderer, 1.0, tagged(20)).await.unwrap();
         drop(probe);
         let soon = || Instant::now() + Duration::from_millis(200);
         let rays = Work::of(GraphKind::Renderer, 100.0);
-        assert!(matches!(backend.admit(soon(), rays), Err(BackendError::WouldMissDeadline { .. })));
+        assert!(matches!(backend.admit(soon(), rays, 0), Err(BackendError::WouldMissDeadline { .. })));
         backend.forget_rates();
-        assert!(backend.admit(soon(), rays).is_ok());
+        assert!(backend.admit(soon(), rays, 0).is_ok());
     }
 
     #[tokio::test]
     async fn admission_is_bounded_and_released_on_drop() {
         let (backend, _order, _open) = recorder();
-        let tickets: Vec<Ticket> = (0..4).map(|_| backend.admit(far(), NONE).unwrap()).collect();
-        assert!(matches!(backend.admit(far(), NONE), Err(BackendError::QueueFull)));
+        let tickets: Vec<Ticket> = (0..4).map(|_| backend.admit(far(), NONE, 0).unwrap()).collect();
+        assert!(matches!(backend.admit(far(), NONE, 0), Err(BackendError::QueueFull)));
         assert_eq!(backend.stats().admitted, 4);
         drop(tickets);
         assert_eq!(backend.stats().admitted, 0);
-        assert!(backend.admit(far(), NONE).is_ok());
+        assert!(backend.admit(far(), NONE, 0).is_ok());
+    }
+
+    /// An executor whose requests may hold `total` bytes of estimates, after `reserved`.
+    fn budgeted(total: u64, reserved: u64) -> (BackendHandle, mpsc::Sender<()>) {
+        let (open, gate) = mpsc::channel();
+        let recorder = Recorder { order: Arc::default(), gate: Some(gate) };
+        let options = ExecutorOptions { capacity: 8, memory: MemoryBudget { total, reserved }, probe: None };
+        (BackendHandle::spawn(Box::new(recorder), options).unwrap(), open)
+    }
+
+    #[tokio::test]
+    async fn admission_by_memory_sums_the_estimates_within_the_budget() {
+        let (backend, open) = budgeted(1000, 0);
+        open.send(()).unwrap();
+        let a = backend.admit(far(), NONE, 600).unwrap();
+        let b = backend.admit(far(), NONE, 400).unwrap(); // exactly the budget
+        assert!(matches!(backend.admit(far(), NONE, 1), Err(BackendError::MemoryBusy { .. })));
+        assert_eq!(backend.stats().memory_in_use, 1000);
+        drop(a);
+        assert_eq!(backend.stats().memory_in_use, 400);
+        let c = backend.admit(far(), NONE, 600).unwrap();
+        // Larger than the whole budget: refused for good, however empty the executor is.
+        drop((b, c));
+        assert!(matches!(
+            backend.admit(far(), NONE, 1001),
+            Err(BackendError::TooLarge { needed_mib: 1, budget_mib: 0 })
+        ));
+        // What is reserved (the process at rest, the scene cache) is not the requests'.
+        let reserved = backend.reserve(700).unwrap();
+        assert_eq!(reserved.for_requests(), 300);
+        assert!(matches!(backend.admit(far(), NONE, 301), Err(BackendError::TooLarge { .. })));
+        assert!(backend.reserve(1000).is_err(), "a reservation must leave requests something");
+        let stats = backend.stats();
+        assert_eq!(stats.refusals, MemoryRefusals { busy: 1, too_large: 2 });
+        assert_eq!((stats.memory.total, stats.memory.reserved, stats.memory_in_use), (1000, 700, 0));
+    }
+
+    /// Retry-After of a request refused for memory: the measured seconds of the admitted
+    /// requests that must finish first (earliest deadline first) to free what it needs.
+    #[tokio::test]
+    async fn a_memory_refusal_says_how_long_until_enough_is_freed() {
+        let (backend, open) = budgeted(1000, 0);
+        open.send(()).unwrap();
+        let probe = backend.admit(far(), NONE, 0).unwrap();
+        for _ in 0..3 {
+            probe.run(GraphKind::Renderer, 20.0, tagged(20)).await.unwrap(); // ~1 ms per ray
+        }
+        drop(probe);
+        let rays = |n: f64| Work::of(GraphKind::Renderer, n);
+        let _first = backend.admit(in_secs(10), rays(300.0), 500).unwrap();
+        let _second = backend.admit(in_secs(20), rays(700.0), 500).unwrap();
+        // 200 bytes are needed: the first (due sooner, ~0.3 s) frees enough.
+        match backend.admit(far(), NONE, 200) {
+            Err(BackendError::MemoryBusy { ahead_secs, .. }) => {
+                assert!((0.2..0.5).contains(&ahead_secs), "{ahead_secs}")
+            }
+            other => panic!("{:?}", other.err()),
+        }
+        // 900 bytes: both must finish (~1 s).
+        match backend.admit(far(), NONE, 900) {
+            Err(BackendError::MemoryBusy { ahead_secs, .. }) => {
+                assert!((0.8..1.4).contains(&ahead_secs), "{ahead_secs}")
+            }
+            other => panic!("{:?}", other.err()),
+        }
+    }
+
+    /// Records (tag, released) per run; the first run waits for a signal.
+    struct Releases {
+        runs: Arc<Mutex<Vec<(u32, bool)>>>,
+        gate: Option<mpsc::Receiver<()>>,
+    }
+
+    impl Releases {
+        fn record(&mut self, inputs: &NamedTensors, released: bool) -> Result<NamedTensors, BackendError> {
+            if let Some(gate) = self.gate.take() {
+                let _ = gate.recv();
+            }
+            let tag = inputs[0].1.first().copied().unwrap_or_default() as u32;
+            self.runs.lock().unwrap().push((tag, released));
+            Ok(vec![])
+        }
+    }
+
+    impl GraphRunner for Releases {
+        fn run(&mut self, _graph: GraphKind, inputs: &NamedTensors) -> Result<NamedTensors, BackendError> {
+            self.record(inputs, false)
+        }
+
+        fn run_and_release(&mut self, _graph: GraphKind, inputs: &NamedTensors) -> Result<NamedTensors, BackendError> {
+            self.record(inputs, true)
+        }
+    }
+
+    /// A request's last run releases the runner's kept memory only when no other job waits: a
+    /// busy executor keeps its arena for the next request.
+    #[tokio::test]
+    async fn the_last_run_releases_only_when_nothing_else_waits() {
+        let runs = Arc::new(Mutex::new(Vec::new()));
+        let (open, gate) = mpsc::channel();
+        let runner = Releases { runs: runs.clone(), gate: Some(gate) };
+        let backend = BackendHandle::spawn(Box::new(runner), ExecutorOptions::with_capacity(4)).unwrap();
+        let a = backend.admit(in_secs(10), NONE, 0).unwrap();
+        let b = backend.admit(in_secs(20), NONE, 0).unwrap();
+        let held = a.run(GraphKind::Encoder, 0.0, tagged(0)); // waits at the gate
+        tokio::time::sleep(Duration::from_millis(50)).await;
+        let a_last = a.run_last(GraphKind::Renderer, 0.0, tagged(1)); // b's run still waits after it
+        let b_last = b.run_last(GraphKind::Renderer, 0.0, tagged(2)); // nothing after it
+        open.send(()).unwrap();
+        held.await.unwrap();
+        a_last.await.unwrap();
+        b_last.await.unwrap();
+        assert_eq!(*runs.lock().unwrap(), vec![(0, false), (1, false), (2, true)]);
     }
 
     #[tokio::test]
     async fn a_dropped_request_leaves_no_jobs_and_expired_jobs_do_not_run() {
         let (backend, order, open) = recorder();
-        let blocker = backend.admit(far(), NONE).unwrap();
+        let blocker = backend.admit(far(), NONE, 0).unwrap();
         let first = blocker.run(GraphKind::Encoder, 0.0, tagged(0));
         tokio::time::sleep(Duration::from_millis(50)).await;
-        let gone = backend.admit(far(), NONE).unwrap();
+        let gone = backend.admit(far(), NONE, 0).unwrap();
         let abandoned: Vec<_> = (0..5).map(|_| gone.run(GraphKind::Renderer, 0.0, tagged(1))).collect();
         drop(abandoned);
         drop(gone); // its five jobs leave the queue
-        let late = backend.admit(Instant::now() + Duration::from_millis(20), NONE).unwrap();
+        let late = backend.admit(Instant::now() + Duration::from_millis(20), NONE, 0).unwrap();
         let expired = late.run(GraphKind::Renderer, 0.0, tagged(2));
         assert_eq!(backend.stats().queued_jobs, 1);
         tokio::time::sleep(Duration::from_millis(40)).await;

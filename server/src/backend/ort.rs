@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use ort::environment::{Environment, GlobalThreadPoolOptions};
 use ort::ep;
 use ort::session::builder::{GraphOptimizationLevel, SessionBuilder};
-use ort::session::Session;
+use ort::session::{RunOptions, Session};
 use ort::value::{TensorElementType, TensorRef, ValueType};
 
 use super::{BackendError, GraphRunner, NamedTensors};
@@ -31,8 +31,9 @@ pub struct OrtOptions {
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct ExecOptions {
     pub device: Device,
-    /// ONNX Runtime's CPU memory arena: keeps freed buffers for reuse (faster repeated runs,
-    /// but the process keeps its peak working set); off returns memory to the allocator.
+    /// ONNX Runtime's CPU memory arena for the renderer (see `uses_arena`): keeps freed buffers
+    /// for reuse (faster repeated runs, but the process keeps a run's working set); off returns
+    /// memory to the allocator.
     pub cpu_arena: bool,
 }
 
@@ -95,6 +96,10 @@ pub fn init_environment(opts: &OrtOptions) -> Result<Environment, String> {
 
 pub struct OrtRunner {
     sessions: HashMap<GraphKind, Session>,
+    /// The graphs whose session keeps the CPU arena (`uses_arena`).
+    arenas: Vec<GraphKind>,
+    /// Run options that shrink the CPU arena once the run is done (`run_and_release`).
+    shrink: RunOptions,
     _env: Environment,
 }
 
@@ -116,12 +121,19 @@ impl OrtRunner {
         }
         tracing::info!(device = %exec.device, cpu_arena = exec.cpu_arena, "execution settings");
         let mut sessions = HashMap::new();
-        for kind in GraphKind::ALL {
+        let arenas: Vec<GraphKind> = bundle.graphs().into_iter().filter(|&k| uses_arena(k, exec)).collect();
+        // ONNX Runtime frees the arena's unused chunks at the end of a run with this option;
+        // "cpu:0" names the CPU arena (the option must not name an arena that is off).
+        let mut shrink = RunOptions::new().map_err(|e| format!("ONNX Runtime run options: {e}"))?;
+        shrink
+            .set("memory.enable_memory_arena_shrinkage", "cpu:0")
+            .map_err(|e| format!("ONNX Runtime run options: {e}"))?;
+        for kind in bundle.graphs() {
             let path = bundle.graph_path(kind);
             let builder = Session::builder(&env)
                 .and_then(|b| b.with_optimization_level(opt_level(opts.opt_level)).map_err(Into::into))
                 .map_err(|e| format!("cannot load {}: {e}", path.display()))?;
-            let mut builder = with_execution_providers(builder, exec)?;
+            let mut builder = with_execution_providers(builder, exec, uses_arena(kind, exec))?;
             let session =
                 builder.commit_from_file(&path).map_err(|e| format!("cannot load {}: {e}", path.display()))?;
             let entry = bundle.graph(kind);
@@ -129,19 +141,32 @@ impl OrtRunner {
             check_signature(kind, "output", &entry.outputs, &describe(session.outputs()))?;
             sessions.insert(kind, session);
         }
-        Ok(OrtRunner { sessions, _env: env })
+        Ok(OrtRunner { sessions, arenas, shrink, _env: env })
     }
+}
+
+/// Whether a graph's session keeps ONNX Runtime's CPU arena. Only the renderer does (when
+/// `--ort-arena` is on): it runs many times per request on buffers of the same sizes, which the
+/// arena serves without page faults. The graphs that run once per request (the encoder and the
+/// volume's) allocate their working memory from the system and give it back when the run ends;
+/// in an arena it would stay held at the largest request's peak for the life of the process.
+fn uses_arena(kind: GraphKind, exec: &ExecOptions) -> bool {
+    exec.cpu_arena && kind == GraphKind::Renderer
 }
 
 /// Registers the execution providers of `exec` on a session builder: CUDA (when asked; failing
 /// to register is an error) and the CPU provider (always, last: it runs whatever CUDA cannot, and
-/// carries the arena setting).
-fn with_execution_providers(builder: SessionBuilder, exec: &ExecOptions) -> Result<SessionBuilder, String> {
+/// carries the arena setting, `arena`).
+fn with_execution_providers(
+    builder: SessionBuilder,
+    exec: &ExecOptions,
+    arena: bool,
+) -> Result<SessionBuilder, String> {
     let mut providers = Vec::new();
     if let Device::Cuda { device_id } = exec.device {
         providers.push(ep::CUDA::default().with_device_id(device_id).build().error_on_failure());
     }
-    providers.push(ep::CPU::default().with_arena_allocator(exec.cpu_arena).build().error_on_failure());
+    providers.push(ep::CPU::default().with_arena_allocator(arena).build().error_on_failure());
     builder.with_execution_providers(providers).map_err(|e| match exec.device {
         Device::Cuda { device_id } => format!(
             "--device {}: ONNX Runtime could not register the CUDA execution provider on GPU {device_id}: {e} \
@@ -208,6 +233,23 @@ fn dtype_name(ty: TensorElementType) -> String {
 
 impl GraphRunner for OrtRunner {
     fn run(&mut self, graph: GraphKind, inputs: &NamedTensors) -> Result<NamedTensors, BackendError> {
+        self.run_with(graph, inputs, false)
+    }
+
+    /// The renderer's arena back to the system after a request's last chunk (docs/results-memory.md).
+    fn run_and_release(&mut self, graph: GraphKind, inputs: &NamedTensors) -> Result<NamedTensors, BackendError> {
+        let shrink = self.arenas.contains(&graph);
+        self.run_with(graph, inputs, shrink)
+    }
+}
+
+impl OrtRunner {
+    fn run_with(
+        &mut self,
+        graph: GraphKind,
+        inputs: &NamedTensors,
+        shrink: bool,
+    ) -> Result<NamedTensors, BackendError> {
         let err = |message: String| BackendError::Run { graph, message };
         let session = self.sessions.get_mut(&graph).ok_or_else(|| err("no session".into()))?;
         let mut values = Vec::with_capacity(inputs.len());
@@ -217,7 +259,11 @@ impl GraphRunner for OrtRunner {
             values.push((std::borrow::Cow::from(name.as_str()), ort::session::SessionInputValue::from(view)));
         }
         let output_names: Vec<String> = session.outputs().iter().map(|o| o.name().to_string()).collect();
-        let outputs = session.run(values).map_err(|e| err(e.to_string()))?;
+        let outputs = match shrink {
+            true => session.run_with_options(values, &self.shrink),
+            false => session.run(values),
+        };
+        let outputs = outputs.map_err(|e| err(e.to_string()))?;
         output_names
             .into_iter()
             .map(|name| {

@@ -57,7 +57,8 @@ pub struct RawView {
 const CHUNKS_IN_FLIGHT: usize = 2;
 
 /// Runs the renderer (whose inputs are `inputs`) over all rays, `chunk` rays at a time, and
-/// concatenates the outputs.
+/// concatenates the outputs. `last`: this is the request's last pass, so its last chunk lets
+/// the executor release the renderer's arena when nothing else waits (`Ticket::run_last`).
 pub async fn render_rays(
     ticket: &Ticket,
     scene: &Scene,
@@ -65,6 +66,7 @@ pub async fn render_rays(
     rays: &Rays,
     depth_range: [f32; 2],
     chunk: usize,
+    last: bool,
 ) -> Result<RawView, BackendError> {
     let n = rays.len();
     let mut out = RawView { rgb: Array2::zeros((n, 3)), depth: Array1::zeros(n), opacity: Array1::zeros(n) };
@@ -72,7 +74,12 @@ pub async fn render_rays(
     let mut runs = stream::iter(ranges)
         .map(|range| {
             let inputs = chunk_inputs(scene, inputs, rays, range.clone(), depth_range);
-            let run = ticket.run(GraphKind::Renderer, range.len() as f64, inputs);
+            let (units, final_chunk) = (range.len() as f64, last && range.end == n);
+            let run = if final_chunk {
+                futures_util::future::Either::Left(ticket.run_last(GraphKind::Renderer, units, inputs))
+            } else {
+                futures_util::future::Either::Right(ticket.run(GraphKind::Renderer, units, inputs))
+            };
             async move { run.await.map(|outputs| (range, outputs)) }
         })
         .buffered(CHUNKS_IN_FLIGHT);

@@ -12,6 +12,7 @@
 pub mod assemble;
 pub mod chunks;
 pub mod encoder;
+pub mod memory;
 pub mod rays;
 pub mod sources;
 pub mod views;
@@ -28,7 +29,9 @@ use crate::bundle::{Bundle, DepthNorm, GraphKind, Manifest, ModelConfig};
 use crate::camera::{stack_rows, Camera};
 use crate::error::ApiError;
 use crate::request::{Limits, ValidRequest, ValidScene};
+use crate::sysmem::MemoryProbe;
 use chunks::{ChunkPolicy, RawView};
+use volume::SlabPolicy;
 
 /// Wall time per stage, in the order the stages ran.
 #[derive(Debug, Clone, Default)]
@@ -103,6 +106,7 @@ pub struct Pipeline {
     backend: BackendHandle,
     bundle: Arc<Bundle>,
     chunking: ChunkPolicy,
+    slabs: SlabPolicy,
     limits: Limits,
 }
 
@@ -140,8 +144,14 @@ impl DepthRange {
 }
 
 impl Pipeline {
-    pub fn new(backend: BackendHandle, bundle: Bundle, chunking: ChunkPolicy, limits: Limits) -> Pipeline {
-        Pipeline { backend, bundle: Arc::new(bundle), chunking, limits }
+    pub fn new(
+        backend: BackendHandle,
+        bundle: Bundle,
+        chunking: ChunkPolicy,
+        slabs: SlabPolicy,
+        limits: Limits,
+    ) -> Pipeline {
+        Pipeline { backend, bundle: Arc::new(bundle), chunking, slabs, limits }
     }
 
     pub fn limits(&self) -> &Limits {
@@ -150,6 +160,10 @@ impl Pipeline {
 
     pub fn config(&self) -> &ModelConfig {
         &self.bundle.config
+    }
+
+    pub fn bundle(&self) -> &Bundle {
+        &self.bundle
     }
 
     pub fn manifest(&self) -> &Manifest {
@@ -165,8 +179,7 @@ impl Pipeline {
     /// A cached scene goes through exactly the same `render_view`, so its views are
     /// bit-identical to these.
     pub async fn render(&self, req: &ValidRequest, deadline: Instant, timings: &mut Timings) -> Result<View, ApiError> {
-        let work = self.scene_work(&req.scene.cameras()).plus(self.view_work(&req.view.target));
-        let ticket = self.admit(deadline, work)?;
+        let ticket = self.admit_request(deadline, Some(&req.scene.cameras()), Some(&req.view.target))?;
         let scene = self.prepare_scene(&ticket, &req.scene, timings).await?;
         Ok(self.render_view(&ticket, &scene, &req.view.target, req.scene.background, None, timings).await?)
     }
@@ -182,7 +195,7 @@ impl Pipeline {
     ) -> Result<(Views, Option<Scene>), ApiError> {
         let cameras = req.cameras();
         let ticket = match cameras.len() == self.bundle.config.views {
-            true => Some(self.admit(deadline, self.scene_work(&cameras))?),
+            true => Some(self.admit_request(deadline, Some(&cameras), None)?),
             false => None,
         };
         let images = timings.time("decode", self.decode_sources(req)).await?.into_shared();
@@ -211,11 +224,10 @@ impl Pipeline {
         timings: &mut Timings,
     ) -> Result<(View, Option<Arc<Scene>>), ApiError> {
         let cameras = views.cameras_of(sources);
-        let work = match cached {
-            Some(_) => self.view_work(target),
-            None => self.scene_work(&cameras).plus(self.view_work(target)),
+        let ticket = match cached {
+            Some(_) => self.admit_request(deadline, None, Some(target))?,
+            None => self.admit_request(deadline, Some(&cameras), Some(target))?,
         };
-        let ticket = self.admit(deadline, work)?;
         let (scene, built) = match cached {
             Some(scene) => (scene, None),
             None => {
@@ -229,22 +241,57 @@ impl Pipeline {
         Ok((view, built))
     }
 
-    /// Admits a request with `work` to the inference executor until `deadline` (503 when it is
-    /// full or the request could not finish in time).
-    pub fn admit(&self, deadline: Instant, work: Work) -> Result<Ticket, ApiError> {
-        Ok(self.backend.admit(deadline, work)?)
+    /// Admits a request with `work` and at most `memory` bytes to the inference executor until
+    /// `deadline` (503 when it is full, short of memory, or the request could not finish in time;
+    /// 422 when it needs more memory than the executor ever has).
+    pub fn admit(&self, deadline: Instant, work: Work, memory: u64) -> Result<Ticket, ApiError> {
+        Ok(self.backend.admit(deadline, work, memory)?)
+    }
+
+    /// Admits a request that encodes `sources` (`None`: a cached scene) and renders `target`
+    /// (`None`: a scene only), before anything is decoded. Too large for the memory budget: 422
+    /// naming the sizes.
+    fn admit_request(
+        &self,
+        deadline: Instant,
+        sources: Option<&[Camera]>,
+        target: Option<&Camera>,
+    ) -> Result<Ticket, ApiError> {
+        let scene = sources.map_or_else(Work::default, |s| self.scene_work(s));
+        let work = target.map_or(scene, |t| scene.plus(self.view_work(t)));
+        let memory = self.memory_estimate(sources, target);
+        self.backend.admit(deadline, work, memory).map_err(|e| match e {
+            BackendError::TooLarge { .. } => too_large(sources, target, &e),
+            other => other.into(),
+        })
+    }
+
+    /// The most memory a request over `sources` and `target` adds to the process (see
+    /// [`memory::estimate`]).
+    pub fn memory_estimate(&self, sources: Option<&[Camera]>, target: Option<&Camera>) -> u64 {
+        let sizes = memory::RequestSizes {
+            sources: sources.and_then(|s| self.padded_source_size(s)),
+            target_pixels: target.map_or(0, |t| u64::from(t.width) * u64::from(t.height)),
+        };
+        let plan = memory::MemoryPlan { build: self.bundle.volume_build(), slabs: self.slabs, chunking: self.chunking };
+        memory::estimate(&self.bundle.config, &plan, &sizes)
     }
 
     /// The work of building a scene from `sources` (the encoder and the volume net over the
     /// padded images).
     pub fn scene_work(&self, sources: &[Camera]) -> Work {
-        let multiple = self.bundle.config.image_multiple;
-        let pixels: usize = sources
-            .iter()
-            .map(|c| sources::padded_size(c.width as usize, c.height as usize, multiple))
-            .map(|(w, h)| w * h)
-            .sum();
-        Work::of(GraphKind::Encoder, pixels as f64).plus(Work::of(GraphKind::Volume, pixels as f64))
+        let config = &self.bundle.config;
+        let Some((w, h)) = self.padded_source_size(sources) else { return Work::default() };
+        let pixels = (sources.len() * w * h) as f64;
+        let cells = (h / 4 + 2 * config.pad) * (w / 4 + 2 * config.pad);
+        let volume = volume::work(config, self.bundle.volume_build(), &self.slabs, pixels, cells);
+        Work::of(GraphKind::Encoder, pixels).plus(volume)
+    }
+
+    /// The padded size of the sources (all of the first's size: validation checked it).
+    fn padded_source_size(&self, sources: &[Camera]) -> Option<(usize, usize)> {
+        let c = sources.first()?;
+        Some(sources::padded_size(c.width as usize, c.height as usize, self.bundle.config.image_multiple))
     }
 
     /// The work of rendering `target`: its rays, once per renderer pass.
@@ -256,7 +303,12 @@ impl Pipeline {
     /// Decodes the source images off the async runtime and stacks them padded.
     pub async fn decode_sources(&self, req: &ValidScene) -> Result<Array4<f32>, ApiError> {
         let multiple = self.bundle.config.image_multiple;
-        sources::decode(&req.sources, req.background, self.limits.max_source_pixels, multiple).await
+        let probe = self.backend.probe().map(MemoryProbe::start);
+        let decoded = sources::decode(&req.sources, req.background, self.limits.max_source_pixels, multiple).await;
+        if let Some(probe) = probe {
+            probe.finish("decode");
+        }
+        decoded
     }
 
     /// Decode, encoder, volume: the part of a request that a scene cache keeps.
@@ -282,8 +334,9 @@ impl Pipeline {
     ) -> Result<Scene, BackendError> {
         let config = &self.bundle.config;
         let features = timings.time("encoder", encoder::run(ticket, config, &images)).await?;
-        let volume =
-            timings.time("volume", volume::run(ticket, config, &features, &images, cameras, near, far)).await?;
+        let inputs = volume::VolumeInputs::new(config, &features, &images, cameras, near, far);
+        let build = self.bundle.volume_build();
+        let volume = timings.time("volume", volume::run(ticket, config, build, &self.slabs, inputs)).await?;
         let intrinsics: Vec<_> = cameras.iter().map(|c| c.k).collect();
         let extrinsics: Vec<_> = cameras.iter().map(|c| c.w2c).collect();
         Ok(Scene {
@@ -313,16 +366,33 @@ impl Pipeline {
         let chunk = chunk.unwrap_or_else(|| self.chunking.rays_per_chunk(self.bundle.config.samples)).max(1);
         let inputs = &self.bundle.graph(GraphKind::Renderer).inputs;
         let near_far = [scene.near as f32, scene.far as f32];
-        let mut raw = chunks::render_rays(ticket, scene, inputs, &rays, near_far, chunk).await?;
-        if DepthRange::of(&self.bundle) == DepthRange::FirstPass {
+        let two_passes = DepthRange::of(&self.bundle) == DepthRange::FirstPass;
+        let mut raw = chunks::render_rays(ticket, scene, inputs, &rays, near_far, chunk, !two_passes).await?;
+        if two_passes {
             let range = min_max(&raw.depth).unwrap_or(near_far);
-            raw = chunks::render_rays(ticket, scene, inputs, &rays, range, chunk).await?;
+            raw = chunks::render_rays(ticket, scene, inputs, &rays, range, chunk, true).await?;
         }
         timings.add("renderer", start.elapsed());
         let start = Instant::now();
         let view = assemble_view(target, raw, background);
         timings.add("assemble", start.elapsed());
         Ok(view)
+    }
+}
+
+/// The 422 of a request whose memory estimate exceeds the whole budget: it names the sizes.
+fn too_large(sources: Option<&[Camera]>, target: Option<&Camera>, e: &BackendError) -> ApiError {
+    let size = |c: &Camera| format!("{}x{}", c.width, c.height);
+    match (sources.and_then(|s| Some((s.len(), s.first()?))), target) {
+        (Some((n, first)), Some(t)) => ApiError::invalid(
+            "sources",
+            format!("{n} source views of {} with a {} target need {e}", size(first), size(t)),
+        ),
+        (Some((n, first)), None) => {
+            ApiError::invalid("sources", format!("{n} source views of {} need {e}", size(first)))
+        }
+        (None, Some(t)) => ApiError::invalid("target.width", format!("a {} target needs {e}", size(t))),
+        (None, None) => e.clone().into(),
     }
 }
 

@@ -1,11 +1,59 @@
 //! Stage 2: cost volume + 3D U-Net G2 -> encoding volume in the reference (first) view's frustum.
+//!
+//! A bundle builds it one of two ways (`VolumeBuild`). `volume.onnx` computes the whole cost
+//! volume at once: the warped features of every depth plane exist together (at paper size, 128
+//! planes of 3 views x 32 channels: 3.4 GB for 640x512 sources, 10 GB for 1024x1024). A bundle
+//! with `cost_slab.onnx` and `volume_net.onnx` builds it slab by slab: the cost volume's variance
+//! is per plane, so each run of the slab graph warps only its planes (and one plane of halo on
+//! each side, which G2's first 3x3x3 convolution reads) and returns that convolution's output for
+//! its planes. The outputs are written into one (1, C0, D, Hp, Wp) tensor, 8 channels instead of
+//! the cost volume's 41, and `volume_net.onnx` runs the rest of G2 over it, its norms with the
+//! whole volume's statistics. The result is the same volume (bit-identical on the bundles we ship,
+//! `scnerf-export split-volume` checks it).
 
+use std::ops::Range;
+
+use futures_util::{stream, StreamExt, TryStreamExt};
 use nalgebra::{Matrix4, Vector4};
-use ndarray::{ArcArray4, ArcArray5, Array1, Array3};
+use ndarray::{s, ArcArray4, ArcArray5, Array1, Array3, Array5};
 
-use crate::backend::{BackendError, Ticket};
-use crate::bundle::{GraphKind, ModelConfig};
+use crate::backend::{BackendError, NamedTensors, Ticket, Work};
+use crate::bundle::{GraphKind, ModelConfig, VolumeBuild};
 use crate::camera::{stack_rows, Camera};
+
+/// Working memory of one cost slab run per cell of its planes (halo included), bytes: 660-730
+/// with ONNX Runtime 1.31 on the CPU at paper size (41 cost channels, three views), measured as
+/// the cost_slab stage's peak above the encoder's resident set, less the assembled conv0, at
+/// 320x256-800x800 sources (docs/results-memory.md); rounded up.
+pub const SLAB_BYTES_PER_CELL: usize = 1024;
+
+/// How many depth planes one cost slab run takes.
+#[derive(Debug, Clone, Copy)]
+pub struct SlabPolicy {
+    /// Working memory a slab run may take (`--volume-slab-mb`).
+    pub memory_budget_bytes: usize,
+}
+
+impl Default for SlabPolicy {
+    fn default() -> Self {
+        SlabPolicy { memory_budget_bytes: 512 << 20 }
+    }
+}
+
+impl SlabPolicy {
+    /// Planes per slab for `cells` cells per plane: what the budget allows after the two halo
+    /// planes, at least one, at most the volume's `depth_planes`.
+    pub fn planes_per_slab(&self, depth_planes: usize, cells: usize) -> usize {
+        let planes = self.memory_budget_bytes / (SLAB_BYTES_PER_CELL * cells.max(1));
+        planes.saturating_sub(2).clamp(1, depth_planes.max(1))
+    }
+
+    /// The slabs of a volume of `depth_planes` planes of `cells` cells.
+    pub fn slabs(&self, depth_planes: usize, cells: usize) -> Vec<Range<usize>> {
+        let step = self.planes_per_slab(depth_planes, cells);
+        (0..depth_planes).step_by(step).map(|start| start..(start + step).min(depth_planes)).collect()
+    }
+}
 
 /// `diag(1/4, 1/4, 1, 1) · [[K, 0], [0, 1]] · w2c` per view: projection onto the feature grid.
 pub fn feature_projection(camera: &Camera) -> Matrix4<f64> {
@@ -24,32 +72,136 @@ pub fn depth_planes(near: f64, far: f64, d: usize) -> Array1<f32> {
     Array1::from_shape_fn(d, |i| if i < half { near + step * i as f64 } else { far - step * (d - 1 - i) as f64 } as f32)
 }
 
+/// The cost slab graph's `depth_planes` and `plane_inside` for `planes` of `depth`: those planes
+/// with one plane of halo on each side, and 1/0 for each of them inside/outside the volume. A
+/// halo plane outside the volume repeats the end plane's depth (a depth of 0 or below would
+/// divide by zero in the warp; its cost is multiplied by 0 anyway). As the exporter's
+/// `slab_halo`.
+pub fn slab_planes(depth: &Array1<f32>, planes: Range<usize>) -> (Array1<f32>, Array1<f32>) {
+    let d = depth.len() as isize;
+    let index = (planes.start as isize - 1)..(planes.end as isize + 1);
+    let at = index.clone().map(|i| depth[i.clamp(0, d - 1) as usize]).collect();
+    let inside = index.map(|i| if (0..d).contains(&i) { 1.0 } else { 0.0 }).collect();
+    (at, inside)
+}
+
+/// The inputs every volume graph takes: the sources' features and images, their feature-grid
+/// projections and the volume's depth planes.
+pub struct VolumeInputs {
+    pub features: ArcArray4<f32>,
+    pub images: ArcArray4<f32>,
+    pub projections: Array3<f32>,
+    pub depth_planes: Array1<f32>,
+}
+
+impl VolumeInputs {
+    pub fn new(
+        config: &ModelConfig,
+        features: &ArcArray4<f32>,
+        images: &ArcArray4<f32>,
+        cameras: &[Camera],
+        near: f64,
+        far: f64,
+    ) -> VolumeInputs {
+        VolumeInputs {
+            features: features.clone(),
+            images: images.clone(),
+            projections: projections(cameras),
+            depth_planes: depth_planes(near, far, config.depth_planes),
+        }
+    }
+
+    /// Cells of one plane of the padded feature grid.
+    fn cells(&self, pad: usize) -> usize {
+        let (_, _, h, w) = self.features.dim();
+        (h + 2 * pad) * (w + 2 * pad)
+    }
+
+    /// Named inputs, with `depth_planes` (and, for a slab, `plane_inside`) as given.
+    fn named(&self, planes: Array1<f32>, inside: Option<Array1<f32>>) -> NamedTensors {
+        let mut inputs: NamedTensors = vec![
+            ("features".into(), self.features.clone().into_dyn()),
+            ("images".into(), self.images.clone().into_dyn()),
+            ("projections".into(), self.projections.clone().into_shared().into_dyn()),
+            ("depth_planes".into(), planes.into_shared().into_dyn()),
+        ];
+        if let Some(inside) = inside {
+            inputs.push(("plane_inside".into(), inside.into_shared().into_dyn()));
+        }
+        inputs
+    }
+}
+
+/// The work of building the volume of padded sources of `pixels` (V·H·W) pixels with `cells`
+/// cells per plane: the volume graph over the pixels, or each slab over its share of them (halo
+/// planes included) and G2 over the pixels.
+pub fn work(config: &ModelConfig, build: VolumeBuild, policy: &SlabPolicy, pixels: f64, cells: usize) -> Work {
+    match build {
+        VolumeBuild::Whole => Work::of(GraphKind::Volume, pixels),
+        VolumeBuild::Slabs => {
+            let d = config.depth_planes;
+            let planes: usize = policy.slabs(d, cells).iter().map(|p| p.len() + 2).sum();
+            Work::of(GraphKind::CostSlab, pixels * planes as f64 / d as f64)
+                .plus(Work::of(GraphKind::VolumeNet, pixels))
+        }
+    }
+}
+
 /// features (V, C, h, w) + images + cameras -> volume (1, Cv, D, h + 2·pad, w + 2·pad).
 pub async fn run(
     ticket: &Ticket,
     config: &ModelConfig,
-    features: &ArcArray4<f32>,
-    images: &ArcArray4<f32>,
-    cameras: &[Camera],
-    near: f64,
-    far: f64,
+    build: VolumeBuild,
+    policy: &SlabPolicy,
+    inputs: VolumeInputs,
 ) -> Result<ArcArray5<f32>, BackendError> {
-    let (_, _, h, w) = features.dim();
-    let inputs = vec![
-        ("features".to_string(), features.clone().into_dyn()),
-        ("images".to_string(), images.clone().into_dyn()),
-        ("projections".to_string(), projections(cameras).into_shared().into_dyn()),
-        ("depth_planes".to_string(), depth_planes(near, far, config.depth_planes).into_shared().into_dyn()),
-    ];
-    let mut out = ticket.run(GraphKind::Volume, super::pixel_units(images), inputs).await?;
-    let shape = [
-        Some(1),
-        Some(config.volume_channels),
-        Some(config.depth_planes),
-        Some(h + 2 * config.pad),
-        Some(w + 2 * config.pad),
-    ];
-    out.take("volume", &shape)
+    let (_, _, h, w) = inputs.features.dim();
+    let pixels = super::pixel_units(&inputs.images);
+    let mut out = match build {
+        VolumeBuild::Whole => {
+            let named = inputs.named(inputs.depth_planes.clone(), None);
+            ticket.run(GraphKind::Volume, pixels, named).await?
+        }
+        VolumeBuild::Slabs => {
+            let conv0 = first_convolution(ticket, config, policy, &inputs).await?;
+            let named = vec![("conv0".to_string(), conv0.into_shared().into_dyn())];
+            ticket.run(GraphKind::VolumeNet, pixels, named).await?
+        }
+    };
+    let (d, cv, p) = (config.depth_planes, config.volume_channels, config.pad);
+    out.take("volume", &[Some(1), Some(cv), Some(d), Some(h + 2 * p), Some(w + 2 * p)])
+}
+
+/// Cost slab runs that one request keeps queued: one runs while the previous one's output is
+/// copied into place; more would only hold memory.
+const SLABS_IN_FLIGHT: usize = 2;
+
+/// G2's first convolution over the whole cost volume, (1, C0, D, Hp, Wp), slab by slab.
+async fn first_convolution(
+    ticket: &Ticket,
+    config: &ModelConfig,
+    policy: &SlabPolicy,
+    inputs: &VolumeInputs,
+) -> Result<Array5<f32>, BackendError> {
+    let (d, cv, cells) = (config.depth_planes, config.volume_channels, inputs.cells(config.pad));
+    let (_, _, h, w) = inputs.features.dim();
+    let (hp, wp) = (h + 2 * config.pad, w + 2 * config.pad);
+    let pixels = super::pixel_units(&inputs.images);
+    let mut conv0 = Array5::zeros((1, cv, d, hp, wp));
+    let mut runs = stream::iter(policy.slabs(d, cells))
+        .map(|planes| {
+            let (at, inside) = slab_planes(&inputs.depth_planes, planes.clone());
+            let units = pixels * (planes.len() + 2) as f64 / d as f64;
+            let run = ticket.run(GraphKind::CostSlab, units, inputs.named(at, Some(inside)));
+            async move { run.await.map(|outputs| (planes, outputs)) }
+        })
+        .buffered(SLABS_IN_FLIGHT);
+    while let Some((planes, mut outputs)) = runs.try_next().await? {
+        let shape = [Some(1), Some(cv), Some(planes.len()), Some(hp), Some(wp)];
+        let slab = outputs.take::<ndarray::Ix5>("conv0", &shape)?;
+        conv0.slice_mut(s![.., .., planes, .., ..]).assign(&slab);
+    }
+    Ok(conv0)
 }
 
 #[cfg(test)]
@@ -64,6 +216,21 @@ mod tests {
         let t = depth_planes(2.125, 4.525, 128);
         assert_eq!(t[0], 2.125);
         assert_eq!(t[127], 4.525);
+    }
+
+    #[test]
+    fn slabs_cover_the_planes_once_with_their_halo() {
+        let depth = depth_planes(2.0, 6.0, 5);
+        let (at, inside) = slab_planes(&depth, 0..2);
+        assert_eq!(at.to_vec(), vec![2.0, 2.0, 3.0, 4.0]);
+        assert_eq!(inside.to_vec(), vec![0.0, 1.0, 1.0, 1.0]);
+        let (at, inside) = slab_planes(&depth, 4..5);
+        assert_eq!((at.to_vec(), inside.to_vec()), (vec![5.0, 6.0, 6.0], vec![1.0, 1.0, 0.0]));
+        // 1 MiB at 1024 bytes per cell of 64 cells: 16 planes, 14 after the halo.
+        let policy = SlabPolicy { memory_budget_bytes: 1 << 20 };
+        assert_eq!(policy.slabs(32, 64), vec![0..14, 14..28, 28..32]);
+        assert_eq!(SlabPolicy { memory_budget_bytes: 0 }.slabs(3, 64), vec![0..1, 1..2, 2..3]);
+        assert_eq!(SlabPolicy { memory_budget_bytes: usize::MAX }.slabs(3, 64), vec![0..3]);
     }
 
     #[test]

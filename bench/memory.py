@@ -1,0 +1,234 @@
+"""Where a request's memory goes: ``python -m bench.memory``.
+
+For each bundle and source size, a fresh server (release build, ``--memory-probe on``) renders
+one view through ``POST /v1/render`` (multipart, as curl sends it) from a real triple of source
+views resized to that size. The probe resets the process's peak resident set (``VmHWM``) before
+each stage (decoding the sources, each graph run) and reads it after, so each stage's peak is its
+own; the table gives, per stage, that peak and the resident set after the stage's last run (what
+it left held), the process at rest before the request and a few seconds after it. Sizes 320x256
+and 640x512 are DTU scan37 (views 33, 31, 25 -> 32; 640x512 is its own size), 800x800 and
+1024x1024 the Blender lego (r_6, r_43, r_33 -> r_28; 800x800 is its own size), each target at
+80x64.
+
+A watchdog stops a server when the machine's available memory falls under ``--keep-free-mb``
+(the machine is shared): that measurement is then reported as stopped, with the peak reached.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from scnerf_export.cameras import camera_json
+from scnerf_export.data.datasets import get_views, load_scene
+from scnerf_export.data.scene import resize_view
+from scnerf_export.serving import REPO, ServerProcess, find_server_binary, png_bytes
+
+from .server import multipart_request
+
+SHARED = REPO.parent / "shared" / "data"
+SIZES = ("320x256", "640x512", "800x800", "1024x1024")
+TARGET = (80, 64)
+
+
+@dataclass(frozen=True)
+class Triple:
+    scene: str
+    format: str
+    sources: tuple[str, str, str]
+    target: str
+
+
+SCAN37 = Triple("dtu_scan37", "dtu", ("33", "31", "25"), "32")
+LEGO = Triple("nerf_synthetic_lego", "blender", ("r_6", "r_43", "r_33"), "r_28")
+
+
+def triple_for(size: tuple[int, int]) -> Triple:
+    """scan37 for the 5:4 sizes, lego for the square ones."""
+    return SCAN37 if size[0] != size[1] else LEGO
+
+
+def request_for(triple: Triple, size: tuple[int, int]) -> tuple[bytes, dict]:
+    """The multipart body and headers of one render of ``triple`` with sources at ``size``."""
+    scene = load_scene(SHARED / triple.scene, triple.format)
+    views = get_views(scene, list(triple.sources))
+    target = scene.views[triple.target].camera.resized(*TARGET)
+    sources = []
+    for view in views:
+        resized = resize_view(view, *size)
+        sources.append((resized.camera, png_bytes(resized.image)))
+    document = {
+        "sources": [{"camera": camera_json(c)} for c, _ in sources],
+        "target": camera_json(target),
+        "near": scene.near,
+        "far": scene.far,
+        "background": list(scene.background),
+    }
+    return multipart_request(document, [data for _, data in sources])
+
+
+def mib(value: float) -> float:
+    return round(value / (1 << 20), 1)
+
+
+def process_memory(pid: int) -> dict:
+    status = Path(f"/proc/{pid}/status").read_text()
+    field = {k: int(re.search(rf"{k}:\s+(\d+) kB", status).group(1)) * 1024 for k in ("VmRSS", "VmHWM")}
+    return {"rss_mib": mib(field["VmRSS"]), "hwm_mib": mib(field["VmHWM"])}
+
+
+def available_mib() -> float:
+    text = Path("/proc/meminfo").read_text()
+    return int(re.search(r"MemAvailable:\s+(\d+) kB", text).group(1)) / 1024.0
+
+
+class Watchdog:
+    """Terminates ``proc`` when the machine's available memory falls under ``keep_free_mib``."""
+
+    def __init__(self, proc, keep_free_mib: float):
+        self.proc, self.keep_free, self.fired, self.lowest = proc, keep_free_mib, False, float("inf")
+        self.done = threading.Event()
+        threading.Thread(target=self._watch, daemon=True).start()
+
+    def _watch(self) -> None:
+        while not self.done.wait(0.05):
+            free = available_mib()
+            self.lowest = min(self.lowest, free)
+            if free < self.keep_free and self.proc.poll() is None:
+                self.fired = True
+                self.proc.kill()
+                return
+
+
+def stage_metrics(metrics: str) -> dict:
+    """Per stage: peak and after, MiB, from the probe's gauges."""
+    out: dict = {}
+    for kind, key in (("stage_peak_resident_bytes", "peak_mib"), ("stage_resident_after_bytes", "after_mib")):
+        for stage, value in re.findall(rf'scnerf_{kind}{{stage="(\w+)"}} (\d+)', metrics):
+            out.setdefault(stage, {})[key] = mib(int(value))
+    return out
+
+
+def measure(binary: Path, bundle: Path, size: tuple[int, int], args) -> dict:
+    body, headers = request_for(triple_for(size), size)
+    # A server without the probe (one built before it, for the "before" figures) gives only the
+    # process's peak over the request (VmHWM: the warm-up's peak is cleared first where possible).
+    extra = (*(("--memory-probe", "on") if args.probe else ()), *args.server_arg)
+    server = ServerProcess(binary, bundle, args.threads, extra)
+    dog = Watchdog(server.proc, args.keep_free_mb)
+    out: dict = {"bundle": str(bundle), "model_id": server.model.get("model_id"), "sources": "x".join(map(str, size))}
+    try:
+        out["at_rest"] = process_memory(server.proc.pid)
+        if not args.probe:
+            # Clears the warm-up's peak (proc(5): "5" resets VmHWM to the resident set).
+            Path(f"/proc/{server.proc.pid}/clear_refs").write_text("5")
+        start = time.perf_counter()
+        try:
+            status, data, _ = server.request("POST", "/v1/render", body, headers)
+        except OSError as e:
+            status, data = None, str(e).encode()
+        out["seconds"] = round(time.perf_counter() - start, 1)
+        out["status"] = status
+        if status != 200:
+            out["error"] = data[:300].decode(errors="replace")
+        if server.proc.poll() is None:
+            out["stages"] = stage_metrics(server.request("GET", "/metrics")[1].decode())
+            time.sleep(args.settle_secs)
+            out["after_request"] = process_memory(server.proc.pid)
+    finally:
+        dog.done.set()
+        out["watchdog_stopped"] = dog.fired
+        out["machine_available_mib_lowest"] = round(dog.lowest)
+        server.stop()
+    stages = out.get("stages", {})
+    if args.probe:
+        out["request_peak_mib"] = max((s.get("peak_mib", 0.0) for s in stages.values()), default=None)
+    else:
+        out["request_peak_mib"] = out.get("after_request", {}).get("hwm_mib")
+    return out
+
+
+def table(rows: list[dict]) -> str:
+    stages = ["decode", "encoder", "volume", "cost_slab", "volume_net", "renderer"]
+    used = [s for s in stages if any(s in r.get("stages", {}) for r in rows)]
+    head = ["bundle", "sources", "at rest"] + [f"{s} peak / after" for s in used] + ["request peak", "after request"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in rows:
+        cells = [Path(r["bundle"]).name, r["sources"], f"{r['at_rest']['rss_mib']:.0f}"]
+        for s in used:
+            m = r.get("stages", {}).get(s)
+            cells.append(f"{m['peak_mib']:.0f} / {m['after_mib']:.0f}" if m else "-")
+        peak = r.get("request_peak_mib")
+        note = (
+            ""
+            if r.get("status") == 200
+            else f" ({'stopped by the watchdog' if r['watchdog_stopped'] else r.get('status')})"
+        )
+        cells.append(f"{peak:.0f}{note}" if peak else f"-{note}")
+        cells.append(f"{r['after_request']['rss_mib']:.0f}" if "after_request" in r else "-")
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def update_fixture(path: Path, rows: list[dict]) -> None:
+    """Merges the served rows into the server's fixture of measured peaks
+    (tests/fixtures/memory/measured.json, read by pipeline::memory's tests): per bundle (by model
+    id and the way it builds its volume) its config, per source size the peak above the process
+    at rest."""
+    fixture = json.loads(path.read_text()) if path.exists() else {"bundles": {}, "rows": []}
+    for r in rows:
+        if r.get("status") != 200 or not r.get("request_peak_mib"):
+            continue
+        manifest = json.loads((Path(r["bundle"]) / "manifest.json").read_text())
+        build = "slabs" if "cost_slab" in manifest["graphs"] else "whole"
+        fixture["bundles"][r["model_id"]] = {"config": manifest["config"]}
+        row = {
+            "bundle": r["model_id"],
+            "build": build,
+            "sources": [int(v) for v in r["sources"].split("x")],
+            "target": list(TARGET),
+            "peak_above_rest_mib": round(r["request_peak_mib"] - r["at_rest"]["rss_mib"], 1),
+        }
+        same = (row["bundle"], row["build"], row["sources"])
+        fixture["rows"] = [x for x in fixture["rows"] if (x["bundle"], x["build"], x["sources"]) != same] + [row]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(fixture, indent=1) + "\n")
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--bundle", action="append", required=True, help="bundle directory (repeatable)")
+    parser.add_argument("--sizes", default=",".join(SIZES), help="source sizes WxH, comma-separated")
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--server-bin", default=None)
+    parser.add_argument("--server-arg", action="append", default=[], help="extra server flag (repeatable)")
+    parser.add_argument(
+        "--no-probe", dest="probe", action="store_false", help="server without --memory-probe: process peak only"
+    )
+    parser.add_argument("--keep-free-mb", type=float, default=1536.0)
+    parser.add_argument("--settle-secs", type=float, default=3.0)
+    parser.add_argument("--out", default=None, help="JSON file for the results")
+    parser.add_argument("--fixture", type=Path, default=None, help="merge the rows into this measured.json")
+    args = parser.parse_args(argv)
+    binary = find_server_binary(args.server_bin)
+    sizes = [tuple(int(v) for v in s.split("x")) for s in args.sizes.split(",")]
+    rows = []
+    for bundle in args.bundle:
+        for size in sizes:
+            row = measure(binary, Path(bundle), size, args)
+            print(json.dumps(row), flush=True)
+            rows.append(row)
+    print(table(rows))
+    if args.out:
+        Path(args.out).write_text(json.dumps({"server_args": args.server_arg, "rows": rows}, indent=1) + "\n")
+    if args.fixture:
+        update_fixture(args.fixture, rows)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,45 @@
+"""bench.memory: the table and the estimate's fixture rows from the measured rows."""
+
+import json
+
+from bench.memory import table, update_fixture
+
+
+def row(bundle, sources, peak, status=200):
+    return {
+        "bundle": str(bundle),
+        "model_id": "scnerf-mvsnerf-abc",
+        "sources": sources,
+        "status": status,
+        "watchdog_stopped": False,
+        "at_rest": {"rss_mib": 90.0},
+        "stages": {
+            "cost_slab": {"peak_mib": peak - 10, "after_mib": 200.0},
+            "volume_net": {"peak_mib": peak, "after_mib": 300.0},
+        },
+        "after_request": {"rss_mib": 330.0},
+        "request_peak_mib": peak,
+    }
+
+
+def test_fixture_rows_are_the_peak_above_rest_per_bundle_build_and_size(tmp_path):
+    bundle = tmp_path / "b"
+    bundle.mkdir()
+    manifest = {"config": {"depth_planes": 128}, "graphs": {"encoder": {}, "cost_slab": {}, "volume_net": {}}}
+    (bundle / "manifest.json").write_text(json.dumps(manifest))
+    fixture = tmp_path / "measured.json"
+    update_fixture(fixture, [row(bundle, "640x512", 1090.0), row(bundle, "800x800", 0.0, status=503)])
+    update_fixture(fixture, [row(bundle, "640x512", 1100.0)])  # measured again: replaces the row
+    got = json.loads(fixture.read_text())
+    assert got["bundles"] == {"scnerf-mvsnerf-abc": {"config": {"depth_planes": 128}}}
+    assert got["rows"] == [
+        {
+            "bundle": "scnerf-mvsnerf-abc",
+            "build": "slabs",
+            "sources": [640, 512],
+            "target": [80, 64],
+            "peak_above_rest_mib": 1010.0,
+        }
+    ]
+    text = table([row(bundle, "640x512", 1100.0)])
+    assert "| cost_slab peak / after | volume_net peak / after |" in text and "| 1090 / 200 | 1100 / 300 |" in text
