@@ -7,7 +7,7 @@
 Starts ``target/release/scnerf-server`` on BUNDLE (a paper-size bundle: the converted public
 MVSNeRF one, split by ``scnerf-export split-volume`` to build its volume slab by slab, or not),
 sends CONCURRENT multipart renders of the lego triple (r_6, r_43, r_33 -> r_28, 80x64 target, from
-../shared/data) at once, and checks what issue 17 asks: every response is 200, 503 (with
+../shared/data) at once, and checks that every response is 200, 503 (with
 Retry-After) or 422; the server is alive afterwards; its peak resident set (VmHWM) stays within
 the budget. Prints one JSON line per response and a summary; exits 1 when a check fails.
 tests/tests/memory_admission.rs is the same check at a size that fits CI.

@@ -14,7 +14,7 @@ from ..model.cost_volume import slab_halo
 # Bytes of the cost slab graph's working memory per cell of a slab (one plane of the padded
 # feature grid, halo planes included), and the working memory a slab run may take: the server's
 # rule and `--volume-slab-mb` default (pipeline::volume::SlabPolicy; measured in
-# docs/results-memory.md).
+# docs/results.md, "Memory at paper size").
 SLAB_BYTES_PER_CELL = 1024
 SLAB_BUDGET_BYTES = 512 << 20
 

@@ -236,7 +236,7 @@ impl GraphRunner for OrtRunner {
         self.run_with(graph, inputs, false)
     }
 
-    /// The renderer's arena back to the system after a request's last chunk (docs/results-memory.md).
+    /// The renderer's arena back to the system after a request's last chunk (docs/results.md, "Memory at paper size").
     fn run_and_release(&mut self, graph: GraphKind, inputs: &NamedTensors) -> Result<NamedTensors, BackendError> {
         let shrink = self.arenas.contains(&graph);
         self.run_with(graph, inputs, shrink)

@@ -11,7 +11,7 @@
 //! this one builds its volume.
 //!
 //! The per-unit figures are calibrated on measured peaks (`bench/memory.py`, the table in
-//! docs/results-memory.md; the rows are the fixture `tests/fixtures/memory/measured.json`,
+//! docs/results.md, "Memory at paper size"; the rows are the fixture `tests/fixtures/memory/measured.json`,
 //! and a test checks that the estimate never falls below any of them), rounded up by ~10-25 %.
 
 use crate::bundle::{ModelConfig, VolumeBuild};

@@ -24,7 +24,7 @@ use crate::camera::{stack_rows, Camera};
 /// Working memory of one cost slab run per cell of its planes (halo included), bytes: 660-730
 /// with ONNX Runtime 1.31 on the CPU at paper size (41 cost channels, three views), measured as
 /// the cost_slab stage's peak above the encoder's resident set, less the assembled conv0, at
-/// 320x256-800x800 sources (docs/results-memory.md); rounded up.
+/// 320x256-800x800 sources (docs/results.md, "Memory at paper size"); rounded up.
 pub const SLAB_BYTES_PER_CELL: usize = 1024;
 
 /// How many depth planes one cost slab run takes.
