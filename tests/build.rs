@@ -1,13 +1,2 @@
-//! `cfg(shared_data)` when the real scenes of `../shared/data` sit beside the repository: tests
-//! that need them are marked ignored without it, so a run without the data reports them as
-//! skipped (with the reason) instead of passing them.
-use std::path::Path;
-
-fn main() {
-    println!("cargo::rustc-check-cfg=cfg(shared_data)");
-    let data = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data");
-    println!("cargo::rerun-if-changed={}", data.display());
-    if data.join("nerf_synthetic_lego/transforms_train.json").is_file() {
-        println!("cargo::rustc-cfg=shared_data");
-    }
-}
+//! `cfg(shared_data)` for the tests that need `../shared/data` (see the included file).
+include!("shared_data_cfg.rs");
