@@ -136,20 +136,44 @@ def _object_world(rng: np.random.Generator, cam_azimuth: float) -> World:
     return World(primitives=prims, light=_sun(rng, (30.0, 75.0), (0.35, 0.5), np.degrees(cam_azimuth), 100.0))
 
 
-def _object_cameras(rng: np.random.Generator, n: int, width: int, height: int, hfov: float, az0: float) -> list[Camera]:
-    dist = rng.uniform(3.1, 3.5)
-    az_span = np.radians(rng.uniform(80.0, 140.0))
-    el_lo, el_hi = np.radians(rng.uniform(15.0, 25.0)), np.radians(rng.uniform(45.0, 60.0))
+@dataclasses.dataclass(frozen=True)
+class Arc:
+    """Where a layout's cameras stand: rows on an arc around ``target``, facing it, as DTU's robot
+    arm and object captures place them. Each scene draws its distance, azimuth span and elevations
+    (degrees) from these ranges; each camera jitters its distance and the point it aims at."""
+
+    target: np.ndarray
+    distance: tuple[float, float]
+    azimuth_span: tuple[float, float]
+    elevation_low: tuple[float, float]
+    elevation_high: tuple[float, float]
+    aspect: float
+    grid_jitter: float
+    distance_jitter: float
+    aim_jitter: float
+
+
+def _arc_cameras(
+    rng: np.random.Generator, arc: Arc, n: int, width: int, height: int, hfov: float, az0: float
+) -> list[Camera]:
+    # The draws keep one order (distance, span, elevations, grid, then per camera), so a seed
+    # gives the same scene whatever the layout's ranges.
+    dist = rng.uniform(*arc.distance)
+    az_span = np.radians(rng.uniform(*arc.azimuth_span))
+    el_lo, el_hi = np.radians(rng.uniform(*arc.elevation_low)), np.radians(rng.uniform(*arc.elevation_high))
     K = intrinsics(width, height, hfov)
     cams = []
-    for gx, gy in _grid(rng, n, aspect=2.5, jitter=0.3):
+    for gx, gy in _grid(rng, n, aspect=arc.aspect, jitter=arc.grid_jitter):
         az = az0 + (gx - 0.5) * az_span
         el = el_lo + gy * (el_hi - el_lo)
-        r = dist + rng.uniform(-0.1, 0.1)
-        eye = OBJECT_TARGET + r * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
-        target = OBJECT_TARGET + rng.normal(0.0, 0.04, size=3)
-        cams.append(Camera(K=K.copy(), w2c=look_at(eye, target), width=width, height=height))
+        r = dist + rng.uniform(-arc.distance_jitter, arc.distance_jitter)
+        eye = arc.target + r * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+        aim = arc.target + rng.normal(0.0, arc.aim_jitter, size=3)
+        cams.append(Camera(K=K.copy(), w2c=look_at(eye, aim), width=width, height=height))
     return cams
+
+
+OBJECT_ARC = Arc(OBJECT_TARGET, (3.1, 3.5), (80.0, 140.0), (15.0, 25.0), (45.0, 60.0), 2.5, 0.3, 0.1, 0.04)
 
 
 def _object_near_far(cameras: list[Camera]) -> tuple[float, float]:
@@ -201,23 +225,7 @@ def _tabletop_world(rng: np.random.Generator, cam_azimuth: float) -> World:
     return World(primitives=prims, light=light, shadows=True)
 
 
-def _tabletop_cameras(
-    rng: np.random.Generator, n: int, width: int, height: int, hfov: float, az0: float
-) -> list[Camera]:
-    """Rows of cameras on an arc around the table, as DTU's robot arm places them."""
-    dist = rng.uniform(3.0, 3.4)
-    az_span = np.radians(rng.uniform(90.0, 120.0))
-    el_lo, el_hi = np.radians(rng.uniform(18.0, 25.0)), np.radians(rng.uniform(40.0, 50.0))
-    K = intrinsics(width, height, hfov)
-    cams = []
-    for gx, gy in _grid(rng, n, aspect=3.0, jitter=0.2):
-        az = az0 + (gx - 0.5) * az_span
-        el = el_lo + gy * (el_hi - el_lo)
-        r = dist + rng.uniform(-0.05, 0.05)
-        eye = TABLETOP_TARGET + r * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
-        target = TABLETOP_TARGET + rng.normal(0.0, 0.03, size=3)
-        cams.append(Camera(K=K.copy(), w2c=look_at(eye, target), width=width, height=height))
-    return cams
+TABLETOP_ARC = Arc(TABLETOP_TARGET, (3.0, 3.4), (90.0, 120.0), (18.0, 25.0), (40.0, 50.0), 3.0, 0.2, 0.05, 0.03)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -455,13 +463,13 @@ def build_layout(
         hfov = float(wrng.uniform(40.0, 46.0))
         az0 = float(wrng.uniform(0.0, 2.0 * np.pi))  # where the cameras stand (the light follows)
         world = _object_world(wrng, az0)
-        cams = _object_cameras(crng, n_views, width, height, hfov, az0)
+        cams = _arc_cameras(crng, OBJECT_ARC, n_views, width, height, hfov, az0)
         near, far = _object_near_far(cams)
     elif layout == "tabletop":
         hfov = float(wrng.uniform(*TABLETOP_HFOV))
         az0 = float(wrng.uniform(0.0, 2.0 * np.pi))
         world = _tabletop_world(wrng, az0)
-        cams = _tabletop_cameras(crng, n_views, width, height, hfov, az0)
+        cams = _arc_cameras(crng, TABLETOP_ARC, n_views, width, height, hfov, az0)
         lo, hi = _probe_range(world, cams)
         near, far = 0.9 * lo, 1.05 * hi
     elif layout == "forward":
