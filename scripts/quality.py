@@ -79,6 +79,11 @@ def table(names: list[str], out: Path, protocols: list[str]) -> str:
     return "\n".join(lines)
 
 
+def per_scene(items: list[str], convert) -> dict:
+    """``["lego=0.25", ...]`` -> ``{"lego": convert("0.25"), ...}``."""
+    return {scene: convert(value) for scene, _, value in (item.partition("=") for item in items)}
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("bundles", nargs="+", help="NAME=DIR")
@@ -99,9 +104,9 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     pairs = [item.partition("=")[::2] for item in args.bundles]
-    views = {scene: names.split(",") for scene, _, names in (v.partition("=") for v in args.views)}
-    scales = {scene: float(s) for scene, _, s in (v.partition("=") for v in args.scale)}
-    target_scales = {scene: float(s) for scene, _, s in (v.partition("=") for v in args.target_scale)}
+    views = per_scene(args.views, lambda names: names.split(","))
+    scales = per_scene(args.scale, float)
+    target_scales = per_scene(args.target_scale, float)
     for name, bundle in pairs:
         measure(name, bundle, args.out, scales, target_scales, views, args.protocols, args.threads)
     print(table([name for name, _ in pairs], args.out, args.protocols))
