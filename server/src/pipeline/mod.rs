@@ -224,10 +224,8 @@ impl Pipeline {
         timings: &mut Timings,
     ) -> Result<(View, Option<Arc<Scene>>), ApiError> {
         let cameras = views.cameras_of(sources);
-        let ticket = match cached {
-            Some(_) => self.admit_request(deadline, None, Some(target))?,
-            None => self.admit_request(deadline, Some(&cameras), Some(target))?,
-        };
+        // A cached triple costs the renderer alone; otherwise its scene is built here too.
+        let ticket = self.admit_request(deadline, cached.is_none().then_some(&cameras[..]), Some(target))?;
         let (scene, built) = match cached {
             Some(scene) => (scene, None),
             None => {
@@ -268,7 +266,7 @@ impl Pipeline {
 
     /// The most memory a request over `sources` and `target` adds to the process (see
     /// [`memory::estimate`]).
-    pub fn memory_estimate(&self, sources: Option<&[Camera]>, target: Option<&Camera>) -> u64 {
+    fn memory_estimate(&self, sources: Option<&[Camera]>, target: Option<&Camera>) -> u64 {
         let sizes = memory::RequestSizes {
             sources: sources.and_then(|s| self.padded_source_size(s)),
             target_pixels: target.map_or(0, |t| u64::from(t.width) * u64::from(t.height)),
