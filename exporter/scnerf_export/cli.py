@@ -1,22 +1,38 @@
-"""`scnerf-export`: convert-mvsnerf, init-scnerf, export, fixtures, eval, example, experiment, train."""
+"""`scnerf-export`: convert-mvsnerf, init-scnerf, export, fixtures, eval, example, experiment, train,
+finetune, blend-heads, quantize, reexport, split-volume."""
 
 from __future__ import annotations
 
 import argparse
 import json
 import sys
+import tempfile
 from pathlib import Path
 
 from .model.checkpoint import CheckpointError
 from .train.finetune import Recipe
 
 
-def cmd_convert(args) -> None:
+def write_bundle(model, out: Path, provenance: dict, volume: str) -> dict:
+    """The bundle of ``model``; with ``volume="slabs"`` its cost volume as the two graphs the server
+    builds slab by slab (a third of the memory at paper size), else as one graph."""
     from .export.bundle import export_bundle
+    from .export.split_volume import split_volume_bundle
+
+    if volume == "whole":
+        return export_bundle(model, out, provenance)
+    if model.cfg.norm_statistics != "batch":
+        raise ValueError(f"norm_statistics {model.cfg.norm_statistics!r}: slabs need 'batch'; use --volume whole")
+    with tempfile.TemporaryDirectory() as whole:
+        export_bundle(model, whole, provenance)
+        return split_volume_bundle(whole, out)
+
+
+def cmd_convert(args) -> None:
     from .model.checkpoint import load_mvsnerf
 
     model, provenance = load_mvsnerf(args.ckpt)
-    manifest = export_bundle(model, args.out, provenance)
+    manifest = write_bundle(model, args.out, provenance, args.volume)
     print(f"wrote {args.out} ({manifest['model_id']})")
 
 
@@ -27,13 +43,12 @@ def cmd_init_scnerf(args) -> None:
 
 
 def cmd_export(args) -> None:
-    from .export.bundle import export_bundle
     from .model.checkpoint import load_checkpoint
 
     model, provenance = load_checkpoint(args.checkpoint)
     if args.metrics:
         provenance["metrics"] = json.loads(args.metrics.read_text())
-    manifest = export_bundle(model, args.out, provenance)
+    manifest = write_bundle(model, args.out, provenance, args.volume)
     print(f"wrote {args.out} ({manifest['model_id']})")
 
 
@@ -119,6 +134,13 @@ def cmd_finetune(args) -> None:
     print(f"checkpoint {finetune(args.init, args.out, args.shared, recipe, args.threads, args.cache)}")
 
 
+def cmd_blend_heads(args) -> None:
+    from .train.blend import blend_heads
+
+    path, alpha = blend_heads(args.init, args.trained, args.out, args.shared, args.cache)
+    print(f"checkpoint {path} (alpha {alpha})")
+
+
 def cmd_quantize(args) -> None:
     from .export.precision import compare_bundles, procedural_cases, quantize_bundle
 
@@ -163,6 +185,13 @@ def cmd_split_volume(args) -> None:
     print(f"wrote {args.out} ({manifest['model_id']}; the volume agrees with {args.bundle} to {diff:.2g})")
 
 
+VOLUME_OPTION = dict(
+    choices=["slabs", "whole"],
+    default="slabs",
+    help="the cost volume as cost_slab + volume_net graphs built slab by slab (default) or one volume graph",
+)
+
+
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="scnerf-export", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
@@ -170,6 +199,7 @@ def parser() -> argparse.ArgumentParser:
     c = sub.add_parser("convert-mvsnerf", help="public MVSNeRF checkpoint -> mvsnerf bundle")
     c.add_argument("--ckpt", required=True, type=Path)
     c.add_argument("--out", required=True, type=Path)
+    c.add_argument("--volume", **VOLUME_OPTION)
     c.set_defaults(func=cmd_convert)
 
     i = sub.add_parser("init-scnerf", help="public MVSNeRF checkpoint -> scnerf checkpoint that renders the same")
@@ -182,6 +212,7 @@ def parser() -> argparse.ArgumentParser:
     e.add_argument("--checkpoint", required=True, type=Path)
     e.add_argument("--out", required=True, type=Path)
     e.add_argument("--metrics", type=Path, help="JSON of measured metrics for the manifest's provenance")
+    e.add_argument("--volume", **VOLUME_OPTION)
     e.set_defaults(func=cmd_export)
 
     f = sub.add_parser("fixtures", help="parity fixtures for the Rust tests (random small model)")
@@ -265,6 +296,16 @@ def parser() -> argparse.ArgumentParser:
     n.add_argument("--threads", type=int)
     n.add_argument("--cache", type=Path, help="procedural scenes and ray banks (default OUT/cache); reusable")
     n.set_defaults(func=cmd_finetune)
+
+    b = sub.add_parser(
+        "blend-heads", help="finetuned heads moved toward the initialisation, alpha chosen view by view on validation"
+    )
+    b.add_argument("--init", required=True, type=Path, help="checkpoint from init-scnerf")
+    b.add_argument("--trained", required=True, type=Path, help="checkpoint from finetune")
+    b.add_argument("--out", required=True, type=Path)
+    b.add_argument("--shared", type=Path, default=Path("../shared"), help="folder with data/ (validation scenes)")
+    b.add_argument("--cache", required=True, type=Path, help="folder for the validation views' ray banks")
+    b.set_defaults(func=cmd_blend_heads)
 
     q = sub.add_parser("quantize", help="float32 bundle -> int8 or fp16 bundle (renderer MatMuls), PSNR check")
     q.add_argument("--bundle", required=True, type=Path, help="float32 bundle")

@@ -60,7 +60,7 @@ impl GraphKind {
 /// How a bundle builds the encoding volume.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum VolumeBuild {
-    /// `volume.onnx`: the whole cost volume at once (what `scnerf-export export` writes).
+    /// `volume.onnx`: the whole cost volume at once (`scnerf-export export --volume whole`).
     Whole,
     /// `cost_slab.onnx` over slabs of depth planes, then `volume_net.onnx`.
     Slabs,

@@ -11,9 +11,11 @@ import numpy as np
 import pytest
 
 from scnerf_export.cli import main
-from scnerf_export.config import ModelConfig
+from scnerf_export.config import ModelConfig, small_config
 from scnerf_export.export.manifest import read_manifest
 from scnerf_export.export.split_volume import SplitVolumeError, check_inputs, split_volume_bundle, volumes_agree
+from scnerf_export.model.checkpoint import save_checkpoint
+from scnerf_export.rigs import random_model
 from scnerf_export.runtime.onnx_pipeline import OnnxBundle
 from scnerf_export.runtime.volume_slabs import SLAB_BYTES_PER_CELL, build_volume, planes_per_slab
 
@@ -90,3 +92,16 @@ def test_split_volume_refuses_to_overwrite_its_source_in_one_line(capsys):
     assert main(["split-volume", "--bundle", str(SLABS), "--out", str(SLABS)]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("scnerf-export split-volume: error:") and "\n" not in err
+
+
+def test_export_writes_the_slab_graphs_unless_asked_for_one_volume_graph(tmp_path):
+    save_checkpoint(tmp_path / "c.pt", random_model(small_config("scnerf"), seed=0), {})
+    assert main(["export", "--checkpoint", str(tmp_path / "c.pt"), "--out", str(tmp_path / "slabs")]) == 0
+    assert (
+        main(["export", "--checkpoint", str(tmp_path / "c.pt"), "--out", str(tmp_path / "whole"), "--volume", "whole"])
+        == 0
+    )
+    slabs, whole = read_manifest(tmp_path / "slabs"), read_manifest(tmp_path / "whole")
+    assert set(slabs["graphs"]) == {"encoder", "cost_slab", "volume_net", "renderer"}
+    assert set(whole["graphs"]) == {"encoder", "volume", "renderer"}
+    assert slabs["model_id"] == whole["model_id"]
