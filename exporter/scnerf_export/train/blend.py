@@ -24,7 +24,7 @@ from ..data import datasets
 from ..evaluate.eval import downscale_target, source_pool
 from ..model.checkpoint import load_checkpoint, save_checkpoint, sha256_file
 from ..model.network import SCNeRF
-from .finetune import HEADS, RayBank, backbone_digest, bank_view, cached, score
+from .finetune import HEADS, VALIDATION, RayBank, backbone_digest, bank_view, cached, score
 
 ALPHAS = (0.0, 0.2, 0.4, 0.5, 0.6, 0.8, 1.0)
 PROTOCOLS = ("nearest", "fixed")
@@ -49,16 +49,18 @@ class ViewSpec:
         return f"{self.scene}/{self.target}/{self.protocol}"
 
 
-def validation_views() -> list[ViewSpec]:
-    """lego's val views and scan37's test views, each from its nearest and from the fixed sources."""
-    scenes = (("lego", "nerf_synthetic_lego", "blender", ("r_63", "r_70", "r_18", "r_28")),
-              ("scan37", "dtu_scan37", "dtu", ("32", "24", "23", "44")))  # fmt: skip
-    return [
-        ViewSpec(name, path, fmt, target, protocol)
-        for name, path, fmt, targets in scenes
-        for target in targets
-        for protocol in PROTOCOLS
-    ]
+def validation_views(shared: Path) -> list[ViewSpec]:
+    """The validation scenes' own targets (lego's val views, scan37's test views), each from its
+    nearest and from the fixed sources."""
+    views = []
+    for scene in VALIDATION:
+        targets = datasets.load_scene(shared / "data" / scene.path, scene.format).default_targets
+        views += [
+            ViewSpec(scene.name, scene.path, scene.format, target, protocol)
+            for target in targets
+            for protocol in PROTOCOLS
+        ]
+    return views
 
 
 def view_bank(model: SCNeRF, shared: Path, spec: ViewSpec) -> RayBank:
@@ -142,6 +144,7 @@ def blend_heads(
 
     cache = Path(cache_dir)
     backbone = backbone_digest(model)
+    specs = validation_views(Path(shared))
 
     def banks() -> dict[str, RayBank]:
         return {
@@ -149,10 +152,10 @@ def blend_heads(
                 cache / f"view-{backbone}-{spec.key.replace('/', '-')}-{spec.target_scale}-{spec.stride}.pt",
                 lambda spec=spec: view_bank(model, Path(shared), spec),
             )
-            for spec in validation_views()
+            for spec in specs
         }
 
-    views = json.dumps([spec.__dict__ for spec in validation_views()])
+    views = json.dumps([spec.__dict__ for spec in specs])
     digest = hashlib.sha256((sha256_file(Path(init)) + sha256_file(Path(trained)) + views).encode()).hexdigest()[:12]
     table = score_table(model, theta_0, theta_1, banks, alphas, cache / f"scores-{digest}.json")
     alpha = choose_alpha(table)
@@ -164,7 +167,7 @@ def blend_heads(
         "image and object-masked), among those no worse than the initialisation on each scene's mean "
         f"with the nearest sources nor on {', '.join(GUARDED)} (validation scenes choose, never train)",
         "alpha": alpha,
-        "views": [spec.__dict__ for spec in validation_views()],
+        "views": [spec.__dict__ for spec in specs],
         "psnr": {str(a): scores for a, scores in table.items()},
     }
     path = Path(out)
