@@ -16,7 +16,7 @@
 
 use crate::bundle::{ModelConfig, VolumeBuild};
 use crate::pipeline::chunks::{ChunkPolicy, BYTES_PER_SAMPLE};
-use crate::pipeline::volume::{SlabPolicy, SLAB_BYTES_PER_CELL};
+use crate::pipeline::volume::{plane_cells, SlabPolicy, SLAB_BYTES_PER_CELL};
 
 /// Encoder working memory and the decode's buffers per source pixel (V·H·W of the padded
 /// images). Measured 94-156 at 320x256-800x800.
@@ -84,10 +84,8 @@ pub fn estimate(config: &ModelConfig, plan: &MemoryPlan, sizes: &RequestSizes) -
 pub fn parts(config: &ModelConfig, plan: &MemoryPlan, sizes: &RequestSizes) -> Estimate {
     let mut e = Estimate::default();
     if let Some((w, h)) = sizes.sources {
-        let (w, h) = (w as u64, h as u64);
-        let pixels = config.views as u64 * w * h;
-        let pad = config.pad as u64;
-        let plane = (h / 4 + 2 * pad) * (w / 4 + 2 * pad);
+        let plane = plane_cells(config, w, h) as u64;
+        let pixels = config.views as u64 * w as u64 * h as u64;
         let cells = config.depth_planes as u64 * plane;
         // Images (3 channels) and features (feature_channels at 1/16 of the pixels), f32.
         let images = pixels * 3 * 4 + pixels / 16 * config.feature_channels as u64 * 4;

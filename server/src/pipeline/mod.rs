@@ -281,7 +281,7 @@ impl Pipeline {
         let config = &self.bundle.config;
         let Some((w, h)) = self.padded_source_size(sources) else { return Work::default() };
         let pixels = (sources.len() * w * h) as f64;
-        let cells = (h / 4 + 2 * config.pad) * (w / 4 + 2 * config.pad);
+        let cells = volume::plane_cells(config, w, h);
         let volume = volume::work(config, self.bundle.volume_build(), &self.slabs, pixels, cells);
         Work::of(GraphKind::Encoder, pixels).plus(volume)
     }

@@ -55,6 +55,12 @@ impl SlabPolicy {
     }
 }
 
+/// Cells of one plane of the volume for padded sources of `width` x `height`: the feature grid
+/// (1/4 of the image) with `pad` cells on each side.
+pub fn plane_cells(config: &ModelConfig, width: usize, height: usize) -> usize {
+    (height / 4 + 2 * config.pad) * (width / 4 + 2 * config.pad)
+}
+
 /// `diag(1/4, 1/4, 1, 1) · [[K, 0], [0, 1]] · w2c` per view: projection onto the feature grid.
 pub fn feature_projection(camera: &Camera) -> Matrix4<f64> {
     Matrix4::from_diagonal(&Vector4::new(0.25, 0.25, 1.0, 1.0)) * camera.k.to_homogeneous() * camera.w2c
