@@ -6,33 +6,18 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import tempfile
 from pathlib import Path
 
 from .model.checkpoint import CheckpointError
 from .train.finetune import Recipe
 
 
-def write_bundle(model, out: Path, provenance: dict, volume: str) -> dict:
-    """The bundle of ``model``; with ``volume="slabs"`` its cost volume as the two graphs the server
-    builds slab by slab (a third of the memory at paper size), else as one graph."""
-    from .export.bundle import export_bundle
-    from .export.split_volume import split_volume_bundle
-
-    if volume == "whole":
-        return export_bundle(model, out, provenance)
-    if model.cfg.norm_statistics != "batch":
-        raise ValueError(f"norm_statistics {model.cfg.norm_statistics!r}: slabs need 'batch'; use --volume whole")
-    with tempfile.TemporaryDirectory() as whole:
-        export_bundle(model, whole, provenance)
-        return split_volume_bundle(whole, out)
-
-
 def cmd_convert(args) -> None:
+    from .export.bundle import export_bundle
     from .model.checkpoint import load_mvsnerf
 
     model, provenance = load_mvsnerf(args.ckpt)
-    manifest = write_bundle(model, args.out, provenance, args.volume)
+    manifest = export_bundle(model, args.out, provenance, args.volume)
     print(f"wrote {args.out} ({manifest['model_id']})")
 
 
@@ -43,12 +28,13 @@ def cmd_init_scnerf(args) -> None:
 
 
 def cmd_export(args) -> None:
+    from .export.bundle import export_bundle
     from .model.checkpoint import load_checkpoint
 
     model, provenance = load_checkpoint(args.checkpoint)
     if args.metrics:
         provenance["metrics"] = json.loads(args.metrics.read_text())
-    manifest = write_bundle(model, args.out, provenance, args.volume)
+    manifest = export_bundle(model, args.out, provenance, args.volume)
     print(f"wrote {args.out} ({manifest['model_id']})")
 
 

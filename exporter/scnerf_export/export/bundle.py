@@ -18,6 +18,7 @@ from ..model.checkpoint import sha256_file
 from ..model.cost_volume import build_cost_volume, slab_halo
 from ..model.network import SCNeRF
 from ..rigs import synthetic_rig
+from ..runtime.volume_slabs import slab_volume_error
 from .manifest import model_id, write_manifest
 from .ray_groups import attention_cores_in_ray_groups
 
@@ -70,11 +71,11 @@ class VolumeNetGraph(nn.Module):
         return self.model.volume_from_slabs(conv0)
 
 
-# The graphs an export writes, in pipeline order. The volume is one graph (the cost volume and G2
-# in one run); `scnerf-export split-volume` turns it into VOLUME_GRAPHS, which build the same
-# volume slab by slab of depth planes in a fraction of the memory (split_volume.py).
-GRAPHS = ("encoder", "volume", "renderer")
+# The graphs a bundle holds, in pipeline order: the volume as one graph (the cost volume and G2 in
+# one run) or as VOLUME_GRAPHS, which build the same volume slab by slab of depth planes in a
+# fraction of the memory (`scnerf-export split-volume` turns the one into the other).
 VOLUME_GRAPHS = ("cost_slab", "volume_net")
+GRAPHS = {"whole": ("encoder", "volume", "renderer"), "slabs": ("encoder", *VOLUME_GRAPHS, "renderer")}
 
 
 def renderer_input_names(model: SCNeRF) -> list[str]:
@@ -171,10 +172,9 @@ def example_inputs(
     index, inside = slab_halo(d, 0, min(5, d))
     with torch.no_grad():
         features = model.encode(rig["images"])
-        volume = model.build_volume(features, rig["images"], rig["projections"], rig["depth_planes"])
-        conv0 = model.volume_net.conv0.conv(
-            build_cost_volume(features, rig["images"], rig["projections"], rig["depth_planes"], cfg.pad)
-        )
+        cost = build_cost_volume(features, rig["images"], rig["projections"], rig["depth_planes"], cfg.pad)
+        volume = model.volume_net(cost)  # = model.build_volume(...)
+        conv0 = model.volume_net.conv0.conv(cost)
     rays = {
         "ray_origins": rig["ray_origins"][:rays],
         "ray_directions": rig["ray_directions"][:rays],
@@ -287,14 +287,28 @@ def validate_graph(path: Path, module: nn.Module, inputs: dict[str, torch.Tensor
     return error
 
 
-def export_bundle(model: SCNeRF, out_dir: str | Path, provenance: dict) -> dict:
-    """Write encoder/volume/renderer.onnx + manifest.json into out_dir and validate them."""
+def validate_slab_volume(model: SCNeRF, out: Path, inputs: dict[str, torch.Tensor], tolerance: float) -> float:
+    """The slab graphs' volume, over slabs of several sizes, against PyTorch's whole volume: each
+    graph agreeing with its own module does not show that the slabs add up to the volume."""
+    with torch.no_grad():
+        want = model.build_volume(*inputs.values()).numpy()
+    error = slab_volume_error(want, out, {k: v.numpy() for k, v in inputs.items()})
+    if not error <= tolerance:
+        raise RuntimeError(f"the slab graphs' volume differs from PyTorch's by {error:.3g} (> {tolerance})")
+    return error
+
+
+def export_bundle(model: SCNeRF, out_dir: str | Path, provenance: dict, volume: str = "whole") -> dict:
+    """Write the graphs (``volume``: the volume as one graph, "whole", or slab by slab, "slabs") and
+    manifest.json into out_dir and validate them."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     model = model.eval()
     inputs = example_inputs(model)
     checks = example_inputs(model, blocks=CHECK_BLOCKS, rays=CHECK_RAYS)
-    graphs, errors = export_graphs(model, out, GRAPHS, (inputs, checks))
+    graphs, errors = export_graphs(model, out, GRAPHS[volume], (inputs, checks))
+    if volume == "slabs":
+        validate_slab_volume(model, out, checks["volume"], tolerance=1e-4)
     provenance = write_licences(out, provenance)
     manifest = {
         "format_version": FORMAT_VERSION,

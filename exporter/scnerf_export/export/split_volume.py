@@ -26,7 +26,7 @@ from .. import __version__
 from ..config import ModelConfig
 from ..model.network import SCNeRF
 from ..rigs import synthetic_rig
-from ..runtime.volume_slabs import slab_feeds
+from ..runtime.volume_slabs import slab_volume_error
 from . import onnx_graph
 from .bundle import CHECK_BLOCKS, CHECK_RAYS, VOLUME_GRAPHS, example_inputs, export_graphs
 from .manifest import read_manifest, write_manifest
@@ -93,14 +93,7 @@ def volumes_agree(old_volume: Path, out: Path, inputs: dict[str, np.ndarray], sl
     size in ``slab_sizes``, on the volume's ``inputs`` (features, images, projections,
     depth_planes)."""
     (old,) = _session(old_volume).run(None, inputs)
-    cost_slab, volume_net = _session(out / "cost_slab.onnx"), _session(out / "volume_net.onnx")
-    d = inputs["depth_planes"].shape[0]
-    worst = 0.0
-    for step in slab_sizes:
-        slabs = [cost_slab.run(None, slab_feeds(inputs, a, min(a + step, d)))[0] for a in range(0, d, step)]
-        (new,) = volume_net.run(None, {"conv0": np.concatenate(slabs, axis=2)})
-        worst = max(worst, float(np.abs(new - old).max()))
-    return worst
+    return slab_volume_error(old, out, inputs, slab_sizes)
 
 
 def check_inputs(encoder: Path, cfg: ModelConfig) -> dict[str, np.ndarray]:

@@ -38,8 +38,9 @@ class SCNeRF(nn.Module):
         depth_planes: torch.Tensor,
         plane_inside: torch.Tensor,
     ) -> torch.Tensor:
-        """G2's first convolution over the cost volume of a slab of planes (``slab_planes``: the
-        slab with one plane of halo each side, and which of them lie inside the volume). The cost
+        """G2's first convolution over the cost volume of a slab of planes (``depth_planes``: the
+        slab with one plane of halo each side; ``plane_inside``: which of them lie inside the
+        volume, see ``cost_volume.slab_halo``). The cost
         volume's variance is per plane, so the slabs together give exactly ``build_volume``'s
         first convolution, while only one slab's warped features exist at a time."""
         cost = build_cost_volume(features, images, projections, depth_planes, self.cfg.pad)

@@ -6,6 +6,8 @@ volume was split has one ``volume.onnx`` instead: :func:`build_volume` runs whic
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import onnxruntime as ort
 
@@ -32,6 +34,29 @@ def slab_feeds(inputs: dict[str, np.ndarray], start: int, stop: int) -> dict[str
     return {**inputs, "depth_planes": inputs["depth_planes"][index], "plane_inside": inside}
 
 
+def volume_by_slabs(
+    cost_slab: ort.InferenceSession, volume_net: ort.InferenceSession, inputs: dict[str, np.ndarray], step: int
+) -> np.ndarray:
+    """The encoding volume from the volume's ``inputs``, ``step`` planes per cost slab run."""
+    d = inputs["depth_planes"].shape[0]
+    slabs = [cost_slab.run(None, slab_feeds(inputs, a, min(a + step, d)))[0] for a in range(0, d, step)]
+    return volume_net.run(None, {"conv0": np.concatenate(slabs, axis=2)})[0]
+
+
+def slab_volume_error(
+    reference: np.ndarray, bundle_dir: Path, inputs: dict[str, np.ndarray], slab_sizes=(1, 5, 64)
+) -> float:
+    """Largest difference from ``reference`` of the volume that ``bundle_dir``'s slab graphs build
+    from ``inputs``, over slabs of each size in ``slab_sizes``."""
+    cost_slab, volume_net = (
+        ort.InferenceSession(str(bundle_dir / f"{name}.onnx"), providers=["CPUExecutionProvider"])
+        for name in ("cost_slab", "volume_net")
+    )
+    return max(
+        float(np.abs(volume_by_slabs(cost_slab, volume_net, inputs, step) - reference).max()) for step in slab_sizes
+    )
+
+
 def build_volume(
     sessions: dict[str, ort.InferenceSession], inputs: dict[str, np.ndarray], pad: int, budget: int = SLAB_BUDGET_BYTES
 ) -> np.ndarray:
@@ -39,8 +64,6 @@ def build_volume(
     by graph name), slabs of what ``budget`` allows."""
     if "volume" in sessions:
         return sessions["volume"].run(None, inputs)[0]
-    d = inputs["depth_planes"].shape[0]
     _, _, h, w = inputs["features"].shape
-    step = planes_per_slab(d, (h + 2 * pad) * (w + 2 * pad), budget)
-    slabs = [sessions["cost_slab"].run(None, slab_feeds(inputs, a, min(a + step, d)))[0] for a in range(0, d, step)]
-    return sessions["volume_net"].run(None, {"conv0": np.concatenate(slabs, axis=2)})[0]
+    step = planes_per_slab(inputs["depth_planes"].shape[0], (h + 2 * pad) * (w + 2 * pad), budget)
+    return volume_by_slabs(sessions["cost_slab"], sessions["volume_net"], inputs, step)
