@@ -21,10 +21,10 @@ import numpy as np
 import torch
 
 from ..data import datasets
-from ..evaluate.eval import downscale_target, source_pool
+from ..evaluate.eval import source_pool
 from ..model.checkpoint import load_checkpoint, save_checkpoint, sha256_file
 from ..model.network import SCNeRF
-from .finetune import HEADS, VALIDATION, RayBank, backbone_digest, bank_view, cached, score
+from .finetune import HEADS, VALIDATION, RayBank, backbone_digest, cached, score, target_bank
 
 ALPHAS = (0.0, 0.2, 0.4, 0.5, 0.6, 0.8, 1.0)
 PROTOCOLS = ("nearest", "fixed")
@@ -69,12 +69,7 @@ def view_bank(model: SCNeRF, shared: Path, spec: ViewSpec) -> RayBank:
         names = datasets.nearest_sources(scene, spec.target, source_pool(scene, scene.default_targets))
     else:
         names = scene.default_sources
-    view = downscale_target(scene.views[spec.target], spec.target_scale)
-    grid = np.zeros(view.image.shape[:2], dtype=bool)
-    grid[:: spec.stride, :: spec.stride] = True
-    sources = datasets.get_views(scene, list(names))
-    pick = np.flatnonzero(grid)
-    return bank_view(model, sources, scene.near, scene.far, scene.background, view.camera, view.image, pick, view.mask)
+    return target_bank(model, scene, spec.target, names, spec.target_scale, spec.stride)
 
 
 def blended(theta_0: dict, theta_1: dict, alpha: float) -> dict:

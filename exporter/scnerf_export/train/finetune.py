@@ -214,31 +214,28 @@ VALIDATION = (
 )
 
 
+def target_bank(
+    model: SCNeRF, scene: datasets.SceneData, target: str, sources: list[str], target_scale: float, stride: int
+) -> RayBank:
+    """The heads' inputs for every ``stride``-th pixel along each axis of ``target`` at
+    ``target_scale``, rendered from the views ``sources``."""
+    view = downscale_target(scene.views[target], target_scale)
+    grid = np.zeros(view.image.shape[:2], dtype=bool)
+    grid[::stride, ::stride] = True
+    views = datasets.get_views(scene, list(sources))
+    pick = np.flatnonzero(grid)
+    return bank_view(model, views, scene.near, scene.far, scene.background, view.camera, view.image, pick, view.mask)
+
+
 def validation_bank(model: SCNeRF, shared: Path, spec: ValidationScene) -> RayBank:
     scene = datasets.load_scene(shared / "data" / spec.path, spec.format)
-    targets = scene.default_targets
-    pool = source_pool(scene, targets)
-    banks = []
-    for name in targets:
-        view = downscale_target(scene.views[name], spec.target_scale)
-        sources = datasets.get_views(scene, datasets.nearest_sources(scene, name, pool))
-        h, w = view.image.shape[:2]
-        grid = np.zeros((h, w), dtype=bool)
-        grid[:: spec.stride, :: spec.stride] = True
-        banks.append(
-            bank_view(
-                model,
-                sources,
-                scene.near,
-                scene.far,
-                scene.background,
-                view.camera,
-                view.image,
-                np.flatnonzero(grid),
-                view.mask,
-            )
-        )
-    return RayBank.concat(banks)
+    pool = source_pool(scene, scene.default_targets)
+    return RayBank.concat(
+        [
+            target_bank(model, scene, name, datasets.nearest_sources(scene, name, pool), spec.target_scale, spec.stride)
+            for name in scene.default_targets
+        ]
+    )
 
 
 def backbone_digest(model: SCNeRF) -> str:
