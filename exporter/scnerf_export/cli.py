@@ -1,5 +1,5 @@
 """`scnerf-export`: convert-mvsnerf, init-scnerf, export, fixtures, eval, example, experiment, train,
-finetune, blend-heads, quantize, reexport, split-volume."""
+finetune, blend-heads, quantize, reexport, add-guided, split-volume."""
 
 from __future__ import annotations
 
@@ -163,6 +163,16 @@ def cmd_reexport(args) -> None:
     print(f"wrote {args.out} ({manifest['model_id']}; renderer agrees with {args.bundle} to {diff:.2g})")
 
 
+def cmd_add_guided(args) -> None:
+    from .export.guided import add_guided
+
+    out = args.out or args.bundle
+    manifest = add_guided(args.bundle, out, args.checkpoint)
+    diff = manifest["provenance"]["guided_graphs"]["guide_max_abs_difference_from_renderer"]
+    agreement = f"the guide renders what the renderer renders to {diff:.2g}"
+    print(f"wrote the guided-sampling graphs into {out} ({manifest['model_id']}; {agreement})")
+
+
 def cmd_split_volume(args) -> None:
     from .export.split_volume import split_volume_bundle
 
@@ -315,6 +325,14 @@ def parser() -> argparse.ArgumentParser:
     r.add_argument("--bundle", required=True, type=Path)
     r.add_argument("--out", required=True, type=Path)
     r.set_defaults(func=cmd_reexport)
+
+    g = sub.add_parser(
+        "add-guided", help="a bundle's guided-sampling graphs, from its renderer graph's weights (or its checkpoint)"
+    )
+    g.add_argument("--bundle", required=True, type=Path)
+    g.add_argument("--out", type=Path, help="write a copy with the graphs here (default: into --bundle)")
+    g.add_argument("--checkpoint", type=Path, help="export from this checkpoint instead of reading the weights back")
+    g.set_defaults(func=cmd_add_guided)
 
     s = sub.add_parser(
         "split-volume", help="bundle with one volume graph -> the same model with the volume built slab by slab"

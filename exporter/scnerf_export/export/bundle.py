@@ -17,7 +17,9 @@ from .. import __version__
 from ..model.checkpoint import sha256_file
 from ..model.cost_volume import build_cost_volume, slab_halo
 from ..model.network import SCNeRF
+from ..model.renderer import interpolated_heads
 from ..rigs import synthetic_rig
+from ..runtime.guided import GuidedPolicy
 from ..runtime.volume_slabs import slab_volume_error
 from .manifest import model_id, write_manifest
 from .ray_groups import attention_cores_in_ray_groups
@@ -75,7 +77,13 @@ class VolumeNetGraph(nn.Module):
 # one run) or as VOLUME_GRAPHS, which build the same volume slab by slab of depth planes in a
 # fraction of the memory (`scnerf-export split-volume` turns the one into the other).
 VOLUME_GRAPHS = ("cost_slab", "volume_net")
-GRAPHS = {"whole": ("encoder", "volume", "renderer"), "slabs": ("encoder", *VOLUME_GRAPHS, "renderer")}
+# Guided sampling's two renderers (runtime/guided.py): the renderer that also returns what guides
+# the other rays, and the renderer at K given samples per ray.
+GUIDED_GRAPHS = ("renderer_guide", "renderer_fine")
+GRAPHS = {
+    "whole": ("encoder", "volume", "renderer", *GUIDED_GRAPHS),
+    "slabs": ("encoder", *VOLUME_GRAPHS, "renderer", *GUIDED_GRAPHS),
+}
 
 
 def renderer_input_names(model: SCNeRF) -> list[str]:
@@ -111,6 +119,71 @@ class RendererGraph(nn.Module):
         )
 
 
+def guided_input_names(model: SCNeRF, graph: str) -> list[str]:
+    """Inputs of ``renderer_guide`` (the renderer's) and ``renderer_fine`` (the renderer's with
+    the rays' samples, then each rectifier's heads grid and the rays' taps into it)."""
+    names = renderer_input_names(model)
+    if graph == "renderer_guide":
+        return names
+    rectifiers = list(model.renderer.rectifiers())
+    taps = ["head_taps", "head_tap_weights"] if rectifiers else []
+    return names[:2] + ["sample_index", "sample_multiplicity"] + names[2:] + [f"{r}_heads" for r in rectifiers] + taps
+
+
+def _renderer_call(names: list[str], args: tuple) -> dict[str, torch.Tensor]:
+    """A renderer graph's positional inputs by name, with the defaults of undeclared ones."""
+    given = dict(zip(names, args))
+    given.setdefault("depth_range", given["near_far"])
+    given.setdefault("features", None)
+    return given
+
+
+class GuideGraph(nn.Module):
+    """The renderer at the S uniform samples, with each ray's weights and rectifier heads."""
+
+    def __init__(self, model: SCNeRF):
+        super().__init__()
+        self.model = model
+        self.names = guided_input_names(model, "renderer_guide")
+
+    def forward(self, *args):
+        g = _renderer_call(self.names, args)
+        shading = self.model.renderer.guide(
+            *(g[n] for n in ("ray_origins", "ray_directions", "near_far", "depth_range", "volume", "images")),
+            g["features"],
+            g["intrinsics"],
+            g["extrinsics"],
+        )
+        return (shading.rgb, shading.depth, shading.opacity, shading.weights, *shading.heads.values())
+
+
+class FineGraph(nn.Module):
+    """The renderer at K given samples per ray, with heads blended from guide rays."""
+
+    def __init__(self, model: SCNeRF):
+        super().__init__()
+        self.model = model
+        self.names = guided_input_names(model, "renderer_fine")
+
+    def forward(self, *args):
+        g = _renderer_call(self.names, args)
+        heads = {
+            name: interpolated_heads(g[f"{name}_heads"], g["head_taps"], g["head_tap_weights"])
+            for name in self.model.renderer.rectifiers()
+        }
+        shading = self.model.renderer.render_samples(
+            *(g[n] for n in ("ray_origins", "ray_directions", "sample_index", "sample_multiplicity", "near_far")),
+            g["depth_range"],
+            g["volume"],
+            g["images"],
+            g["features"],
+            g["intrinsics"],
+            g["extrinsics"],
+            heads,
+        )
+        return shading.rgb, shading.depth, shading.opacity, shading.weights
+
+
 def graph_signatures(model: SCNeRF) -> dict[str, dict[str, list]]:
     """Names and shapes of every graph's inputs and outputs, as written in the manifest."""
     cfg = model.cfg
@@ -127,6 +200,14 @@ def graph_signatures(model: SCNeRF) -> dict[str, dict[str, list]]:
         "intrinsics": [v, 3, 3],
         "extrinsics": [v, 4, 4],
     }
+    heads = cfg.heads * cfg.head_dim
+    fine_inputs = renderer_inputs | {
+        "sample_index": ["R", "K"],
+        "sample_multiplicity": ["R", "K"],
+        "head_taps": ["R", 4],
+        "head_tap_weights": ["R", 4],
+    }
+    fine_inputs |= {f"{r}_heads": ["G", heads, cfg.width] for r in model.renderer.rectifiers()}
     conv0 = [1, cfg.volume_channels, d, "Hp", "Wp"]
     return {
         "encoder": {"inputs": {"images": [v, 3, "H", "W"]}, "outputs": {"features": [v, c, "h", "w"]}},
@@ -154,6 +235,15 @@ def graph_signatures(model: SCNeRF) -> dict[str, dict[str, list]]:
             "inputs": {n: renderer_inputs[n] for n in renderer_input_names(model)},
             "outputs": {"rgb": ["R", 3], "depth": ["R"], "opacity": ["R"]},
         },
+        "renderer_guide": {
+            "inputs": {n: renderer_inputs[n] for n in renderer_input_names(model)},
+            "outputs": {"rgb": ["R", 3], "depth": ["R"], "opacity": ["R"], "sample_weights": ["R", cfg.samples]}
+            | {f"{r}_heads": ["R", heads, cfg.width] for r in model.renderer.rectifiers()},
+        },
+        "renderer_fine": {
+            "inputs": {n: fine_inputs[n] for n in guided_input_names(model, "renderer_fine")},
+            "outputs": {"rgb": ["R", 3], "depth": ["R"], "opacity": ["R"], "sample_weights": ["R", "K"]},
+        },
     }
 
 
@@ -162,9 +252,12 @@ def example_inputs(
     seed: int = 0,
     blocks: tuple[int, int] = (_EXAMPLE_BLOCKS_H, _EXAMPLE_BLOCKS_W),
     rays: int = _EXAMPLE_RAYS,
+    encode=None,
 ) -> dict[str, dict[str, torch.Tensor]]:
     """Plausible tensors for tracing and validation: a small scene with real camera geometry,
-    images of ``blocks`` x 32 pixels, ``rays`` target rays."""
+    images of ``blocks`` x 32 pixels, ``rays`` target rays. ``encode`` (images, projections,
+    depth planes) -> (features, volume) stands in for the model's own G1 and G2 (a bundle's graphs,
+    when only the renderer's weights are known)."""
     cfg = model.cfg
     rig = synthetic_rig(cfg, 32 * blocks[0], 32 * blocks[1], seed=seed)
     d = cfg.depth_planes
@@ -175,6 +268,8 @@ def example_inputs(
         cost = build_cost_volume(features, rig["images"], rig["projections"], rig["depth_planes"], cfg.pad)
         volume = model.volume_net(cost)  # = model.build_volume(...)
         conv0 = model.volume_net.conv0.conv(cost)
+    if encode is not None:
+        features, volume = encode(rig["images"], rig["projections"], rig["depth_planes"])
     rays = {
         "ray_origins": rig["ray_origins"][:rays],
         "ray_directions": rig["ray_directions"][:rays],
@@ -187,6 +282,8 @@ def example_inputs(
         "intrinsics": rig["intrinsics"],
         "extrinsics": rig["extrinsics"],
     }
+    guide = {n: rays[n] for n in renderer_input_names(model)}
+    fine = guided_examples(model, rays)
     return {
         "encoder": {"images": rig["images"]},
         "volume": {
@@ -204,6 +301,36 @@ def example_inputs(
         },
         "volume_net": {"conv0": conv0},
         "renderer": {n: rays[n] for n in renderer_input_names(model)},
+        "renderer_guide": guide,
+        "renderer_fine": {n: fine[n] for n in guided_input_names(model, "renderer_fine")},
+    }
+
+
+def guided_examples(model: SCNeRF, rays: dict[str, torch.Tensor], count: int = 5, grid: int = 7) -> dict:
+    """The fine graph's inputs for the example rays: ``count`` increasing samples of each ray with
+    multiplicities 1-3, and heads grids from the guide pass of ``grid`` of the rays, tapped at
+    random with weights summing to 1 (sizes unlike any other axis, so none is specialised)."""
+    cfg = model.cfg
+    n = rays["ray_origins"].shape[0]
+    rng = torch.Generator().manual_seed(7)
+    index = torch.stack([torch.randperm(cfg.samples, generator=rng)[:count].sort().values for _ in range(n)])
+    guide_rays = {k: (v[:grid] if k.startswith("ray_") else v) for k, v in rays.items()}
+    args = _renderer_call(renderer_input_names(model), tuple(guide_rays[k] for k in renderer_input_names(model)))
+    with torch.no_grad():
+        shading = model.renderer.guide(
+            *(args[k] for k in ("ray_origins", "ray_directions", "near_far", "depth_range", "volume", "images")),
+            args["features"],
+            args["intrinsics"],
+            args["extrinsics"],
+        )
+    tap_weights = torch.rand(n, 4, generator=rng)
+    return {
+        **rays,
+        "sample_index": index.float(),
+        "sample_multiplicity": torch.randint(1, 4, (n, count), generator=rng).float(),
+        **{f"{name}_heads": h for name, h in shading.heads.items()},
+        "head_taps": torch.randint(0, grid, (n, 4), generator=rng).float(),
+        "head_tap_weights": tap_weights / tap_weights.sum(dim=1, keepdim=True),
     }
 
 
@@ -219,6 +346,8 @@ def _dynamic_shapes(model: SCNeRF, graph: str) -> dict:
         "Hp": 8 * hb + 2 * pad,
         "Wp": 8 * wb + 2 * pad,
         "R": rays,
+        "K": Dim("K", min=1, max=model.cfg.samples),
+        "G": Dim("G", min=1),
     }
     shapes = graph_signatures(model)[graph]["inputs"]
     return {name: {i: spatial[a] for i, a in enumerate(shape) if isinstance(a, str)} for name, shape in shapes.items()}
@@ -246,7 +375,7 @@ def _strip_debug_metadata(proto: onnx.ModelProto) -> None:
 def export_graph(module: nn.Module, inputs: dict[str, torch.Tensor], model: SCNeRF, graph: str, path: Path) -> None:
     signature = graph_signatures(model)[graph]
     dynamic = tuple(_dynamic_shapes(model, graph).values())
-    if isinstance(module, RendererGraph):  # forward(*args): torch.export sees one tuple argument
+    if isinstance(module, (RendererGraph, GuideGraph, FineGraph)):  # forward(*args): one tuple argument
         dynamic = (dynamic,)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -263,7 +392,7 @@ def export_graph(module: nn.Module, inputs: dict[str, torch.Tensor], model: SCNe
         )
     proto = program.model_proto
     _strip_debug_metadata(proto)
-    if graph == "renderer":
+    if graph in ("renderer", "renderer_guide"):
         attention_cores_in_ray_groups(proto)
     _rename_dims(proto, signature)
     onnx.checker.check_model(proto, full_check=True)
@@ -316,6 +445,7 @@ def export_bundle(model: SCNeRF, out_dir: str | Path, provenance: dict, volume: 
         "variant": model.cfg.variant,
         "config": model.cfg.to_dict(),
         "graphs": graphs,
+        "guided": GuidedPolicy().to_dict(),
         "provenance": {
             "exporter_version": __version__,
             "torch_version": torch.__version__,
@@ -339,6 +469,8 @@ def graph_modules(model: SCNeRF) -> dict[str, nn.Module]:
         "cost_slab": CostSlabGraph(model),
         "volume_net": VolumeNetGraph(model),
         "renderer": RendererGraph(model),
+        "renderer_guide": GuideGraph(model),
+        "renderer_fine": FineGraph(model),
     }
 
 

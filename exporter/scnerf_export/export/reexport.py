@@ -106,6 +106,133 @@ def renderer_state_from_graph(path: Path, model: SCNeRF) -> dict[str, torch.Tens
     return state
 
 
+_SHAPE_OPS = ("Reshape", "Transpose", "Unsqueeze", "Squeeze")
+
+
+def _constant_operand(node, constants: dict) -> np.ndarray | None:
+    found = [constants[n] for n in node.input if n in constants]
+    return found[0] if len(found) == 1 else None
+
+
+def _first_constant_upstream(tensor: str, index: _GraphIndex, op_type: str) -> np.ndarray | None:
+    """Walking back from ``tensor`` through shape-only ops: the constant operand of the first
+    ``op_type`` node."""
+    for _ in range(8):
+        if tensor not in index.producers:
+            return None
+        node = index.nodes[index.producers[tensor]]
+        if node.op_type == op_type:
+            return _constant_operand(node, index.constants)
+        if node.op_type not in _SHAPE_OPS:
+            return None
+        tensor = node.input[0]
+    return None
+
+
+def _first_constant_downstream(tensor: str, index: _GraphIndex, op_type: str) -> np.ndarray | None:
+    """Walking forward from ``tensor`` along its first reader: the constant operand of the first
+    ``op_type`` node that has one."""
+    for _ in range(8):
+        readers = index.consumers.get(tensor, [])
+        if not readers:
+            return None
+        node = index.nodes[readers[0]]
+        if node.op_type == op_type:
+            value = _constant_operand(node, index.constants)
+            if value is not None:
+                return value
+        tensor = node.output[0]
+    return None
+
+
+def _bias_of_gemm(weight: str, index: _GraphIndex, like: torch.Tensor) -> np.ndarray | None:
+    """The bias of a layer whose weight feeds a Gemm: its third operand, or zero when the exporter
+    dropped an all-zero bias."""
+    readers = [index.nodes[k] for k in index.consumers.get(weight, []) if index.nodes[k].op_type == "Gemm"]
+    if len(readers) != 1:
+        return None
+    operands = list(readers[0].input)
+    if len(operands) < 3 or not operands[2]:
+        return np.zeros(tuple(like.shape), np.float32)
+    return index.constants.get(operands[2])
+
+
+def rectifier_state_from_folds(rows: np.ndarray, key_bias_term: np.ndarray, output_bias: np.ndarray, cfg) -> dict:
+    """W_q, W_k and the biases the current renderer graph folds away, rebuilt from what it keeps.
+
+    The graph holds, per rectifier, rows = [w_i . W_k,i ; b_i . W_k,i] / sqrt(d_k) per head i (w_i
+    the row sums of W_q, b_i its bias), the key embedding's bias through them (rows summed times
+    the embedding bias) and W_o b_v + b_o. Any W_q, W_k with the same rows compute the same
+    attention, so head i keeps W_k's first two rows as its two rows of ``rows`` and W_q picks them
+    (row sums sqrt(d_k) e_0, bias sqrt(d_k) e_1); W_v's bias is zero and W_o's bias carries it all."""
+    heads, dk, samples = cfg.heads, cfg.head_dim, cfg.samples
+    scale = np.sqrt(dk)
+    w_q = np.zeros((heads * dk, samples), np.float32)
+    b_q = np.zeros(heads * dk, np.float32)
+    w_k = np.zeros((heads * dk, samples), np.float32)
+    for i in range(heads):
+        w_q[i * dk, 0] = scale
+        b_q[i * dk + 1] = scale
+        w_k[i * dk : i * dk + 2] = rows[2 * i : 2 * i + 2]
+    sums = rows.sum(axis=1)
+    pivot = int(np.argmax(np.abs(sums)))
+    return {
+        "w_q.weight": w_q,
+        "w_q.bias": b_q,
+        "w_k.weight": w_k,
+        "w_k.bias": np.zeros(heads * dk, np.float32),
+        "w_v.bias": np.zeros(heads * dk, np.float32),
+        "w_o.bias": output_bias.reshape(-1),
+        "key_embedding.bias": key_bias_term[pivot] / sums[pivot],
+    }
+
+
+def renderer_state_from_current_graph(path: Path, model: SCNeRF) -> dict[str, torch.Tensor]:
+    """Every renderer parameter of ``model``'s config, read from a renderer.onnx of this exporter:
+    the weights kept under their names, M4's output layer behind its bias, and each rectifier's
+    folded constants found from its named weights (:func:`rectifier_state_from_folds`). What the
+    folds lose (W_q and W_k apart) is rebuilt to compute the same; ``add-guided`` checks the
+    result against the graph it was read from."""
+    index = _GraphIndex(onnx.load(str(path)))
+    constants = index.constants
+    state: dict[str, np.ndarray] = {}
+    for key in model.renderer.state_dict():
+        if _PREFIX + key in constants:
+            state[key] = constants[_PREFIX + key]
+    for key in set(model.renderer.state_dict()) - set(state):
+        if key.endswith(".bias") and key[: -len("bias")] + "weight" in state:
+            state[key] = _bias_of_gemm(
+                _PREFIX + key[: -len("bias")] + "weight", index, model.renderer.state_dict()[key]
+            )
+    out_bias = _PREFIX + "colour_head.out.bias"
+    weight = _weight_behind_bias(out_bias, index, "MatMul")
+    if weight is not None:
+        state["colour_head.out.weight"] = weight.T
+    for name in model.renderer.rectifiers():
+        prefix = _PREFIX + name + "."
+        embedding = [index.nodes[k] for k in index.consumers.get(prefix + "key_embedding.weight", [])]
+        output = [index.nodes[k] for k in index.consumers.get(prefix + "w_o.weight", [])]
+        if len(embedding) != 1 or len(output) != 1:
+            raise ReexportError(f"{path}: the {name} rectifier's weights are not where this exporter puts them")
+        rows_t = _first_constant_upstream(embedding[0].input[0], index, "MatMul")
+        key_bias = _first_constant_downstream(embedding[0].output[0], index, "Add")
+        out_bias_rows = _first_constant_downstream(output[0].output[0], index, "Add")
+        if rows_t is None or key_bias is None or out_bias_rows is None:
+            raise ReexportError(f"{path}: cannot find the {name} rectifier's folded weights")
+        folds = rectifier_state_from_folds(rows_t.T, key_bias, out_bias_rows, model.cfg)
+        state.update({name + "." + k: v for k, v in folds.items()})
+    expected = model.renderer.state_dict()
+    missing = sorted(k for k in expected if state.get(k) is None)
+    if missing:
+        raise ReexportError(f"{path}: cannot find the renderer parameters {', '.join(missing)} in the graph")
+    for key, param in expected.items():
+        if tuple(state[key].shape) != tuple(param.shape):
+            raise ReexportError(
+                f"{path}: {key} has shape {tuple(state[key].shape)}, the config needs {tuple(param.shape)}"
+            )
+    return {k: torch.tensor(np.asarray(state[k]), dtype=torch.float32) for k in expected}
+
+
 def _session(path: Path) -> ort.InferenceSession:
     return ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
 

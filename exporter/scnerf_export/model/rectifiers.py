@@ -34,7 +34,12 @@ class SampleAxisAttention(nn.Module):
         self.heads, self.head_dim = cfg.heads, cfg.head_dim
 
     def forward(self, query: torch.Tensor, keys: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
-        """query (R, Q_in), keys channels first (K_in,R,S), values (R,S,C) -> rectified features (R,S,C).
+        """query (R, Q_in), keys channels first (K_in,R,S), values (R,S,C) -> rectified features (R,S,C)."""
+        return self.correct(values, self.summary(query, keys, values))
+
+    def summary(self, query: torch.Tensor, keys: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
+        """The heads [head_1 .. head_h] of every ray, (R, h*d_k, C): all that the output at any
+        sample reads from the others (output = ReLU(V + W_o heads + b)).
 
         Computed in the (R, S, C) layout the trunk produces: a projection along S is a left
         product W @ X (R, S, C) -> (R, h*dk, C), so no tensor is transposed. Q is one value per
@@ -44,16 +49,28 @@ class SampleAxisAttention(nn.Module):
         rays, _, channels = values.shape
         heads, dk = self.heads, self.head_dim
         q_tokens = self.query_m3(query)  # (R,C)
-        v_t = (self.w_v.weight @ values).view(rays, heads, dk, channels)  # W_v's bias: see below
+        v_t = (self.w_v.weight @ values).view(rays, heads, dk, channels)  # W_v's bias: see output_bias
         slope_offset = self._key_terms(keys).view(rays, heads, 2, channels)
         q_affine = torch.stack([q_tokens, torch.ones_like(q_tokens)], dim=-1)[:, None]  # (R,1,C,2)
         scores = q_affine @ slope_offset  # (R,h,C,C)
         attention = torch.softmax(scores, dim=-1)
-        heads_t = (v_t @ attention.transpose(-1, -2)).reshape(rays, heads * dk, channels)
-        # Each attention row sums to 1, so W_v's bias comes through the heads unchanged and joins
-        # W_o's: one broadcast addition instead of two.
-        bias = self.w_o.weight @ self.w_v.bias + self.w_o.bias
-        return F.relu(values + self.w_o.weight @ heads_t + bias[:, None])
+        return (v_t @ attention.transpose(-1, -2)).reshape(rays, heads * dk, channels)
+
+    def output_bias(self) -> torch.Tensor:
+        """b of the output, (S): each attention row sums to 1, so W_v's bias comes through the heads
+        unchanged and joins W_o's: one broadcast addition instead of two."""
+        return self.w_o.weight @ self.w_v.bias + self.w_o.bias
+
+    def correct(
+        self, values: torch.Tensor, heads: torch.Tensor, sample_index: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """ReLU(V + W_o heads + b) at every sample (``sample_index`` None: values (R,S,C)), or at
+        the samples ``sample_index`` (R,K) of the S a ray has (values (R,K,C)): W_o's and b's rows
+        are per sample, so K samples read K of them."""
+        if sample_index is None:
+            return F.relu(values + self.w_o.weight @ heads + self.output_bias()[:, None])
+        rows = sample_index.long()
+        return F.relu(values + self.w_o.weight[rows] @ heads + self.output_bias()[rows][..., None])
 
     def _key_terms(self, keys: torch.Tensor) -> torch.Tensor:
         """[w . k_c', b . k_c'] / sqrt(d_k) per head and key token c': (K_in,R,S) -> (R,2h,C).

@@ -44,6 +44,28 @@ class RadiancePoints(NamedTuple):
     ref_dir: torch.Tensor  # unit ray directions in the reference camera's frame (R,3)
 
 
+class Shading(NamedTuple):
+    """What the heads make of a chunk of rays: the pixel's outputs and what guided sampling reads."""
+
+    rgb: torch.Tensor  # (R,3) before background compositing
+    depth: torch.Tensor  # (R)
+    opacity: torch.Tensor  # (R)
+    weights: torch.Tensor  # compositing weights w_k, (R,K)
+    heads: dict[str, torch.Tensor]  # per rectifier, the heads its outputs read (R, h*d_k, C)
+
+
+def uniform_depths(near_far: torch.Tensor, samples: int) -> torch.Tensor:
+    """The paper's S sample depths, uniform in [near, far]: (S)."""
+    steps = torch.linspace(0.0, 1.0, samples, dtype=near_far.dtype, device=near_far.device)
+    return near_far[0] * (1.0 - steps) + near_far[1] * steps
+
+
+def interpolated_heads(grid: torch.Tensor, taps: torch.Tensor, tap_weights: torch.Tensor) -> torch.Tensor:
+    """Heads of a ray blended from rays rendered in full: ``grid`` (G, h*d_k, C), ``taps`` (R,4)
+    rows of it (integers held as float32), ``tap_weights`` (R,4) -> (R, h*d_k, C)."""
+    return (grid[taps.long()] * tap_weights[..., None, None]).sum(dim=1)
+
+
 class RayRenderer(nn.Module):
     """Everything per target ray: point features, M1, M2, rectification, M4, compositing."""
 
@@ -59,6 +81,11 @@ class RayRenderer(nn.Module):
             self.colour_head = ColourHeadM4(cfg)
         self.geometry = SampleAxisAttention(cfg, cfg.point_feature_channels) if cfg.geometry_rectification else None
         self.appearance = SampleAxisAttention(cfg, cfg.feature_channels + 3) if cfg.appearance_rectification else None
+
+    def rectifiers(self) -> dict[str, SampleAxisAttention]:
+        """The rectifiers of this variant, in the order they run: geometry first (the paper's best)."""
+        found = {"geometry": self.geometry, "appearance": self.appearance}
+        return {name: r for name, r in found.items() if r is not None}
 
     def forward(
         self,
@@ -78,6 +105,52 @@ class RayRenderer(nn.Module):
         )
         return self.shade(points, depth_range)
 
+    def guide(
+        self,
+        ray_origins: torch.Tensor,
+        ray_directions: torch.Tensor,
+        near_far: torch.Tensor,
+        depth_range: torch.Tensor,
+        volume: torch.Tensor,
+        images: torch.Tensor,
+        features: torch.Tensor | None,
+        intrinsics: torch.Tensor,
+        extrinsics: torch.Tensor,
+    ) -> Shading:
+        """``forward`` at the S uniform samples, also returning each ray's compositing weights and
+        rectifier heads: what guided sampling places and rectifies other rays' samples with."""
+        points = self.radiance_points(
+            ray_origins, ray_directions, near_far, volume, images, features, intrinsics, extrinsics
+        )
+        return self.shade_guided(points, depth_range, torch.ones_like(points.z), None)
+
+    def render_samples(
+        self,
+        ray_origins: torch.Tensor,
+        ray_directions: torch.Tensor,
+        sample_index: torch.Tensor,
+        multiplicity: torch.Tensor,
+        near_far: torch.Tensor,
+        depth_range: torch.Tensor,
+        volume: torch.Tensor,
+        images: torch.Tensor,
+        features: torch.Tensor | None,
+        intrinsics: torch.Tensor,
+        extrinsics: torch.Tensor,
+        heads: dict[str, torch.Tensor],
+    ) -> Shading:
+        """K of a ray's S uniform samples (``sample_index`` (R,K), increasing): the network at
+        those alone. Each stands for ``multiplicity`` (R,K) uniform samples, so its opacity is
+        1 - exp(-m sigma) (the compositing's quadrature over the samples it stands for); the
+        rectifiers read ``heads`` given per ray (:func:`interpolated_heads`) instead of computing
+        them from all S samples."""
+        step = (near_far[1] - near_far[0]) / (self.cfg.samples - 1)
+        z = near_far[0] + sample_index * step
+        points = self.radiance_points(
+            ray_origins, ray_directions, near_far, volume, images, features, intrinsics, extrinsics, z
+        )
+        return self.shade_guided(points, depth_range, multiplicity, (sample_index, heads))
+
     def radiance_points(
         self,
         ray_origins: torch.Tensor,
@@ -88,14 +161,16 @@ class RayRenderer(nn.Module):
         features: torch.Tensor | None,
         intrinsics: torch.Tensor,
         extrinsics: torch.Tensor,
+        z: torch.Tensor | None = None,
     ) -> RadiancePoints:
-        """The S points of every ray through M1: what the heads (M2, rectifiers, M4) read."""
+        """The points of every ray through M1: what the heads (M2, rectifiers, M4) read. ``z``: the
+        target z-depths of the points, (R,K) per ray, or by default the S uniform ones."""
         cfg = self.cfg
-        samples = cfg.samples
         _, _, height, width = images.shape
-        steps = torch.linspace(0.0, 1.0, samples, dtype=ray_origins.dtype, device=ray_origins.device)
-        z = near_far[0] * (1.0 - steps) + near_far[1] * steps  # (S) target z-depths
-        points = (ray_origins[:, None, :] + ray_directions[:, None, :] * z[None, :, None]).reshape(-1, 3)
+        if z is None:
+            z = uniform_depths(near_far, cfg.samples)  # (S) target z-depths
+        along = z[None, :, None] if z.dim() == 1 else z[:, :, None]
+        points = (ray_origins[:, None, :] + ray_directions[:, None, :] * along).reshape(-1, 3)
 
         frustum = reference_frustum_coordinates(points, intrinsics[0], extrinsics[0], near_far, height, width, cfg.pad)
         s = sample_volume(volume, frustum)
@@ -115,29 +190,73 @@ class RayRenderer(nn.Module):
         """M2 -> compositing weights and depth D -> rectification -> M4 -> rgb (R,3), depth, opacity.
 
         depth_range is (2) for the whole chunk, or (2,R) per ray (training batches mix scenes)."""
-        cfg = self.cfg
-        rays, samples = points.ref_dir.shape[0], cfg.samples
-        ref_dir, z = points.ref_dir, points.z
+        rays, samples = points.ref_dir.shape[0], self.cfg.samples
         sigma = self.m2(points.radiance).view(rays, samples)
         weights = composite_weights(sigma)
-        depth = (weights * (z[None, :] if z.dim() == 1 else z)).sum(dim=-1)
-        opacity = weights.sum(dim=-1)
-
+        depth, opacity = self._depth_and_opacity(points.z, weights)
         radiance = points.radiance.view(rays, samples, -1)
+        query = self._query(depth, depth_range, points.ref_dir)
+        for name, rectifier in self.rectifiers().items():  # F_c = Multihead(Q, f, F_r); F = Multihead(Q, F_a, F_c)
+            radiance = rectifier(query, self._keys(points, name, rays, samples), radiance)
+        return self._composite(radiance, query, points.ref_dir, weights), depth, opacity
+
+    def shade_guided(
+        self,
+        points: RadiancePoints,
+        depth_range: torch.Tensor,
+        multiplicity: torch.Tensor,
+        given: tuple[torch.Tensor, dict[str, torch.Tensor]] | None,
+    ) -> Shading:
+        """``shade`` for guided sampling: compositing weights with each sample's ``multiplicity``;
+        the rectifiers' heads computed here from all S samples (``given`` None: a guide ray), or
+        given with the samples' indices for rays of K samples."""
+        rays = points.ref_dir.shape[0]
+        samples = points.radiance.shape[0] // rays
+        sigma = self.m2(points.radiance).view(rays, samples)
+        weights = composite_weights(sigma * multiplicity)
+        depth, opacity = self._depth_and_opacity(points.z, weights)
+        radiance = points.radiance.view(rays, samples, -1)
+        query = self._query(depth, depth_range, points.ref_dir)
+        heads = {}
+        for name, rectifier in self.rectifiers().items():
+            if given is None:
+                heads[name] = rectifier.summary(query, self._keys(points, name, rays, samples), radiance)
+                radiance = rectifier.correct(radiance, heads[name])
+            else:
+                radiance = rectifier.correct(radiance, given[1][name], given[0])
+        rgb = self._composite(radiance, query, points.ref_dir, weights)
+        return Shading(rgb, depth, opacity, weights, heads)
+
+    @staticmethod
+    def _depth_and_opacity(z: torch.Tensor, weights: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """D = sum_k w_k z_k and the opacity sum_k w_k."""
+        return (weights * (z[None, :] if z.dim() == 1 else z)).sum(dim=-1), weights.sum(dim=-1)
+
+    def _query(self, depth: torch.Tensor, depth_range: torch.Tensor, ref_dir: torch.Tensor) -> torch.Tensor | None:
+        """[E(D), E(d)]: the rectifiers' query and M4's ray input (None for mvsnerf)."""
+        cfg = self.cfg
         if cfg.variant == "mvsnerf":
-            dirs = ref_dir[:, None, :].expand(-1, samples, -1)
+            return None
+        # Clamped: an image_minmax range of a flat depth image has max == min.
+        span = torch.clamp(depth_range[1] - depth_range[0], min=1e-6)
+        depth_norm = ((depth - depth_range[0]) / span)[:, None]
+        depth_embedding = frequency_encoding(depth_norm, cfg.depth_freqs)
+        direction_embedding = frequency_encoding(ref_dir, cfg.direction_freqs)
+        return torch.cat([depth_embedding, direction_embedding], dim=-1)
+
+    @staticmethod
+    def _keys(points: RadiancePoints, rectifier: str, rays: int, samples: int) -> torch.Tensor:
+        """A rectifier's keys, channels first (K_in,R,S): f for geometry, F_a for appearance."""
+        keys = points.point_features if rectifier == "geometry" else points.appearance
+        return keys.view(-1, rays, samples)
+
+    def _composite(
+        self, radiance: torch.Tensor, query: torch.Tensor | None, ref_dir: torch.Tensor, weights: torch.Tensor
+    ) -> torch.Tensor:
+        """M4 (or MVSNeRF's colour head) per sample, composited: rgb (R,3)."""
+        if query is None:
+            dirs = ref_dir[:, None, :].expand(-1, radiance.shape[1], -1)
             colour = self.colour_head(radiance, dirs)
         else:
-            # Clamped: an image_minmax range of a flat depth image has max == min.
-            span = torch.clamp(depth_range[1] - depth_range[0], min=1e-6)
-            depth_norm = ((depth - depth_range[0]) / span)[:, None]
-            depth_embedding = frequency_encoding(depth_norm, cfg.depth_freqs)
-            direction_embedding = frequency_encoding(ref_dir, cfg.direction_freqs)
-            query = torch.cat([depth_embedding, direction_embedding], dim=-1)
-            if self.geometry is not None:  # F_c = Multihead(Q, K = f, V = F_r)
-                radiance = self.geometry(query, points.point_features.view(-1, rays, samples), radiance)
-            if self.appearance is not None:  # F = Multihead(Q, K = mean F_a, V = F_c)
-                radiance = self.appearance(query, points.appearance.view(-1, rays, samples), radiance)
             colour = self.colour_head(radiance, query)
-        rgb = (weights[..., None] * colour).sum(dim=1)
-        return rgb, depth, opacity
+        return (weights[..., None] * colour).sum(dim=1)

@@ -17,3 +17,18 @@ def rays_per_run(samples: int, memory_mb: int = DEFAULT_MEMORY_MB, max_rays: int
     """min(max_rays, budget / (samples x BYTES_PER_SAMPLE)), at least one ray."""
     by_memory = (memory_mb << 20) // (max(samples, 1) * BYTES_PER_SAMPLE)
     return min(max(by_memory, 1), max(max_rays, 1))
+
+
+# Per ray of a fine run (guided sampling) beside its samples: the four guide rays' rectifier heads
+# gathered and blended, per rectifier (4 + 1 times h*d_k x C floats); paper size, both rectifiers.
+GUIDED_BYTES_PER_RAY = 160 * 1024
+
+
+def fine_rays_per_run(
+    samples_per_ray: int, full_samples: int, memory_mb: int = DEFAULT_MEMORY_MB, max_rays: int = DEFAULT_MAX_RAYS
+) -> int:
+    """Rays of a fine run of ``samples_per_ray`` samples each: as many points as a full run's cap
+    (max_rays x full_samples), within the memory budget, at least one ray."""
+    per_ray = max(samples_per_ray, 1) * BYTES_PER_SAMPLE + GUIDED_BYTES_PER_RAY
+    cap = max(max_rays, 1) * full_samples // max(samples_per_ray, 1)
+    return min(max((memory_mb << 20) // per_ray, 1), max(cap, 1))

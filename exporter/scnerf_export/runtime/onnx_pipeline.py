@@ -13,8 +13,9 @@ from .. import cameras as cams
 from ..cameras import Camera
 from ..config import ModelConfig
 from ..export.manifest import read_manifest
-from .chunks import rays_per_run
-from .view import Rendering, pad_images, render_in_passes
+from .chunks import fine_rays_per_run, rays_per_run
+from .guided import GuidedPolicy, GuidedView, render_guided
+from .view import Rendering, pad_images, render_in_passes, renderer_passes
 from .volume_slabs import build_volume
 
 
@@ -37,7 +38,9 @@ class OnnxBundle:
             for name, g in self.manifest["graphs"].items()
         }
         self.renderer_inputs = [i.name for i in self.sessions["renderer"].get_inputs()]
+        self.policy = GuidedPolicy.from_dict(self.manifest["guided"]) if "guided" in self.manifest else None
         self.timings: dict[str, float] = {}
+        self.last_guided: GuidedView | None = None
 
     def _timed(self, stage: str, graph: str, feeds: dict) -> list[np.ndarray]:
         start = time.perf_counter()
@@ -121,11 +124,70 @@ class OnnxBundle:
         return self.render_target(scene, target, near, far, background, chunk)
 
     def render_target(
-        self, scene: dict, target: Camera, near: float, far: float, background=(0.0, 0.0, 0.0), chunk: int | None = None
+        self,
+        scene: dict,
+        target: Camera,
+        near: float,
+        far: float,
+        background=(0.0, 0.0, 0.0),
+        chunk: int | None = None,
+        sampling: str = "full",
     ) -> Rendering:
-        """One target view of an encoded scene (what a cached scene costs per view)."""
+        """One target view of an encoded scene (what a cached scene costs per view), with the
+        paper's S samples per ray (``full``) or guided sampling (``guided``, runtime/guided.py)."""
+        if sampling == "guided":
+            return self.render_guided(scene, target, near, far, background)
 
         def rays(origins, directions, depth_range):
             return self.render_rays(scene, origins, directions, near, far, depth_range, chunk)
 
         return render_in_passes(self.cfg, target, near, far, background, rays)
+
+    def render_guided(self, scene: dict, target: Camera, near: float, far: float, background) -> Rendering:
+        """A view by guided sampling, run as the server runs it."""
+        if self.policy is None:
+            raise ValueError(f"{self.path}: the bundle has no guided-sampling graphs (scnerf-export add-guided)")
+        if renderer_passes(self.cfg) == 2:
+            raise ValueError("guided sampling needs depth_norm near_far")
+        depth_range = (near, far)
+        guide_inputs = [i.name for i in self.sessions["renderer_guide"].get_inputs()]
+        fine_inputs = [i.name for i in self.sessions["renderer_fine"].get_inputs()]
+        guide_outputs = [o.name for o in self.sessions["renderer_guide"].get_outputs()]
+        heads: dict[str, np.ndarray] = {}
+
+        def guide(origins, directions):
+            outs = []
+            step = rays_per_run(self.cfg.samples)
+            for start in range(0, origins.shape[0], step):
+                rays = slice(start, start + step)
+                feeds = self.renderer_feeds(scene, origins[rays], directions[rays], near, far, depth_range)
+                outs.append(self._timed("renderer", "renderer_guide", {n: feeds[n] for n in guide_inputs}))
+            out = {name: np.concatenate([o[i] for o in outs]) for i, name in enumerate(guide_outputs)}
+            heads.update({k: v for k, v in out.items() if k.endswith("_heads")})
+            return {"weights": out["sample_weights"], **out}
+
+        def fine(origins, directions, index, multiplicity, taps, tap_weights):
+            step = fine_rays_per_run(index.shape[1], self.cfg.samples)
+            outs = []
+            for start in range(0, origins.shape[0], step):
+                rays = slice(start, start + step)
+                feeds = self.renderer_feeds(scene, origins[rays], directions[rays], near, far, depth_range)
+                feeds |= heads | {
+                    "sample_index": index[rays],
+                    "sample_multiplicity": multiplicity[rays],
+                    "head_taps": taps[rays],
+                    "head_tap_weights": tap_weights[rays],
+                }
+                outs.append(self._timed("renderer", "renderer_fine", {n: feeds[n] for n in fine_inputs}))
+            names = ("rgb", "depth", "opacity", "weights")
+            return {name: np.concatenate([o[i] for o in outs]) for i, name in enumerate(names)}
+
+        origins, directions = cams.target_rays(target)
+        bg = np.asarray(background, dtype=np.float32)
+        view = render_guided(
+            self.policy, target.width, target.height, self.cfg.samples, origins, directions, bg, guide, fine
+        )
+        self.last_guided = view
+        rgb = view.rgb + (1.0 - view.opacity[:, None]) * bg
+        shape = (target.height, target.width)
+        return Rendering(rgb.reshape(*shape, 3), view.depth.reshape(shape), view.opacity.reshape(shape))

@@ -1,0 +1,243 @@
+"""Guided sampling: a view rendered coarse to fine, the network run only where the surface is.
+
+The one description of the policy in Python (the server's is server/src/pipeline/guided.rs; the
+two are held to each other by the parity fixtures). A view is rendered in levels of pixels on
+nested grids:
+
+* level 0, every ``step``-th pixel in both axes: the full network at the S uniform samples
+  (``renderer_guide.onnx``), which also returns each ray's compositing weights and rectifier heads;
+* then grids of half the spacing each, down to every pixel. A pixel of a level has neighbours
+  rendered before it at one spacing in each axis (2 or 4 of them). Where their composited colours
+  agree within ``smooth_tolerance`` (on grids no coarser than ``smooth_max_step``), the pixel takes
+  their mean and the network does not run. Otherwise its samples come from the neighbours'
+  weights (:func:`select_samples`): the K (the level's ``samples``) uniform samples where the
+  neighbours composite most, each standing for the nearby samples where a neighbour saw matter
+  (its multiplicity), run through ``renderer_fine.onnx`` with the rectifier heads blended from
+  the four nearest level-0 rays (:func:`head_taps`).
+
+Every pixel is rendered once; a level-0 pixel is rendered exactly as with full sampling.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+# What a guide run returns per ray: rgb (R,3), depth (R), opacity (R), weights (R,S), and per
+# rectifier name its heads (R, h*d_k, C).
+GuideRun = Callable[[np.ndarray, np.ndarray], dict[str, np.ndarray]]
+# What a fine run takes: origins, directions, sample_index (R,K), multiplicity (R,K), taps (R,4),
+# tap weights (R,4) (the heads grid is the caller's); returns rgb, depth, opacity, weights (R,K).
+FineRun = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray], dict[str, np.ndarray]]
+
+
+@dataclass(frozen=True)
+class GuidedPolicy:
+    """The manifest's ``guided`` object (docs/bundle.md)."""
+
+    step: int = 8
+    samples: tuple[int, ...] = (32, 16, 8)
+    support_threshold: float = 1e-3
+    smooth_tolerance: float = 0.03
+    smooth_max_step: int = 2
+
+    def __post_init__(self) -> None:
+        if self.step < 1 or self.step & (self.step - 1):
+            raise ValueError(f"guided.step must be a power of two, got {self.step}")
+        if len(self.samples) != self.step.bit_length() - 1:
+            raise ValueError(f"guided.samples needs one count per level below step {self.step}")
+
+    @staticmethod
+    def from_dict(d: dict) -> GuidedPolicy:
+        return GuidedPolicy(**{**d, "samples": tuple(d["samples"])})
+
+    def to_dict(self) -> dict:
+        return {**self.__dict__, "samples": list(self.samples)}
+
+    def levels(self) -> list[tuple[int, int]]:
+        """(grid spacing, samples per pixel) of every level after the first, coarse to fine."""
+        return [(self.step >> (i + 1), k) for i, k in enumerate(self.samples)]
+
+
+def level_pixels(width: int, height: int, spacing: int) -> np.ndarray:
+    """Pixels (v, u) of the grid of ``spacing`` not on the grid of twice it, row by row: the
+    pixels one level renders (all of the grid for the first level's spacing, see ``first``)."""
+    v, u = np.meshgrid(np.arange(0, height, spacing), np.arange(0, width, spacing), indexing="ij")
+    v, u = v.ravel(), u.ravel()
+    keep = (v % (2 * spacing) != 0) | (u % (2 * spacing) != 0)
+    return np.stack([v[keep], u[keep]], axis=1)
+
+
+def first_level_pixels(width: int, height: int, step: int) -> np.ndarray:
+    v, u = np.meshgrid(np.arange(0, height, step), np.arange(0, width, step), indexing="ij")
+    return np.stack([v.ravel(), u.ravel()], axis=1)
+
+
+def neighbours(pixels: np.ndarray, width: int, height: int, spacing: int) -> tuple[np.ndarray, np.ndarray]:
+    """For each pixel of a level, its up to 4 neighbours rendered before it (on the grid of
+    twice the spacing, one spacing away in each axis), as (N,4,2) (v, u) and a (N,4) mask, in
+    the order (-,-), (-,+), (+,-), (+,+) of the offsets (an offset of 0 repeats a neighbour,
+    which the mask drops)."""
+    found, valid = [], []
+    for dv in (-1, 1):
+        for du in (-1, 1):
+            v, u = pixels[:, 0].copy(), pixels[:, 1].copy()
+            odd_v, odd_u = v % (2 * spacing) != 0, u % (2 * spacing) != 0
+            v = np.where(odd_v, v + dv * spacing, v)
+            u = np.where(odd_u, u + du * spacing, u)
+            ok = (v < height) & (u < width)
+            # An even axis has one neighbour, not two: keep the (-) offset's copy only.
+            ok &= (odd_v | (dv < 0)) & (odd_u | (du < 0))
+            found.append(np.stack([np.minimum(v, height - 1), np.minimum(u, width - 1)], axis=1))
+            valid.append(ok)
+    return np.stack(found, axis=1), np.stack(valid, axis=1)
+
+
+def select_samples(score: np.ndarray, count: int, threshold: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The ``count`` samples of each ray to run, from its neighbours' weights ``score`` (N,S).
+
+    The score is dilated by one sample (half a neighbour's score): a surface between two samples
+    is seen by both. The samples with the highest dilated scores are taken (ties: the nearer to
+    the best sample, then the lower index). Every sample whose dilated score reaches
+    ``threshold`` (the support: where a neighbour saw matter) and is not taken is stood for by
+    the nearest taken one (ties: the lower), so each taken sample has a multiplicity >= 1.
+    Returns sample indices (N,K) increasing, multiplicities (N,K) and, per uniform sample, the
+    position of the taken sample that stands for it, or -1 (N,S)."""
+    n, s = score.shape
+    shifted = np.zeros((n, s + 2), score.dtype)
+    shifted[:, 1:-1] = score
+    dilated = np.maximum(score, np.float32(0.5) * np.maximum(shifted[:, :-2], shifted[:, 2:]))
+    best = np.argmax(dilated, axis=1)
+    distance = np.abs(np.arange(s)[None, :] - best[:, None])
+    # lexsort: the last key is the primary one.
+    order = np.lexsort((np.broadcast_to(np.arange(s), (n, s)), distance, -dilated), axis=1)
+    index = np.sort(order[:, :count], axis=1)
+    members = dilated >= threshold
+    members[np.arange(n)[:, None], index] = True
+    owner = nearest_taken(index, s)
+    owner = np.where(members, owner, -1)
+    multiplicity = np.zeros((n, count), np.float32)
+    np.add.at(multiplicity, (np.nonzero(owner >= 0)[0], owner[owner >= 0]), 1.0)
+    return index, multiplicity, owner
+
+
+def nearest_taken(index: np.ndarray, samples: int) -> np.ndarray:
+    """For every uniform sample, the position in ``index`` (N,K, increasing) of the nearest taken
+    sample, the lower on a tie: (N,S)."""
+    n, k = index.shape
+    grid = np.arange(samples)
+    after = np.stack([np.searchsorted(row, grid) for row in index])  # first taken >= sample
+    lower = np.clip(after - 1, 0, k - 1)
+    upper = np.clip(after, 0, k - 1)
+    rows = np.arange(n)[:, None]
+    to_lower = np.abs(grid[None, :] - index[rows, lower])
+    to_upper = np.abs(index[rows, upper] - grid[None, :])
+    return np.where(to_lower <= to_upper, lower, upper)
+
+
+def spread_weights(weights: np.ndarray, multiplicity: np.ndarray, owner: np.ndarray) -> np.ndarray:
+    """A fine ray's weights over all S samples, for the levels after it: each taken sample's
+    weight shared among the samples it stands for."""
+    share = weights / multiplicity
+    rows = np.arange(owner.shape[0])[:, None]
+    return np.where(owner >= 0, share[rows, np.maximum(owner, 0)], np.float32(0.0)).astype(np.float32)
+
+
+def head_taps(pixels: np.ndarray, grid_width: int, grid_height: int, step: int) -> tuple[np.ndarray, np.ndarray]:
+    """The four level-0 rays around each pixel (rows of the level-0 grid, row by row) and their
+    bilinear weights: (N,4) each, as float32 (the graph's inputs)."""
+    gv, gu = pixels[:, 0] / step, pixels[:, 1] / step
+    v0 = np.minimum(np.floor(gv).astype(np.int64), grid_height - 1)
+    u0 = np.minimum(np.floor(gu).astype(np.int64), grid_width - 1)
+    v1, u1 = np.minimum(v0 + 1, grid_height - 1), np.minimum(u0 + 1, grid_width - 1)
+    tv = np.clip(gv - v0, 0.0, 1.0).astype(np.float32)
+    tu = np.clip(gu - u0, 0.0, 1.0).astype(np.float32)
+    taps = np.stack([v0 * grid_width + u0, v0 * grid_width + u1, v1 * grid_width + u0, v1 * grid_width + u1], axis=1)
+    weights = np.stack([(1 - tu) * (1 - tv), tu * (1 - tv), (1 - tu) * tv, tu * tv], axis=1)
+    return taps.astype(np.float32), weights.astype(np.float32)
+
+
+@dataclass
+class GuidedView:
+    """A view's raw outputs (before the background) and how it was sampled."""
+
+    rgb: np.ndarray  # (H*W,3)
+    depth: np.ndarray  # (H*W)
+    opacity: np.ndarray  # (H*W)
+    network_samples: int  # samples the network ran at, over all pixels
+    interpolated: int  # pixels that took their neighbours' mean
+
+
+def render_guided(
+    policy: GuidedPolicy,
+    width: int,
+    height: int,
+    samples: int,
+    origins: np.ndarray,
+    directions: np.ndarray,
+    background: np.ndarray,
+    guide: GuideRun,
+    fine: FineRun,
+) -> GuidedView:
+    """Every pixel of a ``width`` x ``height`` view (rays row by row) by the policy."""
+    n = width * height
+    rgb, depth, opacity = np.zeros((n, 3), np.float32), np.zeros(n, np.float32), np.zeros(n, np.float32)
+    # The weights over all S samples of the pixels later levels read (every second row and column).
+    guidance = np.zeros((n, samples), np.float32) if policy.step > 1 else None
+    first = first_level_pixels(width, height, policy.step)
+    rows = first[:, 0] * width + first[:, 1]
+    out = guide(origins[rows], directions[rows])
+    rgb[rows], depth[rows], opacity[rows] = out["rgb"], out["depth"], out["opacity"]
+    if guidance is not None:
+        guidance[rows] = out["weights"]
+    grid_h, grid_w = (height - 1) // policy.step + 1, (width - 1) // policy.step + 1
+    run_samples, interpolated = len(rows) * samples, 0
+    for spacing, count in policy.levels():
+        pixels = level_pixels(width, height, spacing)
+        near, valid = neighbours(pixels, width, height, spacing)
+        near_rows = near[..., 0] * width + near[..., 1]
+        colours = rgb[near_rows] + (1.0 - opacity[near_rows])[..., None] * background
+        smooth = np.zeros(len(pixels), bool)
+        if spacing <= policy.smooth_max_step:
+            smooth = _agree(colours, valid, policy.smooth_tolerance)
+        here = pixels[:, 0] * width + pixels[:, 1]
+        keeps_guidance = spacing > 1
+        if smooth.any():
+            taken, of = near_rows[smooth], valid[smooth]
+            rows = here[smooth]
+            rgb[rows], depth[rows], opacity[rows] = (_masked_mean(a[taken], of) for a in (rgb, depth, opacity))
+            if keeps_guidance:
+                guidance[rows] = _masked_max(guidance[taken], of)
+            interpolated += int(smooth.sum())
+        run = ~smooth
+        if not run.any():
+            continue
+        score = _masked_max(guidance[near_rows[run]], valid[run])
+        index, multiplicity, owner = select_samples(score, count, policy.support_threshold)
+        taps, tap_weights = head_taps(pixels[run], grid_w, grid_h, policy.step)
+        rows = here[run]
+        out = fine(origins[rows], directions[rows], index.astype(np.float32), multiplicity, taps, tap_weights)
+        rgb[rows], depth[rows], opacity[rows] = out["rgb"], out["depth"], out["opacity"]
+        if keeps_guidance:
+            guidance[rows] = spread_weights(out["weights"], multiplicity, owner)
+        run_samples += len(rows) * count
+    return GuidedView(rgb, depth, opacity, run_samples, interpolated)
+
+
+def _agree(colours: np.ndarray, valid: np.ndarray, tolerance: float) -> np.ndarray:
+    """At least two neighbours, and in every channel their colours span at most ``tolerance``."""
+    high = np.where(valid[..., None], colours, -np.inf).max(axis=1)
+    low = np.where(valid[..., None], colours, np.inf).min(axis=1)
+    return (valid.sum(axis=1) >= 2) & ((high - low).max(axis=1) <= tolerance)
+
+
+def _masked_mean(values: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    mask = valid.reshape(valid.shape + (1,) * (values.ndim - 2)).astype(np.float32)
+    return ((values * mask).sum(axis=1) / mask.sum(axis=1)).astype(np.float32)
+
+
+def _masked_max(values: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    mask = valid.reshape(valid.shape + (1,) * (values.ndim - 2))
+    return np.where(mask, values, np.float32(0.0)).max(axis=1)
