@@ -117,7 +117,7 @@ impl Picked {
 /// The set `pick` chooses among `sets` (largest first); `None` when there are no sets (the
 /// capture is read as it is). A `--downscale N` the capture has no folder for is an error naming
 /// the folders it has.
-pub fn pick(root: &Path, sets: &[ImageSet], pick: Pick) -> Result<Option<Picked>> {
+pub fn pick(sets: &[ImageSet], pick: Pick) -> Result<Option<Picked>> {
     let chosen = match pick {
         Pick::Downscale(factor) => {
             if sets.is_empty() && factor <= 1 {
@@ -126,10 +126,7 @@ pub fn pick(root: &Path, sets: &[ImageSet], pick: Pick) -> Result<Option<Picked>
             let set = sets.iter().find(|s| s.factor == factor.max(1)).ok_or_else(|| {
                 let have: Vec<String> = sets.iter().map(ImageSet::describe).collect();
                 let have = if have.is_empty() { "no image sets".to_string() } else { have.join(", ") };
-                Error::dataset(
-                    root,
-                    format!("--downscale {factor}: there is no {} folder; the capture has {have}", folder_name(factor)),
-                )
+                Error::UnknownImageSet { factor, folder: folder_name(factor), have }
             })?;
             Some((set.clone(), true))
         }
@@ -155,7 +152,7 @@ pub fn load_picked(
         None => readers::detect(fs, root)?,
     };
     let sets = image_sets(fs, root, format)?;
-    let picked = pick(root, &sets, rule)?;
+    let picked = pick(&sets, rule)?;
     let downscale = picked.as_ref().map(|p| p.set.factor).filter(|&f| f > 1);
     let capture = readers::load_from(fs, root, Some(format), ReadOptions { downscale, ..opts })?;
     Ok((capture, picked))
@@ -179,8 +176,7 @@ mod tests {
     #[test]
     fn fit_takes_the_largest_set_within_the_limit() {
         let sets = [set(1, 4032, 3024), set(4, 1008, 756), set(8, 504, 378)];
-        let root = Path::new("fern");
-        let fit = |max_pixels| pick(root, &sets, Pick::Fit { max_pixels }).unwrap().unwrap();
+        let fit = |max_pixels| pick(&sets, Pick::Fit { max_pixels }).unwrap().unwrap();
         assert_eq!((fit(1 << 20).set.factor, fit(1 << 20).fits), (4, true));
         assert_eq!((fit(4032 * 3024).set.factor, fit(1008 * 756 - 1).set.factor), (1, 8));
         assert_eq!((fit(1000).set.factor, fit(1000).fits), (8, false), "none fits: the smallest, flagged");
@@ -193,12 +189,14 @@ mod tests {
     #[test]
     fn downscale_takes_its_folder_or_names_those_there_are() {
         let sets = [set(1, 64, 48), set(4, 16, 12)];
-        let root = Path::new("fern");
-        assert_eq!(pick(root, &sets, Pick::Downscale(4)).unwrap().unwrap().set.factor, 4);
-        assert_eq!(pick(root, &sets, Pick::Downscale(1)).unwrap().unwrap().set.factor, 1);
-        let err = pick(root, &sets, Pick::Downscale(2)).unwrap_err().to_string();
-        assert!(err.contains("no images_2 folder; the capture has images (64x48), images_4 (16x12)"), "{err}");
-        assert_eq!(pick(root, &[], Pick::Downscale(1)).unwrap(), None);
-        assert_eq!(pick(root, &[], Pick::Fit { max_pixels: 10 }).unwrap(), None);
+        assert_eq!(pick(&sets, Pick::Downscale(4)).unwrap().unwrap().set.factor, 4);
+        assert_eq!(pick(&sets, Pick::Downscale(1)).unwrap().unwrap().set.factor, 1);
+        let err = pick(&sets, Pick::Downscale(2)).unwrap_err().to_string();
+        assert!(
+            err.contains("downscale 2: there is no images_2 folder; the capture has images (64x48), images_4 (16x12)"),
+            "{err}"
+        );
+        assert_eq!(pick(&[], Pick::Downscale(1)).unwrap(), None);
+        assert_eq!(pick(&[], Pick::Fit { max_pixels: 10 }).unwrap(), None);
     }
 }

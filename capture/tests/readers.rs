@@ -385,7 +385,7 @@ fn load_picked_takes_the_largest_set_that_fits_or_the_one_asked_for() {
         let err = image_sets::load_picked(&Disk, dir.path(), None, ReadOptions::default(), Pick::Downscale(8))
             .unwrap_err()
             .to_string();
-        assert!(err.contains("--downscale 8: there is no images_8 folder"), "{folder}: {err}");
+        assert!(err.contains("downscale 8: there is no images_8 folder"), "{folder}: {err}");
         // the server reads what a client sent: the same rule over files in memory
         let files = in_memory(dir.path());
         let (capture, picked) =
