@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import re
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -61,6 +62,8 @@ class Scene:
     near: float
     far: float
     names: list[str] = field(default_factory=list)
+    #: The server's stage timings of the upload in ms (its ``server-timing`` header).
+    timings: dict[str, float] = field(default_factory=dict)
     format: str | None = None
     image_set: str | None = None
     warnings: list[str] = field(default_factory=list)
@@ -80,6 +83,17 @@ class Client:
         self._limits: Limits | None = None
 
     # -- the service
+
+    def ready(self) -> bool:
+        """Whether the server has its model loaded and warmed up (``GET /readyz``)."""
+        try:
+            return self.session.get(self.url + "/readyz", timeout=self.timeout).status_code == 200
+        except requests.ConnectionError:
+            return False
+
+    def metrics(self) -> str:
+        """The server's Prometheus metrics, as text (``GET /metrics``)."""
+        return self._send("GET", "/metrics").text
 
     def model(self) -> dict[str, Any]:
         """The served model: id, variant, config and provenance (``GET /v1/model``)."""
@@ -133,10 +147,16 @@ class Client:
                 digest.update(len(data).to_bytes(8, "little") + data)
             scene_id = f"py-{digest.hexdigest()[:32]}"
 
-        def upload() -> str:
-            return self._send("PUT", f"/v1/scenes/{scene_id}", files=parts).json()["scene_id"]
+        scene = Scene(scene_id, [s["camera"] for s in document["sources"]], near, far)
 
-        return Scene(upload(), [s["camera"] for s in document["sources"]], near, far, upload=upload)
+        def upload() -> str:
+            response = self._send("PUT", f"/v1/scenes/{scene_id}", files=parts)
+            scene.timings = server_timing(response.headers.get("server-timing", ""))
+            return response.json()["scene_id"]
+
+        upload()
+        scene.upload = upload
+        return scene
 
     def upload_capture(
         self,
@@ -165,7 +185,8 @@ class Client:
         scene = Scene("", [], 0.0, 0.0)
 
         def upload() -> str:
-            body = self._send("POST", "/v1/captures", files=parts, params=params).json()
+            response = self._send("POST", "/v1/captures", files=parts, params=params)
+            body, scene.timings = response.json(), server_timing(response.headers.get("server-timing", ""))
             scene.id, scene.cameras, scene.near, scene.far = (
                 body["scene_id"],
                 body["cameras"],
@@ -266,6 +287,12 @@ class Client:
             model_id=body.get("model_id", ""),
             sources=sources,
         )
+
+
+def server_timing(header: str) -> dict[str, float]:
+    """``encoder;dur=812.5, volume;dur=90`` as ``{"encoder": 812.5, "volume": 90.0}``."""
+    found = (re.match(r"\s*([\w-]+)\s*;\s*dur=([\d.]+)", item) for item in header.split(","))
+    return {m.group(1): float(m.group(2)) for m in found if m}
 
 
 def _seconds(value: str | None) -> float | None:
