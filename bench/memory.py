@@ -1,7 +1,7 @@
 """Where a request's memory goes: ``python -m bench.memory``.
 
 For each bundle and source size, a fresh server (release build, ``--memory-probe on``) renders
-one view through ``POST /v1/render`` (multipart, as curl sends it) from a real triple of source
+one view through ``POST /v1/render`` (multipart, by scnerf_client) from a real triple of source
 views resized to that size. The probe resets the process's peak resident set (``VmHWM``) before
 each stage (decoding the sources, each graph run) and reads it after, so each stage's peak is its
 own; the table gives, per stage, that peak and the resident set after the stage's last run (what
@@ -24,12 +24,11 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from scnerf_client import Client, ConnectionFailed, ServerError
 from scnerf_export.cameras import camera_json
 from scnerf_export.data.datasets import get_views, load_scene
 from scnerf_export.data.scene import resize_view
 from scnerf_export.serving import REPO, ServerProcess, find_server_binary, png_bytes
-
-from .server import multipart_request
 
 SHARED = REPO.parent / "shared" / "data"
 SIZES = ("320x256", "640x512", "800x800", "1024x1024")
@@ -53,8 +52,8 @@ def triple_for(size: tuple[int, int]) -> Triple:
     return SCAN37 if size[0] != size[1] else LEGO
 
 
-def request_for(triple: Triple, size: tuple[int, int]) -> tuple[bytes, dict]:
-    """The multipart body and headers of one render of ``triple`` with sources at ``size``."""
+def request_for(triple: Triple, size: tuple[int, int]) -> dict:
+    """The arguments of ``Client.render`` for one render of ``triple`` with sources at ``size``."""
     scene = load_scene(SHARED / triple.scene, triple.format)
     views = get_views(scene, list(triple.sources))
     target = scene.views[triple.target].camera.resized(*TARGET)
@@ -62,14 +61,26 @@ def request_for(triple: Triple, size: tuple[int, int]) -> tuple[bytes, dict]:
     for view in views:
         resized = resize_view(view, *size)
         sources.append((resized.camera, png_bytes(resized.image)))
-    document = {
-        "sources": [{"camera": camera_json(c)} for c, _ in sources],
+    return {
+        "images": [data for _, data in sources],
+        "cameras": [camera_json(c) for c, _ in sources],
         "target": camera_json(target),
         "near": scene.near,
         "far": scene.far,
         "background": list(scene.background),
     }
-    return multipart_request(document, [data for _, data in sources])
+
+
+def render_status(client: Client, request: dict) -> tuple[int | None, str, float | None]:
+    """Status of one render without retries (``client`` made with ``max_retries=0``): 200, the
+    server's refusal (its message and Retry-After), or None when the server did not answer."""
+    try:
+        client.render(**request, outputs=["rgb"])
+        return 200, "", None
+    except ServerError as e:
+        return e.status, e.message, getattr(e, "retry_after", None)
+    except ConnectionFailed as e:
+        return None, str(e), None
 
 
 def mib(value: float) -> float:
@@ -115,7 +126,7 @@ def stage_metrics(metrics: str) -> dict:
 
 
 def measure(binary: Path, bundle: Path, size: tuple[int, int], args) -> dict:
-    body, headers = request_for(triple_for(size), size)
+    request = request_for(triple_for(size), size)
     # A server without the probe (one built before it, for the "before" figures) gives only the
     # process's peak over the request (VmHWM: the warm-up's peak is cleared first where possible).
     extra = (*(("--memory-probe", "on") if args.probe else ()), *args.server_arg)
@@ -128,16 +139,13 @@ def measure(binary: Path, bundle: Path, size: tuple[int, int], args) -> dict:
             # Clears the warm-up's peak (proc(5): "5" resets VmHWM to the resident set).
             Path(f"/proc/{server.proc.pid}/clear_refs").write_text("5")
         start = time.perf_counter()
-        try:
-            status, data, _ = server.request("POST", "/v1/render", body, headers)
-        except OSError as e:
-            status, data = None, str(e).encode()
+        status, error, _ = render_status(Client(server.url, max_retries=0), request)
         out["seconds"] = round(time.perf_counter() - start, 1)
         out["status"] = status
         if status != 200:
-            out["error"] = data[:300].decode(errors="replace")
+            out["error"] = error[:300]
         if server.proc.poll() is None:
-            out["stages"] = stage_metrics(server.request("GET", "/metrics")[1].decode())
+            out["stages"] = stage_metrics(server.client.metrics())
             time.sleep(args.settle_secs)
             out["after_request"] = process_memory(server.proc.pid)
     finally:

@@ -22,7 +22,8 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from bench.memory import LEGO, process_memory, request_for
+from bench.memory import LEGO, process_memory, render_status, request_for
+from scnerf_client import Client
 from scnerf_export.serving import ServerProcess, find_server_binary
 
 
@@ -36,26 +37,28 @@ def main(argv=None) -> int:
     parser.add_argument("--server-bin", default=None)
     args = parser.parse_args(argv)
     size = tuple(int(v) for v in args.size.split("x"))
-    body, headers = request_for(LEGO, size)
+    request = request_for(LEGO, size)
     extra = ["--request-timeout-secs", "7200"]
     if args.memory_budget_mb:
         extra += ["--memory-budget-mb", str(args.memory_budget_mb)]
     server = ServerProcess(find_server_binary(args.server_bin), args.bundle, args.threads, tuple(extra))
     try:
-        metrics = server.request("GET", "/metrics")[1].decode()
+        metrics = server.client.metrics()
         budget = next(
             int(line.split()[1]) for line in metrics.splitlines() if line.startswith("scnerf_memory_budget_bytes")
         )
         rest = process_memory(server.proc.pid)
         print(json.dumps({"budget_mib": budget >> 20, "at_rest": rest}), flush=True)
 
+        client = Client(server.url, max_retries=0)
+
         def one(i: int) -> dict:
             start = time.perf_counter()
-            status, data, got = server.request("POST", "/v1/render", body, headers)
+            status, error, retry_after = render_status(client, request)
             out = {"request": i, "status": status, "seconds": round(time.perf_counter() - start, 1)}
             if status != 200:
-                out["retry_after"] = {k.lower(): v for k, v in got.items()}.get("retry-after")
-                out["error"] = data[:240].decode(errors="replace")
+                out["retry_after"] = retry_after
+                out["error"] = error[:240]
             print(json.dumps(out), flush=True)
             return out
 

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Every test of the project: the lint gate (ruff, clippy, rustfmt), the Rust workspace (unit, HTTP,
 # parity against the committed fixtures, end-to-end), scenes across two replicas behind Debian's
-# nginx (scripts/proxy-test.sh), the exporter's pytest suite, the benchmark's, and the viewer in
+# nginx (scripts/proxy-test.sh), the exporter's pytest suite, the benchmark's, the Python client
+# installed into a fresh venv against the real server (scripts/python-client-test.sh), and the viewer in
 # headless Chromium (scripts/viewer-test.sh). Both scripts install what they miss with apt-get
 # (nginx, Chromium) and npm; the proxy test says SKIPPED when nginx cannot be installed. Needs
 # crates.io, PyPI, npm and Debian's packages on the first run only.
@@ -10,12 +11,13 @@ repo=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 cd "${repo}"
 scripts/fetch-onnxruntime.sh
 scripts/setup-python.sh
-.venv/bin/ruff check exporter bench scripts
-.venv/bin/ruff format --check exporter bench scripts
+.venv/bin/ruff check exporter bench scripts client-python
+.venv/bin/ruff format --check exporter bench scripts client-python
 cargo test -j2 --workspace --locked
 cargo clippy --workspace --all-targets --locked -- -D warnings
 cargo fmt --all --check
 scripts/proxy-test.sh
 .venv/bin/python -m pytest -q -p no:cacheprovider exporter/tests
 .venv/bin/python -m pytest -q -p no:cacheprovider bench/tests
+scripts/python-client-test.sh
 scripts/viewer-test.sh

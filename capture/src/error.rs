@@ -12,6 +12,10 @@ pub enum Error {
     #[error("{path}: {message}")]
     Dataset { path: PathBuf, message: String },
 
+    /// `--downscale N` for a capture without an `images_N` folder; `have` lists its sets.
+    #[error("downscale {factor}: there is no {folder} folder; the capture has {have}")]
+    UnknownImageSet { factor: u32, folder: String, have: String },
+
     /// A view name that the capture does not have.
     #[error("view {name:?} is not in the capture; its views are: {}", .known.join(", "))]
     UnknownView { name: String, known: Vec<String> },
@@ -32,7 +36,7 @@ impl Error {
     pub fn path(&self) -> Option<&Path> {
         match self {
             Error::Io { path, .. } | Error::Dataset { path, .. } => Some(path),
-            Error::UnknownView { .. } => None,
+            Error::UnknownView { .. } | Error::UnknownImageSet { .. } => None,
         }
     }
 }

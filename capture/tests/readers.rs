@@ -5,6 +5,7 @@
 use std::path::{Path, PathBuf};
 
 use scnerf_capture::files::{Disk, MemoryFiles};
+use scnerf_capture::image_sets::{self, ImageSet, Pick};
 use scnerf_capture::readers::{self, Capture, Format, ReadOptions};
 use serde_json::Value;
 
@@ -295,4 +296,113 @@ fn captures_in_memory_name_the_missing_file() {
     assert!(files.insert("images/zzz_extra.png", std::fs::read(fixtures().join("blender/train/r_0.png")).unwrap()));
     let err = readers::load_from(&files, Path::new(""), None, ReadOptions::default()).unwrap_err();
     assert!(err.to_string().starts_with("poses_bounds.npy: "), "{err}");
+}
+
+/// A copy of a fixture as LLFF, nerfstudio and COLMAP captures are distributed: its images also
+/// in `images_2/`, at half size (rounded down, as LLFF's and nerfstudio's scripts write them).
+fn with_half_size_set(folder: &str) -> tempfile::TempDir {
+    let dir = copy_fixture(folder);
+    let half = dir.path().join("images_2");
+    std::fs::create_dir_all(&half).unwrap();
+    for entry in std::fs::read_dir(dir.path().join("images")).unwrap() {
+        let path = entry.unwrap().path();
+        let image = image::open(&path).unwrap();
+        let (w, h) = (image.width() / 2, image.height() / 2);
+        image
+            .resize_exact(w, h, image::imageops::FilterType::Triangle)
+            .save(half.join(path.file_name().unwrap()))
+            .unwrap();
+    }
+    dir
+}
+
+fn read_set(dir: &Path, downscale: Option<u32>) -> Capture {
+    readers::load(dir, None, ReadOptions { downscale, ..Default::default() }).unwrap()
+}
+
+/// `images_N` gives the same views as `images/`, each camera scaled to its images.
+#[test]
+fn downscaled_sets_give_the_same_views_at_their_size() {
+    for folder in ["nerfstudio", "colmap", "llff"] {
+        let dir = with_half_size_set(folder);
+        let (full, half) = (read_set(dir.path(), None), read_set(dir.path(), Some(2)));
+        assert_eq!(full.views.len(), half.views.len(), "{folder}");
+        assert_eq!((full.near, full.far), (half.near, half.far), "{folder}");
+        for (f, h) in full.views.iter().zip(&half.views) {
+            assert_eq!(f.name, h.name, "{folder}");
+            assert!(h.image_path.starts_with(dir.path().join("images_2")), "{folder}: {}", h.image_path.display());
+            assert_eq!((h.camera.width, h.camera.height), (f.camera.width / 2, f.camera.height / 2), "{folder}");
+            assert_eq!(h.camera.w2c, f.camera.w2c, "{folder}");
+            let (fi, hi) = (f.camera.intrinsics, h.camera.intrinsics);
+            assert!((hi.fx - fi.fx / 2.0).abs() < 1e-12 && (hi.fy - fi.fy / 2.0).abs() < 1e-12, "{folder}: {hi:?}");
+            if folder == "llff" {
+                // LLFF: hwf describes the full-size images; the principal point is the centre
+                assert_eq!((hi.cx, hi.cy), (f64::from(h.camera.width) / 2.0, f64::from(h.camera.height) / 2.0));
+            } else {
+                assert_eq!(h.camera, f.camera.resized(h.camera.width, h.camera.height), "{folder}");
+            }
+        }
+    }
+}
+
+/// LLFF's poses_bounds.npy describes the full-size images: with `images/` absent (only the
+/// downscaled sets were kept), `images_2` is read with f scaled from hwf, exactly as with it.
+#[test]
+fn llff_downscaled_set_reads_without_the_full_size_images() {
+    let dir = with_half_size_set("llff");
+    let with_full = read_set(dir.path(), Some(2));
+    std::fs::remove_dir_all(dir.path().join("images")).unwrap();
+    let (capture, picked) =
+        image_sets::load_picked(&Disk, dir.path(), None, ReadOptions::default(), Pick::Fit { max_pixels: 1 << 20 })
+            .unwrap();
+    let picked = picked.unwrap();
+    assert_eq!((picked.set.factor, picked.fits, picked.sets.len()), (2, true, 1));
+    for (a, b) in capture.views.iter().zip(&with_full.views) {
+        assert_eq!(a.camera, b.camera);
+    }
+    // the fixture's hwf is 24 x 32 with focal 28: images of 4x3 get f = 28 * 4 / 32
+    assert_eq!(capture.views[0].camera.intrinsics.fx, 3.5);
+}
+
+/// The rule the CLI and the server apply: the largest set within the limit, or `--downscale N`.
+#[test]
+fn load_picked_takes_the_largest_set_that_fits_or_the_one_asked_for() {
+    for folder in ["nerfstudio", "colmap", "llff"] {
+        let dir = with_half_size_set(folder);
+        let sets = image_sets::image_sets(&Disk, dir.path(), readers::detect(&Disk, dir.path()).unwrap()).unwrap();
+        let described: Vec<String> = sets.iter().map(ImageSet::describe).collect();
+        assert_eq!(described, ["images (8x6)", "images_2 (4x3)"], "{folder}");
+        let load = |rule| image_sets::load_picked(&Disk, dir.path(), None, ReadOptions::default(), rule).unwrap();
+        let (capture, picked) = load(Pick::Fit { max_pixels: 48 });
+        assert_eq!((picked.unwrap().set.factor, capture.views[0].camera.width), (1, 8), "{folder}");
+        let (capture, picked) = load(Pick::Fit { max_pixels: 47 });
+        assert_eq!((picked.unwrap().set.factor, capture.views[0].camera.width), (2, 4), "{folder}");
+        let (capture, picked) = load(Pick::Fit { max_pixels: 11 });
+        let picked = picked.unwrap();
+        assert_eq!((picked.set.factor, picked.fits, capture.views[0].camera.width), (2, false, 4), "{folder}");
+        let (capture, _) = load(Pick::Downscale(2));
+        assert_eq!(capture.views[0].camera.width, 4, "{folder}");
+        let err = image_sets::load_picked(&Disk, dir.path(), None, ReadOptions::default(), Pick::Downscale(8))
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("downscale 8: there is no images_8 folder"), "{folder}: {err}");
+        // the server reads what a client sent: the same rule over files in memory
+        let files = in_memory(dir.path());
+        let (capture, picked) =
+            image_sets::load_picked(&files, Path::new(""), None, ReadOptions::default(), Pick::Fit { max_pixels: 47 })
+                .unwrap();
+        assert_eq!((picked.unwrap().set.factor, capture.views[0].camera.width), (2, 4), "{folder}");
+        assert!(capture.views[0].image_path.starts_with("images_2"), "{folder}");
+    }
+}
+
+/// Blender and DTU keep no sets: they are read as they are, whatever the limit.
+#[test]
+fn formats_without_sets_are_read_as_they_are() {
+    for folder in ["blender", "dtu"] {
+        let dir = fixtures().join(folder);
+        let (capture, picked) =
+            image_sets::load_picked(&Disk, &dir, None, ReadOptions::default(), Pick::Fit { max_pixels: 1 }).unwrap();
+        assert_eq!((picked, capture.views.len()), (None, load(folder, None).views.len()), "{folder}");
+    }
 }

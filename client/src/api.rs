@@ -22,6 +22,16 @@ use crate::camera::Camera;
 use crate::error::{read_bytes, Error, Result};
 use crate::readers::{Capture, CapturedView};
 
+/// The server's limits (`GET /v1/limits`): what it accepts, read before anything is uploaded.
+#[derive(Debug, Clone, Copy, Deserialize, PartialEq, Eq)]
+pub struct Limits {
+    pub max_source_pixels: u64,
+    pub max_target_pixels: u64,
+    pub max_scene_views: usize,
+    pub max_body_bytes: usize,
+    pub max_capture_bytes: usize,
+}
+
 /// Header in which the server names the sources it chose for a view ("i,j,k", capture order).
 pub const SOURCES_HEADER: &str = "x-scnerf-sources";
 
@@ -78,6 +88,8 @@ pub struct Client {
     /// 503/429 answers retried per request before giving up.
     pub max_retries: u32,
     notice: Box<dyn Fn(&str) + Send + Sync>,
+    /// Read once, by [`Client::limits`]; uploads are checked against them.
+    limits: std::sync::OnceLock<Limits>,
 }
 
 impl Client {
@@ -90,6 +102,7 @@ impl Client {
             token,
             max_retries: 30,
             notice: Box::new(|m| eprintln!("{m}")),
+            limits: std::sync::OnceLock::new(),
         }
     }
 
@@ -104,11 +117,14 @@ impl Client {
         Ok(Scene { id, upload })
     }
 
-    /// The most views the server keeps in a scene (`GET /v1/model`), when it says.
-    pub fn max_scene_views(&self) -> Result<Option<usize>> {
-        let reply = self.send("GET", "/v1/model", None)?;
-        let model: Value = parse_json(&reply.body, "/v1/model")?;
-        Ok(model["max_scene_views"].as_u64().map(|n| n as usize))
+    /// The server's limits (`GET /v1/limits`), asked once.
+    pub fn limits(&self) -> Result<Limits> {
+        if let Some(limits) = self.limits.get() {
+            return Ok(*limits);
+        }
+        let reply = self.send("GET", "/v1/limits", None)?;
+        let limits: Limits = parse_json(&reply.body, "/v1/limits")?;
+        Ok(*self.limits.get_or_init(|| limits))
     }
 
     /// PUTs the scene under its id (the caller's, else the content's); returns that id.
@@ -118,12 +134,25 @@ impl Client {
             "sources": sources, "near": upload.near, "far": upload.far, "background": upload.background,
         });
         let mut parts = vec![Part { name: "request".into(), file: None, bytes: request.to_string().into_bytes() }];
-        for (i, (_, path)) in upload.sources.iter().enumerate() {
-            parts.push(Part { name: format!("source_{i}"), file: Some(path.clone()), bytes: read_bytes(path)? });
+        for (i, (camera, path)) in upload.sources.iter().enumerate() {
+            parts.push(Part {
+                name: format!("source_{i}"),
+                file: Some(path.clone()),
+                bytes: image_bytes(path, camera)?,
+            });
         }
         let id = upload.scene_id.clone().unwrap_or_else(|| content_id(&parts));
         let path = format!("/v1/scenes/{id}");
         let (content_type, body) = multipart(&parts);
+        if let Some(limits) = self.limits.get().filter(|l| body.len() > l.max_body_bytes) {
+            return Err(Error::Usage(format!(
+                "the upload of {} views is {:.1} MiB, more than the server takes ({:.1} MiB, its --max-body-bytes): \
+                 upload fewer views (--max-views) or smaller images (--downscale)",
+                upload.sources.len(),
+                body.len() as f64 / 1048576.0,
+                limits.max_body_bytes as f64 / 1048576.0
+            )));
+        }
         let response = match self.send("PUT", &path, Some((&content_type, &body))) {
             Err(Error::Http { url, message }) => return Err(self.refusal_during_upload(&path, &parts[0], url, message)),
             other => other?,
@@ -352,6 +381,33 @@ fn multipart(parts: &[Part]) -> (String, Vec<u8>) {
     }
     body.extend_from_slice(format!("--{boundary}--\r\n").as_bytes());
     (format!("multipart/form-data; boundary={boundary}"), body)
+}
+
+/// The bytes of a view's image as they are; resampled to its camera's size when the camera was
+/// resized to fit the server's source limit (JPEG stays JPEG, at quality 95; anything else PNG).
+fn image_bytes(path: &Path, camera: &Camera) -> Result<Vec<u8>> {
+    let bytes = read_bytes(path)?;
+    let size = image::ImageReader::new(std::io::Cursor::new(&bytes))
+        .with_guessed_format()
+        .ok()
+        .and_then(|r| r.into_dimensions().ok());
+    if size.is_none_or(|s| s == (camera.width, camera.height)) {
+        return Ok(bytes);
+    }
+    let bad = |e: image::ImageError| Error::dataset(path, format!("cannot resize the image: {e}"));
+    let resized = image::load_from_memory(&bytes).map_err(bad)?.resize_exact(
+        camera.width,
+        camera.height,
+        image::imageops::FilterType::Triangle,
+    );
+    let mut out = std::io::Cursor::new(Vec::new());
+    if image_type(path) == "image/jpeg" {
+        let encoder = image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, 95);
+        resized.to_rgb8().write_with_encoder(encoder).map_err(bad)?;
+    } else {
+        resized.write_to(&mut out, image::ImageFormat::Png).map_err(bad)?;
+    }
+    Ok(out.into_inner())
 }
 
 fn image_type(path: &Path) -> &'static str {

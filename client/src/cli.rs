@@ -13,6 +13,7 @@ use crate::readers::{self, Capture, CapturedView, Format, ReadOptions};
 use crate::render::{frame_digits, render_frames, server_summary, write_atomically, write_npy};
 use crate::{eval, paths, video};
 use scnerf_capture::files::Disk;
+use scnerf_capture::image_sets::{self, Pick, Picked};
 
 #[derive(Parser)]
 #[command(name = "scnerf", version, about = "Render posed photo captures through scnerf-serve")]
@@ -33,6 +34,8 @@ enum Command {
     Info {
         #[command(flatten)]
         data: DataArgs,
+        #[command(flatten)]
+        set: ImageSetArgs,
         /// Every camera in the API's JSON form.
         #[arg(long)]
         json: bool,
@@ -60,6 +63,14 @@ struct DataArgs {
     /// Use cameras with lens distortion as pinhole instead of refusing them.
     #[arg(long)]
     ignore_distortion: bool,
+}
+
+#[derive(Args)]
+struct ImageSetArgs {
+    /// Read the image set images_N (LLFF, nerfstudio, COLMAP: downscaled copies beside images/);
+    /// default: the largest set within the server's source limit.
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
+    downscale: Option<u32>,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -95,8 +106,11 @@ struct RenderArgs {
     #[command(flatten)]
     data: DataArgs,
     #[command(flatten)]
+    set: ImageSetArgs,
+    #[command(flatten)]
     upload: UploadArgs,
-    /// interpolate, orbit, spiral, or a JSON file of cameras (API form).
+    /// interpolate, orbit, spiral, or a camera file: nerfstudio's camera_path.json or a JSON
+    /// array of cameras (API form).
     #[arg(long)]
     path: String,
     /// Number of frames (ignored for a camera file).
@@ -108,9 +122,9 @@ struct RenderArgs {
     /// Output folder; frames already in it are not rendered again.
     #[arg(long, default_value = "render")]
     out: PathBuf,
-    /// Frames per second of the video.
-    #[arg(long, default_value_t = 24)]
-    fps: u32,
+    /// Frames per second of the video (default: a nerfstudio camera path's, else 24).
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
+    fps: Option<u32>,
     /// Skip the depth maps.
     #[arg(long)]
     no_depth: bool,
@@ -123,6 +137,8 @@ struct RenderArgs {
 struct ViewArgs {
     #[command(flatten)]
     data: DataArgs,
+    #[command(flatten)]
+    set: ImageSetArgs,
     #[command(flatten)]
     upload: UploadArgs,
     /// A view name of the capture, or a JSON file with one camera (API form).
@@ -180,18 +196,21 @@ pub(crate) use say;
 pub fn run(cli: Cli) -> Result<()> {
     let client = Client::new(&cli.server, cli.token);
     match cli.command {
-        Command::Info { data, json } => info(&data, json),
+        Command::Info { data, set, json } => info(&data, &set, json),
         Command::Render(args) => render(client, &args),
         Command::View(args) => view(&client, &args),
         Command::Eval(args) => {
-            let capture = load(&args.data)?;
+            // the ground truth is the image read: no resizing here, the server refuses a set too large
+            let max_pixels = client.limits()?.max_source_pixels;
+            let (capture, _) = load(&args.data, Pick::Fit { max_pixels }, Some(max_pixels))?;
             eval::run(&client, &capture, &args)
         }
     }
 }
 
-/// Reads the capture and prints its warnings.
-fn load(data: &DataArgs) -> Result<Capture> {
+/// Reads the capture from the image set `rule` picks and prints its warnings and which set it
+/// read (`limit`: the server's source limit, when it chose).
+fn load(data: &DataArgs, rule: Pick, limit: Option<u64>) -> Result<(Capture, Option<Picked>)> {
     let format = match data.format {
         FormatArg::Auto => None,
         FormatArg::Colmap => Some(Format::Colmap),
@@ -200,16 +219,65 @@ fn load(data: &DataArgs) -> Result<Capture> {
         FormatArg::Llff => Some(Format::Llff),
         FormatArg::Dtu => Some(Format::Dtu),
     };
-    let opts = ReadOptions { near: data.near, far: data.far, ignore_distortion: data.ignore_distortion };
-    let capture = readers::load(&data.data, format, opts)?;
+    let opts =
+        ReadOptions { near: data.near, far: data.far, ignore_distortion: data.ignore_distortion, downscale: None };
+    let (capture, picked) = image_sets::load_picked(&Disk, &data.data, format, opts, rule)?;
     for w in &capture.warnings {
         eprintln!("warning: {w}");
+    }
+    match (&picked, rule, limit) {
+        (Some(p), Pick::Fit { max_pixels }, Some(_)) if p.fits && p.sets.len() > 1 => eprintln!(
+            "image set: {}: the largest within the server's limit of {max_pixels} pixels per source view \
+             (--downscale N picks another)",
+            p.describe()
+        ),
+        (Some(p), Pick::Downscale(n), _) => eprintln!("image set: {} (--downscale {n})", p.describe()),
+        _ => {}
+    }
+    Ok((capture, picked))
+}
+
+/// The capture as the server will take it: from `--downscale N`'s set, or else the largest set
+/// within the server's source limit; images that still exceed it (no set is small enough, or the
+/// capture keeps none) are resized here, said in one line.
+fn load_for_server(client: &Client, data: &DataArgs, set: &ImageSetArgs) -> Result<Capture> {
+    let max_pixels = client.limits()?.max_source_pixels;
+    let rule = set.downscale.map_or(Pick::Fit { max_pixels }, Pick::Downscale);
+    let (mut capture, _) = load(data, rule, Some(max_pixels))?;
+    if let Some(note) = fit_to_limit(&mut capture, max_pixels) {
+        eprintln!("note: {note}");
     }
     Ok(capture)
 }
 
-fn info(data: &DataArgs, json: bool) -> Result<()> {
-    let capture = load(data)?;
+/// Shrinks every view of more than `max_pixels` pixels to fit (aspect kept, cameras scaled with
+/// pixel centres at integers); the images are resampled when uploaded. What was done, if anything.
+fn fit_to_limit(capture: &mut Capture, max_pixels: u64) -> Option<String> {
+    let pixels = |c: &Camera| u64::from(c.width) * u64::from(c.height);
+    let over: Vec<usize> =
+        (0..capture.views.len()).filter(|&i| pixels(&capture.views[i].camera) > max_pixels).collect();
+    let first = capture.views[*over.first()?].camera.clone();
+    for &i in &over {
+        let camera = &mut capture.views[i].camera;
+        let scale = (max_pixels as f64 / pixels(camera) as f64).sqrt();
+        let (w, h) = ((f64::from(camera.width) * scale) as u32, (f64::from(camera.height) * scale) as u32);
+        *camera = camera.resized(w.max(1), h.max(1));
+    }
+    let resized = &capture.views[over[0]].camera;
+    Some(format!(
+        "{} images of {}x{} exceed the server's limit of {max_pixels} pixels per source view: resizing them to \
+         {}x{} before uploading",
+        over.len(),
+        first.width,
+        first.height,
+        resized.width,
+        resized.height
+    ))
+}
+
+fn info(data: &DataArgs, set: &ImageSetArgs, json: bool) -> Result<()> {
+    let rule = set.downscale.map_or(Pick::Fit { max_pixels: u64::MAX }, Pick::Downscale);
+    let (capture, picked) = load(data, rule, None)?;
     if json {
         let views: Vec<serde_json::Value> = capture
             .views
@@ -231,6 +299,9 @@ fn info(data: &DataArgs, json: bool) -> Result<()> {
         capture.far,
         capture.background
     );
+    if let Some(p) = picked {
+        say!("image set: {}", p.describe());
+    }
     for v in &capture.views {
         let (c, i) = (&v.camera, v.camera.intrinsics);
         let p = c.center();
@@ -260,14 +331,16 @@ pub(crate) fn source_views<'a>(capture: &'a Capture, names: &[String]) -> Result
 }
 
 /// The capture's views to upload, thinned with a warning to `--max-views` or the server's
-/// limit (`max_scene_views` of `GET /v1/model`), whichever is smaller.
+/// limit (`max_scene_views` of `GET /v1/limits`), whichever is smaller.
 fn scene_views<'a>(client: &Client, capture: &'a Capture, max: usize) -> Result<Vec<&'a CapturedView>> {
     if max < 3 {
         return Err(Error::Usage(format!("--max-views must be at least 3, got {max}")));
     }
-    let (max, why) = match client.max_scene_views()? {
-        Some(server) if server < max => (server, format!("the server keeps at most {server} views per scene")),
-        _ => (max, "--max-views".to_string()),
+    let server = client.limits()?.max_scene_views;
+    let (max, why) = if server < max {
+        (server, format!("the server keeps at most {server} views per scene"))
+    } else {
+        (max, "--max-views".to_string())
     };
     let views: Vec<&CapturedView> =
         scnerf_capture::thin_evenly(capture.views.len(), max).into_iter().map(|i| &capture.views[i]).collect();
@@ -277,7 +350,8 @@ fn scene_views<'a>(client: &Client, capture: &'a Capture, max: usize) -> Result<
     Ok(views)
 }
 
-fn path_cameras(capture: &Capture, args: &RenderArgs) -> Result<Vec<Camera>> {
+/// The cameras of `--path`, and the frame rate a camera path file asks for.
+fn path_cameras(capture: &Capture, args: &RenderArgs) -> Result<(Vec<Camera>, Option<f64>)> {
     if args.frames == 0 {
         return Err(Error::Usage("--frames must be at least 1".into()));
     }
@@ -291,7 +365,11 @@ fn path_cameras(capture: &Capture, args: &RenderArgs) -> Result<Vec<Camera>> {
         "orbit" => paths::orbit(&cameras, args.frames)?,
         "spiral" => paths::spiral(&cameras, capture.near, capture.far, args.frames)?,
         file if Path::new(file).is_file() => {
-            return Ok(paths::from_file(Path::new(file))?.into_iter().map(resize).collect())
+            let path = paths::from_file(Path::new(file))?;
+            for w in &path.warnings {
+                eprintln!("warning: {w}");
+            }
+            return Ok((path.cameras.into_iter().map(resize).collect(), path.fps));
         }
         other => {
             return Err(Error::Usage(format!(
@@ -300,7 +378,7 @@ fn path_cameras(capture: &Capture, args: &RenderArgs) -> Result<Vec<Camera>> {
         }
     };
     let template = resize(cameras[0].clone());
-    Ok(poses.into_iter().map(|w2c| Camera { w2c, ..template.clone() }).collect())
+    Ok((poses.into_iter().map(|w2c| Camera { w2c, ..template.clone() }).collect(), None))
 }
 
 fn progress_bar() -> ProgressBar {
@@ -321,8 +399,8 @@ fn notify(bar: &ProgressBar, message: &str) {
 }
 
 fn render(client: Client, args: &RenderArgs) -> Result<()> {
-    let capture = load(&args.data)?;
-    let cameras = path_cameras(&capture, args)?;
+    let capture = load_for_server(&client, &args.data, &args.set)?;
+    let (cameras, path_fps) = path_cameras(&capture, args)?;
     let started = Instant::now();
     let bar = progress_bar();
     let notices = bar.clone();
@@ -345,7 +423,8 @@ fn render(client: Client, args: &RenderArgs) -> Result<()> {
     }
     let ffmpeg = video::find_ffmpeg(std::env::var_os("PATH").as_deref());
     let digits = frame_digits(cameras.len());
-    let v = video::write(&args.out.join("frames"), cameras.len(), digits, args.fps, &args.out, ffmpeg.as_deref())?;
+    let fps = args.fps.unwrap_or_else(|| path_fps.map_or(24, |f| f.round().max(1.0) as u32));
+    let v = video::write(&args.out.join("frames"), cameras.len(), digits, fps, &args.out, ffmpeg.as_deref())?;
     say!("video: {}", v.path.display());
     if let Some(note) = v.note {
         say!("note: {note}");
@@ -354,7 +433,7 @@ fn render(client: Client, args: &RenderArgs) -> Result<()> {
 }
 
 fn view(client: &Client, args: &ViewArgs) -> Result<()> {
-    let capture = load(&args.data)?;
+    let capture = load_for_server(client, &args.data, &args.set)?;
     let pose = Path::new(&args.pose);
     let camera = if pose.is_file() {
         paths::camera_from_json(&readers::read_json(&Disk, pose)?, pose, "camera")?

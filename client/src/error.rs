@@ -33,13 +33,15 @@ pub enum Error {
 }
 
 /// A capture error keeps its wording: the same file and message, or a usage error for a view
-/// name the capture does not have.
+/// name or an image set the capture does not have.
 impl From<scnerf_capture::Error> for Error {
     fn from(e: scnerf_capture::Error) -> Self {
         match e {
             scnerf_capture::Error::Io { path, source } => Error::Io { path, source },
             scnerf_capture::Error::Dataset { path, message } => Error::Dataset { path, message },
-            unknown @ scnerf_capture::Error::UnknownView { .. } => Error::Usage(unknown.to_string()),
+            usage @ (scnerf_capture::Error::UnknownView { .. } | scnerf_capture::Error::UnknownImageSet { .. }) => {
+                Error::Usage(usage.to_string())
+            }
         }
     }
 }

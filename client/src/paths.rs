@@ -7,7 +7,8 @@
 //!   turntables); "horizontal" as level cameras define it (orthogonal to their right axes);
 //! * `spiral`: LLFF's `render_path_spiral` for forward-facing captures: two turns of an ellipse
 //!   around the mean camera, looking at a point at the capture's focus depth;
-//! * a JSON file of cameras in the API's form.
+//! * a camera file: nerfstudio's `camera_path.json` (what its viewer exports and `ns-render
+//!   camera-path` reads), or a JSON array of cameras in the API's form.
 
 use std::f64::consts::PI;
 use std::path::Path;
@@ -160,13 +161,97 @@ pub fn spiral(cameras: &[Camera], near: f64, far: f64, frames: usize) -> Result<
 
 /// A JSON array of cameras in the API's form (`{width, height, intrinsics: {fx, fy, cx, cy} |
 /// K, pose: {matrix, kind, axes}}`), in the capture's world.
-pub fn from_file(path: &Path) -> Result<Vec<Camera>> {
+/// The cameras of a camera file, with what it says about time.
+#[derive(Debug)]
+pub struct PathFile {
+    pub cameras: Vec<Camera>,
+    /// Frames per second (nerfstudio's `fps`, else frames / `seconds`).
+    pub fps: Option<f64>,
+    pub warnings: Vec<String>,
+}
+
+/// A camera file: nerfstudio's `camera_path.json` (an object with `camera_path`), or a JSON
+/// array of cameras in the API's form.
+pub fn from_file(path: &Path) -> Result<PathFile> {
     let data = crate::readers::read_json(&scnerf_capture::files::Disk, path)?;
-    let items = data.as_array().ok_or_else(|| Error::dataset(path, "expected a JSON array of cameras"))?;
+    if data.get("camera_path").is_some() {
+        return nerfstudio_path(&data, path);
+    }
+    let items = data.as_array().ok_or_else(|| {
+        Error::dataset(path, "expected a JSON array of cameras or nerfstudio's camera_path.json (with camera_path)")
+    })?;
     if items.is_empty() {
         return Err(Error::dataset(path, "the camera path is empty"));
     }
-    items.iter().enumerate().map(|(i, v)| camera_from_json(v, path, &format!("[{i}]"))).collect()
+    let cameras: Result<Vec<Camera>> =
+        items.iter().enumerate().map(|(i, v)| camera_from_json(v, path, &format!("[{i}]"))).collect();
+    Ok(PathFile { cameras: cameras?, fps: None, warnings: Vec::new() })
+}
+
+/// nerfstudio's camera path (`ns-render camera-path`, its `get_path_from_json`): every entry of
+/// `camera_path` is `camera_to_world` (16 numbers, row-major, OpenGL axes) and `fov`, the
+/// vertical field of view in degrees, seen at `render_width` x `render_height`: f = (H / 2) /
+/// tan(fov / 2) for both axes, principal point at the image centre (nerfstudio's (W/2, H/2), the
+/// first pixel's centre at (0.5, 0.5): (W/2 - 0.5, H/2 - 0.5) here). `aspect` is the viewer's and
+/// is not used, as in ns-render. Only `perspective` cameras.
+fn nerfstudio_path(data: &serde_json::Value, path: &Path) -> Result<PathFile> {
+    let bad = |msg: String| Error::dataset(path, msg);
+    let camera_type = data.get("camera_type").and_then(|t| t.as_str()).unwrap_or("perspective");
+    if camera_type != "perspective" {
+        return Err(bad(format!("camera_type {camera_type:?}: only perspective camera paths can be rendered")));
+    }
+    let size = |key: &str| {
+        data.get(key)
+            .and_then(serde_json::Value::as_u64)
+            .and_then(|v| u32::try_from(v).ok())
+            .filter(|&v| v > 0)
+            .ok_or_else(|| bad(format!("{key} must be a positive whole number")))
+    };
+    let (width, height) = (size("render_width")?, size("render_height")?);
+    let entries = data["camera_path"]
+        .as_array()
+        .filter(|a| !a.is_empty())
+        .ok_or_else(|| bad("camera_path must be a non-empty array of {camera_to_world, fov, aspect}".into()))?;
+    let mut warnings = Vec::new();
+    let mut cameras = Vec::with_capacity(entries.len());
+    for (i, entry) in entries.iter().enumerate() {
+        let at = format!("camera_path[{i}]");
+        let m = nerfstudio_matrix(&entry["camera_to_world"])
+            .ok_or_else(|| bad(format!("{at}.camera_to_world must be 16 finite numbers (4x4, row-major)")))?;
+        let fov = entry["fov"].as_f64().filter(|f| *f > 0.0 && *f < 180.0);
+        let fov =
+            fov.ok_or_else(|| bad(format!("{at}.fov must be a vertical field of view in degrees, in (0, 180)")))?;
+        let aspect = entry.get("aspect").and_then(serde_json::Value::as_f64);
+        let render_aspect = f64::from(width) / f64::from(height);
+        if aspect.is_some_and(|a| (a - render_aspect).abs() > 1e-3 * render_aspect) && warnings.is_empty() {
+            warnings.push(format!(
+                "{}: {at}.aspect {} differs from render_width / render_height ({width}x{height}); the frames keep \
+                 {width}x{height}, as ns-render does",
+                path.display(),
+                aspect.unwrap_or_default()
+            ));
+        }
+        let f = f64::from(height) / 2.0 / (fov.to_radians() / 2.0).tan();
+        let intrinsics =
+            Intrinsics { fx: f, fy: f, cx: f64::from(width) / 2.0 - 0.5, cy: f64::from(height) / 2.0 - 0.5 };
+        let w2c = w2c_from_api(&m, true, true)
+            .ok_or_else(|| bad(format!("{at}.camera_to_world is not a rigid transform")))?;
+        cameras.push(Camera { width, height, intrinsics, w2c });
+    }
+    let number = |key: &str| data.get(key).and_then(serde_json::Value::as_f64).filter(|v| *v > 0.0);
+    let fps = number("fps").or_else(|| number("seconds").map(|s| cameras.len() as f64 / s));
+    Ok(PathFile { cameras, fps, warnings })
+}
+
+/// A 4x4 matrix from 16 numbers in row-major order (nerfstudio's form) or 4 rows of 4.
+fn nerfstudio_matrix(value: &serde_json::Value) -> Option<nalgebra::Matrix4<f64>> {
+    let items = value.as_array()?;
+    let flat: Vec<f64> = if items.len() == 4 && items.iter().all(serde_json::Value::is_array) {
+        items.iter().flat_map(|row| row.as_array().into_iter().flatten()).map(|v| v.as_f64()).collect::<Option<_>>()?
+    } else {
+        items.iter().map(serde_json::Value::as_f64).collect::<Option<_>>()?
+    };
+    (flat.len() == 16 && flat.iter().all(|v| v.is_finite())).then(|| nalgebra::Matrix4::from_row_slice(&flat))
 }
 
 #[derive(serde::Deserialize)]
@@ -347,7 +432,7 @@ mod tests {
              "pose": {"matrix": rows(c2w_gl), "kind": "camera_to_world", "axes": "opengl"}}
         ]);
         std::fs::write(&file, json.to_string()).unwrap();
-        let cams = from_file(&file).unwrap();
+        let cams = from_file(&file).unwrap().cameras;
         for got in &cams {
             assert!(same_pose(&got.w2c, &c.w2c));
             assert_eq!(got.intrinsics, c.intrinsics);
@@ -355,5 +440,77 @@ mod tests {
         std::fs::write(&file, r#"[{"width": 8, "height": 6, "pose": {}}]"#).unwrap();
         let err = from_file(&file).unwrap_err().to_string();
         assert!(err.contains("path.json: [0]: missing field `matrix`"), "{err}");
+    }
+
+    /// nerfstudio's camera_path.json gives the cameras that the same poses and lens give in the
+    /// API's own form (fov -> focal, OpenGL camera-to-world, nerfstudio's principal point).
+    #[test]
+    fn nerfstudio_camera_paths_read_as_the_same_cameras_in_api_form() {
+        let dir = tempfile::tempdir().unwrap();
+        let c2w_gl = |c: &Camera| {
+            let m = c.w2c.inverse().to_homogeneous()
+                * nalgebra::Matrix4::from_diagonal(&nalgebra::Vector4::new(1.0, -1.0, -1.0, 1.0));
+            (0..4).flat_map(|r| (0..4).map(move |k| m[(r, k)])).collect::<Vec<f64>>()
+        };
+        let cams = [
+            camera(Point3::new(1.0, 2.0, 3.0), Point3::origin()),
+            camera(Point3::new(-2.0, 1.0, 3.0), Point3::new(0.1, 0.0, 0.0)),
+        ];
+        // f = 8 at a height of 6: fov = 2 atan(3 / 8)
+        let fov = 2.0 * (3.0f64 / 8.0).atan().to_degrees();
+        let entries: Vec<_> = cams
+            .iter()
+            .map(|c| serde_json::json!({"camera_to_world": c2w_gl(c), "fov": fov, "aspect": 8.0 / 6.0}))
+            .collect();
+        let ns = serde_json::json!({"camera_type": "perspective", "render_width": 8, "render_height": 6,
+                                    "camera_path": entries, "fps": 30, "seconds": 4, "keyframes": []});
+        let ns_file = dir.path().join("camera_path.json");
+        std::fs::write(&ns_file, ns.to_string()).unwrap();
+        let api: Vec<_> = cams
+            .iter()
+            .map(|c| {
+                let m = c.w2c.to_homogeneous();
+                serde_json::json!({"width": 8, "height": 6, "intrinsics": {"fx": 8.0, "fy": 8.0, "cx": 3.5, "cy": 2.5},
+                    "pose": {"matrix": (0..4).map(|r| (0..4).map(|k| m[(r, k)]).collect::<Vec<_>>()).collect::<Vec<_>>(),
+                             "kind": "world_to_camera", "axes": "opencv"}})
+            })
+            .collect();
+        let api_file = dir.path().join("cameras.json");
+        std::fs::write(&api_file, serde_json::Value::Array(api).to_string()).unwrap();
+        let (from_ns, from_api) = (from_file(&ns_file).unwrap(), from_file(&api_file).unwrap());
+        assert_eq!((from_ns.fps, from_api.fps, from_ns.warnings.len()), (Some(30.0), None, 0));
+        assert_eq!(from_ns.cameras.len(), 2);
+        for (a, b) in from_ns.cameras.iter().zip(&from_api.cameras) {
+            assert!(same_pose(&a.w2c, &b.w2c));
+            assert_eq!((a.width, a.height), (b.width, b.height));
+            let (ia, ib) = (a.intrinsics, b.intrinsics);
+            assert!((ia.fx - ib.fx).abs() < 1e-12 && (ia.fy - ib.fy).abs() < 1e-12, "{ia:?}");
+            assert_eq!((ia.cx, ia.cy), (ib.cx, ib.cy));
+        }
+        // without fps: frames / seconds; an aspect unlike the render size: one warning
+        let mut ns2 = ns.clone();
+        ns2.as_object_mut().unwrap().remove("fps");
+        ns2["camera_path"][0]["aspect"] = serde_json::json!(2.0);
+        std::fs::write(&ns_file, ns2.to_string()).unwrap();
+        let read = from_file(&ns_file).unwrap();
+        assert_eq!(read.fps, Some(0.5));
+        assert!(read.warnings[0].contains("camera_path[0].aspect 2 differs"), "{:?}", read.warnings);
+        // refusals name the field
+        for (key, value, says) in [
+            ("camera_type", serde_json::json!("equirectangular"), "only perspective"),
+            ("render_width", serde_json::json!(0), "render_width must be a positive whole number"),
+            (
+                "camera_path",
+                serde_json::json!([{"camera_to_world": [1, 2], "fov": 50}]),
+                "camera_path[0].camera_to_world",
+            ),
+            ("camera_path", serde_json::json!([{"camera_to_world": c2w_gl(&cams[0])}]), "camera_path[0].fov"),
+        ] {
+            let mut bad = ns.clone();
+            bad[key] = value;
+            std::fs::write(&ns_file, bad.to_string()).unwrap();
+            let err = from_file(&ns_file).unwrap_err().to_string();
+            assert!(err.contains("camera_path.json: ") && err.contains(says), "{err}");
+        }
     }
 }

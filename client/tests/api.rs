@@ -170,5 +170,5 @@ fn the_scene_id_names_the_capture() {
     let mut fewer = upload;
     fewer.sources.pop();
     assert_ne!(client.create_scene(fewer).unwrap().id, a, "other views, another id");
-    assert_eq!(client.max_scene_views().unwrap(), Some(common::MAX_VIEWS));
+    assert_eq!(client.limits().unwrap().max_scene_views, common::MAX_VIEWS);
 }

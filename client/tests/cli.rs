@@ -135,8 +135,8 @@ fn info_and_bad_input_in_plain_words() {
     assert_eq!(out.status.code(), Some(1));
     assert_eq!(stderr.trim(), "error: /no/such/capture: no such dataset folder");
 
-    let out =
-        scnerf(&["render", fixture("llff").to_str().unwrap(), "--path", "orbit", "--server", "http://127.0.0.1:9"]);
+    let server = FakeServer::start();
+    let out = scnerf(&["render", fixture("llff").to_str().unwrap(), "--path", "orbit", "--server", &server.url]);
     let (_, stderr) = text(&out);
     assert!(
         stderr.contains(
@@ -156,10 +156,10 @@ fn info_and_bad_input_in_plain_words() {
         "http://127.0.0.1:9",
     ]);
     let (_, stderr) = text(&out);
-    // the first call asks the server for its scene limit
-    assert!(stderr.contains("error: cannot reach the server at http://127.0.0.1:9/v1/model"), "{stderr}");
+    // the first call asks the server for its limits, before the capture is read
+    assert!(stderr.contains("error: cannot reach the server at http://127.0.0.1:9/v1/limits"), "{stderr}");
 
-    let out = scnerf(&["render", fixture("llff").to_str().unwrap(), "--path", "zigzag"]);
+    let out = scnerf(&["render", fixture("llff").to_str().unwrap(), "--path", "zigzag", "--server", &server.url]);
     let (_, stderr) = text(&out);
     assert!(
         stderr.contains("--path \"zigzag\": expected interpolate, orbit, spiral or a camera JSON file"),
@@ -168,4 +168,87 @@ fn info_and_bad_input_in_plain_words() {
 
     let out = scnerf(&["render", fixture("llff").to_str().unwrap(), "--path", "orbit", "--size", "16by12"]);
     assert!(text(&out).1.contains("expected WxH"), "{}", text(&out).1);
+}
+
+/// `scnerf render DATA --path spiral ...` into a fresh folder against `server`; its output.
+fn render_spiral(server: &FakeServer, data: &Path, extra: &[&str]) -> (String, String) {
+    let out = tempfile::tempdir().unwrap();
+    let mut args = vec!["render", data.to_str().unwrap(), "--server", &server.url, "--path", "spiral"];
+    args.extend(["--frames", "2", "--size", "16x12", "--no-video", "--out", out.path().to_str().unwrap()]);
+    args.extend(extra);
+    let run = scnerf(&args);
+    let (stdout, stderr) = text(&run);
+    assert!(run.status.success(), "{stdout}\n{stderr}");
+    (stdout, stderr)
+}
+
+fn first_image_sizes(server: &FakeServer) -> Vec<(u32, u32)> {
+    server.state.first_image_sizes.lock().unwrap().clone()
+}
+
+/// An LLFF capture as distributed (images/, images_4/, images_8/): without flags the largest set
+/// within the server's source limit is uploaded and named; `--downscale 8` takes images_8.
+#[test]
+fn llff_as_distributed_uploads_the_largest_set_the_server_takes() {
+    let data = tempfile::tempdir().unwrap();
+    common::captures::llff(data.path(), (256, 192), &[4, 8]);
+    let server = FakeServer::start();
+    server.state.max_source_pixels.store(64 * 48, std::sync::atomic::Ordering::SeqCst);
+    let (_, stderr) = render_spiral(&server, data.path(), &[]);
+    assert!(
+        stderr.contains(
+            "image set: images_4 (64x48) of images (256x192), images_4 (64x48), images_8 (32x24): the largest within \
+             the server's limit of 3072 pixels per source view"
+        ),
+        "{stderr}"
+    );
+    let (_, stderr) = render_spiral(&server, data.path(), &["--downscale", "8"]);
+    assert!(
+        stderr.contains("image set: images_8 (32x24) of images (256x192)") && stderr.contains("(--downscale 8)"),
+        "{stderr}"
+    );
+    assert_eq!(first_image_sizes(&server), [(64, 48), (32, 24)]);
+    let run = scnerf(&[
+        "render",
+        data.path().to_str().unwrap(),
+        "--server",
+        &server.url,
+        "--path",
+        "spiral",
+        "--downscale",
+        "2",
+    ]);
+    let (_, stderr) = text(&run);
+    assert!(!run.status.success());
+    assert!(
+        stderr.contains("downscale 2: there is no images_2 folder; the capture has images (256x192), images_4"),
+        "{stderr}"
+    );
+}
+
+/// The same with nerfstudio's images_2/4/8; with a limit below every set, the smallest is
+/// resized here to fit, said in one line, and the images sent are of the cameras' size.
+#[test]
+fn nerfstudio_sets_and_resizing_when_none_fits() {
+    let data = tempfile::tempdir().unwrap();
+    common::captures::nerfstudio(data.path(), (128, 96), &[2, 4, 8]);
+    let server = FakeServer::start();
+    server.state.max_source_pixels.store(1000, std::sync::atomic::Ordering::SeqCst);
+    let (_, stderr) = render_spiral(&server, data.path(), &[]);
+    assert!(stderr.contains("image set: images_4 (32x24) of images (128x96), images_2 (64x48), images_4 (32x24), images_8 (16x12): the largest"), "{stderr}");
+    // a set chosen by hand that exceeds the limit is resized too
+    let (_, stderr) = render_spiral(&server, data.path(), &["--downscale", "2"]);
+    assert!(stderr.contains("image set: images_2 (64x48)"), "{stderr}");
+    let note = "note: 5 images of 64x48 exceed the server's limit of 1000 pixels per source view: resizing them to \
+                36x27 before uploading";
+    assert!(stderr.contains(note), "{stderr}");
+    server.state.max_source_pixels.store(100, std::sync::atomic::Ordering::SeqCst);
+    let (_, stderr) = render_spiral(&server, data.path(), &[]);
+    let note =
+        "note: 5 images of 16x12 exceed the server's limit of 100 pixels per source view: resizing them to 11x8 \
+                before uploading";
+    assert!(stderr.contains(note), "{stderr}");
+    assert!(!stderr.contains("image set:"), "{stderr}");
+    // the fake checks that every image is of its camera's size
+    assert_eq!(first_image_sizes(&server), [(32, 24), (36, 27), (11, 8)]);
 }

@@ -12,9 +12,12 @@ use std::process::Command;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
+mod common;
+
 use scnerf_client::api::{Client, Upload};
 use scnerf_client::readers::{self, ReadOptions};
 use scnerf_e2e::{http_request, repo_root, server_binary, ServerProcess};
+use serde_json::{json, Value};
 
 /// The value of an unlabelled sample (`name value`) of the server's /metrics.
 fn metric(server: &ServerProcess, name: &str) -> f64 {
@@ -140,4 +143,100 @@ fn render_a_capture_to_frames_and_video_through_the_real_server() {
     assert!(out.path().join("video.gif").is_file(), "{stdout}");
     let again = run();
     assert!(String::from_utf8_lossy(&again.stdout).contains("0 rendered, 5 already there"));
+}
+
+/// Runs `scnerf` with `args` and a PATH without ffmpeg; (stdout, stderr), asserting success.
+fn scnerf_ok(args: &[&str]) -> (String, String) {
+    let no_tools = tempfile::tempdir().unwrap();
+    let run = Command::new(env!("CARGO_BIN_EXE_scnerf")).args(args).env("PATH", no_tools.path()).output().unwrap();
+    let (stdout, stderr) =
+        (String::from_utf8_lossy(&run.stdout).into_owned(), String::from_utf8_lossy(&run.stderr).into_owned());
+    assert!(run.status.success(), "{stdout}\n{stderr}");
+    (stdout, stderr)
+}
+
+fn frame_files(out: &Path, count: usize) -> Vec<Vec<u8>> {
+    (0..count).map(|i| std::fs::read(out.join(format!("frames/frame_{i:04}.png"))).unwrap()).collect()
+}
+
+/// The commands in small against the real server (parity bundle, a source limit of
+/// 64x48): an LLFF capture as distributed renders a spiral without flags from images_4, named;
+/// a nerfstudio camera_path.json of that spiral's poses renders to frames and a video, the
+/// frames identical to those of the same cameras in the API's own form.
+#[test]
+fn distributed_llff_and_nerfstudio_camera_paths_through_the_real_server() {
+    let bundle = repo_root().join("tests/fixtures/parity/bundle");
+    let args = ["--bundle", bundle.to_str().unwrap(), "--skip-warmup", "--max-source-pixels", "3072"];
+    let mut server = ServerProcess::start(&server_binary(), &args);
+    server.wait_ready(Duration::from_secs(120));
+    let url = format!("http://{}", server.addr);
+    let data = tempfile::tempdir().unwrap();
+    common::captures::llff(data.path(), (256, 192), &[4, 8]);
+    let data = data.path().to_str().unwrap();
+
+    let spiral = tempfile::tempdir().unwrap();
+    let (_, stderr) = scnerf_ok(&[
+        "render",
+        data,
+        "--server",
+        &url,
+        "--path",
+        "spiral",
+        "--frames",
+        "3",
+        "--size",
+        "32x24",
+        "--out",
+        spiral.path().to_str().unwrap(),
+    ]);
+    assert!(
+        stderr.contains("image set: images_4 (64x48) of images (256x192), images_4 (64x48), images_8 (32x24)"),
+        "{stderr}"
+    );
+
+    // the spiral's poses, seen by a lens nerfstudio's way (vertical fov, centred principal point)
+    let cameras: Vec<Value> =
+        serde_json::from_str(&std::fs::read_to_string(spiral.path().join("cameras.json")).unwrap()).unwrap();
+    let (w, h, fov) = (32.0, 24.0, 50.0f64);
+    let f = h / 2.0 / (fov.to_radians() / 2.0).tan();
+    let w2c = |c: &Value| nalgebra::Matrix4::from_fn(|r, k| c["pose"]["matrix"][r][k].as_f64().unwrap());
+    let flip = nalgebra::Matrix4::from_diagonal(&nalgebra::Vector4::new(1.0, -1.0, -1.0, 1.0));
+    let ns_path: Vec<Value> = cameras
+        .iter()
+        .map(|c| {
+            let c2w_gl = w2c(c).try_inverse().unwrap() * flip;
+            json!({"camera_to_world": c2w_gl.transpose().iter().collect::<Vec<_>>(), "fov": fov, "aspect": w / h})
+        })
+        .collect();
+    let own: Vec<Value> = cameras
+        .iter()
+        .map(|c| json!({"width": 32, "height": 24, "intrinsics": {"fx": f, "fy": f, "cx": w / 2.0 - 0.5, "cy": h / 2.0 - 0.5},
+                         "pose": c["pose"]}))
+        .collect();
+    let files = tempfile::tempdir().unwrap();
+    let ns_file = files.path().join("camera_path.json");
+    let ns = json!({"camera_type": "perspective", "render_width": 32, "render_height": 24, "camera_path": ns_path,
+                    "fps": 12, "seconds": 0.25});
+    std::fs::write(&ns_file, ns.to_string()).unwrap();
+    let own_file = files.path().join("cameras.json");
+    std::fs::write(&own_file, Value::Array(own).to_string()).unwrap();
+
+    let (from_ns, from_own) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+    for (file, out) in [(&ns_file, &from_ns), (&own_file, &from_own)] {
+        let (stdout, _) = scnerf_ok(&[
+            "render",
+            data,
+            "--server",
+            &url,
+            "--path",
+            file.to_str().unwrap(),
+            "--out",
+            out.path().to_str().unwrap(),
+        ]);
+        assert!(stdout.contains("3 rendered") && out.path().join("video.gif").is_file(), "{stdout}");
+    }
+    assert_eq!(image::image_dimensions(from_ns.path().join("frames/frame_0000.png")).unwrap(), (32, 24));
+    let frames = frame_files(from_ns.path(), 3);
+    assert!(frames == frame_files(from_own.path(), 3), "the same cameras, the same frames");
+    assert!(frames[0] != frames[1] && frames[1] != frames[2], "other poses, other views");
 }

@@ -249,6 +249,25 @@ try {
   });
   check(!sameMatrix(rotation(swiped.matrix), rotation(pinched.matrix)), 'a one-finger swipe turns the camera');
 
+  // 7b. A recorded flight downloads as nerfstudio's camera_path.json, starting where the camera was.
+  const startMatrix = renders[renders.length - 1].matrix;
+  await page.click('#record');
+  await drag(100, 20);
+  await sleep(400);
+  await page.click('#record');
+  const [pathDownload] = await Promise.all([page.waitForEvent('download'), page.click('#download-path')]);
+  const flight = JSON.parse(readFileSync(await pathDownload.path(), 'utf8'));
+  const base = example.target;
+  check(pathDownload.suggestedFilename() === 'camera_path.json' && flight.camera_type === 'perspective', 'the recorded path downloads as camera_path.json');
+  check(flight.render_width === base.width && flight.render_height === base.height && flight.fps === 24, `render size ${flight.render_width}x${flight.render_height} at ${flight.fps} fps`);
+  check(flight.camera_path.length >= 2 && Math.abs(flight.seconds - flight.camera_path.length / 24) < 1e-9, `${flight.camera_path.length} frames, ${flight.seconds.toFixed(2)} s`);
+  const fov = (2 * Math.atan(base.height / 2 / base.intrinsics.fy) * 180) / Math.PI;
+  check(flight.camera_path.every((c) => c.camera_to_world.length === 16 && Math.abs(c.fov - fov) < 1e-9 && Math.abs(c.aspect - base.width / base.height) < 1e-12), `every frame: 16 numbers, fov ${fov.toFixed(3)} degrees, aspect`);
+  // OpenGL camera-to-world back to the page's OpenCV one: flip the y and z columns
+  const opencv = (flat) => [0, 1, 2, 3].map((r) => flat.slice(4 * r, 4 * r + 4).map((v, c) => (r < 3 && (c === 1 || c === 2) ? -v : v)));
+  check(sameMatrix(opencv(flight.camera_path[0].camera_to_world), startMatrix), 'the path starts at the pose shown when recording began');
+  check(!sameMatrix(opencv(flight.camera_path.at(-1).camera_to_world), startMatrix), 'and follows the drag');
+
   await page.keyboard.press('Escape');
   await waitFor('the stop', async () => (await phase()) === 'stopped', 10_000);
   check(true, 'Escape stopped rendering');
@@ -264,7 +283,20 @@ try {
 
   const exampleScene = renders[0].request.url();
   const dropped = renders.length;
-  await page.setInputFiles('#capture-input', await captureFolder(nerfstudio(example), ['source_0.png', 'source_1.png', 'source_2.png']));
+  // With a second image set (images_2/) beside images/: the page reads the server's limits first
+  // and sends one set, the largest that fits (here images/).
+  const folder = await captureFolder(nerfstudio(example), ['source_0.png', 'source_1.png', 'source_2.png']);
+  mkdirSync(join(folder, 'images_2'));
+  for (const i of [1, 2, 3]) writeFileSync(join(folder, 'images_2', `photo_${i}.png`), readFileSync(join(folder, 'images', `photo_${i}.png`)));
+  const limitsRead = urls.length;
+  const [uploaded] = await Promise.all([
+    page.waitForResponse((r) => r.url().endsWith('/v1/captures')),
+    page.setInputFiles('#capture-input', folder),
+  ]);
+  const answer = await uploaded.json();
+  check(urls.slice(limitsRead).findIndex((u) => u.endsWith('/v1/limits')) < urls.slice(limitsRead).findIndex((u) => u.endsWith('/v1/captures')), 'the page read GET /v1/limits before uploading');
+  // the server names any set it got but did not read: none, so only images/ was sent
+  check(answer.image_set === 'images' && !answer.warnings.some((w) => w.includes('not read')), `only the image set that fits was sent (${answer.image_set}; ${JSON.stringify(answer.warnings)})`);
   const captured = await firstAnswered(dropped);
   check(captured.request.url() !== exampleScene, `the capture rendered as a scene of its own (${new URL(captured.request.url()).pathname})`);
   const info = await waitFor('the capture\'s first view in the panel', async () => {

@@ -449,3 +449,65 @@ async fn captures_have_their_own_body_limit() {
     let small = App::new(Limits { max_body_bytes: 64 << 10, ..Limits::default() }, ServiceOptions::default());
     assert_eq!(post_capture(&small, &files_of(&datasets().join("blender")), "").await.0, 201);
 }
+
+/// An LLFF capture as distributed: `images/` (8x6) and `images_2/` (4x3) beside it.
+fn llff_with_two_sets() -> Vec<(String, Vec<u8>)> {
+    let mut files = files_of(&datasets().join("llff"));
+    files.extend((0..4).map(|i| (format!("images_2/IMG_000{i}.png"), png(4, 3, [40 * i as u8, 90, 160, 255]))));
+    files
+}
+
+/// The limits clients read before uploading, and the image set `POST /v1/captures` reads: the
+/// largest within `max_source_pixels`, or the one `downscale` names; the others are named as not
+/// read, and a capture none of whose sets fits is refused naming them.
+#[tokio::test]
+async fn captures_read_the_largest_image_set_within_the_limit() {
+    let limits = Limits { max_source_pixels: 47, max_scene_views: 6, max_capture_bytes: 5 << 20, ..Limits::default() };
+    let app = App::new(limits.clone(), ServiceOptions::default());
+    let got = json_of(&send(app.router.clone(), get("/v1/limits", &[])).await);
+    assert_eq!(
+        got,
+        json!({"max_source_pixels": 47, "max_target_pixels": limits.max_target_pixels, "max_scene_views": 6,
+               "max_body_bytes": limits.max_body_bytes, "max_capture_bytes": 5 << 20,
+               "max_json_bytes": limits.max_json_bytes})
+    );
+    let files = llff_with_two_sets();
+    let fitting = json_of(&post_capture(&app, &files, "").await);
+    assert_eq!(fitting["image_set"], "images_2", "{fitting}");
+    assert_eq!(
+        (fitting["cameras"][0]["width"].as_u64(), fitting["names"][0].as_str()),
+        (Some(4), Some("images_2/IMG_0000.png"))
+    );
+    assert!(
+        fitting["warnings"].to_string().contains("read the image set images_2 (4x3); not read: images (8x6)"),
+        "{fitting}"
+    );
+
+    let plain = App::plain();
+    let full = json_of(&post_capture(&plain, &files, "").await);
+    assert_eq!((full["image_set"].as_str(), full["cameras"][0]["width"].as_u64()), (Some("images"), Some(8)));
+    let asked = json_of(&post_capture(&plain, &files, "?downscale=2").await);
+    assert_eq!((asked["image_set"].as_str(), asked["cameras"][0]["width"].as_u64()), (Some("images_2"), Some(4)));
+    // the focal length scales with the set (LLFF: hwf describes the full-size images)
+    let (f_full, f_half) = (
+        full["cameras"][0]["intrinsics"]["fx"].as_f64().unwrap(),
+        asked["cameras"][0]["intrinsics"]["fx"].as_f64().unwrap(),
+    );
+    assert_eq!(f_half, f_full / 2.0);
+    let got = post_capture(&plain, &files, "?downscale=8").await;
+    assert_error(&got, 422, "invalid_request", Some("downscale"));
+    assert!(json_of(&got)["error"]["message"].as_str().unwrap().contains("no images_8 folder"), "{got:?}");
+    // only the set the client chose was sent: that one is read
+    let half_only: Vec<_> = files.iter().filter(|(n, _)| !n.starts_with("images/")).cloned().collect();
+    assert_eq!(json_of(&post_capture(&plain, &half_only, "").await)["image_set"], "images_2");
+
+    let tiny = App::new(Limits { max_source_pixels: 11, ..Limits::default() }, ServiceOptions::default());
+    let got = post_capture(&tiny, &files, "").await;
+    assert_error(&got, 422, "invalid_request", Some("images_2"));
+    let message = json_of(&got)["error"]["message"].as_str().unwrap().to_string();
+    assert!(
+        message.contains("no image set of the capture fits the limit of 11 pixels")
+            && message.contains("images (8x6), images_2 (4x3)"),
+        "{message}"
+    );
+}

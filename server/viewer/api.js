@@ -85,6 +85,11 @@ export class Api {
     return this.json('Reading the model (GET /v1/model)', '/v1/model');
   }
 
+  /** What the server accepts (source pixels, scene views, body sizes), read before any upload. */
+  limits() {
+    return this.json('Reading the server\'s limits (GET /v1/limits)', '/v1/limits');
+  }
+
   /** `form`: multipart with `request` and `source_0..N`. */
   createScene(form, signal) {
     return this.json('Uploading the scene (POST /v1/scenes)', '/v1/scenes', { method: 'POST', body: form, signal });

@@ -158,3 +158,30 @@ export function dolly(view, factor, minDistance) {
   const distance = Math.max(length(offset) * factor, minDistance);
   return { ...view, pose: { ...view.pose, centre: add(view.pivot, scale(normalize(offset), distance)) } };
 }
+
+/**
+ * Cameras (API form, camera-to-world OpenCV as `cameraAt` makes them, all of `base`'s lens) as
+ * nerfstudio's camera_path.json, what its viewer exports and `ns-render camera-path` and
+ * `scnerf render --path` read: per frame `camera_to_world` (16 numbers, row-major, OpenGL axes),
+ * the vertical `fov` in degrees and `aspect`; the render size, `fps` and `seconds`. nerfstudio's
+ * principal point is the image centre.
+ */
+export function nerfstudioPath(cameras, base, fps) {
+  const { fy } = intrinsicsOf(base);
+  const fov = (2 * Math.atan(base.height / 2 / fy) * 180) / Math.PI;
+  const aspect = base.width / base.height;
+  const path = cameras.map((camera) => {
+    const m = camera.pose.matrix;
+    // OpenCV (x right, y down, z forward) to OpenGL (x right, y up, z back): flip y and z
+    const gl = m.map((row, i) => (i < 3 ? [row[0], -row[1], -row[2], row[3]] : row));
+    return { camera_to_world: gl.flat(), fov, aspect };
+  });
+  return {
+    camera_type: 'perspective',
+    render_width: base.width,
+    render_height: base.height,
+    camera_path: path,
+    fps,
+    seconds: cameras.length / fps,
+  };
+}

@@ -2,7 +2,7 @@
 // moves, and shows what the server answers (the sources it used, its timings, its errors).
 
 import { Api } from './api.js';
-import { cameraAt, intrinsicsOf, poseOf, sceneFrame, viewFrom } from './camera.js';
+import { cameraAt, intrinsicsOf, nerfstudioPath, poseOf, sceneFrame, viewFrom } from './camera.js';
 import { captureForm, filesFromDrop, filesFromPicker } from './capture.js';
 import { attachControls } from './controls.js';
 import { decodeView, drawColourBar, drawView } from './images.js';
@@ -25,6 +25,8 @@ const DEFAULT_COARSEST = 1 / 8;
 /** Finer than this, a paper-size model takes about a minute per view on a 2-core CPU. */
 const DEFAULT_FINEST = 1 / 2;
 const TOKEN_KEY = 'scnerf-viewer-token';
+/** Frames per second of a recorded camera path: the camera is sampled this often while it moves. */
+const PATH_FPS = 24;
 /** Tells this tab's requests apart in the server's logs (sent as x-request-id). */
 const PAGE_ID = Math.random().toString(16).slice(2, 8);
 
@@ -195,6 +197,7 @@ async function openScene(load, what, explain = (e) => e) {
     fillViews();
     fillSizes();
     canvas.style.aspectRatio = `${scene.base.width} / ${scene.base.height}`;
+    if (recording.timer !== null) toggleRecording(); // a path belongs to one scene's world
     clearError();
     reset();
   } catch (e) {
@@ -209,17 +212,68 @@ function openExample() {
   );
 }
 
-function openCapture(entries) {
-  const capture = captureForm(entries);
-  if (capture.count === 0) {
-    showError(new Error('Nothing to upload: a capture is images plus transforms.json, poses_bounds.npy or COLMAP text files.'));
+/** Reads the server's limits, prepares the capture's files within them, then uploads it. */
+async function openCapture(entries) {
+  setStatus('Reading the capture…', 'uploading');
+  let capture;
+  try {
+    const { body: limits } = await api.limits();
+    capture = await captureForm(entries, limits);
+    if (capture.count === 0) throw new Error('Nothing to upload: a capture is images plus transforms.json, poses_bounds.npy or COLMAP text files.');
+    if (capture.bytes > limits.max_capture_bytes) {
+      const mb = (n) => (n / 2 ** 20).toFixed(1);
+      throw new Error(`The capture is ${mb(capture.bytes)} MB, more than this server takes (${mb(limits.max_capture_bytes)} MB, its --max-capture-bytes): drop a smaller image set (images_N) or fewer images.`);
+    }
+  } catch (e) {
+    showError(e);
+    setStatus(state.scene ? `Still showing ${state.scene.label}.` : 'No scene loaded.', 'error');
     return;
   }
   const label = capture.name ? `the capture "${capture.name}"` : 'the dropped capture';
   const megabytes = (capture.bytes / 2 ** 20).toFixed(1);
-  openScene(() => captureScene(api, capture.form, label), `${label} (${capture.count} files, ${megabytes} MB)`, (e) =>
+  const set = capture.imageSet ? `, ${capture.imageSet}` : '';
+  await openScene(() => captureScene(api, capture.form, label), `${label} (${capture.count} files${set}, ${megabytes} MB)`, (e) =>
     e.status === 404 && e.code === 'not_found' ? new Error('This server cannot parse captures yet: it has no POST /v1/captures (HTTP 404). Only the example scene can be viewed here.') : e,
   );
+  $('capture-note').hidden = !(capture.note && state.scene?.label === label);
+  $('capture-note').textContent = capture.note ? `${label}: ${capture.note}.` : '';
+}
+
+/** The flight being recorded: the virtual camera sampled PATH_FPS times a second while it moves. */
+const recording = { cameras: [], timer: null, last: null };
+
+function sampleFlight() {
+  if (!state.view || state.view.pose === recording.last) return;
+  recording.last = state.view.pose;
+  recording.cameras.push(cameraAt(state.scene.base, state.view.pose, 1));
+  $('path-status').textContent = `Recording: ${recording.cameras.length} frames.`;
+}
+
+function toggleRecording() {
+  const button = $('record');
+  if (recording.timer === null) {
+    Object.assign(recording, { cameras: [], last: null, timer: setInterval(sampleFlight, 1000 / PATH_FPS) });
+    sampleFlight();
+    button.textContent = 'Stop recording';
+    button.setAttribute('aria-pressed', 'true');
+    $('download-path').disabled = true;
+    return;
+  }
+  clearInterval(recording.timer);
+  recording.timer = null;
+  button.textContent = 'Record path';
+  button.setAttribute('aria-pressed', 'false');
+  const n = recording.cameras.length;
+  $('download-path').disabled = n === 0;
+  $('path-status').textContent = `Recorded ${n} frames (${(n / PATH_FPS).toFixed(1)} s at ${PATH_FPS} fps).`;
+}
+
+function downloadPath() {
+  const path = nerfstudioPath(recording.cameras, state.scene.base, PATH_FPS);
+  const blob = new Blob([JSON.stringify(path, null, 1)], { type: 'application/json' });
+  const link = Object.assign(document.createElement('a'), { href: URL.createObjectURL(blob), download: 'camera_path.json' });
+  link.click();
+  setTimeout(() => URL.revokeObjectURL(link.href), 1000);
 }
 
 async function showModel() {
@@ -285,6 +339,8 @@ function wire() {
   $('stop').addEventListener('click', stop);
   $('save').addEventListener('click', saveView);
   $('reset').addEventListener('click', reset);
+  $('record').addEventListener('click', toggleRecording);
+  $('download-path').addEventListener('click', downloadPath);
   window.addEventListener('resize', () => state.scene && drawOverview());
   drawColourBar($('colour-bar'));
   dropTarget();

@@ -7,7 +7,8 @@
 //! (qw qx qy qz tx ty tz). COLMAP's first pixel centre is at (0.5, 0.5): cx, cy are shifted by
 //! -0.5. PINHOLE and SIMPLE_PINHOLE are used as they are; SIMPLE_RADIAL, RADIAL, OPENCV and
 //! FULL_OPENCV only when their distortion is zero (or with `--ignore-distortion`); fisheye models
-//! are refused. Intrinsics are rescaled when the image on disk has another size than the camera.
+//! are refused. Intrinsics are rescaled when the image on disk has another size than the camera,
+//! which is how a downscaled set beside `images/` (`images_N`, `--downscale N`) is read.
 //! near/far: 0.9 x the 1st and 1.1 x the 99th percentile of the z-depths of the 3D points in the
 //! views that observe them (every view for a point without a track). Views are in natural
 //! order of their image names; names drop the extension.
@@ -23,6 +24,7 @@ use super::{
 use crate::camera::{Camera, Intrinsics, Pose};
 use crate::error::{Error, Result};
 use crate::files::Files;
+use crate::image_sets::folder_name;
 use crate::percentile;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -72,7 +74,7 @@ pub fn load(fs: &dyn Files, path: &Path, opts: ReadOptions) -> Result<Capture> {
         Encoding::Text => (text::cameras(fs, &cameras_file)?, text::images(fs, &images_file)?),
         Encoding::Binary => (binary::cameras(fs, &cameras_file)?, binary::images(fs, &images_file)?),
     };
-    let image_dir = path.join("images");
+    let image_dir = path.join(folder_name(opts.downscale.unwrap_or(1)));
     if !fs.is_dir(&image_dir) {
         return Err(Error::dataset(&image_dir, "COLMAP images folder not found"));
     }

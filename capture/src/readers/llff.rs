@@ -5,7 +5,9 @@
 //! OpenCV's [right, down, forward] = [col1, col0, -col2]. hwf is the full-resolution height,
 //! width and focal: f = focal W_image / W_hwf, and the principal point is the image centre
 //! (W/2, H/2), as in LLFF's and MVSNeRF's code. The world stays in LLFF's units (no NeRF
-//! bd_factor rescale). near = smallest near bound, far = largest far bound.
+//! bd_factor rescale). near = smallest near bound, far = largest far bound. hwf describes the
+//! full-size images: a downscaled set (`images_N`, `--downscale N`) gets f scaled by its width,
+//! f W_N / W_hwf, which is LLFF's f / N for sizes that divide exactly.
 
 use std::path::{Path, PathBuf};
 
@@ -15,15 +17,17 @@ use super::{depth_range, has_image_extension, Capture, CapturedView, Format, Rea
 use crate::camera::{w2c_from_c2w, Camera, Intrinsics};
 use crate::error::{Error, Result};
 use crate::files::Files;
+use crate::image_sets::folder_name;
 
 pub fn load(fs: &dyn Files, path: &Path, opts: ReadOptions) -> Result<Capture> {
     let npy = path.join("poses_bounds.npy");
     let rows = read_rows(fs, &npy)?;
-    let images = list_images(fs, &path.join("images"))?;
+    let folder = path.join(folder_name(opts.downscale.unwrap_or(1)));
+    let images = list_images(fs, &folder)?;
     if images.len() != rows.len() {
         return Err(Error::dataset(
             &npy,
-            format!("{} poses but {} images in {}", rows.len(), images.len(), path.join("images").display()),
+            format!("{} poses but {} images in {}", rows.len(), images.len(), folder.display()),
         ));
     }
     let mut views = Vec::with_capacity(rows.len());

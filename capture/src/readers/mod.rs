@@ -59,6 +59,9 @@ pub struct ReadOptions {
     /// Use cameras with lens distortion as pinhole (what the Python loaders do, with a warning)
     /// instead of refusing them.
     pub ignore_distortion: bool,
+    /// Read the downscaled image set `images_N` instead of `images/` (LLFF, nerfstudio, COLMAP;
+    /// [`crate::image_sets`]); the cameras are scaled to its images.
+    pub downscale: Option<u32>,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -158,7 +161,7 @@ pub fn load_from(fs: &dyn Files, path: &Path, format: Option<Format>, opts: Read
 /// Extensions the Python loaders accept (datasets.py IMAGE_EXTENSIONS) and the server decodes.
 pub const IMAGE_EXTENSIONS: [&str; 6] = ["png", "jpg", "jpeg", "PNG", "JPG", "JPEG"];
 
-fn has_image_extension(path: &Path) -> bool {
+pub(crate) fn has_image_extension(path: &Path) -> bool {
     path.extension().and_then(|e| e.to_str()).is_some_and(|e| IMAGE_EXTENSIONS.contains(&e))
 }
 

@@ -6,9 +6,10 @@
 //! intrinsics are rescaled to it (pixel centres kept at integers). Lens distortion (k1..k4, p1,
 //! p2) is refused unless `--ignore-distortion`. near/far from the flags, else the file's
 //! `near`/`far` (or `near_far`) keys. View names are the file stems, or the file paths without
-//! extension when stems repeat.
+//! extension when stems repeat. A downscaled set (`--downscale N`) is nerfstudio's:
+//! `images_N/<file name>` beside the transforms file, the intrinsics scaled to its images.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use serde_json::Value;
 
@@ -20,6 +21,7 @@ use super::{
 use crate::camera::{w2c_from_opengl_c2w, Camera, Intrinsics};
 use crate::error::{Error, Result};
 use crate::files::Files;
+use crate::image_sets::folder_name;
 
 const DISTORTION: [&str; 6] = ["k1", "k2", "k3", "k4", "p1", "p2"];
 const MODELS: [&str; 3] = ["OPENCV", "PINHOLE", "SIMPLE_PINHOLE"];
@@ -39,7 +41,7 @@ pub fn load(fs: &dyn Files, path: &Path, opts: ReadOptions) -> Result<Capture> {
     let mut entries = Vec::new(); // (path without extension, view)
     for (i, frame) in frames.iter().enumerate() {
         let file_path = frame_file_path(frame, &file, i)?;
-        let Some(image) = resolve_image(fs, base, file_path) else { continue };
+        let Some(image) = frame_image(fs, base, file_path, opts.downscale) else { continue };
         let param = |key: &str| -> Result<f64> {
             let value = frame.get(key).or_else(|| data.get(key)).ok_or_else(|| {
                 Error::dataset(&file, format!("frames[{i}] has no '{key}' (neither per frame nor at the top level)"))
@@ -88,6 +90,15 @@ pub fn load(fs: &dyn Files, path: &Path, opts: ReadOptions) -> Result<Capture> {
     warnings.extend(skipped_warning(&file.display().to_string(), frames.len() - views.len(), frames.len()));
     let (near, far) = depth_range(opts, near_far(&data, &file)?, &file)?;
     Ok(Capture { format: Format::Nerfstudio, views, near, far, background: [0.0; 3], warnings })
+}
+
+/// The image of a frame: its `file_path`, or with `--downscale N` nerfstudio's downscaled copy,
+/// the file of the same name in `images_N` (its dataparser's `_get_fname`).
+fn frame_image(fs: &dyn Files, base: &Path, file_path: &str, downscale: Option<u32>) -> Option<PathBuf> {
+    match downscale.filter(|&n| n > 1) {
+        Some(n) => resolve_image(fs, &base.join(folder_name(n)), &base_name(file_path)),
+        None => resolve_image(fs, base, file_path),
+    }
 }
 
 /// `near`/`far` keys, each falling back to the matching element of `near_far`.

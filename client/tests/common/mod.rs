@@ -1,6 +1,7 @@
 //! A small in-process stand-in for scnerf-server's capture-scene API (axum on a loopback port):
 //! `PUT /v1/scenes/{id}` (multipart: `request` JSON + `source_i` images; 201 new, 200
-//! replaced), `POST /v1/scenes/{id}/render` (JSON) and `GET /v1/model` (`max_scene_views`),
+//! replaced), `POST /v1/scenes/{id}/render` (JSON) and `GET /v1/limits` (`max_scene_views`,
+//! `max_source_pixels` as set in [`FakeState::max_source_pixels`]),
 //! answering like the real server, plus scripted failures:
 //! the next renders can answer 503 with Retry-After, or 404 `scene_not_found` with the hint
 //! `reupload` (the scene is forgotten, as after expiry), or a plain 404 without the hint (as a
@@ -8,6 +9,8 @@
 //! `MAX_VIEWS` views is refused from its `request` part, before the images are read.
 
 #![allow(dead_code)] // each test binary uses part of it
+
+pub mod captures;
 
 use std::collections::HashSet;
 use std::io::Cursor;
@@ -40,6 +43,10 @@ pub struct FakeState {
     pub unrouted: AtomicUsize,
     /// The next this many renders forget their scene and answer 404 scene_not_found.
     pub forget: AtomicUsize,
+    /// What `GET /v1/limits` answers as `max_source_pixels` (0: 1024 x 1024).
+    pub max_source_pixels: AtomicUsize,
+    /// The size of the first image of every upload.
+    pub first_image_sizes: Mutex<Vec<(u32, u32)>>,
     scenes: Mutex<HashSet<String>>,
 }
 
@@ -58,7 +65,7 @@ impl FakeServer {
         let app = Router::new()
             .route("/v1/scenes/{id}", put(create))
             .route("/v1/scenes/{id}/render", post(render))
-            .route("/v1/model", get(|| async { Json(json!({"model_id": "fake", "max_scene_views": MAX_VIEWS})) }))
+            .route("/v1/limits", get(limits))
             .with_state(state.clone());
         runtime.spawn(async move { axum::serve(listener, app).await.unwrap() });
         FakeServer { url, state, _runtime: runtime }
@@ -75,6 +82,15 @@ impl FakeServer {
     pub fn renders(&self) -> usize {
         self.state.renders.load(Ordering::SeqCst)
     }
+}
+
+async fn limits(State(state): State<Arc<FakeState>>) -> Json<Value> {
+    let pixels = match state.max_source_pixels.load(Ordering::SeqCst) {
+        0 => 1 << 20,
+        n => n,
+    };
+    Json(json!({"max_source_pixels": pixels, "max_target_pixels": 1 << 22, "max_scene_views": MAX_VIEWS,
+                "max_body_bytes": 64 << 20, "max_capture_bytes": 256 << 20, "max_json_bytes": 1 << 20}))
 }
 
 fn error(status: StatusCode, code: &str, message: &str, field: Option<&str>) -> Response {
@@ -175,6 +191,8 @@ async fn create(State(state): State<Arc<FakeState>>, Path(id): Path<String>, mut
         assert_eq!(dims, (s.camera.width, s.camera.height), "camera size is the image's");
         check(&s.camera);
     }
+    let first = &request.sources[0].camera;
+    state.first_image_sizes.lock().unwrap().push((first.width, first.height));
     state.uploads.lock().unwrap().push(images.len());
     state.ids.lock().unwrap().push(id.clone());
     let status = if state.scenes.lock().unwrap().insert(id.clone()) { StatusCode::CREATED } else { StatusCode::OK };

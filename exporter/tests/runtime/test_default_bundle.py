@@ -4,20 +4,19 @@ the 3 nearest source views): the committed example above examples/tabletop/regre
 floor; lego r_28 at 200x200 >= 23 dB; DTU scan37 view 32 from 33, 31, 25 at 320x256 >= 20 dB on
 the object mask, through ONNX Runtime and through the real server alike."""
 
-import io
 import json
 
 import numpy as np
 import pytest
 from PIL import Image
 
-from scnerf_export.cameras import Camera
+from scnerf_export.cameras import Camera, camera_json
 from scnerf_export.cameras import intrinsics_from_json as _k
 from scnerf_export.data import datasets
 from scnerf_export.evaluate import metrics
 from scnerf_export.evaluate.eval import downscale_target, source_pool
 from scnerf_export.runtime.onnx_pipeline import OnnxBundle
-from scnerf_export.serving import ServerProcess, find_server_binary, render_request
+from scnerf_export.serving import ServerProcess, find_server_binary
 
 from conftest import REPO, shared_dir
 
@@ -106,18 +105,15 @@ class RealView:
 
     def render_served(self, server: ServerProcess) -> np.ndarray:
         s = self.scene
-        body = render_request(
-            [(v.camera, f.read_bytes()) for v, f in zip(self.sources, self.image_files)],
-            self.target.camera,
+        return server.client.render(
+            [f.read_bytes() for f in self.image_files],
+            [camera_json(v.camera) for v in self.sources],
+            camera_json(self.target.camera),
             s.near,
             s.far,
             s.background,
-        )
-        status, png, _ = server.request(
-            "POST", "/v1/render", body, {"content-type": "application/json", "accept": "image/png"}
-        )
-        assert status == 200, png[:500]
-        return load_rgb(io.BytesIO(png))
+            outputs=["rgb"],
+        ).rgb
 
     def psnr(self, rgb: np.ndarray) -> float:
         if self.target.mask is not None:

@@ -1,8 +1,9 @@
 //! `POST /v1/captures`: a capture folder's files (multipart, every part named `file`, its
 //! filename the file's path in the folder: `transforms.json`, `images/r_0.png`,
 //! `sparse/0/cameras.txt`, ...) read in memory by the readers the `scnerf` client uses
-//! (`scnerf_capture`: COLMAP, nerfstudio, Blender, LLFF, DTU), thinned to `--max-scene-views`
-//! and kept as a scene. Nothing is written to disk.
+//! (`scnerf_capture`: COLMAP, nerfstudio, Blender, LLFF, DTU), from the image set the client
+//! names (`downscale`) or else the largest within `--max-source-pixels`, thinned to
+//! `--max-scene-views` and kept as a scene. Nothing is written to disk.
 
 use std::path::Path;
 
@@ -12,7 +13,8 @@ use axum::http::StatusCode;
 use axum::response::Response;
 use bytes::Bytes;
 use scnerf_capture::files::MemoryFiles;
-use scnerf_capture::readers::{self, Capture, ReadOptions};
+use scnerf_capture::image_sets::{load_picked, ImageSet, Pick, Picked};
+use scnerf_capture::readers::{Capture, ReadOptions};
 use serde::{Deserialize, Serialize};
 
 use super::body::multipart_error;
@@ -24,7 +26,7 @@ use crate::cache::rfc3339;
 use crate::camera::{Axes, Camera, CameraSpec, Intrinsics, Pose, PoseKind};
 use crate::error::ApiError;
 use crate::pipeline::Timings;
-use crate::request::{SceneRequest, SourceSpec};
+use crate::request::{Limits, SceneRequest, SourceSpec};
 
 /// What the readers take from the command line in the client, as query parameters.
 #[derive(Debug, Default, Deserialize, utoipa::IntoParams)]
@@ -39,6 +41,10 @@ pub struct CaptureOptions {
     /// Use cameras with lens distortion as pinhole instead of refusing them.
     #[serde(default)]
     ignore_distortion: bool,
+    /// Read the image set `images_N` (LLFF, nerfstudio, COLMAP); without it, the largest set
+    /// sent whose images fit `max_source_pixels` (GET /v1/limits).
+    #[param(minimum = 1)]
+    downscale: Option<u32>,
 }
 
 /// `201 Created` body of `POST /v1/captures`: the scene, and what the capture was read as.
@@ -57,7 +63,10 @@ pub struct CaptureCreated {
     pub far: f64,
     /// colmap, nerfstudio, blender, llff or dtu.
     pub format: String,
-    /// What the reader skipped or ignored, and whether the capture was thinned.
+    /// The image set read (`images`, `images_4`, ...), when the capture keeps sets.
+    pub image_set: Option<String>,
+    /// What the reader skipped or ignored, the image sets sent but not read, and whether the
+    /// capture was thinned.
     pub warnings: Vec<String>,
 }
 
@@ -113,14 +122,13 @@ async fn create_within(
     let files = read_files(req, state.pipeline.limits().max_capture_bytes).await?;
     let (config, limits) = (state.pipeline.config().clone(), state.pipeline.limits().clone());
     let parsed = tokio::task::spawn_blocking(move || -> Result<_, ApiError> {
-        let read = read_capture(files, &options, limits.max_scene_views)?;
-        let names = read.names.clone();
-        let valid = read.request.validate(&config, &limits).map_err(|e| name_the_file(e, &names))?;
-        Ok((valid, read.names, read.format, read.warnings))
+        let ReadCapture { request, names, format, image_set, warnings } = read_capture(files, &options, &limits)?;
+        let valid = request.validate(&config, &limits).map_err(|e| name_the_file(e, &names))?;
+        Ok((valid, names, format, image_set, warnings))
     })
     .await
     .map_err(|e| ApiError::Internal(format!("capture parsing task failed: {e}")))??;
-    let (valid, names, format, warnings) = parsed;
+    let (valid, names, format, image_set, warnings) = parsed;
     let cameras = valid.sources.iter().map(|s| camera_json(&s.camera)).collect();
     let (near, far) = (valid.near, valid.far);
     let mut timings = Timings::default();
@@ -133,6 +141,7 @@ async fn create_within(
         near,
         far,
         format,
+        image_set,
         warnings,
     };
     let status = if stored.replaced { StatusCode::OK } else { StatusCode::CREATED };
@@ -175,14 +184,25 @@ struct ReadCapture {
     request: SceneRequest,
     names: Vec<String>,
     format: String,
+    image_set: Option<String>,
     warnings: Vec<String>,
 }
 
-fn read_capture(mut files: MemoryFiles, options: &CaptureOptions, max_views: usize) -> Result<ReadCapture, ApiError> {
-    let opts = ReadOptions { near: options.near, far: options.far, ignore_distortion: options.ignore_distortion };
-    let capture = readers::load_from(&files, Path::new(""), None, opts).map_err(capture_error)?;
+fn read_capture(mut files: MemoryFiles, options: &CaptureOptions, limits: &Limits) -> Result<ReadCapture, ApiError> {
+    let opts = ReadOptions {
+        near: options.near,
+        far: options.far,
+        ignore_distortion: options.ignore_distortion,
+        downscale: None,
+    };
+    let rule = match options.downscale {
+        Some(factor) => Pick::Downscale(factor),
+        None => Pick::Fit { max_pixels: limits.max_source_pixels },
+    };
+    let (capture, picked) = load_picked(&files, Path::new(""), None, opts, rule).map_err(capture_error)?;
     let Capture { format, views, near, far, background, mut warnings } = capture;
-    let kept = scnerf_capture::thin_evenly(views.len(), max_views);
+    let image_set = picked.map(|p| picked_set(p, limits.max_source_pixels, &mut warnings)).transpose()?;
+    let kept = scnerf_capture::thin_evenly(views.len(), limits.max_scene_views);
     if kept.len() < views.len() {
         warnings.push(format!(
             "the capture has {} views; the scene keeps {} of them, evenly spread (the server's --max-scene-views)",
@@ -211,12 +231,38 @@ fn read_capture(mut files: MemoryFiles, options: &CaptureOptions, max_views: usi
         request: SceneRequest { sources, near, far, background },
         names,
         format: format.name().to_string(),
+        image_set,
         warnings,
     })
 }
 
+/// The folder of the image set read; the sets sent but not read are named in a warning. No set
+/// within the pixel limit: 422 naming the sets, before any image is decoded.
+fn picked_set(picked: Picked, max_pixels: u64, warnings: &mut Vec<String>) -> Result<String, ApiError> {
+    let folder = picked.set.folder.to_string_lossy().into_owned();
+    if !picked.fits {
+        return Err(ApiError::invalid(
+            folder,
+            format!(
+                "no image set of the capture fits the limit of {max_pixels} pixels per source view ({}): send a \
+                 smaller set (images_N) or resize the images",
+                picked.sets.iter().map(ImageSet::describe).collect::<Vec<_>>().join(", ")
+            ),
+        ));
+    }
+    let unused: Vec<String> =
+        picked.sets.iter().filter(|s| s.factor != picked.set.factor).map(ImageSet::describe).collect();
+    if !unused.is_empty() {
+        warnings.push(format!("read the image set {}; not read: {}", picked.set.describe(), unused.join(", ")));
+    }
+    Ok(folder)
+}
+
 /// A capture the readers refuse: 422 naming the file (relative to the capture's folder).
 fn capture_error(e: scnerf_capture::Error) -> ApiError {
+    if let scnerf_capture::Error::UnknownImageSet { .. } = e {
+        return ApiError::invalid("downscale", e.to_string());
+    }
     let field = e.path().map(|p| p.to_string_lossy().into_owned()).filter(|p| !p.is_empty());
     ApiError::invalid(field.unwrap_or_else(|| "file".to_string()), e.to_string())
 }

@@ -39,6 +39,7 @@ pub fn router(state: AppState) -> Router {
         .route("/metrics", get(service::metrics))
         .route("/openapi.json", get(openapi::serve))
         .route("/v1/model", get(service::model))
+        .route("/v1/limits", get(service::limits))
         .route("/v1/render", post(render::render))
         .route("/v1/scenes", post(scenes::create))
         .route(body::CAPTURES_PATH, post(captures::create).layer(DefaultBodyLimit::max(capture_limit)))

@@ -9,6 +9,7 @@ use super::captures::CaptureCreated;
 use super::respond::{FloatImageJson, PngImageJson, RenderResponseJson};
 use super::scenes::SceneCreated;
 use super::schema::{Binary, CaptureMultipart, RenderMultipart, SceneMultipart};
+use super::service::LimitsBody;
 use crate::error::{ErrorBody, ErrorDetail};
 use crate::request::wire::{
     JsonCamera, JsonFocal, JsonIntrinsicsSchema, JsonPose, JsonRenderRequest, JsonSceneRequest, JsonSource,
@@ -44,6 +45,7 @@ Errors are always `{\"error\": {\"code\", \"message\", \"field\"}}`. With bearer
         crate::http::scenes::delete,
         crate::http::captures::create,
         crate::http::service::model,
+        crate::http::service::limits,
         crate::http::service::healthz,
         crate::http::service::readyz,
         crate::http::service::metrics,
@@ -52,7 +54,7 @@ Errors are always `{\"error\": {\"code\", \"message\", \"field\"}}`. With bearer
     components(schemas(
         JsonRenderRequest, JsonSceneRequest, JsonTargetRequest, JsonSource, JsonCamera, JsonFocal,
         JsonIntrinsicsSchema, JsonPose, OutputKind, RenderResponseJson, PngImageJson, FloatImageJson, SceneCreated,
-        CaptureCreated, ErrorBody, ErrorDetail, RenderMultipart, SceneMultipart, CaptureMultipart, Binary, Matrix3Rows,
+        CaptureCreated, LimitsBody, ErrorBody, ErrorDetail, RenderMultipart, SceneMultipart, CaptureMultipart, Binary, Matrix3Rows,
         Matrix4Rows,
     )),
     modifiers(&BearerAuth),

@@ -5,10 +5,12 @@ use axum::extract::State;
 use axum::http::{header, HeaderValue, Uri};
 use axum::response::{IntoResponse, Response};
 use axum::Json;
+use serde::Serialize;
 use serde_json::json;
 
 use super::state::AppState;
 use crate::error::ApiError;
+use crate::request::Limits;
 
 /// Liveness: the process serves HTTP.
 #[utoipa::path(get, path = "/healthz", tag = "service", operation_id = "healthz", responses((status = 200, description = "Alive")))]
@@ -38,7 +40,7 @@ pub async fn metrics(State(state): State<AppState>) -> Response {
 }
 
 /// The served model: id, variant, hyper-parameters and provenance from the manifest, and the
-/// most views a scene may hold (`max_scene_views`: clients thin larger captures to it).
+/// most views a scene may hold (`max_scene_views`; all the limits: `GET /v1/limits`).
 #[utoipa::path(get, path = "/v1/model", tag = "render", operation_id = "model", responses(
     (status = 200, description = "Model description", body = Object),
     (status = 401, description = "Missing or wrong bearer token", body = crate::error::ErrorBody),
@@ -53,6 +55,48 @@ pub async fn model(State(state): State<AppState>) -> Json<serde_json::Value> {
         "provenance": m.provenance,
         "max_scene_views": state.pipeline.limits().max_scene_views,
     }))
+}
+
+/// `GET /v1/limits`: what the server accepts, for clients to check before they upload anything
+/// (the `scnerf` client picks a capture's image set by `max_source_pixels`, thins it to
+/// `max_scene_views` and sizes its uploads by the body limits).
+#[derive(Debug, Serialize, utoipa::ToSchema)]
+pub struct LimitsBody {
+    /// Most pixels (width x height) of one source image (`--max-source-pixels`).
+    pub max_source_pixels: u64,
+    /// Most pixels of a rendered view (`--max-target-pixels`).
+    pub max_target_pixels: u64,
+    /// Most views a scene may hold (`--max-scene-views`): larger captures are thinned to it.
+    pub max_scene_views: usize,
+    /// Largest body of `/v1/render`, `/v1/scenes` and `PUT /v1/scenes/{id}` (`--max-body-bytes`).
+    pub max_body_bytes: usize,
+    /// Largest body of `POST /v1/captures`: every file of a capture (`--max-capture-bytes`).
+    pub max_capture_bytes: usize,
+    /// Largest JSON document without images: a multipart `request` part, a scene-render body
+    /// (`--max-json-bytes`).
+    pub max_json_bytes: usize,
+}
+
+impl From<&Limits> for LimitsBody {
+    fn from(l: &Limits) -> Self {
+        LimitsBody {
+            max_source_pixels: l.max_source_pixels,
+            max_target_pixels: l.max_target_pixels,
+            max_scene_views: l.max_scene_views,
+            max_body_bytes: l.max_body_bytes,
+            max_capture_bytes: l.max_capture_bytes,
+            max_json_bytes: l.max_json_bytes,
+        }
+    }
+}
+
+/// The server's request limits.
+#[utoipa::path(get, path = "/v1/limits", tag = "render", operation_id = "limits", responses(
+    (status = 200, description = "What the server accepts", body = LimitsBody),
+    (status = 401, description = "Missing or wrong bearer token", body = crate::error::ErrorBody),
+), security((), ("bearer" = [])))]
+pub async fn limits(State(state): State<AppState>) -> Json<LimitsBody> {
+    Json(LimitsBody::from(state.pipeline.limits()))
 }
 
 pub async fn not_found(uri: Uri) -> Response {

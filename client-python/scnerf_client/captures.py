@@ -1,0 +1,111 @@
+"""A capture folder as ``POST /v1/captures`` takes it: its camera files and images, every file a
+part named ``file`` whose filename is its path in the folder. The server reads the capture with
+the readers of the ``scnerf`` command line (COLMAP, nerfstudio, Blender, LLFF, DTU) and chooses its
+image set; this module only keeps the upload small: of the image sets LLFF, nerfstudio and COLMAP
+keep (``images/``, ``images_N/``) it sends one, the one asked for or else the largest within the
+server's source limit, and when none fits it resizes the smallest here (the server scales the
+cameras to the images it gets)."""
+
+from __future__ import annotations
+
+import io
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+from PIL import Image
+
+from .errors import CaptureError
+
+#: What a capture needs: images and camera files (the viewer's rule too).
+CAPTURE_FILE = re.compile(r"\.(png|jpe?g|json|npy|txt)$", re.IGNORECASE)
+IMAGE_FILE = re.compile(r"\.(png|jpe?g)$", re.IGNORECASE)
+SET_FOLDER = re.compile(r"^images(?:_([1-9][0-9]*))?$")
+
+
+@dataclass
+class CaptureFiles:
+    """The (path in the capture, bytes) to send, and what was done to keep them small."""
+
+    files: list[tuple[str, bytes]]
+    image_set: str | None
+    notes: list[str]
+
+    @property
+    def bytes(self) -> int:
+        return sum(len(data) for _, data in self.files)
+
+
+def image_sets(folder: Path) -> dict[int, Path]:
+    """The image sets beside each other in ``folder``: factor -> folder (``images`` is 1)."""
+    sets = {}
+    for child in folder.iterdir():
+        m = SET_FOLDER.match(child.name)
+        if child.is_dir() and m and (m.group(1) is None or int(m.group(1)) > 1):
+            if any(IMAGE_FILE.search(p.name) for p in child.iterdir()):
+                sets[int(m.group(1) or 1)] = child
+    return dict(sorted(sets.items()))
+
+
+def first_image_pixels(folder: Path) -> tuple[int, int]:
+    first = sorted(p for p in folder.iterdir() if IMAGE_FILE.search(p.name) and not p.name.startswith("."))[0]
+    with Image.open(first) as im:
+        return im.size
+
+
+def collect(folder: str | Path, max_source_pixels: int, downscale: int | None = None) -> CaptureFiles:
+    """The files to send of the capture in ``folder``."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise CaptureError(f"{folder}: no such capture folder")
+    sets = image_sets(folder)
+    notes: list[str] = []
+    chosen: int | None = None
+    if downscale is not None:
+        if max(downscale, 1) not in sets and (sets or downscale > 1):
+            have = ", ".join(p.name for p in sets.values()) or "no image sets"
+            raise CaptureError(
+                f"downscale {downscale}: there is no images_{downscale} folder in {folder}; it has {have}"
+            )
+        chosen = max(downscale, 1) if sets else None
+    elif sets:
+        sizes = {f: first_image_pixels(p) for f, p in sets.items()}
+        fitting = [f for f in sets if sizes[f][0] * sizes[f][1] <= max_source_pixels]
+        chosen = fitting[0] if fitting else max(sets)
+    skipped = {p for f, p in sets.items() if f != chosen}
+    files = []
+    for path in sorted(folder.rglob("*")):
+        rel = path.relative_to(folder)
+        if not path.is_file() or not CAPTURE_FILE.search(path.name) or any(p.startswith(".") for p in rel.parts):
+            continue
+        if any(s in path.parents for s in skipped):
+            continue
+        data = path.read_bytes()
+        if IMAGE_FILE.search(path.name):
+            data = fit(data, max_source_pixels, rel.as_posix(), notes)
+        files.append((rel.as_posix(), data))
+    if not files:
+        raise CaptureError(
+            f"{folder}: no capture files (images plus transforms.json, poses_bounds.npy or COLMAP files)"
+        )
+    return CaptureFiles(files, sets[chosen].name if chosen in sets else None, notes[:1])
+
+
+def fit(data: bytes, max_pixels: int, name: str, notes: list[str]) -> bytes:
+    """An image within ``max_pixels``: as it is, or resized (aspect kept) in its own format."""
+    with Image.open(io.BytesIO(data)) as im:
+        w, h = im.size
+        if w * h <= max_pixels:
+            return data
+        scale = (max_pixels / (w * h)) ** 0.5
+        size = (max(1, int(w * scale)), max(1, int(h * scale)))
+        notes.append(
+            f"images of {w}x{h} ({name}, ...) exceed the server's limit of {max_pixels} pixels per source view: "
+            f"resized to {size[0]}x{size[1]} before uploading"
+        )
+        out = io.BytesIO()
+        jpeg = im.format == "JPEG"
+        im.convert("RGB" if jpeg else im.mode).resize(size, Image.Resampling.BILINEAR).save(
+            out, format="JPEG" if jpeg else "PNG", **({"quality": 95} if jpeg else {})
+        )
+        return out.getvalue()

@@ -1,0 +1,126 @@
+"""scnerf_client against a real server (conftest.py): renders as arrays, scenes and their
+re-upload, captures as distributed (image sets chosen by the server's limit), typed errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from scnerf_client import Camera, Client, InvalidRequest, SceneNotFound, Unauthorized
+from scnerf_client.client import Client as _Client
+
+#: Forward-facing views on a small grid, looking down the world's -z; the scene between 2 and 6.
+CENTRES = [(0.0, 0.0), (0.3, 0.1), (-0.3, 0.1), (0.1, -0.3), (-0.1, 0.3)]
+
+
+def camera(x: float, y: float, width: int = 32, height: int = 24) -> Camera:
+    pose = np.array([[1, 0, 0, x], [0, -1, 0, y], [0, 0, -1, 0], [0, 0, 0, 1]], float)
+    return Camera(width, height, width, width, width / 2 - 0.5, height / 2 - 0.5, pose, "camera_to_world", "opencv")
+
+
+def photo(view: int, width: int, height: int) -> np.ndarray:
+    y, x = np.mgrid[0:height, 0:width]
+    return np.stack([x * 255 // width, y * 255 // height, np.full_like(x, 40 * view % 256)], -1).astype(np.uint8)
+
+
+def llff_as_distributed(folder, full=(256, 192), factors=(4, 8)) -> None:
+    """LLFF's layout: poses_bounds.npy (hwf of the full-size images), images/ JPEGs, images_N PNGs."""
+    w, h = full
+    rows = []
+    for i, (x, y) in enumerate(CENTRES):
+        # [down, right, back | centre | hwf] per row x, y, z; then near, far
+        rows.append([0, 1, 0, x, h, -1, 0, 0, y, w, 0, 0, 1, 0, w, 2.0, 6.0])
+        (folder / "images").mkdir(exist_ok=True)
+        Image.fromarray(photo(i, w, h)).save(folder / "images" / f"IMG_{i:04}.jpg")
+        for n in factors:
+            (folder / f"images_{n}").mkdir(exist_ok=True)
+            Image.fromarray(photo(i, w // n, h // n)).save(folder / f"images_{n}" / f"IMG_{i:04}.png")
+    np.save(folder / "poses_bounds.npy", np.array(rows, np.float64))
+
+
+@pytest.fixture
+def client(server) -> Client:
+    return Client(server.url)
+
+
+def test_model_and_limits(client):
+    assert client.model()["model_id"]
+    limits = client.limits()
+    assert limits.max_source_pixels == 3072 and limits.max_scene_views >= 3 and limits.max_body_bytes > 0
+
+
+def test_render_returns_arrays_and_a_scene_renders_the_same(client):
+    images = [photo(i, 32, 24) for i in range(3)]
+    cameras = [camera(x, y) for x, y in CENTRES[:3]]
+    target = camera(0.05, 0.05, 16, 12)
+    one_shot = client.render(images, cameras, target, near=2.0, far=6.0)
+    assert one_shot.rgb.shape == (12, 16, 3) and one_shot.rgb.dtype == np.float32
+    assert 0.0 <= one_shot.rgb.min() and one_shot.rgb.max() <= 1.0
+    assert one_shot.depth.shape == (12, 16) and one_shot.opacity.shape == (12, 16)
+    assert one_shot.timings["total"] > 0 and one_shot.model_id
+    scene = client.upload_scene(images, cameras, near=2.0, far=6.0)
+    assert scene.id.startswith("py-") and len(scene.cameras) == 3
+    cached = client.render_scene(scene, target)
+    np.testing.assert_array_equal(cached.rgb, one_shot.rgb)
+    np.testing.assert_array_equal(cached.depth, one_shot.depth)
+    only_rgb = client.render_scene(scene, target, outputs=["rgb"])
+    assert only_rgb.depth is None and only_rgb.opacity is None
+
+
+def test_a_scene_that_is_gone_is_uploaded_again_once(client):
+    images = [photo(i, 32, 24) for i in range(3)]
+    scene = client.upload_scene(images, [camera(x, y) for x, y in CENTRES[:3]], near=2.0, far=6.0, scene_id="nb-1")
+    target = camera(0.0, 0.0, 8, 6)
+    first = client.render_scene(scene, target)
+    client.delete_scene(scene)
+    again = client.render_scene(scene, target)
+    assert scene.id == "nb-1"
+    np.testing.assert_array_equal(again.rgb, first.rgb)
+    client.delete_scene(scene)
+    with pytest.raises(SceneNotFound) as gone:
+        client.render_scene("nb-1", target)  # an id alone cannot be uploaded again
+    assert (gone.value.status, gone.value.field, gone.value.hint) == (404, "scene_id", "reupload")
+
+
+def test_errors_carry_code_field_and_hint(client, token_server):
+    images = [photo(i, 32, 24) for i in range(3)]
+    cameras = [camera(x, y) for x, y in CENTRES[:3]]
+    with pytest.raises(InvalidRequest) as bad:
+        client.render(images, cameras, camera(0, 0, 8, 6), near=6.0, far=2.0)
+    assert bad.value.status == 422 and bad.value.code == "invalid_request" and bad.value.field in ("near", "far")
+    with pytest.raises(Unauthorized) as refused:
+        Client(token_server.url).model()
+    assert refused.value.status == 401 and refused.value.field == "authorization"
+    assert Client(token_server.url, token="secret-token").model()["model_id"]
+
+
+def test_sampling_is_sent_only_when_given():
+    target = camera(0, 0)
+    assert "sampling" not in _Client._target_document(target, ["rgb"], None)
+    assert _Client._target_document(target, ["rgb"], "guided")["sampling"] == "guided"
+
+
+def test_capture_as_distributed_sends_the_largest_set_that_fits(client, tmp_path):
+    llff_as_distributed(tmp_path)
+    scene = client.upload_capture(tmp_path)
+    assert (scene.format, scene.image_set, len(scene.cameras)) == ("llff", "images_4", 5)
+    assert scene.cameras[0]["width"] == 64 and scene.names[0] == "images_4/IMG_0000.png"
+    assert not any("not read" in w for w in scene.warnings), "only the chosen set was sent"
+    view = client.render_scene(scene, scene.cameras[0])
+    assert view.rgb.shape == (48, 64, 3) and len(view.sources) == 3
+    smaller = client.upload_capture(tmp_path, downscale=8)
+    assert (smaller.image_set, smaller.cameras[0]["width"]) == ("images_8", 32)
+    # focal lengths follow the set (LLFF's hwf describes the full-size images)
+    assert smaller.cameras[0]["intrinsics"]["fx"] == pytest.approx(scene.cameras[0]["intrinsics"]["fx"] / 2)
+
+
+def test_capture_without_a_set_that_fits_is_resized_here(client, tmp_path):
+    llff_as_distributed(tmp_path, full=(128, 96), factors=())
+    scene = client.upload_capture(tmp_path)
+    assert scene.image_set == "images" and (scene.cameras[0]["width"], scene.cameras[0]["height"]) == (64, 48)
+    assert "exceed the server's limit of 3072 pixels per source view: resized to 64x48" in scene.warnings[0]
+    (tmp_path / "poses_bounds.npy").unlink()  # images without cameras: refused, saying why
+    with pytest.raises(InvalidRequest) as refused:
+        client.upload_capture(tmp_path)
+    assert refused.value.status == 422 and "cannot tell the dataset format" in refused.value.message
