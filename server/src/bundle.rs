@@ -14,6 +14,8 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
+use crate::pipeline::guided::GuidedPolicy;
+
 pub const FORMAT_VERSION: u32 = 1;
 pub const VARIANTS: [&str; 4] = ["mvsnerf", "scnerf", "scnerf-geometry", "scnerf-appearance"];
 
@@ -27,7 +29,8 @@ pub struct BundleError {
 /// The sub-graphs, in pipeline order. A bundle has the encoder, the renderer, and the graphs of
 /// one way to build the encoding volume (`VolumeBuild`): `volume` (the cost volume and G2 in one
 /// run), or `cost_slab` (the cost volume of a slab of depth planes and G2's first convolution
-/// over it) and `volume_net` (the rest of G2, over the whole volume).
+/// over it) and `volume_net` (the rest of G2, over the whole volume). A bundle that can render by
+/// guided sampling (`pipeline::guided`) also has `renderer_guide` and `renderer_fine`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub enum GraphKind {
     Encoder,
@@ -35,11 +38,24 @@ pub enum GraphKind {
     CostSlab,
     VolumeNet,
     Renderer,
+    RendererGuide,
+    RendererFine,
 }
 
+/// Guided sampling's graphs: the renderer with each ray's weights and rectifier heads, and the
+/// renderer at K given samples per ray.
+pub const GUIDED_GRAPHS: [GraphKind; 2] = [GraphKind::RendererGuide, GraphKind::RendererFine];
+
 impl GraphKind {
-    pub const ALL: [GraphKind; 5] =
-        [GraphKind::Encoder, GraphKind::Volume, GraphKind::CostSlab, GraphKind::VolumeNet, GraphKind::Renderer];
+    pub const ALL: [GraphKind; 7] = [
+        GraphKind::Encoder,
+        GraphKind::Volume,
+        GraphKind::CostSlab,
+        GraphKind::VolumeNet,
+        GraphKind::Renderer,
+        GraphKind::RendererGuide,
+        GraphKind::RendererFine,
+    ];
 
     /// Position in `ALL` (pipeline order): indexes per-graph arrays.
     pub fn index(self) -> usize {
@@ -53,6 +69,8 @@ impl GraphKind {
             GraphKind::CostSlab => "cost_slab",
             GraphKind::VolumeNet => "volume_net",
             GraphKind::Renderer => "renderer",
+            GraphKind::RendererGuide => "renderer_guide",
+            GraphKind::RendererFine => "renderer_fine",
         }
     }
 }
@@ -154,6 +172,14 @@ pub struct ModelConfig {
     pub pad: usize,
     pub image_multiple: usize,
     pub depth_norm: DepthNorm,
+    /// Attention heads, their size and the trunk's width: the shape of a rectifier's heads
+    /// (guided sampling's graphs pass them between rays); absent in configs that never need them.
+    #[serde(default)]
+    pub heads: usize,
+    #[serde(default)]
+    pub head_dim: usize,
+    #[serde(default)]
+    pub width: usize,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -163,6 +189,9 @@ pub struct Manifest {
     pub variant: String,
     pub config: serde_json::Map<String, serde_json::Value>,
     pub graphs: BTreeMap<String, GraphEntry>,
+    /// Guided sampling's policy, with its graphs.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub guided: Option<GuidedPolicy>,
     pub provenance: serde_json::Value,
 }
 
@@ -198,7 +227,21 @@ impl Bundle {
 
     /// The bundle's graphs in pipeline order.
     pub fn graphs(&self) -> Vec<GraphKind> {
-        self.volume_build().bundle_graphs()
+        let mut graphs = self.volume_build().bundle_graphs();
+        if self.manifest.guided.is_some() {
+            graphs.extend(GUIDED_GRAPHS);
+        }
+        graphs
+    }
+
+    /// Guided sampling's policy when the bundle can render that way: its graphs are there, and the
+    /// rectifiers' depth range is the request's (a depth range from the whole image would need
+    /// the whole image first).
+    pub fn guided(&self) -> Option<&GuidedPolicy> {
+        self.manifest
+            .guided
+            .as_ref()
+            .filter(|_| !self.renderer_takes("depth_range") || self.config.depth_norm == DepthNorm::NearFar)
     }
 
     /// A graph of the bundle (one of `graphs()`).
@@ -233,7 +276,8 @@ pub fn validate_manifest(m: &Manifest) -> Result<ModelConfig, String> {
     for name in m.graphs.keys() {
         if !GraphKind::ALL.iter().any(|k| k.name() == name) {
             return Err(format!(
-                "graphs.{name}: unknown graph (expected encoder, volume or cost_slab and volume_net, renderer)"
+                "graphs.{name}: unknown graph (expected encoder, volume or cost_slab and volume_net, renderer, \
+                 and renderer_guide and renderer_fine)"
             ));
         }
     }
@@ -241,12 +285,44 @@ pub fn validate_manifest(m: &Manifest) -> Result<ModelConfig, String> {
         let entry = m.graphs.get(kind.name()).ok_or_else(|| format!("graphs.{kind}: missing"))?;
         check_declared_io(kind, entry, &config)?;
     }
+    validate_guided(m, &config)?;
     let renderer_sha = &m.graphs["renderer"].sha256;
     let expected_id = format!("scnerf-{}-{}", m.variant, &renderer_sha.get(..12).unwrap_or(renderer_sha));
     if m.model_id != expected_id {
         return Err(format!("model_id is \"{}\", expected \"{expected_id}\"", m.model_id));
     }
     Ok(config)
+}
+
+/// Guided sampling's graphs and policy come together, and the heads the guide returns are the
+/// heads the fine renderer reads.
+fn validate_guided(m: &Manifest, config: &ModelConfig) -> Result<(), String> {
+    let present = GUIDED_GRAPHS.map(|k| m.graphs.contains_key(k.name()));
+    let Some(policy) = &m.guided else {
+        return match present.iter().any(|&p| p) {
+            true => Err("graphs.renderer_guide and graphs.renderer_fine need the manifest's guided policy".into()),
+            false => Ok(()),
+        };
+    };
+    if !present.iter().all(|&p| p) {
+        return Err("guided: needs graphs.renderer_guide and graphs.renderer_fine".into());
+    }
+    policy.validate(config.samples)?;
+    for kind in GUIDED_GRAPHS {
+        check_declared_io(kind, &m.graphs[kind.name()], config)?;
+    }
+    let heads =
+        |names: Vec<&String>| -> Vec<String> { names.into_iter().filter(|n| n.ends_with("_heads")).cloned().collect() };
+    let given = heads(m.graphs["renderer_guide"].outputs.iter().map(|t| &t.name).collect());
+    let read = heads(m.graphs["renderer_fine"].inputs.iter().map(|t| &t.name).collect());
+    if given != read {
+        return Err(format!("graphs.renderer_fine reads the heads {read:?}, graphs.renderer_guide gives {given:?}"));
+    }
+    let index = m.graphs["renderer_fine"].inputs.iter().any(|t| t.name == "head_index");
+    if index == read.is_empty() {
+        return Err("graphs.renderer_fine: head_index goes with the rectifiers' heads".into());
+    }
+    Ok(())
 }
 
 fn validate_config(c: &ModelConfig) -> Result<(), String> {
@@ -345,8 +421,8 @@ fn expected_io(kind: GraphKind, c: &ModelConfig) -> (Vec<Expected>, Vec<Expected
             let conv0 = vec![fixed(1), fixed(c.volume_channels), fixed(c.depth_planes), named("Hp"), named("Wp")];
             (vec![e("conv0", true, conv0)], vec![e("volume", true, volume)])
         }
-        GraphKind::Renderer => (
-            vec![
+        GraphKind::Renderer | GraphKind::RendererGuide | GraphKind::RendererFine => {
+            let mut inputs = vec![
                 e("ray_origins", true, vec![named("R"), fixed(3)]),
                 e("ray_directions", true, vec![named("R"), fixed(3)]),
                 e("near_far", true, vec![fixed(2)]),
@@ -356,13 +432,31 @@ fn expected_io(kind: GraphKind, c: &ModelConfig) -> (Vec<Expected>, Vec<Expected
                 e("features", false, features),
                 e("intrinsics", true, vec![v.clone(), fixed(3), fixed(3)]),
                 e("extrinsics", true, vec![v, fixed(4), fixed(4)]),
-            ],
-            vec![
+            ];
+            let mut outputs = vec![
                 e("rgb", true, vec![named("R"), fixed(3)]),
                 e("depth", true, vec![named("R")]),
                 e("opacity", true, vec![named("R")]),
-            ],
-        ),
+            ];
+            let heads = |rays: &str| vec![named(rays), fixed(c.heads * c.head_dim), fixed(c.width)];
+            match kind {
+                GraphKind::RendererGuide => {
+                    outputs.push(e("sample_weights", true, vec![named("R"), fixed(c.samples)]));
+                    outputs.push(e("geometry_heads", false, heads("R")));
+                    outputs.push(e("appearance_heads", false, heads("R")));
+                }
+                GraphKind::RendererFine => {
+                    inputs.push(e("sample_index", true, vec![named("R"), named("K")]));
+                    inputs.push(e("sample_multiplicity", true, vec![named("R"), named("K")]));
+                    inputs.push(e("geometry_heads", false, heads("G")));
+                    inputs.push(e("appearance_heads", false, heads("G")));
+                    inputs.push(e("head_index", false, vec![named("R")]));
+                    outputs.push(e("sample_weights", true, vec![named("R"), named("K")]));
+                }
+                _ => {}
+            }
+            (inputs, outputs)
+        }
     }
 }
 

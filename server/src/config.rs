@@ -17,6 +17,7 @@ use crate::http::body::UploadPolicy;
 use crate::http::serve::ServeOptions;
 use crate::http::ServiceOptions;
 use crate::pipeline::chunks::ChunkPolicy;
+use crate::pipeline::guided::Sampling;
 use crate::pipeline::volume::SlabPolicy;
 use crate::request::Limits;
 use crate::sysmem;
@@ -122,6 +123,12 @@ pub struct Config {
     #[arg(long, env = "SCNERF_ORT_SPIN", default_value = "on", action = clap::ArgAction::Set,
           value_parser = clap::builder::BoolishValueParser::new())]
     pub ort_spin: bool,
+
+    /// How views are sampled when a request does not say (`sampling` in the request): `guided`
+    /// (coarse to fine, the network near the surface only; docs/api.md) or `full` (the paper's
+    /// uniform samples on every ray). A bundle without guided-sampling graphs renders full.
+    #[arg(long, env = "SCNERF_SAMPLING", value_enum, default_value_t = Sampling::Guided)]
+    pub sampling: Sampling,
 
     /// Upper bound on rays per renderer run. Small runs keep the activations in cache: on 2 cores,
     /// 512 rays rendered the default bundle 6-34% faster than 4096 with 1.6-4x less memory

@@ -17,6 +17,7 @@ use prometheus_client::registry::{Registry, Unit};
 
 use crate::backend::BackendHandle;
 use crate::cache::SceneCache;
+use crate::pipeline::guided::SamplingReport;
 use crate::pipeline::Timings;
 use crate::sysmem;
 
@@ -41,7 +42,17 @@ struct StageLabels {
     stage: String,
 }
 
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+struct SamplingLabels {
+    sampling: String,
+}
+
 type HistogramFamily<L> = Family<L, Histogram, fn() -> Histogram>;
+
+/// Network samples per pixel of a view: 1 .. 256 in factors of 2 (full sampling: the model's S).
+fn samples_histogram() -> Histogram {
+    Histogram::new(exponential_buckets(1.0, 2.0, 9))
+}
 
 /// Request latencies: 1 ms .. ~9 min in factors of 2 (CPU renders take seconds to minutes).
 fn latency_histogram() -> Histogram {
@@ -53,6 +64,7 @@ pub struct Metrics {
     requests: Family<RequestLabels, Counter>,
     request_seconds: HistogramFamily<RouteLabels>,
     stage_seconds: HistogramFamily<StageLabels>,
+    samples_per_ray: HistogramFamily<SamplingLabels>,
 }
 
 impl Metrics {
@@ -74,8 +86,14 @@ impl Metrics {
             Unit::Seconds,
             stage_seconds.clone(),
         );
+        let samples_per_ray: HistogramFamily<SamplingLabels> = Family::new_with_constructor(samples_histogram);
+        registry.register(
+            "samples_per_ray",
+            "Network samples per pixel of each rendered view, by sampling (full, guided); the count is the views",
+            samples_per_ray.clone(),
+        );
         registry.register_collector(Box::new(StateCollector { backend, scenes }));
-        Metrics { registry, requests, request_seconds, stage_seconds }
+        Metrics { registry, requests, request_seconds, stage_seconds, samples_per_ray }
     }
 
     pub fn observe_request(&self, route: &str, method: &str, status: u16, elapsed: Duration) {
@@ -89,6 +107,12 @@ impl Metrics {
         for (stage, d) in timings.0.iter().filter(|(s, _)| *s != "total") {
             self.stage_seconds.get_or_create(&StageLabels { stage: stage.to_string() }).observe(d.as_secs_f64());
         }
+    }
+
+    /// Records how a rendered view was sampled.
+    pub fn observe_sampling(&self, report: &SamplingReport) {
+        let labels = SamplingLabels { sampling: report.mode.name().to_string() };
+        self.samples_per_ray.get_or_create(&labels).observe(report.samples_per_ray);
     }
 
     pub fn render(&self) -> String {

@@ -42,7 +42,11 @@ pub async fn run(config: Config) -> Result<(), String> {
     let (budget, budget_source) = config.memory_budget();
     tracing::info!(budget_mib = budget >> 20, source = %budget_source, "memory budget");
     let backend = BackendHandle::spawn(Box::new(runner), config.executor_options()).map_err(|e| e.to_string())?;
-    let pipeline = Pipeline::new(backend, bundle, config.chunking(), config.slabs(), config.limits());
+    let pipeline = Pipeline::new(backend, bundle, config.chunking(), config.slabs(), config.limits())
+        .with_default_sampling(config.sampling);
+    if pipeline.default_sampling() != config.sampling {
+        tracing::info!(asked = %config.sampling, "the bundle has no guided-sampling graphs: views are sampled in full");
+    }
     let state = AppState::new(pipeline, options);
     spawn_cache_sweeper(&state);
 
@@ -155,18 +159,22 @@ pub async fn warm_up(pipeline: &Pipeline) -> Result<Duration, String> {
     target.width = 4;
     target.height = 4;
     // Warm-up runs before readiness, alone on the executor; the deadline only bounds a hang.
-    let work = pipeline.scene_work(&cameras).plus(pipeline.view_work(&target));
+    let samplings = pipeline.samplings();
+    let work = samplings.iter().fold(pipeline.scene_work(&cameras), |w, &s| w.plus(pipeline.view_work(&target, s)));
     let ticket = pipeline.admit(Instant::now() + Duration::from_secs(3600), work, 0).map_err(|e| e.to_string())?;
     let scene = pipeline
         .build_scene(&ticket, &cameras, images.into_shared(), 2.0, 6.0, &mut timings)
         .await
         .map_err(|e| e.to_string())?;
-    let view = pipeline
-        .render_view(&ticket, &scene, &target, [0.0; 3], None, &mut timings)
-        .await
-        .map_err(|e| e.to_string())?;
-    if view.rgb.iter().chain(&view.depth).chain(&view.opacity).any(|v| !v.is_finite()) {
-        return Err("the warm-up render produced non-finite values".into());
+    // Every way of sampling the bundle has, so that each of its graphs has run once.
+    for sampling in samplings {
+        let view = pipeline
+            .render_view(&ticket, &scene, &target, [0.0; 3], sampling, None, &mut timings)
+            .await
+            .map_err(|e| e.to_string())?;
+        if view.rgb.iter().chain(&view.depth).chain(&view.opacity).any(|v| !v.is_finite()) {
+            return Err(format!("the warm-up render ({sampling} sampling) produced non-finite values"));
+        }
     }
     pipeline.executor().forget_rates();
     Ok(start.elapsed())

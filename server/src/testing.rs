@@ -66,7 +66,49 @@ pub fn manifest(variant: &str, depth_norm: &str) -> Manifest {
 }
 
 pub fn bundle(variant: &str, depth_norm: &str) -> Bundle {
-    let manifest = manifest(variant, depth_norm);
+    bundle_of(manifest(variant, depth_norm))
+}
+
+/// [`manifest`] with guided sampling's graphs and policy (one rectifier's heads, 4 x 8 floats).
+pub fn guided_manifest(variant: &str) -> Manifest {
+    let mut m = manifest(variant, "near_far");
+    let mut value = serde_json::to_value(&m).expect("manifest serialises");
+    value["config"]["heads"] = 2.into();
+    value["config"]["head_dim"] = 2.into();
+    value["config"]["width"] = 8.into();
+    let renderer = value["graphs"]["renderer"].clone();
+    let heads = |rays: &str| serde_json::json!({"name": "geometry_heads", "shape": [rays, 4, 8], "dtype": "float32"});
+    let t =
+        |name: &str, shape: serde_json::Value| serde_json::json!({"name": name, "shape": shape, "dtype": "float32"});
+    let mut guide = renderer.clone();
+    guide["file"] = "renderer_guide.onnx".into();
+    guide["outputs"]
+        .as_array_mut()
+        .expect("outputs")
+        .extend([t("sample_weights", serde_json::json!(["R", 16])), heads("R")]);
+    let mut fine = renderer;
+    fine["file"] = "renderer_fine.onnx".into();
+    fine["inputs"].as_array_mut().expect("inputs").extend([
+        t("sample_index", serde_json::json!(["R", "K"])),
+        t("sample_multiplicity", serde_json::json!(["R", "K"])),
+        heads("G"),
+        t("head_index", serde_json::json!(["R"])),
+    ]);
+    fine["outputs"].as_array_mut().expect("outputs").push(t("sample_weights", serde_json::json!(["R", "K"])));
+    value["graphs"]["renderer_guide"] = guide;
+    value["graphs"]["renderer_fine"] = fine;
+    value["guided"] = serde_json::json!({"step": 4, "samples": [8, 4], "support_threshold": 0.001,
+                                         "smooth_tolerance": 0.03, "smooth_max_step": 1});
+    m = serde_json::from_value(value).expect("guided test manifest");
+    m
+}
+
+/// A bundle of [`guided_manifest`]'s.
+pub fn guided_bundle(variant: &str) -> Bundle {
+    bundle_of(guided_manifest(variant))
+}
+
+fn bundle_of(manifest: Manifest) -> Bundle {
     let config = validate_manifest(&manifest).expect("test manifest is valid");
     Bundle { dir: "/nonexistent".into(), manifest, config }
 }
@@ -123,20 +165,40 @@ impl GraphRunner for FakeRunner {
                 let conv0 = input(inputs, "conv0");
                 vec![("volume".into(), filled(conv0.shape(), conv0[[0, 0, 0, 0, 0]]))]
             }
-            GraphKind::Renderer => {
-                let dirs = input(inputs, "ray_directions").view().into_dimensionality::<Ix2>().expect("(R, 3) rays");
-                let near = input(inputs, "near_far")[0];
-                let range = inputs.iter().find(|(n, _)| n == "depth_range").map_or(1.0, |(_, t)| t[1] - t[0]);
-                let norm = dirs.map_axis(Axis(1), |d| (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt());
-                let unit = &dirs / &norm.insert_axis(Axis(1));
-                vec![
-                    ("rgb".into(), unit.mapv(|x| 0.5 * x.abs()).into_shared().into_dyn()),
-                    ("depth".into(), unit.column(0).mapv(|x| near + x.abs() * range).into_shared().into_dyn()),
-                    ("opacity".into(), unit.column(1).mapv(|x| 0.5 + 0.5 * x.abs()).into_shared().into_dyn()),
-                ]
+            GraphKind::Renderer => fake_pixels(inputs),
+            GraphKind::RendererGuide => {
+                let rays = input(inputs, "ray_origins").shape()[0];
+                let mut out = fake_pixels(inputs);
+                // All weight on the middle sample; heads of zeros (4 x 8 per ray).
+                let mut weights = ArrayD::zeros(IxDyn(&[rays, c.samples]));
+                weights.index_axis_mut(Axis(1), c.samples / 2).fill(1.0);
+                out.push(("sample_weights".into(), weights.into_shared()));
+                out.push(("geometry_heads".into(), filled(&[rays, 4, 8], 0.0)));
+                out
+            }
+            GraphKind::RendererFine => {
+                let index = input(inputs, "sample_index");
+                let (rays, k) = (index.shape()[0], index.shape()[1]);
+                let mut out = fake_pixels(inputs);
+                out.push(("sample_weights".into(), filled(&[rays, k], 1.0 / k as f32)));
+                out
             }
         })
     }
+}
+
+/// The fake renderers' pixels: per ray, functions of its unit direction.
+fn fake_pixels(inputs: &NamedTensors) -> NamedTensors {
+    let dirs = input(inputs, "ray_directions").view().into_dimensionality::<Ix2>().expect("(R, 3) rays");
+    let near = input(inputs, "near_far")[0];
+    let range = inputs.iter().find(|(n, _)| n == "depth_range").map_or(1.0, |(_, t)| t[1] - t[0]);
+    let norm = dirs.map_axis(Axis(1), |d| (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt());
+    let unit = &dirs / &norm.insert_axis(Axis(1));
+    vec![
+        ("rgb".into(), unit.mapv(|x| 0.5 * x.abs()).into_shared().into_dyn()),
+        ("depth".into(), unit.column(0).mapv(|x| near + x.abs() * range).into_shared().into_dyn()),
+        ("opacity".into(), unit.column(1).mapv(|x| 0.5 + 0.5 * x.abs()).into_shared().into_dyn()),
+    ]
 }
 
 /// An AppState over the fake runner, ready at once.

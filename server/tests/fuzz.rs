@@ -114,7 +114,7 @@ fn seeds() -> Seeds {
     let proto_scene =
         pb::SceneRequest { sources: proto.sources.clone(), near: 2.0, far: 6.0, background: vec![0.5, 0.5, 0.5] };
     let proto_target =
-        pb::SceneRenderRequest { target: proto.target.clone(), outputs: vec!["depth".into()], sources: vec![] };
+        pb::SceneRenderRequest { target: proto.target.clone(), outputs: vec!["depth".into()], ..Default::default() };
     Seeds {
         json_render: serde_json::to_vec(&inline).unwrap(),
         json_scene: serde_json::to_vec(&scene).unwrap(),

@@ -127,6 +127,7 @@ async fn protobuf_scene_and_protobuf_view() {
         }),
         outputs: vec!["depth".into()],
         sources: vec![2, 0, 1],
+        ..Default::default()
     };
     let req = raw_to(
         "POST",

@@ -41,7 +41,9 @@ async fn render(app: axum::Router, ctype: String, body: Vec<u8>) -> (u16, String
 async fn eight_concurrent_renders_within_a_memory_budget() {
     let fixtures = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/parity");
     let case_dir = std::fs::read_dir(fixtures.join("cases")).unwrap().next().unwrap().unwrap().path();
-    let case = Case::load(&case_dir).unwrap();
+    let mut case = Case::load(&case_dir).unwrap();
+    // Sampled in full: the estimate below is a full render's.
+    case.request["sampling"] = serde_json::json!("full");
     let camera =
         |c: &serde_json::Value| (c["width"].as_u64().unwrap() as usize, c["height"].as_u64().unwrap() as usize);
     let (w, h) = camera(&case.request["sources"][0]["camera"]);
@@ -51,7 +53,8 @@ async fn eight_concurrent_renders_within_a_memory_budget() {
     let bundle = scnerf_server::bundle::Bundle::load(&fixtures.join("bundle")).unwrap();
     let plan =
         MemoryPlan { build: bundle.volume_build(), slabs: SlabPolicy::default(), chunking: ChunkPolicy::default() };
-    let sizes = RequestSizes { sources: Some(padded_size(w, h, 32)), target_pixels: (tw * th) as u64 };
+    let sizes =
+        RequestSizes { sources: Some(padded_size(w, h, 32)), target_pixels: (tw * th) as u64, sampling_bytes: 0 };
     let one = estimate(&bundle.config, &plan, &sizes);
     let budget = one * 5 / 2;
     let executor = ExecutorOptions { capacity: 32, memory: MemoryBudget { total: budget, reserved: 0 }, probe: None };

@@ -15,6 +15,7 @@ use scnerf_e2e::{split_request, Case};
 use scnerf_server::bundle::{Bundle, DepthNorm, GraphKind};
 use scnerf_server::http::{router, AppState, ServiceOptions};
 use scnerf_server::pipeline::chunks::{self, ChunkPolicy};
+use scnerf_server::pipeline::guided::Sampling;
 use scnerf_server::pipeline::volume::SlabPolicy;
 use scnerf_server::pipeline::{assemble, rays, Pipeline, Timings};
 use scnerf_server::request::{ImageMode, Limits, RenderRequest, ValidRequest};
@@ -163,8 +164,10 @@ async fn pipeline_matches_pytorch_stage_by_stage() {
         assert_eq!(scene.volume.shape(), shape, "{name}: volume shape");
         check(&name, "volume", max_abs(&scene.volume, &volume), expected.tolerance("volume_max_abs", 1e-4));
 
-        let view =
-            p.render_view(&ticket, &scene, &req.view.target, req.scene.background, None, &mut timings).await.unwrap();
+        let view = p
+            .render_view(&ticket, &scene, &req.view.target, req.scene.background, Sampling::Full, None, &mut timings)
+            .await
+            .unwrap();
         assert_eq!(
             (u64::from(view.width()), u64::from(view.height())),
             (expected.json["width"].as_u64().unwrap(), expected.json["height"].as_u64().unwrap())
@@ -186,6 +189,34 @@ async fn pipeline_matches_pytorch_stage_by_stage() {
     }
 }
 
+/// Guided sampling through the server's pipeline and ONNX Runtime against the PyTorch reference
+/// (exporter runtime/guided.py): the same samples chosen, the same pixels.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn guided_sampling_matches_pytorch() {
+    let p = pipeline();
+    for case in cases() {
+        let name = case.file_name().unwrap().to_string_lossy().to_string();
+        let expected = Expected::load(&case);
+        let req = request(&case);
+        let mut timings = Timings::default();
+        let ticket = admit(&p);
+        let scene = p.prepare_scene(&ticket, &req.scene, &mut timings).await.unwrap();
+        let view = p
+            .render_view(&ticket, &scene, &req.view.target, req.scene.background, Sampling::Guided, None, &mut timings)
+            .await
+            .unwrap();
+        let samples = expected.json["guided_samples_per_ray"].as_f64().unwrap();
+        assert_eq!(view.sampling.samples_per_ray, samples, "{name}: network samples per pixel");
+        assert!(samples < p.config().samples as f64, "{name}: guided ran {samples} samples per pixel");
+        let rgb = max_abs(&view.rgb, &expected.tensor("rgb_guided").1);
+        check(&name, "guided rgb", rgb, expected.tolerance("rgb_max_abs", 1e-3));
+        let depth = max_rel(&view.depth, &expected.tensor("depth_guided").1);
+        check(&name, "guided depth (relative)", depth, expected.tolerance("depth_max_rel", 1e-3));
+        let opacity = max_abs(&view.opacity, &expected.tensor("opacity_guided").1);
+        check(&name, "guided opacity", opacity, expected.tolerance("opacity_max_abs", 1e-3));
+    }
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn output_does_not_depend_on_chunk_size() {
     let p = pipeline();
@@ -195,8 +226,10 @@ async fn output_does_not_depend_on_chunk_size() {
     let ticket = admit(&p);
     let scene = p.prepare_scene(&ticket, &req.scene, &mut timings).await.unwrap();
     let (target, background) = (&req.view.target, req.scene.background);
-    let small = p.render_view(&ticket, &scene, target, background, Some(37), &mut timings).await.unwrap();
-    let large = p.render_view(&ticket, &scene, target, background, Some(5000), &mut timings).await.unwrap();
+    let small =
+        p.render_view(&ticket, &scene, target, background, Sampling::Full, Some(37), &mut timings).await.unwrap();
+    let large =
+        p.render_view(&ticket, &scene, target, background, Sampling::Full, Some(5000), &mut timings).await.unwrap();
     let err = max_abs(&small.rgb, &large.rgb)
         .max(max_abs(&small.depth, &large.depth))
         .max(max_abs(&small.opacity, &large.opacity));
@@ -230,9 +263,14 @@ async fn image_minmax_feeds_the_depth_images_range_to_a_second_pass() {
     let mut timings = Timings::default();
     let ticket = admit(&near_far);
     let scene = near_far.prepare_scene(&ticket, &req.scene, &mut timings).await.unwrap();
-    let one_pass = near_far.render_view(&ticket, &scene, target, background, None, &mut timings).await.unwrap();
-    let small = minmax.render_view(&ticket, &scene, target, background, Some(37), &mut timings).await.unwrap();
-    let large = minmax.render_view(&ticket, &scene, target, background, Some(5000), &mut timings).await.unwrap();
+    let one_pass =
+        near_far.render_view(&ticket, &scene, target, background, Sampling::Full, None, &mut timings).await.unwrap();
+    let small =
+        minmax.render_view(&ticket, &scene, target, background, Sampling::Full, Some(37), &mut timings).await.unwrap();
+    let large = minmax
+        .render_view(&ticket, &scene, target, background, Sampling::Full, Some(5000), &mut timings)
+        .await
+        .unwrap();
 
     let finite = one_pass.depth.iter().copied().filter(|d| d.is_finite());
     let range = [finite.clone().fold(f32::INFINITY, f32::min), finite.fold(f32::NEG_INFINITY, f32::max)];
@@ -257,32 +295,36 @@ async fn http_multipart_render_matches_pytorch() {
     for case in cases() {
         let name = case.file_name().unwrap().to_string_lossy().to_string();
         let expected = Expected::load(&case);
-        let files = Case::load(&case).unwrap();
-        let (ctype, body) = files.multipart(&files.request);
-        let req = Request::post("/v1/render")
-            .header("content-type", ctype)
-            .header("accept", "application/json")
-            .body(Body::from(body))
-            .unwrap();
-        let resp = app.clone().oneshot(req).await.unwrap();
-        let status = resp.status();
-        let bytes = resp.into_body().collect().await.unwrap().to_bytes();
-        assert_eq!(status, 200, "{name}: {}", String::from_utf8_lossy(&bytes));
-        let json: serde_json::Value = serde_json::from_slice(&bytes).unwrap();
-        let b64 =
-            |v: &serde_json::Value| base64::engine::general_purpose::STANDARD.decode(v.as_str().unwrap()).unwrap();
-        let png = image::load_from_memory(&b64(&json["rgb"]["data"])).unwrap().into_rgb8();
-        let rgb: Vec<f32> = png.as_raw().iter().map(|&b| f32::from(b) / 255.0).collect();
-        // Quantisation to 8 bits adds at most half a level.
-        check(&name, "http rgb (8-bit)", max_abs(&rgb, &expected.tensor("rgb").1), 0.5 / 255.0 + 1e-3);
-        let depth: Vec<f32> =
-            b64(&json["depth"]["data"]).chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
-        check(
-            &name,
-            "http depth (relative)",
-            max_rel(&depth, &expected.tensor("depth").1),
-            expected.tolerance("depth_max_rel", 1e-3),
-        );
+        let mut files = Case::load(&case).unwrap();
+        for (sampling, suffix) in [("full", ""), ("guided", "_guided")] {
+            files.request["sampling"] = serde_json::json!(sampling);
+            let (ctype, body) = files.multipart(&files.request);
+            let req = Request::post("/v1/render")
+                .header("content-type", ctype)
+                .header("accept", "application/json")
+                .body(Body::from(body))
+                .unwrap();
+            let resp = app.clone().oneshot(req).await.unwrap();
+            let status = resp.status();
+            let bytes = resp.into_body().collect().await.unwrap().to_bytes();
+            assert_eq!(status, 200, "{name}: {}", String::from_utf8_lossy(&bytes));
+            let json: serde_json::Value = serde_json::from_slice(&bytes).unwrap();
+            assert_eq!(json["sampling"], sampling, "{name}");
+            let b64 =
+                |v: &serde_json::Value| base64::engine::general_purpose::STANDARD.decode(v.as_str().unwrap()).unwrap();
+            let png = image::load_from_memory(&b64(&json["rgb"]["data"])).unwrap().into_rgb8();
+            let rgb: Vec<f32> = png.as_raw().iter().map(|&b| f32::from(b) / 255.0).collect();
+            let want = |output: &str| expected.tensor(&format!("{output}{suffix}")).1;
+            let stage = |output: &str| format!("http {sampling} {output}");
+            // Quantisation to 8 bits adds at most half a level.
+            check(&name, &stage("rgb (8-bit)"), max_abs(&rgb, &want("rgb")), 0.5 / 255.0 + 1e-3);
+            let depth: Vec<f32> = b64(&json["depth"]["data"])
+                .chunks_exact(4)
+                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                .collect();
+            let tolerance = expected.tolerance("depth_max_rel", 1e-3);
+            check(&name, &stage("depth (relative)"), max_rel(&depth, &want("depth")), tolerance);
+        }
     }
 }
 

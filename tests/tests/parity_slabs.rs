@@ -11,6 +11,7 @@ use std::sync::OnceLock;
 
 use scnerf_server::bundle::VolumeBuild;
 use scnerf_server::pipeline::chunks::ChunkPolicy;
+use scnerf_server::pipeline::guided::Sampling;
 use scnerf_server::pipeline::sources::padded_size;
 use scnerf_server::pipeline::volume::{SlabPolicy, SLAB_BYTES_PER_CELL};
 use scnerf_server::pipeline::{Pipeline, Timings};
@@ -105,7 +106,15 @@ async fn slab_built_volume_matches_pytorch_whatever_the_slab_size() {
             eprintln!("{name}: {planes} planes per slab: volume max error {err:.3e}");
             assert!(err <= 1e-4, "{name}: volume error {err:.3e} with {planes} planes per slab");
             let view = pipeline
-                .render_view(&ticket, &scene, &req.view.target, req.scene.background, None, &mut timings)
+                .render_view(
+                    &ticket,
+                    &scene,
+                    &req.view.target,
+                    req.scene.background,
+                    Sampling::Full,
+                    None,
+                    &mut timings,
+                )
                 .await
                 .unwrap();
             let err = max_abs(&view.rgb, &expected(&case, "rgb"));

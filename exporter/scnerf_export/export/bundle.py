@@ -17,7 +17,7 @@ from .. import __version__
 from ..model.checkpoint import sha256_file
 from ..model.cost_volume import build_cost_volume, slab_halo
 from ..model.network import SCNeRF
-from ..model.renderer import interpolated_heads
+from ..model.renderer import nearest_heads
 from ..rigs import synthetic_rig
 from ..runtime.guided import GuidedPolicy
 from ..runtime.volume_slabs import slab_volume_error
@@ -121,12 +121,12 @@ class RendererGraph(nn.Module):
 
 def guided_input_names(model: SCNeRF, graph: str) -> list[str]:
     """Inputs of ``renderer_guide`` (the renderer's) and ``renderer_fine`` (the renderer's with
-    the rays' samples, then each rectifier's heads grid and the rays' taps into it)."""
+    the rays' samples, then each rectifier's heads of the guide rays and each ray's guide ray)."""
     names = renderer_input_names(model)
     if graph == "renderer_guide":
         return names
     rectifiers = list(model.renderer.rectifiers())
-    taps = ["head_taps", "head_tap_weights"] if rectifiers else []
+    taps = ["head_index"] if rectifiers else []
     return names[:2] + ["sample_index", "sample_multiplicity"] + names[2:] + [f"{r}_heads" for r in rectifiers] + taps
 
 
@@ -158,7 +158,7 @@ class GuideGraph(nn.Module):
 
 
 class FineGraph(nn.Module):
-    """The renderer at K given samples per ray, with heads blended from guide rays."""
+    """The renderer at K given samples per ray, with the heads of the nearest guide ray."""
 
     def __init__(self, model: SCNeRF):
         super().__init__()
@@ -167,10 +167,7 @@ class FineGraph(nn.Module):
 
     def forward(self, *args):
         g = _renderer_call(self.names, args)
-        heads = {
-            name: interpolated_heads(g[f"{name}_heads"], g["head_taps"], g["head_tap_weights"])
-            for name in self.model.renderer.rectifiers()
-        }
+        heads = {name: nearest_heads(g[f"{name}_heads"], g["head_index"]) for name in self.model.renderer.rectifiers()}
         shading = self.model.renderer.render_samples(
             *(g[n] for n in ("ray_origins", "ray_directions", "sample_index", "sample_multiplicity", "near_far")),
             g["depth_range"],
@@ -204,8 +201,7 @@ def graph_signatures(model: SCNeRF) -> dict[str, dict[str, list]]:
     fine_inputs = renderer_inputs | {
         "sample_index": ["R", "K"],
         "sample_multiplicity": ["R", "K"],
-        "head_taps": ["R", 4],
-        "head_tap_weights": ["R", 4],
+        "head_index": ["R"],
     }
     fine_inputs |= {f"{r}_heads": ["G", heads, cfg.width] for r in model.renderer.rectifiers()}
     conv0 = [1, cfg.volume_channels, d, "Hp", "Wp"]
@@ -308,8 +304,8 @@ def example_inputs(
 
 def guided_examples(model: SCNeRF, rays: dict[str, torch.Tensor], count: int = 5, grid: int = 7) -> dict:
     """The fine graph's inputs for the example rays: ``count`` increasing samples of each ray with
-    multiplicities 1-3, and heads grids from the guide pass of ``grid`` of the rays, tapped at
-    random with weights summing to 1 (sizes unlike any other axis, so none is specialised)."""
+    multiplicities 1-3, and heads grids from the guide pass of ``grid`` of the rays, each ray
+    reading a random one (sizes unlike any other axis, so none is specialised)."""
     cfg = model.cfg
     n = rays["ray_origins"].shape[0]
     rng = torch.Generator().manual_seed(7)
@@ -323,14 +319,12 @@ def guided_examples(model: SCNeRF, rays: dict[str, torch.Tensor], count: int = 5
             args["intrinsics"],
             args["extrinsics"],
         )
-    tap_weights = torch.rand(n, 4, generator=rng)
     return {
         **rays,
         "sample_index": index.float(),
         "sample_multiplicity": torch.randint(1, 4, (n, count), generator=rng).float(),
         **{f"{name}_heads": h for name, h in shading.heads.items()},
-        "head_taps": torch.randint(0, grid, (n, 4), generator=rng).float(),
-        "head_tap_weights": tap_weights / tap_weights.sum(dim=1, keepdim=True),
+        "head_index": torch.randint(0, grid, (n,), generator=rng).float(),
     }
 
 

@@ -14,7 +14,7 @@ from ..cameras import camera_from_json, camera_json
 from ..config import small_config
 from ..model.network import SCNeRF
 from ..rigs import random_model, rig_cameras, smooth_pattern
-from ..runtime.reference import encode_scene, render_view
+from ..runtime.reference import encode_scene, render_target, render_view
 from .bundle import export_bundle
 
 
@@ -59,6 +59,9 @@ def write_case(
     result = render_view(model, images, parsed, parsed_target, near, far, background, chunk=97)
     with torch.no_grad():
         scene = encode_scene(model, images, parsed, near, far, background)
+    guided = render_target(model, scene, parsed_target, near, far, background, chunk=97, sampling="guided")
+    for name in ("rgb", "depth", "opacity"):
+        _write_f32(case / f"{name}_guided.f32", getattr(guided, name))
     _write_f32(case / "rgb.f32", result.rgb)
     _write_f32(case / "depth.f32", result.depth)
     _write_f32(case / "opacity.f32", result.opacity)
@@ -74,6 +77,9 @@ def write_case(
             "opacity": "opacity.f32",
             "features": "features.f32",
             "volume": "volume.f32",
+            "rgb_guided": "rgb_guided.f32",
+            "depth_guided": "depth_guided.f32",
+            "opacity_guided": "opacity_guided.f32",
         },
         "shapes": {
             "rgb": [parsed_target.height, parsed_target.width, 3],
@@ -81,7 +87,12 @@ def write_case(
             "opacity": [parsed_target.height, parsed_target.width],
             "features": list(scene.features.shape),
             "volume": list(scene.volume.shape),
+            "rgb_guided": [parsed_target.height, parsed_target.width, 3],
+            "depth_guided": [parsed_target.height, parsed_target.width],
+            "opacity_guided": [parsed_target.height, parsed_target.width],
         },
+        # Guided sampling (the bundle's policy): the same view, and its network samples per pixel.
+        "guided_samples_per_ray": guided.samples_per_ray,
         "tolerances": {
             "rgb_max_abs": 1e-3,
             "depth_max_rel": 1e-3,

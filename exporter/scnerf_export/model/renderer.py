@@ -60,10 +60,10 @@ def uniform_depths(near_far: torch.Tensor, samples: int) -> torch.Tensor:
     return near_far[0] * (1.0 - steps) + near_far[1] * steps
 
 
-def interpolated_heads(grid: torch.Tensor, taps: torch.Tensor, tap_weights: torch.Tensor) -> torch.Tensor:
-    """Heads of a ray blended from rays rendered in full: ``grid`` (G, h*d_k, C), ``taps`` (R,4)
-    rows of it (integers held as float32), ``tap_weights`` (R,4) -> (R, h*d_k, C)."""
-    return (grid[taps.long()] * tap_weights[..., None, None]).sum(dim=1)
+def nearest_heads(grid: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """Each ray's heads, those of the nearest ray rendered in full: ``grid`` (G, h*d_k, C), ``index``
+    (R) rows of it (integers held as float32) -> (R, h*d_k, C)."""
+    return grid[index.long()]
 
 
 class RayRenderer(nn.Module):
@@ -142,7 +142,7 @@ class RayRenderer(nn.Module):
         """K of a ray's S uniform samples (``sample_index`` (R,K), increasing): the network at
         those alone. Each stands for ``multiplicity`` (R,K) uniform samples, so its opacity is
         1 - exp(-m sigma) (the compositing's quadrature over the samples it stands for); the
-        rectifiers read ``heads`` given per ray (:func:`interpolated_heads`) instead of computing
+        rectifiers read ``heads`` given per ray (:func:`nearest_heads`) instead of computing
         them from all S samples."""
         step = (near_far[1] - near_far[0]) / (self.cfg.samples - 1)
         z = near_far[0] + sample_index * step

@@ -19,9 +19,9 @@ def rays_per_run(samples: int, memory_mb: int = DEFAULT_MEMORY_MB, max_rays: int
     return min(max(by_memory, 1), max(max_rays, 1))
 
 
-# Per ray of a fine run (guided sampling) beside its samples: the four guide rays' rectifier heads
-# gathered and blended, per rectifier (4 + 1 times h*d_k x C floats); paper size, both rectifiers.
-GUIDED_BYTES_PER_RAY = 160 * 1024
+# Per ray of a fine run (guided sampling) beside its samples: its guide ray's rectifier heads,
+# gathered (h*d_k x C floats per rectifier, twice over); paper size, both rectifiers.
+GUIDED_BYTES_PER_RAY = 64 * 1024
 
 
 def fine_rays_per_run(

@@ -12,8 +12,8 @@ nested grids:
   their mean and the network does not run. Otherwise its samples come from the neighbours'
   weights (:func:`select_samples`): the K (the level's ``samples``) uniform samples where the
   neighbours composite most, each standing for the nearby samples where a neighbour saw matter
-  (its multiplicity), run through ``renderer_fine.onnx`` with the rectifier heads blended from
-  the four nearest level-0 rays (:func:`head_taps`).
+  (its multiplicity), run through ``renderer_fine.onnx`` with the rectifier heads of the nearest
+  level-0 ray (:func:`nearest_guide`).
 
 Every pixel is rendered once; a level-0 pixel is rendered exactly as with full sampling.
 """
@@ -25,12 +25,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .. import cameras as cams
+from ..cameras import Camera
+from .view import Rendering, renderer_passes
+
 # What a guide run returns per ray: rgb (R,3), depth (R), opacity (R), weights (R,S), and per
 # rectifier name its heads (R, h*d_k, C).
 GuideRun = Callable[[np.ndarray, np.ndarray], dict[str, np.ndarray]]
-# What a fine run takes: origins, directions, sample_index (R,K), multiplicity (R,K), taps (R,4),
-# tap weights (R,4) (the heads grid is the caller's); returns rgb, depth, opacity, weights (R,K).
-FineRun = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray], dict[str, np.ndarray]]
+# What a fine run takes: origins, directions, sample_index (R,K), multiplicity (R,K), each ray's
+# guide ray (R) (the guide rays' heads are the caller's); returns rgb, depth, opacity, weights (R,K).
+FineRun = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray], dict[str, np.ndarray]]
 
 
 @dataclass(frozen=True)
@@ -48,6 +52,12 @@ class GuidedPolicy:
             raise ValueError(f"guided.step must be a power of two, got {self.step}")
         if len(self.samples) != self.step.bit_length() - 1:
             raise ValueError(f"guided.samples needs one count per level below step {self.step}")
+
+    @staticmethod
+    def for_model(cfg) -> GuidedPolicy:
+        """The default policy for a model of ``cfg.samples`` samples per ray."""
+        default = GuidedPolicy()
+        return GuidedPolicy(samples=tuple(min(k, cfg.samples) for k in default.samples))
 
     @staticmethod
     def from_dict(d: dict) -> GuidedPolicy:
@@ -145,18 +155,12 @@ def spread_weights(weights: np.ndarray, multiplicity: np.ndarray, owner: np.ndar
     return np.where(owner >= 0, share[rows, np.maximum(owner, 0)], np.float32(0.0)).astype(np.float32)
 
 
-def head_taps(pixels: np.ndarray, grid_width: int, grid_height: int, step: int) -> tuple[np.ndarray, np.ndarray]:
-    """The four level-0 rays around each pixel (rows of the level-0 grid, row by row) and their
-    bilinear weights: (N,4) each, as float32 (the graph's inputs)."""
-    gv, gu = pixels[:, 0] / step, pixels[:, 1] / step
-    v0 = np.minimum(np.floor(gv).astype(np.int64), grid_height - 1)
-    u0 = np.minimum(np.floor(gu).astype(np.int64), grid_width - 1)
-    v1, u1 = np.minimum(v0 + 1, grid_height - 1), np.minimum(u0 + 1, grid_width - 1)
-    tv = np.clip(gv - v0, 0.0, 1.0).astype(np.float32)
-    tu = np.clip(gu - u0, 0.0, 1.0).astype(np.float32)
-    taps = np.stack([v0 * grid_width + u0, v0 * grid_width + u1, v1 * grid_width + u0, v1 * grid_width + u1], axis=1)
-    weights = np.stack([(1 - tu) * (1 - tv), tu * (1 - tv), (1 - tu) * tv, tu * tv], axis=1)
-    return taps.astype(np.float32), weights.astype(np.float32)
+def nearest_guide(pixels: np.ndarray, grid_width: int, grid_height: int, step: int) -> np.ndarray:
+    """The level-0 ray nearest each pixel (half-way: the later), as a row of the level-0 grid
+    (row by row), float32 (the graph's input): its rectifier heads stand for the pixel's."""
+    v = np.minimum((pixels[:, 0] + step // 2) // step, grid_height - 1)
+    u = np.minimum((pixels[:, 1] + step // 2) // step, grid_width - 1)
+    return (v * grid_width + u).astype(np.float32)
 
 
 @dataclass
@@ -216,9 +220,9 @@ def render_guided(
             continue
         score = _masked_max(guidance[near_rows[run]], valid[run])
         index, multiplicity, owner = select_samples(score, count, policy.support_threshold)
-        taps, tap_weights = head_taps(pixels[run], grid_w, grid_h, policy.step)
+        guide_rows = nearest_guide(pixels[run], grid_w, grid_h, policy.step)
         rows = here[run]
-        out = fine(origins[rows], directions[rows], index.astype(np.float32), multiplicity, taps, tap_weights)
+        out = fine(origins[rows], directions[rows], index.astype(np.float32), multiplicity, guide_rows)
         rgb[rows], depth[rows], opacity[rows] = out["rgb"], out["depth"], out["opacity"]
         if keeps_guidance:
             guidance[rows] = spread_weights(out["weights"], multiplicity, owner)
@@ -241,3 +245,19 @@ def _masked_mean(values: np.ndarray, valid: np.ndarray) -> np.ndarray:
 def _masked_max(values: np.ndarray, valid: np.ndarray) -> np.ndarray:
     mask = valid.reshape(valid.shape + (1,) * (values.ndim - 2))
     return np.where(mask, values, np.float32(0.0)).max(axis=1)
+
+
+def guided_rendering(
+    policy: GuidedPolicy, cfg, target: Camera, background, guide: GuideRun, fine: FineRun
+) -> Rendering:
+    """A target view by guided sampling, composited on ``background``: what both Python runtimes
+    return."""
+    if renderer_passes(cfg) == 2:
+        raise ValueError("guided sampling needs depth_norm near_far (not a depth range from the whole image)")
+    origins, directions = cams.target_rays(target)
+    bg = np.asarray(background, dtype=np.float32)
+    view = render_guided(policy, target.width, target.height, cfg.samples, origins, directions, bg, guide, fine)
+    rgb = view.rgb + (1.0 - view.opacity[:, None]) * bg
+    shape = (target.height, target.width)
+    samples_per_ray = view.network_samples / (target.width * target.height)
+    return Rendering(rgb.reshape(*shape, 3), view.depth.reshape(shape), view.opacity.reshape(shape), samples_per_ray)

@@ -14,8 +14,8 @@ from ..cameras import Camera
 from ..config import ModelConfig
 from ..export.manifest import read_manifest
 from .chunks import fine_rays_per_run, rays_per_run
-from .guided import GuidedPolicy, GuidedView, render_guided
-from .view import Rendering, pad_images, render_in_passes, renderer_passes
+from .guided import GuidedPolicy, guided_rendering
+from .view import Rendering, pad_images, render_in_passes
 from .volume_slabs import build_volume
 
 
@@ -40,7 +40,6 @@ class OnnxBundle:
         self.renderer_inputs = [i.name for i in self.sessions["renderer"].get_inputs()]
         self.policy = GuidedPolicy.from_dict(self.manifest["guided"]) if "guided" in self.manifest else None
         self.timings: dict[str, float] = {}
-        self.last_guided: GuidedView | None = None
 
     def _timed(self, stage: str, graph: str, feeds: dict) -> list[np.ndarray]:
         start = time.perf_counter()
@@ -147,8 +146,6 @@ class OnnxBundle:
         """A view by guided sampling, run as the server runs it."""
         if self.policy is None:
             raise ValueError(f"{self.path}: the bundle has no guided-sampling graphs (scnerf-export add-guided)")
-        if renderer_passes(self.cfg) == 2:
-            raise ValueError("guided sampling needs depth_norm near_far")
         depth_range = (near, far)
         guide_inputs = [i.name for i in self.sessions["renderer_guide"].get_inputs()]
         fine_inputs = [i.name for i in self.sessions["renderer_fine"].get_inputs()]
@@ -166,7 +163,7 @@ class OnnxBundle:
             heads.update({k: v for k, v in out.items() if k.endswith("_heads")})
             return {"weights": out["sample_weights"], **out}
 
-        def fine(origins, directions, index, multiplicity, taps, tap_weights):
+        def fine(origins, directions, index, multiplicity, guide_rows):
             step = fine_rays_per_run(index.shape[1], self.cfg.samples)
             outs = []
             for start in range(0, origins.shape[0], step):
@@ -175,19 +172,10 @@ class OnnxBundle:
                 feeds |= heads | {
                     "sample_index": index[rays],
                     "sample_multiplicity": multiplicity[rays],
-                    "head_taps": taps[rays],
-                    "head_tap_weights": tap_weights[rays],
+                    "head_index": guide_rows[rays],
                 }
                 outs.append(self._timed("renderer", "renderer_fine", {n: feeds[n] for n in fine_inputs}))
             names = ("rgb", "depth", "opacity", "weights")
             return {name: np.concatenate([o[i] for o in outs]) for i, name in enumerate(names)}
 
-        origins, directions = cams.target_rays(target)
-        bg = np.asarray(background, dtype=np.float32)
-        view = render_guided(
-            self.policy, target.width, target.height, self.cfg.samples, origins, directions, bg, guide, fine
-        )
-        self.last_guided = view
-        rgb = view.rgb + (1.0 - view.opacity[:, None]) * bg
-        shape = (target.height, target.width)
-        return Rendering(rgb.reshape(*shape, 3), view.depth.reshape(shape), view.opacity.reshape(shape))
+        return guided_rendering(self.policy, self.cfg, target, background, guide, fine)

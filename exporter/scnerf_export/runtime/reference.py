@@ -12,6 +12,8 @@ from .. import cameras as cams
 from ..cameras import Camera
 from ..config import ModelConfig
 from ..model.network import SCNeRF
+from ..model.renderer import nearest_heads
+from .guided import GuidedPolicy, guided_rendering
 from .view import Rendering, pad_images, render_in_passes
 
 
@@ -97,11 +99,55 @@ def render_view(
 
 @torch.no_grad()
 def render_target(
-    model: SCNeRF, scene: SceneTensors, target: Camera, near: float, far: float, background, chunk: int = 1024
+    model: SCNeRF,
+    scene: SceneTensors,
+    target: Camera,
+    near: float,
+    far: float,
+    background,
+    chunk: int = 1024,
+    sampling: str = "full",
 ) -> Rendering:
-    """One target view of an encoded scene."""
+    """One target view of an encoded scene, with the paper's S samples per ray (``full``) or by
+    guided sampling (``guided``, runtime/guided.py, with the policy ``GuidedPolicy.for_model``)."""
+    if sampling == "guided":
+        return render_guided_target(model, scene, target, near, far, background, chunk)
 
     def rays(origins, directions, depth_range):
         return render_rays(model, scene, origins, directions, near, far, depth_range, chunk)
 
     return render_in_passes(model.cfg, target, near, far, background, rays)
+
+
+@torch.no_grad()
+def render_guided_target(
+    model: SCNeRF, scene: SceneTensors, target: Camera, near: float, far: float, background, chunk: int = 1024
+) -> Rendering:
+    """A view by guided sampling, the PyTorch reference of the server's."""
+    near_far = torch.tensor([near, far], dtype=torch.float32)
+    r = model.renderer
+    tensors = (scene.volume, scene.images, scene.features, scene.intrinsics, scene.extrinsics)
+    heads: dict[str, torch.Tensor] = {}
+
+    def guide(origins, directions):
+        parts = []
+        for start in range(0, origins.shape[0], chunk):
+            o, d = (torch.from_numpy(np.ascontiguousarray(a[start : start + chunk])) for a in (origins, directions))
+            parts.append(r.guide(o, d, near_far, near_far, *tensors))
+        heads.update({name: torch.cat([p.heads[name] for p in parts]) for name in r.rectifiers()})
+        out = {k: torch.cat([getattr(p, k) for p in parts]).numpy() for k in ("rgb", "depth", "opacity", "weights")}
+        return out
+
+    def fine(origins, directions, index, multiplicity, guide_rows):
+        parts = []
+        for start in range(0, origins.shape[0], chunk):
+            rows = slice(start, start + chunk)
+            o, d, i, m, g = (
+                torch.from_numpy(np.ascontiguousarray(a[rows]))
+                for a in (origins, directions, index, multiplicity, guide_rows)
+            )
+            given = {name: nearest_heads(h, g) for name, h in heads.items()}
+            parts.append(r.render_samples(o, d, i, m, near_far, near_far, *tensors, given))
+        return {k: torch.cat([getattr(p, k) for p in parts]).numpy() for k in ("rgb", "depth", "opacity", "weights")}
+
+    return guided_rendering(GuidedPolicy.for_model(model.cfg), model.cfg, target, background, guide, fine)

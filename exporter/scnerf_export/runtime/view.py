@@ -24,6 +24,7 @@ class Rendering:
     rgb: np.ndarray  # (H,W,3) composited on the background
     depth: np.ndarray  # (H,W)
     opacity: np.ndarray  # (H,W)
+    samples_per_ray: float | None = None  # network samples per pixel (None: the model's S)
 
 
 def pad_images(images: np.ndarray, multiple: int, background) -> np.ndarray:

@@ -16,12 +16,17 @@ use super::negotiate::ResponseFormat;
 use super::state::AppState;
 use crate::error::ApiError;
 use crate::image_io;
+use crate::pipeline::guided::{Sampling, SamplingReport};
 use crate::pipeline::{assemble, Timings, View};
 use crate::request::OutputSet;
 
 /// Header naming the views a render used: `i,j,k`, indices into the scene's views, the volume's
 /// reference first.
 pub const SOURCES_HEADER: &str = "x-scnerf-sources";
+
+/// Headers saying how a view was sampled: `full` or `guided`, and the network samples per pixel.
+pub const SAMPLING_HEADER: &str = "x-scnerf-sampling";
+pub const SAMPLES_PER_RAY_HEADER: &str = "x-scnerf-samples-per-ray";
 
 /// A rendered view and the views it was rendered from.
 pub struct Rendered {
@@ -43,8 +48,11 @@ pub async fn finish(
     let encoded = encode_outputs(rendered.view, outputs, &rendered.sources).await?;
     timings.add("encode", encode_start.elapsed());
     timings.add("total", started.elapsed());
-    tracing::info!(timings = ?timings.millis(), sources = ?rendered.sources, "rendered");
+    let sampling = encoded.sampling;
+    tracing::info!(timings = ?timings.millis(), sources = ?rendered.sources, sampling = %sampling.mode,
+                   samples_per_ray = sampling.samples_per_ray, "rendered");
     state.metrics.observe_stages(&timings);
+    state.metrics.observe_sampling(&sampling);
     Ok(respond(format, encoded, &timings, &state.pipeline.manifest().model_id))
 }
 
@@ -56,6 +64,7 @@ struct Encoded {
     depth: Option<Vec<u8>>,
     opacity: Option<Vec<u8>>,
     sources: Vec<u32>,
+    sampling: SamplingReport,
 }
 
 async fn encode_outputs(view: View, outputs: OutputSet, sources: &[usize]) -> Result<Encoded, ApiError> {
@@ -73,6 +82,7 @@ async fn encode_outputs(view: View, outputs: OutputSet, sources: &[usize]) -> Re
             depth: outputs.depth.then(|| le(&view.depth)),
             opacity: outputs.opacity.then(|| le(&view.opacity)),
             sources,
+            sampling: view.sampling,
         })
     })
     .await
@@ -90,6 +100,10 @@ fn respond(format: ResponseFormat, out: Encoded, timings: &Timings, model_id: &s
     let sources: Vec<String> = out.sources.iter().map(u32::to_string).collect();
     if let Ok(v) = HeaderValue::from_str(&sources.join(",")) {
         headers.insert(SOURCES_HEADER, v);
+    }
+    headers.insert(SAMPLING_HEADER, HeaderValue::from_static(out.sampling.mode.name()));
+    if let Ok(v) = HeaderValue::from_str(&format!("{:.2}", out.sampling.samples_per_ray)) {
+        headers.insert(SAMPLES_PER_RAY_HEADER, v);
     }
     set_common_headers(&mut response, timings, model_id);
     response
@@ -128,6 +142,10 @@ pub struct RenderResponseJson {
     /// The views rendered from: indices into the scene's views, the volume's reference first
     /// (`[0, 1, 2]` for /v1/render). Also in the `x-scnerf-sources` header.
     pub sources: Vec<u32>,
+    /// How the view was sampled (also in the `x-scnerf-sampling` header).
+    pub sampling: Sampling,
+    /// Network samples per pixel, on average over the view (`x-scnerf-samples-per-ray`).
+    pub samples_per_ray: f64,
 }
 
 #[derive(Debug, Serialize, utoipa::ToSchema)]
@@ -172,6 +190,8 @@ fn json_body(out: &Encoded, timings: &Timings, model_id: &str) -> RenderResponse
         opacity: float_image(&out.opacity),
         timings_ms: timings.millis().into_iter().map(|(s, ms)| (s.to_string(), ms)).collect(),
         sources: out.sources.clone(),
+        sampling: out.sampling.mode,
+        samples_per_ray: out.sampling.samples_per_ray,
     }
 }
 
@@ -188,5 +208,7 @@ fn proto_body(out: &Encoded, timings: &Timings, model_id: &str) -> scnerf_proto:
         opacity: float_image(out.opacity.clone()),
         timings_ms: timings.millis().into_iter().map(|(s, ms)| (s.to_string(), ms)).collect(),
         sources: out.sources.clone(),
+        sampling: out.sampling.mode.name().to_string(),
+        samples_per_ray: out.sampling.samples_per_ray,
     }
 }

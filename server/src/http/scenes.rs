@@ -252,7 +252,16 @@ async fn render_within(state: AppState, deadline: Deadline, id: String, req: Req
     let cached = state.scenes.volume(scene, &sources);
     let mut timings = Timings::default();
     let (view, built) = pipeline
-        .render_sources(&scene.views, &sources, cached, &valid.target, scene.background, deadline.at(), &mut timings)
+        .render_sources(
+            &scene.views,
+            &sources,
+            cached,
+            &valid.target,
+            valid.sampling,
+            scene.background,
+            deadline.at(),
+            &mut timings,
+        )
         .await?;
     if let Some(volume) = built {
         state.scenes.insert_volume(scene, sources.clone(), volume);

@@ -39,8 +39,9 @@ pub async fn metrics(State(state): State<AppState>) -> Response {
     response
 }
 
-/// The served model: id, variant, hyper-parameters and provenance from the manifest, and the
-/// most views a scene may hold (`max_scene_views`; all the limits: `GET /v1/limits`).
+/// The served model: id, variant, hyper-parameters and provenance from the manifest, the most
+/// views a scene may hold (`max_scene_views`; all the limits: `GET /v1/limits`), and how views
+/// can be sampled (`sampling`: the modes, the default, guided sampling's policy).
 #[utoipa::path(get, path = "/v1/model", tag = "render", operation_id = "model", responses(
     (status = 200, description = "Model description", body = Object),
     (status = 401, description = "Missing or wrong bearer token", body = crate::error::ErrorBody),
@@ -54,6 +55,12 @@ pub async fn model(State(state): State<AppState>) -> Json<serde_json::Value> {
         "config": m.config,
         "provenance": m.provenance,
         "max_scene_views": state.pipeline.limits().max_scene_views,
+        "sampling": {
+            "modes": state.pipeline.samplings(),
+            "default": state.pipeline.default_sampling(),
+            "samples_full": state.pipeline.config().samples,
+            "guided": state.pipeline.bundle().guided(),
+        },
     }))
 }
 

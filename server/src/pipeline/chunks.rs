@@ -8,11 +8,11 @@
 use std::ops::Range;
 
 use futures_util::{stream, StreamExt, TryStreamExt};
-use ndarray::{arr1, s, ArcArray2, Array1, Array2, Ix1, Ix2};
+use ndarray::{arr1, s, ArcArray1, ArcArray2, Array1, Array2, Ix1, Ix2};
 
 use super::rays::Rays;
 use super::Scene;
-use crate::backend::{BackendError, NamedTensors, Ticket};
+use crate::backend::{BackendError, NamedTensors, Outputs, Tensor, Ticket};
 use crate::bundle::{GraphKind, TensorSpec};
 
 /// Peak bytes of renderer activations per sample point. Measured with the paper-size `scnerf`
@@ -33,10 +33,22 @@ impl Default for ChunkPolicy {
     }
 }
 
+/// Per ray of a fine run (guided sampling) beside its samples: its guide ray's rectifier heads,
+/// gathered (h·d_k x C floats per rectifier, twice over); paper size, both rectifiers.
+pub const GUIDED_BYTES_PER_RAY: usize = 64 * 1024;
+
 impl ChunkPolicy {
     pub fn rays_per_chunk(&self, samples: usize) -> usize {
         let by_memory = self.memory_budget_bytes / (samples.max(1) * BYTES_PER_SAMPLE);
         by_memory.clamp(1, self.max_rays.max(1))
+    }
+
+    /// Rays of a fine run of `samples` samples each (guided sampling): as many points as a full
+    /// run's cap (`max_rays` x `full_samples`), within the memory budget.
+    pub fn fine_rays_per_chunk(&self, samples: usize, full_samples: usize) -> usize {
+        let per_ray = samples.max(1) * BYTES_PER_SAMPLE + GUIDED_BYTES_PER_RAY;
+        let cap = self.max_rays.max(1) * full_samples / samples.max(1);
+        (self.memory_budget_bytes / per_ray).clamp(1, cap.max(1))
     }
 }
 
@@ -51,14 +63,47 @@ pub struct RawView {
     pub opacity: Array1<f32>,
 }
 
-/// Renderer runs of one request queued at once. Two keep the executor busy while the previous
+/// Graph runs of one request queued at once. Two keep the executor busy while the previous
 /// chunk's outputs are copied out; more would only hold memory (the executor picks requests by
 /// deadline, so queuing more does not buy a larger share).
 const CHUNKS_IN_FLIGHT: usize = 2;
 
+/// Runs `graph` over `n` rays, `chunk` rays at a time: `inputs(range)` builds a run's inputs,
+/// `units_per_ray` its work, and `put(range, outputs)` takes each run's outputs, in order.
+/// `last`: this is the request's last run of the renderers, so its last chunk lets the executor
+/// release the graph's arena when nothing else waits (`Ticket::run_last`).
+#[allow(clippy::too_many_arguments)]
+pub async fn run_chunks(
+    ticket: &Ticket,
+    graph: GraphKind,
+    n: usize,
+    chunk: usize,
+    units_per_ray: f64,
+    last: bool,
+    inputs: impl Fn(Range<usize>) -> NamedTensors,
+    mut put: impl FnMut(Range<usize>, Outputs) -> Result<(), BackendError>,
+) -> Result<(), BackendError> {
+    let ranges = (0..n).step_by(chunk.max(1)).map(|start| start..(start + chunk).min(n));
+    let mut runs = stream::iter(ranges)
+        .map(|range| {
+            let inputs = inputs(range.clone());
+            let (units, final_chunk) = (units_per_ray * range.len() as f64, last && range.end == n);
+            let run = if final_chunk {
+                futures_util::future::Either::Left(ticket.run_last(graph, units, inputs))
+            } else {
+                futures_util::future::Either::Right(ticket.run(graph, units, inputs))
+            };
+            async move { run.await.map(|outputs| (range, outputs)) }
+        })
+        .buffered(CHUNKS_IN_FLIGHT);
+    while let Some((range, outputs)) = runs.try_next().await? {
+        put(range, outputs)?;
+    }
+    Ok(())
+}
+
 /// Runs the renderer (whose inputs are `inputs`) over all rays, `chunk` rays at a time, and
-/// concatenates the outputs. `last`: this is the request's last pass, so its last chunk lets
-/// the executor release the renderer's arena when nothing else waits (`Ticket::run_last`).
+/// concatenates the outputs.
 pub async fn render_rays(
     ticket: &Ticket,
     scene: &Scene,
@@ -70,35 +115,43 @@ pub async fn render_rays(
 ) -> Result<RawView, BackendError> {
     let n = rays.len();
     let mut out = RawView { rgb: Array2::zeros((n, 3)), depth: Array1::zeros(n), opacity: Array1::zeros(n) };
-    let ranges = (0..n).step_by(chunk.max(1)).map(|start| start..(start + chunk).min(n));
-    let mut runs = stream::iter(ranges)
-        .map(|range| {
-            let inputs = chunk_inputs(scene, inputs, rays, range.clone(), depth_range);
-            let (units, final_chunk) = (range.len() as f64, last && range.end == n);
-            let run = if final_chunk {
-                futures_util::future::Either::Left(ticket.run_last(GraphKind::Renderer, units, inputs))
-            } else {
-                futures_util::future::Either::Right(ticket.run(GraphKind::Renderer, units, inputs))
-            };
-            async move { run.await.map(|outputs| (range, outputs)) }
-        })
-        .buffered(CHUNKS_IN_FLIGHT);
-    while let Some((range, mut outputs)) = runs.try_next().await? {
-        let r = Some(range.len());
-        out.rgb.slice_mut(s![range.clone(), ..]).assign(&outputs.take::<Ix2>("rgb", &[r, Some(3)])?);
-        out.depth.slice_mut(s![range.clone()]).assign(&outputs.take::<Ix1>("depth", &[r])?);
-        out.opacity.slice_mut(s![range]).assign(&outputs.take::<Ix1>("opacity", &[r])?);
-    }
+    let build = |range: Range<usize>| chunk_inputs(scene, inputs, rays, range, depth_range, &|_, _| None);
+    run_chunks(ticket, GraphKind::Renderer, n, chunk, 1.0, last, build, |range, mut outputs| {
+        let (rgb, depth, opacity) = take_pixels(&mut outputs, range.len())?;
+        out.rgb.slice_mut(s![range.clone(), ..]).assign(&rgb);
+        out.depth.slice_mut(s![range.clone()]).assign(&depth);
+        out.opacity.slice_mut(s![range]).assign(&opacity);
+        Ok(())
+    })
+    .await?;
     Ok(out)
 }
 
-/// Every input the renderer graph declares, by name (the bundle check guarantees we know them).
-fn chunk_inputs(
+/// A run's rgb (R,3), depth (R) and opacity (R).
+pub fn take_pixels(outputs: &mut Outputs, rays: usize) -> Result<PixelOutputs, BackendError> {
+    let r = Some(rays);
+    Ok((
+        outputs.take::<Ix2>("rgb", &[r, Some(3)])?,
+        outputs.take::<Ix1>("depth", &[r])?,
+        outputs.take::<Ix1>("opacity", &[r])?,
+    ))
+}
+
+/// rgb (R,3), depth (R), opacity (R) of one run.
+pub type PixelOutputs = (ArcArray2<f32>, ArcArray1<f32>, ArcArray1<f32>);
+
+/// A graph input the scene and the rays do not give: per chunk (the rows of `range`), by name.
+pub type ChunkExtra<'a> = dyn Fn(&str, Range<usize>) -> Option<Tensor> + 'a;
+
+/// Every input a renderer graph declares, by name (the bundle check guarantees we know them):
+/// the scene's, the rays' rows `range`, and what `extra` gives.
+pub fn chunk_inputs(
     scene: &Scene,
     inputs: &[TensorSpec],
     rays: &Rays,
     range: Range<usize>,
     depth_range: [f32; 2],
+    extra: &ChunkExtra<'_>,
 ) -> NamedTensors {
     // The rays' rows and the scene's tensors are shared with the chunk, not copied.
     let rows = |a: &ArcArray2<f32>| a.clone().slice_move(s![range.clone(), ..]).into_dyn();
@@ -116,7 +169,7 @@ fn chunk_inputs(
                 "features" => scene.features.clone().into_dyn(),
                 "intrinsics" => scene.intrinsics.clone().into_dyn(),
                 "extrinsics" => scene.extrinsics.clone().into_dyn(),
-                _ => return None,
+                other => return extra(other, range.clone()).map(|t| (spec.name.clone(), t)),
             };
             Some((spec.name.clone(), t))
         })
@@ -134,5 +187,16 @@ mod tests {
         assert_eq!(p.rays_per_chunk(1), 4096);
         let tiny = ChunkPolicy { max_rays: 4096, memory_budget_bytes: 1 };
         assert_eq!(tiny.rays_per_chunk(128), 1);
+    }
+
+    #[test]
+    fn fine_chunks_hold_a_full_chunks_points() {
+        let p = ChunkPolicy { max_rays: 512, memory_budget_bytes: 1024 << 20 };
+        // 8 samples: the cap is 512 x 128 / 8 rays, the budget 1 GiB / (8 x 18 KiB + 64 KiB).
+        assert_eq!(p.fine_rays_per_chunk(8, 128), 5041);
+        // All 128 samples: the heads make a ray heavier than a full run's, so the budget binds.
+        assert_eq!(p.fine_rays_per_chunk(128, 128), 442);
+        let tiny = ChunkPolicy { max_rays: 512, memory_budget_bytes: 1 };
+        assert_eq!(tiny.fine_rays_per_chunk(8, 128), 1);
     }
 }

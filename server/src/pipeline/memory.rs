@@ -56,6 +56,8 @@ pub struct RequestSizes {
     pub sources: Option<(usize, usize)>,
     /// Pixels of the view to render (0: none).
     pub target_pixels: u64,
+    /// What the view's sampling holds beside its pixels (guided sampling's weights and heads).
+    pub sampling_bytes: u64,
 }
 
 /// The request's estimate split into what it holds and the largest working set of its stages.
@@ -107,7 +109,7 @@ pub fn parts(config: &ModelConfig, plan: &MemoryPlan, sizes: &RequestSizes) -> E
     if sizes.target_pixels > 0 {
         let rays = (plan.chunking.rays_per_chunk(config.samples) as u64).min(sizes.target_pixels);
         e.renderer = rays * config.samples as u64 * BYTES_PER_SAMPLE as u64;
-        e.held += sizes.target_pixels * TARGET_BYTES_PER_PIXEL;
+        e.held += sizes.target_pixels * TARGET_BYTES_PER_PIXEL + sizes.sampling_bytes;
     }
     e
 }
@@ -158,6 +160,7 @@ mod tests {
             let sizes = RequestSizes {
                 sources: Some((row.sources[0], row.sources[1])),
                 target_pixels: row.target[0] * row.target[1],
+                sampling_bytes: 0,
             };
             let estimate = estimate(config, &plan(build), &sizes) as f64 / (1 << 20) as f64;
             let (w, h, measured) = (row.sources[0], row.sources[1], row.peak_above_rest_mib);
@@ -183,13 +186,21 @@ mod tests {
     fn grows_with_the_sources_and_is_smaller_slab_by_slab() {
         let config = measured().bundles.into_values().next().unwrap().config;
         let at = |w, h, build| {
-            estimate(&config, &plan(build), &RequestSizes { sources: Some((w, h)), target_pixels: 80 * 64 })
+            estimate(
+                &config,
+                &plan(build),
+                &RequestSizes { sources: Some((w, h)), target_pixels: 80 * 64, sampling_bytes: 0 },
+            )
         };
         assert!(at(640, 512, VolumeBuild::Whole) > at(320, 256, VolumeBuild::Whole));
         assert!(at(1024, 1024, VolumeBuild::Slabs) > at(800, 800, VolumeBuild::Slabs));
         assert!(at(800, 800, VolumeBuild::Slabs) * 2 < at(800, 800, VolumeBuild::Whole));
         // A cached scene's view: the renderer chunk and the target only.
-        let view = estimate(&config, &plan(VolumeBuild::Whole), &RequestSizes { sources: None, target_pixels: 100 });
+        let view = estimate(
+            &config,
+            &plan(VolumeBuild::Whole),
+            &RequestSizes { sources: None, target_pixels: 100, sampling_bytes: 0 },
+        );
         assert!(view < at(320, 256, VolumeBuild::Whole) && view > PER_REQUEST_BYTES);
     }
 }

@@ -12,6 +12,7 @@
 pub mod assemble;
 pub mod chunks;
 pub mod encoder;
+pub mod guided;
 pub mod memory;
 pub mod rays;
 pub mod sources;
@@ -31,6 +32,7 @@ use crate::error::ApiError;
 use crate::request::{Limits, ValidRequest, ValidScene};
 use crate::sysmem::MemoryProbe;
 use chunks::{ChunkPolicy, RawView};
+use guided::{Guidance, Sampling, SamplingReport};
 use volume::SlabPolicy;
 
 /// Wall time per stage, in the order the stages ran.
@@ -81,12 +83,14 @@ impl Scene {
     }
 }
 
-/// A rendered view: composited RGB (H, W, 3) in [0, 1], depth and opacity (H, W).
+/// A rendered view: composited RGB (H, W, 3) in [0, 1], depth and opacity (H, W), and how its
+/// rays were sampled.
 #[derive(Debug, Clone)]
 pub struct View {
     pub rgb: Array3<f32>,
     pub depth: Array2<f32>,
     pub opacity: Array2<f32>,
+    pub sampling: SamplingReport,
 }
 
 impl View {
@@ -108,6 +112,8 @@ pub struct Pipeline {
     chunking: ChunkPolicy,
     slabs: SlabPolicy,
     limits: Limits,
+    /// How a view is sampled when its request does not say.
+    sampling: Sampling,
 }
 
 /// Work units of an encoder or volume run over `images` (V, 3, H, W): its pixels.
@@ -151,7 +157,40 @@ impl Pipeline {
         slabs: SlabPolicy,
         limits: Limits,
     ) -> Pipeline {
-        Pipeline { backend, bundle: Arc::new(bundle), chunking, slabs, limits }
+        let sampling = if bundle.guided().is_some() { Sampling::Guided } else { Sampling::Full };
+        Pipeline { backend, bundle: Arc::new(bundle), chunking, slabs, limits, sampling }
+    }
+
+    /// The sampling of views whose request does not name one (`--sampling`); guided only when
+    /// the bundle can, else full.
+    pub fn with_default_sampling(mut self, sampling: Sampling) -> Pipeline {
+        self.sampling = if self.bundle.guided().is_some() { sampling } else { Sampling::Full };
+        self
+    }
+
+    /// The sampling views get when their request does not name one.
+    pub fn default_sampling(&self) -> Sampling {
+        self.sampling
+    }
+
+    /// The ways this bundle can sample a view.
+    pub fn samplings(&self) -> Vec<Sampling> {
+        Sampling::ALL.into_iter().filter(|&s| s == Sampling::Full || self.bundle.guided().is_some()).collect()
+    }
+
+    /// The sampling of a view: what its request asks for (422 naming `sampling` when the bundle
+    /// cannot), else the server's default.
+    pub fn sampling_of(&self, requested: Option<Sampling>) -> Result<Sampling, ApiError> {
+        match requested {
+            None => Ok(self.sampling),
+            Some(s) if self.samplings().contains(&s) => Ok(s),
+            Some(s) => Err(ApiError::invalid(
+                "sampling",
+                format!(
+                    "this model cannot render with \"{s}\" sampling (it has no guided-sampling graphs); use \"full\""
+                ),
+            )),
+        }
     }
 
     pub fn limits(&self) -> &Limits {
@@ -179,9 +218,10 @@ impl Pipeline {
     /// A cached scene goes through exactly the same `render_view`, so its views are
     /// bit-identical to these.
     pub async fn render(&self, req: &ValidRequest, deadline: Instant, timings: &mut Timings) -> Result<View, ApiError> {
-        let ticket = self.admit_request(deadline, Some(&req.scene.cameras()), Some(&req.view.target))?;
+        let sampling = self.sampling_of(req.view.sampling)?;
+        let ticket = self.admit_request(deadline, Some(&req.scene.cameras()), Some((&req.view.target, sampling)))?;
         let scene = self.prepare_scene(&ticket, &req.scene, timings).await?;
-        Ok(self.render_view(&ticket, &scene, &req.view.target, req.scene.background, None, timings).await?)
+        Ok(self.render_view(&ticket, &scene, &req.view.target, req.scene.background, sampling, None, timings).await?)
     }
 
     /// The scene of `POST /v1/scenes`: its views decoded; a scene of exactly the model's view
@@ -219,13 +259,16 @@ impl Pipeline {
         sources: &[usize],
         cached: Option<Arc<Scene>>,
         target: &Camera,
+        sampling: Option<Sampling>,
         background: [f32; 3],
         deadline: Instant,
         timings: &mut Timings,
     ) -> Result<(View, Option<Arc<Scene>>), ApiError> {
         let cameras = views.cameras_of(sources);
+        let sampling = self.sampling_of(sampling)?;
         // A cached triple costs the renderer alone; otherwise its scene is built here too.
-        let ticket = self.admit_request(deadline, cached.is_none().then_some(&cameras[..]), Some(target))?;
+        let ticket =
+            self.admit_request(deadline, cached.is_none().then_some(&cameras[..]), Some((target, sampling)))?;
         let (scene, built) = match cached {
             Some(scene) => (scene, None),
             None => {
@@ -235,7 +278,7 @@ impl Pipeline {
                 (scene.clone(), Some(scene))
             }
         };
-        let view = self.render_view(&ticket, &scene, target, background, None, timings).await?;
+        let view = self.render_view(&ticket, &scene, target, background, sampling, None, timings).await?;
         Ok((view, built))
     }
 
@@ -253,23 +296,24 @@ impl Pipeline {
         &self,
         deadline: Instant,
         sources: Option<&[Camera]>,
-        target: Option<&Camera>,
+        target: Option<(&Camera, Sampling)>,
     ) -> Result<Ticket, ApiError> {
         let scene = sources.map_or_else(Work::default, |s| self.scene_work(s));
-        let work = target.map_or(scene, |t| scene.plus(self.view_work(t)));
+        let work = target.map_or(scene, |(t, sampling)| scene.plus(self.view_work(t, sampling)));
         let memory = self.memory_estimate(sources, target);
         self.backend.admit(deadline, work, memory).map_err(|e| match e {
-            BackendError::TooLarge { .. } => too_large(sources, target, &e),
+            BackendError::TooLarge { .. } => too_large(sources, target.map(|(t, _)| t), &e),
             other => other.into(),
         })
     }
 
     /// The most memory a request over `sources` and `target` adds to the process (see
     /// [`memory::estimate`]).
-    fn memory_estimate(&self, sources: Option<&[Camera]>, target: Option<&Camera>) -> u64 {
+    fn memory_estimate(&self, sources: Option<&[Camera]>, target: Option<(&Camera, Sampling)>) -> u64 {
         let sizes = memory::RequestSizes {
             sources: sources.and_then(|s| self.padded_source_size(s)),
-            target_pixels: target.map_or(0, |t| u64::from(t.width) * u64::from(t.height)),
+            target_pixels: target.map_or(0, |(t, _)| u64::from(t.width) * u64::from(t.height)),
+            sampling_bytes: target.map_or(0, |(t, sampling)| self.sampling_bytes(t, sampling)),
         };
         let plan = memory::MemoryPlan { build: self.bundle.volume_build(), slabs: self.slabs, chunking: self.chunking };
         memory::estimate(&self.bundle.config, &plan, &sizes)
@@ -292,10 +336,31 @@ impl Pipeline {
         Some(sources::padded_size(c.width as usize, c.height as usize, self.bundle.config.image_multiple))
     }
 
-    /// The work of rendering `target`: its rays, once per renderer pass.
-    pub fn view_work(&self, target: &Camera) -> Work {
-        let rays = f64::from(target.width) * f64::from(target.height);
-        Work::of(GraphKind::Renderer, DepthRange::of(&self.bundle).passes() * rays)
+    /// The work of rendering `target`: its rays, once per renderer pass; by guided sampling its
+    /// guide rays and at most its fine rays' samples.
+    pub fn view_work(&self, target: &Camera, sampling: Sampling) -> Work {
+        let (width, height) = (target.width as usize, target.height as usize);
+        match (sampling, self.bundle.guided()) {
+            (Sampling::Guided, Some(policy)) => {
+                let (guide_rays, fine_samples) = policy.most_work(width, height);
+                Work::of(GraphKind::RendererGuide, guide_rays as f64)
+                    .plus(Work::of(GraphKind::RendererFine, fine_samples as f64))
+            }
+            _ => Work::of(GraphKind::Renderer, DepthRange::of(&self.bundle).passes() * (width * height) as f64),
+        }
+    }
+
+    /// What guided sampling holds for a view beside the full renderer's: the weights later levels
+    /// read and the guide rays' rectifier heads.
+    fn sampling_bytes(&self, target: &Camera, sampling: Sampling) -> u64 {
+        let (Sampling::Guided, Some(policy)) = (sampling, self.bundle.guided()) else { return 0 };
+        let c = &self.bundle.config;
+        let (width, height) = (target.width as usize, target.height as usize);
+        let (guide_rays, _) = policy.most_work(width, height);
+        let rectifiers =
+            self.bundle.graph(GraphKind::RendererGuide).outputs.iter().filter(|t| t.name.ends_with("_heads")).count();
+        let heads = (guide_rays * rectifiers * c.heads * c.head_dim * c.width * 4) as u64;
+        Guidance::bytes(width, height, c.samples) + heads
     }
 
     /// Decodes the source images off the async runtime and stacks them padded.
@@ -350,16 +415,40 @@ impl Pipeline {
 
     /// Renders one target view of a scene, `chunk` rays per renderer run (`None`: from the
     /// memory budget).
+    #[allow(clippy::too_many_arguments)]
     pub async fn render_view(
         &self,
         ticket: &Ticket,
         scene: &Scene,
         target: &Camera,
         background: [f32; 3],
+        sampling: Sampling,
         chunk: Option<usize>,
         timings: &mut Timings,
     ) -> Result<View, BackendError> {
         let start = Instant::now();
+        let (raw, report) = match (sampling, self.bundle.guided()) {
+            (Sampling::Guided, Some(policy)) => {
+                guided::render(ticket, &self.bundle, policy, &self.chunking, scene, target, background).await?
+            }
+            _ => self.render_full(ticket, scene, target, chunk).await?,
+        };
+        timings.add("renderer", start.elapsed());
+        let start = Instant::now();
+        let view = assemble_view(target, raw, background, report);
+        timings.add("assemble", start.elapsed());
+        Ok(view)
+    }
+
+    /// Every ray of `target` at the S uniform samples, `chunk` rays per renderer run (`None`:
+    /// from the memory budget).
+    async fn render_full(
+        &self,
+        ticket: &Ticket,
+        scene: &Scene,
+        target: &Camera,
+        chunk: Option<usize>,
+    ) -> Result<(RawView, SamplingReport), BackendError> {
         let rays = rays::generate(target);
         let chunk = chunk.unwrap_or_else(|| self.chunking.rays_per_chunk(self.bundle.config.samples)).max(1);
         let inputs = &self.bundle.graph(GraphKind::Renderer).inputs;
@@ -370,11 +459,8 @@ impl Pipeline {
             let range = min_max(&raw.depth).unwrap_or(near_far);
             raw = chunks::render_rays(ticket, scene, inputs, &rays, range, chunk, true).await?;
         }
-        timings.add("renderer", start.elapsed());
-        let start = Instant::now();
-        let view = assemble_view(target, raw, background);
-        timings.add("assemble", start.elapsed());
-        Ok(view)
+        let samples_per_ray = self.bundle.config.samples as f64;
+        Ok((raw, SamplingReport { mode: Sampling::Full, samples_per_ray }))
     }
 }
 
@@ -401,9 +487,9 @@ fn min_max(values: &Array1<f32>) -> Option<[f32; 2]> {
 }
 
 /// The rays' outputs as images: rays are ordered row by row.
-fn assemble_view(target: &Camera, raw: RawView, background: [f32; 3]) -> View {
+fn assemble_view(target: &Camera, raw: RawView, background: [f32; 3], sampling: SamplingReport) -> View {
     let (h, w) = (target.height as usize, target.width as usize);
     let image = |a: Array1<f32>| a.into_shape_with_order((h, w)).expect("one ray per pixel");
     let rgb = assemble::composite(&raw, background).into_shape_with_order((h, w, 3)).expect("one ray per pixel");
-    View { rgb, depth: image(raw.depth), opacity: image(raw.opacity) }
+    View { rgb, depth: image(raw.depth), opacity: image(raw.opacity), sampling }
 }

@@ -3,7 +3,7 @@
 //! R_c2w · [(u − cx)/fx, (v − cy)/fy, 1] (not normalised: the renderer's sample parameter t is the
 //! target camera's z-depth). Rays are ordered row by row (v outer, u inner).
 
-use ndarray::{ArcArray2, Array1, Array3};
+use ndarray::{ArcArray2, Array1, Array3, Axis};
 
 use crate::camera::Camera;
 
@@ -22,6 +22,14 @@ impl Rays {
 
     pub fn is_empty(&self) -> bool {
         self.origins.is_empty()
+    }
+
+    /// The rays of `rows`, in that order (the pixels one pass renders).
+    pub fn select(&self, rows: &[usize]) -> Rays {
+        Rays {
+            origins: self.origins.select(Axis(0), rows).into_shared(),
+            directions: self.directions.select(Axis(0), rows).into_shared(),
+        }
     }
 }
 

@@ -5,6 +5,7 @@ use bytes::Bytes;
 use serde::Deserialize;
 
 use crate::camera::{Camera, CameraSpec};
+use crate::pipeline::guided::Sampling;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, utoipa::ToSchema)]
 #[serde(rename_all = "snake_case")]
@@ -64,6 +65,8 @@ pub struct TargetRequest {
     /// Views of the scene to render from (indices, the volume's reference first) instead of the
     /// server's choice; checked against the scene when it is rendered.
     pub sources: Option<Vec<u32>>,
+    /// `full` or `guided` as sent (checked by `validate`); `None`: the server's default.
+    pub sampling: Option<String>,
 }
 
 /// A parsed, not yet validated, render request (`POST /v1/render`): a scene and a view of it.
@@ -121,6 +124,8 @@ pub struct ValidTarget {
     pub outputs: OutputSet,
     /// Pinned views, not yet checked against a scene (see `pipeline::views::choose`).
     pub sources: Option<Vec<u32>>,
+    /// The sampling asked for; `None`: the server's default (the pipeline checks the bundle can).
+    pub sampling: Option<Sampling>,
 }
 
 /// A validated render request.

@@ -30,6 +30,7 @@ impl TargetRequest {
             target: camera_from_proto(msg.target, "target")?,
             outputs: outputs_from_proto(&msg.outputs)?,
             sources: (!msg.sources.is_empty()).then_some(msg.sources),
+            sampling: (!msg.sampling.is_empty()).then_some(msg.sampling),
         })
     }
 }
@@ -108,6 +109,7 @@ fn request_from_proto(msg: pb::RenderRequest) -> Result<RenderRequest, ApiError>
         target: camera_from_proto(msg.target, "target")?,
         outputs: outputs_from_proto(&msg.outputs)?,
         sources: None,
+        sampling: (!msg.sampling.is_empty()).then_some(msg.sampling),
     };
     Ok(RenderRequest { scene, view })
 }

@@ -9,6 +9,7 @@ use super::{
 use crate::bundle::ModelConfig;
 use crate::camera::{Camera, MAX_WORLD_EXTENT, MIN_NEAR};
 use crate::error::ApiError;
+use crate::pipeline::guided::Sampling;
 
 impl RenderRequest {
     /// Checks the request against the bundle and the limits and converts the cameras.
@@ -105,8 +106,17 @@ impl TargetRequest {
                 ),
             ));
         }
-        Ok(ValidTarget { target, outputs, sources: self.sources })
+        let sampling = self.sampling.as_deref().map(sampling_of).transpose()?;
+        Ok(ValidTarget { target, outputs, sources: self.sources, sampling })
     }
+}
+
+/// A sampling by name: 422 naming `sampling` for any other.
+fn sampling_of(name: &str) -> Result<Sampling, ApiError> {
+    Sampling::parse(name).ok_or_else(|| {
+        let known: Vec<&str> = Sampling::ALL.iter().map(|s| s.name()).collect();
+        ApiError::invalid("sampling", format!("unknown sampling \"{name}\" (expected {})", known.join(" or ")))
+    })
 }
 
 /// The outputs asked for (`None`: RGB only); each at most once.

@@ -35,6 +35,11 @@ pub struct JsonRenderRequest {
     #[serde(default)]
     #[schema(min_items = 1, max_items = 3)]
     outputs: Option<Vec<OutputKind>>,
+    /// `full` (the paper's uniform samples on every ray) or `guided` (coarse to fine: the network
+    /// near the surface only); default: the server's (`GET /v1/model`).
+    #[serde(default)]
+    #[schema(pattern = "^(full|guided)$")]
+    sampling: Option<String>,
 }
 
 /// `POST /v1/scenes` and `PUT /v1/scenes/{id}` JSON body (and the `request` part of a multipart
@@ -71,6 +76,10 @@ pub struct JsonTargetRequest {
     #[serde(default)]
     #[schema(min_items = 3, max_items = 3)]
     sources: Option<Vec<u32>>,
+    /// As in `RenderRequest`.
+    #[serde(default)]
+    #[schema(pattern = "^(full|guided)$")]
+    sampling: Option<String>,
 }
 
 #[derive(Deserialize, utoipa::ToSchema)]
@@ -341,7 +350,12 @@ impl RenderRequest {
             far: parsed.far,
             background: parsed.background,
         };
-        let view = TargetRequest { target: parsed.target.into_spec("target")?, outputs: parsed.outputs, sources: None };
+        let view = TargetRequest {
+            target: parsed.target.into_spec("target")?,
+            outputs: parsed.outputs,
+            sources: None,
+            sampling: parsed.sampling,
+        };
         Ok(RenderRequest { scene, view })
     }
 }
@@ -365,6 +379,7 @@ impl TargetRequest {
             target: parsed.target.into_spec("target")?,
             outputs: parsed.outputs,
             sources: parsed.sources,
+            sampling: parsed.sampling,
         })
     }
 }

@@ -186,5 +186,6 @@ pub fn proto_request(r: &Value, images: &[Vec<u8>]) -> scnerf_proto::v1::RenderR
         far: r["far"].as_f64().unwrap(),
         background: numbers(&r["background"]),
         outputs: strings(&r["outputs"]),
+        sampling: r["sampling"].as_str().unwrap_or_default().to_string(),
     }
 }
