@@ -42,7 +42,8 @@ class Limits:
 @dataclass
 class Rendering:
     """A rendered view: ``rgb`` (H, W, 3) float32 in [0, 1], ``depth`` and ``opacity`` (H, W)
-    float32 when asked for, the server's stage ``timings`` in ms, and the source views it used."""
+    float32 when asked for, the server's stage ``timings`` in ms, the source views it used, and how
+    its rays were sampled (``full`` or ``guided``) with the network samples per pixel."""
 
     rgb: np.ndarray | None
     depth: np.ndarray | None
@@ -50,6 +51,8 @@ class Rendering:
     timings: dict[str, float]
     model_id: str
     sources: list[int] | None = None
+    sampling: str | None = None
+    samples_per_ray: float | None = None
 
 
 @dataclass
@@ -286,6 +289,8 @@ class Client:
             timings=body.get("timings_ms", {}),
             model_id=body.get("model_id", ""),
             sources=sources,
+            sampling=body.get("sampling"),
+            samples_per_ray=body.get("samples_per_ray"),
         )
 
 

@@ -95,10 +95,21 @@ def test_errors_carry_code_field_and_hint(client, token_server):
     assert Client(token_server.url, token="secret-token").model()["model_id"]
 
 
-def test_sampling_is_sent_only_when_given():
+def test_sampling_is_sent_only_when_given_and_said_back(client):
     target = camera(0, 0)
     assert "sampling" not in _Client._target_document(target, ["rgb"], None)
     assert _Client._target_document(target, ["rgb"], "guided")["sampling"] == "guided"
+    images = [photo(i, 32, 24) for i in range(3)]
+    cameras = [camera(x, y) for x, y in CENTRES[:3]]
+    view = camera(0.05, 0.05, 16, 12)
+    full = client.render(images, cameras, view, near=2.0, far=6.0, sampling="full")
+    guided = client.render(images, cameras, view, near=2.0, far=6.0, sampling="guided")
+    samples = client.model()["config"]["samples"]
+    assert (full.sampling, full.samples_per_ray) == ("full", samples)
+    assert guided.sampling == "guided" and 0 < guided.samples_per_ray < samples
+    with pytest.raises(InvalidRequest) as bad:
+        client.render(images, cameras, view, near=2.0, far=6.0, sampling="fast")
+    assert (bad.value.status, bad.value.field) == (422, "sampling")
 
 
 def test_capture_as_distributed_sends_the_largest_set_that_fits(client, tmp_path):

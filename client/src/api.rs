@@ -79,6 +79,8 @@ pub struct Rendered {
     pub timings_ms: BTreeMap<String, f64>,
     /// Indices into the scene's sources, when the server names them.
     pub sources: Option<Vec<usize>>,
+    /// How the view was sampled and the network samples per pixel, when the server says.
+    pub sampling: Option<(String, f64)>,
 }
 
 pub struct Client {
@@ -90,6 +92,8 @@ pub struct Client {
     notice: Box<dyn Fn(&str) + Send + Sync>,
     /// Read once, by [`Client::limits`]; uploads are checked against them.
     limits: std::sync::OnceLock<Limits>,
+    /// How views are sampled (`full`, `guided`); `None`: the server's default.
+    sampling: Option<String>,
 }
 
 impl Client {
@@ -103,7 +107,14 @@ impl Client {
             max_retries: 30,
             notice: Box::new(|m| eprintln!("{m}")),
             limits: std::sync::OnceLock::new(),
+            sampling: None,
         }
+    }
+
+    /// Renders sample views this way (`full` or `guided`; the server checks the name).
+    pub fn with_sampling(mut self, sampling: Option<String>) -> Client {
+        self.sampling = sampling;
+        self
     }
 
     /// Where waits and re-uploads are reported (stderr by default; the progress bar's line).
@@ -181,7 +192,11 @@ impl Client {
     /// Renders `target`; `depth` asks for the depth map too.
     pub fn render(&self, scene: &mut Scene, target: &Camera, depth: bool) -> Result<Rendered> {
         let outputs: &[&str] = if depth { &["rgb", "depth"] } else { &["rgb"] };
-        let body = json!({ "target": camera_json(target), "outputs": outputs }).to_string();
+        let mut body = json!({ "target": camera_json(target), "outputs": outputs });
+        if let Some(sampling) = &self.sampling {
+            body["sampling"] = json!(sampling);
+        }
+        let body = body.to_string();
         let mut uploaded_again = false;
         loop {
             let path = format!("/v1/scenes/{}/render", scene.id);
@@ -290,6 +305,8 @@ fn parse_rendered(reply: &Reply, path: &str) -> Result<Rendered> {
         #[serde(default)]
         timings_ms: BTreeMap<String, f64>,
         sources: Option<Vec<usize>>,
+        sampling: Option<String>,
+        samples_per_ray: Option<f64>,
     }
     #[derive(Deserialize)]
     struct Data {
@@ -319,6 +336,7 @@ fn parse_rendered(reply: &Reply, path: &str) -> Result<Rendered> {
         depth,
         timings_ms: body.timings_ms,
         sources: from_header.or(body.sources),
+        sampling: body.sampling.zip(body.samples_per_ray),
     })
 }
 

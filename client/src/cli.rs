@@ -24,6 +24,10 @@ pub struct Cli {
     /// Bearer token, for a server started with --auth-token.
     #[arg(long, global = true, env = "SCNERF_TOKEN", hide_env_values = true)]
     token: Option<String>,
+    /// How views are sampled: guided (coarse to fine, fast) or full (the paper's samples on every
+    /// ray). Default: the server's (GET /v1/model).
+    #[arg(long, global = true, env = "SCNERF_SAMPLING", value_parser = ["full", "guided"])]
+    sampling: Option<String>,
     #[command(subcommand)]
     command: Command,
 }
@@ -194,7 +198,7 @@ macro_rules! say {
 pub(crate) use say;
 
 pub fn run(cli: Cli) -> Result<()> {
-    let client = Client::new(&cli.server, cli.token);
+    let client = Client::new(&cli.server, cli.token).with_sampling(cli.sampling);
     match cli.command {
         Command::Info { data, set, json } => info(&data, &set, json),
         Command::Render(args) => render(client, &args),

@@ -62,7 +62,8 @@ pub fn render_frames(
     Ok(Done { rendered: todo.len(), skipped })
 }
 
-/// "renderer 812 ms, total 905 ms; sources 3,7,12": the server's own view of the last frame.
+/// "renderer 812 ms, total 905 ms; sources 3,7,12; guided, 7.6 samples per ray": the server's
+/// own view of the last frame.
 pub fn server_summary(r: &Rendered) -> String {
     let timings: Vec<String> = ["encoder", "volume", "renderer", "total"]
         .iter()
@@ -72,6 +73,9 @@ pub fn server_summary(r: &Rendered) -> String {
     if let Some(src) = &r.sources {
         let list: Vec<String> = src.iter().map(usize::to_string).collect();
         s.push_str(&format!("; sources {}", list.join(",")));
+    }
+    if let Some((sampling, samples)) = &r.sampling {
+        s.push_str(&format!("; {sampling}, {samples:.1} samples per ray"));
     }
     s
 }

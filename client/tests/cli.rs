@@ -101,6 +101,30 @@ fn view_renders_one_named_view_from_three_sources() {
 }
 
 #[test]
+fn sampling_is_sent_only_when_asked_for_and_reported() {
+    let server = FakeServer::start();
+    let dir = tempfile::tempdir().unwrap();
+    let data = fixture("blender");
+    let view = |extra: &[&str]| {
+        let png = dir.path().join("v.png");
+        let mut args = vec!["view", data.to_str().unwrap(), "--server", &server.url, "--pose", "train/r_1"];
+        args.extend(["--size", "8x6", "--out", png.to_str().unwrap()]);
+        args.extend(extra);
+        scnerf(&args)
+    };
+    let out = view(&["--sampling", "full"]);
+    let (stdout, stderr) = text(&out);
+    assert!(out.status.success(), "{stdout}\n{stderr}");
+    assert!(stdout.contains("; full, 128.0 samples per ray"), "{stdout}");
+    let out = view(&[]);
+    assert!(out.status.success());
+    assert_eq!(*server.state.samplings.lock().unwrap(), vec![Some("full".to_string()), None]);
+    let bad = view(&["--sampling", "fast"]);
+    let (_, stderr) = text(&bad);
+    assert!(!bad.status.success() && stderr.contains("--sampling"), "{stderr}");
+}
+
+#[test]
 fn eval_scores_held_out_views_against_the_nearest_sources() {
     let server = FakeServer::start();
     let data = fixture("dtu");

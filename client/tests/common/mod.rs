@@ -47,6 +47,8 @@ pub struct FakeState {
     pub max_source_pixels: AtomicUsize,
     /// The size of the first image of every upload.
     pub first_image_sizes: Mutex<Vec<(u32, u32)>>,
+    /// The `sampling` of every render request (None: not sent).
+    pub samplings: Mutex<Vec<Option<String>>>,
     scenes: Mutex<HashSet<String>>,
 }
 
@@ -151,6 +153,7 @@ struct Source {
 struct RenderRequest {
     target: Camera,
     outputs: Vec<String>,
+    sampling: Option<String>,
 }
 
 /// What the client always sends: positive focal lengths, a principal point, canonical poses.
@@ -243,6 +246,12 @@ async fn render(State(state): State<Arc<FakeState>>, Path(id): Path<String>, bod
         body["depth"] =
             json!({"width": w, "height": h, "dtype": "float32", "byte_order": "little", "data": b64(&depth)});
     }
+    // Like the real server: the sampling asked for is said back, with its samples per ray.
+    if let Some(sampling) = &request.sampling {
+        body["sampling"] = json!(sampling);
+        body["samples_per_ray"] = json!(if sampling == "full" { 128.0 } else { 7.5 });
+    }
+    state.samplings.lock().unwrap().push(request.sampling.clone());
     state.renders.fetch_add(1, Ordering::SeqCst);
     let mut headers = HeaderMap::new();
     headers.insert("x-scnerf-sources", HeaderValue::from_static("0,1,2"));
