@@ -36,9 +36,9 @@ function serverLines(requestId) {
     .filter((l) => l.span?.request_id === requestId);
 }
 
-/** Renderer runs (one per chunk of rays) the executor ran for a request. */
+/** Renderer runs (one per chunk of rays, of any of the renderer graphs) the executor ran for a request. */
 function rendererRuns(requestId) {
-  return serverLines(requestId).filter((l) => l.fields.message === 'graph run' && l.fields.graph === 'renderer').length;
+  return serverLines(requestId).filter((l) => l.fields.message === 'graph run' && l.fields.graph.startsWith('renderer')).length;
 }
 
 async function metric(name, labels = '') {
@@ -73,9 +73,9 @@ page.on('console', (m) => m.type() === 'error' && pageErrors.push(m.text()));
 page.on('request', (request) => {
   urls.push(request.url());
   if (!request.url().endsWith('/render')) return;
-  const { target } = request.postDataJSON();
+  const { target, sampling } = request.postDataJSON();
   const id = request.headers()['x-request-id'];
-  renders.push({ request, id, width: target.width, height: target.height, matrix: target.pose.matrix, status: 'pending', at: Date.now() });
+  renders.push({ request, id, width: target.width, height: target.height, matrix: target.pose.matrix, sampling, status: 'pending', at: Date.now() });
 });
 page.on('requestfinished', async (request) => {
   const render = renderOf(request);
@@ -103,6 +103,8 @@ const sameMatrix = (a, b) => a.every((row, i) => row.every((v, j) => Math.abs(v 
 const shot = (name) => page.screenshot({ path: join(OUT, name) });
 
 async function viewCentre() {
+  // A click on a button below the view may have scrolled it partly out of the window.
+  await page.locator('#view').scrollIntoViewIfNeeded();
   const box = await page.locator('#view').boundingBox();
   return [box.x + box.width / 2, box.y + box.height / 2];
 }
@@ -172,8 +174,19 @@ try {
   const finest = renders[2];
   const runsPerFinest = rendererRuns(finest.id);
   check(runsPerFinest > 1, `the finest size took ${runsPerFinest} renderer runs (chunks)`);
-  const before = await pixels();
+  check(renders.slice(0, 3).every((r) => r.sampling === undefined), 'while moving, views take the server\'s default sampling');
+  check(/guided, [\d.]+ network samples per pixel/.test(await page.textContent('#info')), 'the page says the view was guided');
   await shot('02-example.png');
+
+  // 2b. The full-quality still: the finest size again, every ray sampled in full.
+  const stillFrom = renders.length;
+  await page.click('#full-still');
+  const still = await firstAnswered(stillFrom);
+  check(still.sampling === 'full' && still.width === expected[2][0], `the still asked for full sampling at ${still.width}x${still.height}`);
+  await waitFor('the still to be shown', async () => (await phase()) === 'idle');
+  check(/full, 32\.0 network samples per pixel/.test(await page.textContent('#info')), 'the page says the still was sampled in full');
+  check(/in full quality/.test(await page.textContent('#status')), 'the status names the full-quality still');
+  const before = await pixels();
 
   // 3. Depth and opacity, then back to RGB; the view saves as PNG.
   await page.check('input[value=depth]');

@@ -100,13 +100,14 @@ export class Api {
     return this.json('Uploading the capture (POST /v1/captures)', '/v1/captures', { method: 'POST', body: form, signal });
   }
 
-  /** A view of a cached scene, as JSON with rgb, depth and opacity. */
-  render(sceneId, target, requestId, signal) {
+  /** A view of a cached scene, as JSON with rgb, depth and opacity; `sampling` (full, guided) or null for the server's default. */
+  render(sceneId, target, requestId, signal, sampling = null) {
+    const body = { target, outputs: ['rgb', 'depth', 'opacity'], ...(sampling ? { sampling } : {}) };
     return this.json(`Rendering ${target.width}x${target.height} (POST /v1/scenes/{id}/render)`, `/v1/scenes/${sceneId}/render`, {
       method: 'POST',
       signal,
       headers: { 'Content-Type': 'application/json', Accept: 'application/json', 'X-Request-Id': requestId },
-      body: JSON.stringify({ target, outputs: ['rgb', 'depth', 'opacity'] }),
+      body: JSON.stringify(body),
     });
   }
 }

@@ -58,10 +58,24 @@ function sizeLabel(fraction) {
   return `${SIZES.find(([f]) => f === fraction)[1]} (${sizeOf(fraction)})`;
 }
 
-/** The sizes to render, coarse first, from the chosen coarsest to the chosen finest. */
-function fractions() {
+/**
+ * The steps to render after a move, coarse first, from the chosen coarsest size to the chosen
+ * finest, each sampled the server's default way (guided when the model has it: fast enough to follow a drag).
+ */
+function steps() {
   const [coarsest, finest] = [Number($('coarsest').value), Number($('finest').value)];
-  return SIZES.map(([f]) => f).filter((f) => f >= Math.min(coarsest, finest) && f <= finest);
+  return SIZES.map(([f]) => f)
+    .filter((f) => f >= Math.min(coarsest, finest) && f <= finest)
+    .map((fraction) => ({ fraction, sampling: null }));
+}
+
+/** The still: the finest size with every ray sampled in full (the paper's samples). */
+function fullQualityStill() {
+  if (state.view) progressive.restart(state.view, [{ fraction: Number($('finest').value), sampling: 'full' }]);
+}
+
+function stepLabel(step) {
+  return `${sizeLabel(step.fraction)}${step.sampling === 'full' ? ' in full quality' : ''}`;
 }
 
 /** Source indices the server names (header or JSON field); for a 3-view scene all three. */
@@ -73,26 +87,27 @@ function sourcesOf(body, headers) {
 }
 
 /** Renders on the scene, uploading it again once if the server forgot it (expired, evicted). */
-async function renderScene(scene, target, requestId, signal) {
+async function renderScene(scene, target, requestId, signal, sampling) {
   try {
-    return await api.render(scene.id, target, requestId, signal);
+    return await api.render(scene.id, target, requestId, signal, sampling);
   } catch (e) {
     if (e.code !== 'scene_not_found') throw e;
     setStatus(`${scene.label} expired on the server: uploading it again…`, 'rendering');
     scene.id = await scene.upload(api, signal);
-    return api.render(scene.id, target, `${requestId}-again`, signal);
+    return api.render(scene.id, target, `${requestId}-again`, signal, sampling);
   }
 }
 
-async function renderLevel(view, fraction, signal) {
+async function renderLevel(view, step, signal) {
   const scene = state.scene;
-  const target = cameraAt(scene.base, view.pose, fraction);
+  const target = cameraAt(scene.base, view.pose, step.fraction);
   const requestId = `viewer-${PAGE_ID}-${++state.requests}`;
   const started = performance.now();
-  const { body, headers } = await renderScene(scene, target, requestId, signal);
+  const { body, headers } = await renderScene(scene, target, requestId, signal, step.sampling);
   const image = await decodeView(body);
   const roundTripMs = performance.now() - started;
-  return { ...image, fraction, requestId, roundTripMs, timings: body.timings_ms ?? {}, sources: sourcesOf(body, headers) };
+  const sampling = { mode: body.sampling ?? 'not reported', samplesPerRay: body.samples_per_ray };
+  return { ...image, step, requestId, roundTripMs, timings: body.timings_ms ?? {}, sources: sourcesOf(body, headers), sampling };
 }
 
 function redraw() {
@@ -108,9 +123,14 @@ function describeSources(sources) {
   return `views ${names.join(', ')}`;
 }
 
+function describeSampling({ mode, samplesPerRay }) {
+  return samplesPerRay == null ? mode : `${mode}, ${samplesPerRay.toFixed(1)} network samples per pixel`;
+}
+
 function showInfo(shown) {
   const rows = [
-    ['Size', sizeLabel(shown.fraction)],
+    ['Size', sizeLabel(shown.step.fraction)],
+    ['Sampling', describeSampling(shown.sampling)],
     ['Sources', describeSources(shown.sources)],
     ['Round trip', `${shown.roundTripMs.toFixed(0)} ms`],
     ['Request id', shown.requestId],
@@ -129,7 +149,7 @@ function drawOverview() {
 }
 
 const progressive = new Progressive(renderLevel, {
-  onStart: (fraction) => setStatus(`Rendering ${sizeLabel(fraction)}…`, 'rendering'),
+  onStart: (step) => setStatus(`Rendering ${stepLabel(step)}…`, 'rendering'),
   onFrame: (shown) => {
     state.shown = shown;
     redraw();
@@ -140,7 +160,7 @@ const progressive = new Progressive(renderLevel, {
     canvas.dataset.requestId = shown.requestId;
     $('save').disabled = false;
   },
-  onDone: () => setStatus(`Showing ${sizeLabel(state.shown.fraction)}. Drag to move the camera.`, 'idle'),
+  onDone: () => setStatus(`Showing ${stepLabel(state.shown.step)}. Drag to move the camera.`, 'idle'),
   onBusy: (error, seconds) => setStatus(`${error.message} Retrying in ${seconds} s.`, 'rendering'),
   onError: (error) => {
     showError(error);
@@ -152,7 +172,7 @@ const progressive = new Progressive(renderLevel, {
 function setView(view) {
   state.view = view;
   drawOverview();
-  progressive.restart(view, fractions());
+  progressive.restart(view, steps());
 }
 
 function snap(i) {
@@ -338,6 +358,7 @@ function wire() {
   for (const id of ['coarsest', 'finest']) $(id).addEventListener('change', () => state.view && setView(state.view));
   $('stop').addEventListener('click', stop);
   $('save').addEventListener('click', saveView);
+  $('full-still').addEventListener('click', fullQualityStill);
   $('reset').addEventListener('click', reset);
   $('record').addEventListener('click', toggleRecording);
   $('download-path').addEventListener('click', downloadPath);

@@ -28,8 +28,8 @@ function sleep(ms, signal) {
 
 export class Progressive {
   /**
-   * `renderLevel(view, fraction, signal)` renders one size; `on` has onStart(fraction),
-   * onFrame(frame, fraction), onDone(), onBusy(error, seconds), onError(error).
+   * `renderLevel(view, step, signal)` renders one step (a size, and how to sample it); `on` has
+   * onStart(step), onFrame(frame, step), onDone(), onBusy(error, seconds), onError(error).
    */
   constructor(renderLevel, on) {
     this.renderLevel = renderLevel;
@@ -38,12 +38,12 @@ export class Progressive {
     this.timer = null;
   }
 
-  /** Cancels what is outstanding and renders `view` at `fractions` (coarse first). */
-  restart(view, fractions) {
+  /** Cancels what is outstanding and renders `view` at `steps` (coarse first). */
+  restart(view, steps) {
     this.stop();
     this.timer = setTimeout(() => {
       this.timer = null;
-      this.run(view, fractions);
+      this.run(view, steps);
     }, SETTLE_MS);
   }
 
@@ -57,15 +57,15 @@ export class Progressive {
     return pending;
   }
 
-  async run(view, fractions) {
+  async run(view, steps) {
     const controller = new AbortController();
     this.controller = controller;
     try {
-      for (const fraction of fractions) {
-        this.on.onStart(fraction);
-        const frame = await this.withRetries(view, fraction, controller.signal);
+      for (const step of steps) {
+        this.on.onStart(step);
+        const frame = await this.withRetries(view, step, controller.signal);
         if (controller.signal.aborted) return;
-        this.on.onFrame(frame, fraction);
+        this.on.onFrame(frame, step);
       }
       this.on.onDone();
     } catch (e) {
@@ -75,10 +75,10 @@ export class Progressive {
     }
   }
 
-  async withRetries(view, fraction, signal) {
+  async withRetries(view, step, signal) {
     for (let attempt = 0; ; attempt++) {
       try {
-        return await this.renderLevel(view, fraction, signal);
+        return await this.renderLevel(view, step, signal);
       } catch (e) {
         if (e.retryAfter == null || attempt >= MAX_RETRIES) throw e;
         this.on.onBusy(e, e.retryAfter);
