@@ -118,7 +118,9 @@ fn lego_r28_from_its_nearest_views() {
     let (angle, m) = frame(&lego.join("transforms_val.json"), TARGET);
     let request = json!({
         "sources": sources, "target": camera(angle, m, size, scale),
-        "near": 2.0, "far": 6.0, "background": [1.0, 1.0, 1.0], "outputs": ["rgb"]
+        "near": 2.0, "far": 6.0, "background": [1.0, 1.0, 1.0], "outputs": ["rgb"],
+        // The exporter's evaluation samples every ray in full.
+        "sampling": "full"
     });
     let request = serde_json::to_vec(&request).unwrap();
     let names = ["source_0", "source_1", "source_2"];
