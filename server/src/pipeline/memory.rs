@@ -100,6 +100,9 @@ pub fn parts(config: &ModelConfig, plan: &MemoryPlan, sizes: &RequestSizes) -> E
                 let slab = planes * plane * SLAB_BYTES_PER_CELL as u64;
                 conv0 + slab.max(cells * VOLUME_NET_BYTES_PER_CELL)
             }
+            // The sweep's first convolution, then G2 over it (the sweep itself holds a row per
+            // thread).
+            VolumeBuild::Sweep => cells * (config.volume_channels as u64 * 4 + VOLUME_NET_BYTES_PER_CELL),
         };
         e.held = images + cells * VOLUME_BYTES_PER_CELL;
         e.stage = encoder.max(volume);
