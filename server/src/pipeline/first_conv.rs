@@ -101,30 +101,35 @@ impl FirstConvolution {
         let c = self.channels;
         let output_rows = first_row..first_row + out_rows;
         let input_rows = first_row.saturating_sub(1)..(output_rows.end + 1).min(grid_rows);
-        // Rows side by side, each with a cell of zeros at both ends: the windows of all of them
-        // are one matrix (those that straddle two rows are computed and dropped), so one product
-        // serves several rows.
-        let stride = wp + 2;
-        let mut band = vec![0.0; ROWS_PER_PRODUCT * stride * c];
-        let mut terms = Array2::zeros((self.kernel.nrows(), ROWS_PER_PRODUCT * stride - 2));
+        let mut row = vec![0.0; wp * c];
+        let mut band = Band::new(wp, c);
+        let mut terms = Array2::zeros((self.kernel.nrows(), band.windows_max()));
         for p in planes {
             for group in input_rows.clone().step_by(ROWS_PER_PRODUCT) {
-                let ys = group..(group + ROWS_PER_PRODUCT).min(input_rows.end);
-                for (i, y) in ys.clone().enumerate() {
-                    rows(p, y, &mut band[(i * stride + 1) * c..(i * stride + 1 + wp) * c]);
+                band.clear();
+                for y in group..(group + ROWS_PER_PRODUCT).min(input_rows.end) {
+                    rows(p, y, &mut row);
+                    band.push(y, &row);
                 }
-                let n = ys.len() * stride - 2;
-                let windows = ArrayView2::from_shape((3 * c, n).strides((1, c)), &band).expect("windows in the band");
+                if band.segments.is_empty() {
+                    continue;
+                }
+                let n = band.windows();
+                let windows =
+                    ArrayView2::from_shape((3 * c, n).strides((1, c)), &band.cells).expect("windows in the band");
                 let mut terms = terms.slice_mut(s![.., ..n]);
                 general_mat_mul(1.0, &self.kernel, &windows, 0.0, &mut terms);
                 for (k, term) in terms.outer_iter().enumerate() {
                     let (dz, dy, o) = (k / (3 * outputs), k / outputs % 3, k % outputs);
                     // Input plane p reaches output plane p + 1 - dz; input row y, row y + 1 - dy.
                     let Some(z) = (p + 1).checked_sub(dz).filter(|&z| z < depth) else { continue };
-                    for (i, y) in ys.clone().enumerate() {
-                        let Some(oy) = (y + 1).checked_sub(dy).filter(|oy| output_rows.contains(oy)) else { continue };
-                        let term = term.slice(s![i * stride..i * stride + wp]);
-                        out.slice_mut(s![o, z, oy - first_row, ..]).zip_mut_with(&term, |t, &v| *t += v);
+                    for segment in &band.segments {
+                        let Some(oy) = (segment.y + 1).checked_sub(dy).filter(|oy| output_rows.contains(oy)) else {
+                            continue;
+                        };
+                        let (xs, columns) = segment.outputs(wp);
+                        let mut target = out.slice_mut(s![o, z, oy - first_row, xs]);
+                        target.zip_mut_with(&term.slice(s![columns]), |t, &v| *t += v);
                     }
                 }
             }
@@ -134,6 +139,73 @@ impl FirstConvolution {
 
 /// Rows of a plane that one matrix product convolves: the kernel is packed once per product.
 const ROWS_PER_PRODUCT: usize = 8;
+
+/// Rows of a plane laid end to end for one matrix product, each cut to its cells that hold
+/// anything (a quarter of the cells at paper size lie in the padding where no view reaches:
+/// their terms would be zeros) with a cell of zeros at each end. The windows of three cells of
+/// consecutive segments follow each other without a gap: the band's windows are one matrix.
+struct Band {
+    /// Cells of `channels` values: one of zeros, then the segments.
+    cells: Vec<f32>,
+    channels: usize,
+    segments: Vec<Segment>,
+}
+
+/// Cells `cells` of row `y`, whose windows are the band's columns from `first_column`.
+struct Segment {
+    y: usize,
+    cells: Range<usize>,
+    first_column: usize,
+}
+
+impl Segment {
+    /// The output cells that the segment's windows reach within a row of `width` cells (one
+    /// beyond each end of its cells), and their columns among the band's windows.
+    fn outputs(&self, width: usize) -> (Range<usize>, Range<usize>) {
+        let xs = self.cells.start.saturating_sub(1)..(self.cells.end + 1).min(width);
+        // Window j of the segment is output cell cells.start - 1 + j.
+        let first = self.first_column + xs.start + 1 - self.cells.start;
+        (xs.clone(), first..first + xs.len())
+    }
+}
+
+impl Band {
+    fn new(width: usize, channels: usize) -> Band {
+        Band { cells: vec![0.0; (ROWS_PER_PRODUCT * (width + 2) + 2) * channels], channels, segments: Vec::new() }
+    }
+
+    fn windows_max(&self) -> usize {
+        self.cells.len() / self.channels - 2
+    }
+
+    /// Windows of the segments so far.
+    fn windows(&self) -> usize {
+        self.segments.last().map_or(0, |s| s.first_column + s.cells.len() + 2)
+    }
+
+    fn clear(&mut self) {
+        self.segments.clear();
+        self.cells[..self.channels].fill(0.0);
+    }
+
+    /// Adds row `y` (cells of `channels` values), cut to its cells that are not all zero.
+    fn push(&mut self, y: usize, row: &[f32]) {
+        let c = self.channels;
+        let held = |cell: &[f32]| cell.iter().any(|&v| v != 0.0);
+        let Some(first) = row.chunks_exact(c).position(held) else { return };
+        let end = row.chunks_exact(c).rposition(held).expect("a cell is held") + 1;
+        let first_column = self.windows();
+        // Cell first_column is a zero (the band's first, or the previous segment's trailing one);
+        // then the segment's leading zero, its cells, its trailing zero, and the zero cell that
+        // its last window reads (the next segment's leading zero, if one follows).
+        let at = (first_column + 2) * c;
+        let len = (end - first) * c;
+        self.cells[at - c..at].fill(0.0);
+        self.cells[at..at + len].copy_from_slice(&row[first * c..end * c]);
+        self.cells[at + len..at + len + 2 * c].fill(0.0);
+        self.segments.push(Segment { y, cells: first..end, first_column });
+    }
+}
 
 /// The probe's impulses per row.
 fn probe_columns(channels: usize) -> usize {
@@ -191,20 +263,51 @@ mod tests {
         (0..channels).flat_map(|c| (0..27).map(move |t| (c, t / 9, t / 3 % 3, t % 3)))
     }
 
+    /// A cost with cells, rows and a plane of zeros (the padding no view reaches), more rows than
+    /// one product takes.
+    fn cost_with_zeros(channels: usize) -> Array5<f32> {
+        Array5::from_shape_fn((1, channels, 6, 19, 7), |(_, c, p, y, x)| {
+            let empty = p == 2 || y == 3 || y > 15 || x < 2 || (x + y) % 5 == 0;
+            if empty {
+                0.0
+            } else {
+                ((c + 2 * p + 3 * y + x) % 7) as f32 - 3.0
+            }
+        })
+    }
+
     #[test]
     fn rows_by_products_are_the_convolution() {
         let (outputs, channels) = (3, 5);
         let w = weight(outputs, channels);
-        let cost =
-            Array5::from_shape_fn((1, channels, 6, 4, 7), |(_, c, p, y, x)| ((c + 2 * p + 3 * y + x) % 7) as f32);
+        let cost = cost_with_zeros(channels);
         let conv = FirstConvolution::new(w.view());
         let (got, want) = (conv.of_cost(cost.view()), naive(&w, &cost));
-        assert_eq!(got.dim(), (1, 3, 4, 4, 7));
+        assert_eq!(got.dim(), (1, 3, 4, 19, 7));
         assert!(got.iter().zip(&want).all(|(a, b)| (a - b).abs() < 1e-3), "{got}\n{want}");
         conv.check(cost.view(), want.view()).unwrap();
         let mut wrong = want.clone();
         wrong[[0, 1, 2, 3, 4]] += 1.0;
         assert!(conv.check(cost.view(), wrong.view()).unwrap_err().contains("differs"));
+    }
+
+    /// Bands of output rows (as threads take them) add up to the whole, bit for bit.
+    #[test]
+    fn bands_of_rows_give_the_same_sums() {
+        let channels = 4;
+        let conv = FirstConvolution::new(weight(2, channels).view());
+        let cost = cost_with_zeros(channels);
+        let (_, _, planes, h, w) = cost.dim();
+        let mut rows = |p: usize, y: usize, row: &mut [f32]| {
+            row.iter_mut().zip(cost.slice(s![0, .., p, y, ..]).t().iter()).for_each(|(r, &v)| *r = v);
+        };
+        let mut whole = Array5::zeros((1, 2, planes, h, w));
+        conv.accumulate(0..planes, whole.index_axis_mut(Axis(0), 0), 0, h, &mut rows);
+        let mut banded = Array5::zeros((1, 2, planes, h, w));
+        for (i, band) in banded.axis_chunks_iter_mut(Axis(3), 5).enumerate() {
+            conv.accumulate(0..planes, band.index_axis_move(Axis(0), 0), 5 * i, h, &mut rows);
+        }
+        assert_eq!(whole, banded);
     }
 
     #[test]

@@ -76,18 +76,20 @@ impl PlaneSweep {
     fn cell(&self, x: usize, y: usize, cost: &mut [f32], scratch: &mut CellScratch) {
         let views = self.homographies.len() + 1;
         let (images, variance) = cost.split_at_mut(3 * views);
-        match self.reference_cell(x, y) {
+        let mut seen = match self.reference_cell(x, y) {
             Some(reference) => {
                 images[..3].copy_from_slice(&reference[..3]);
                 scratch.total.copy_from_slice(&reference[3..]);
                 scratch.squares.iter_mut().zip(&reference[3..]).for_each(|(q, &f)| *q = f * f);
+                true
             }
             None => {
                 images[..3].fill(0.0);
                 scratch.total.fill(0.0);
                 scratch.squares.fill(0.0);
+                false
             }
-        }
+        };
         let mut count = 1.0;
         let (px, py) = (x as f32 - self.pad as f32, y as f32 - self.pad as f32);
         for (v, (m, shift)) in self.homographies.iter().zip(&scratch.shifts).enumerate() {
@@ -95,13 +97,25 @@ impl PlaneSweep {
             if inside {
                 count += 1.0;
             }
+            let image = &mut images[3 * (v + 1)..3 * (v + 2)];
+            if taps.weight == [0.0; 4] {
+                // The cell sees nothing of the view: its zeros would add nothing.
+                image.fill(0.0);
+                continue;
+            }
+            seen = true;
             taps.read(self.maps.index_axis(Axis(0), v + 1).as_slice().expect("contiguous"), &mut scratch.warped);
-            images[3 * (v + 1)..3 * (v + 2)].copy_from_slice(&scratch.warped[..3]);
+            image.copy_from_slice(&scratch.warped[..3]);
             let warped = &scratch.warped[3..];
             for ((t, q), &f) in scratch.total.iter_mut().zip(scratch.squares.iter_mut()).zip(warped) {
                 *t += f;
                 *q += f * f;
             }
+        }
+        if !seen {
+            // In the padding, seen by no view (a quarter of the cells at paper size): all zeros.
+            variance.fill(0.0);
+            return;
         }
         for ((out, &t), &q) in variance.iter_mut().zip(&scratch.total).zip(&scratch.squares) {
             let mean = t / count;
