@@ -139,10 +139,15 @@ enum Inputs {
 }
 
 impl Inputs {
-    fn make(self) -> NamedTensors {
+    fn make(self, graph: GraphKind) -> NamedTensors {
         match self {
             Inputs::Ready(tensors) => tensors,
-            Inputs::Prepared(prepare) => prepare(),
+            Inputs::Prepared(prepare) => {
+                let started = Instant::now();
+                let tensors = prepare();
+                tracing::debug!(%graph, ms = started.elapsed().as_secs_f64() * 1e3, "inputs prepared");
+                tensors
+            }
         }
     }
 }
@@ -588,9 +593,7 @@ fn run_guarded(
     release: bool,
 ) -> Result<NamedTensors, BackendError> {
     let run = || {
-        let started = Instant::now();
-        let inputs = inputs.make();
-        tracing::debug!(%graph, ms = started.elapsed().as_secs_f64() * 1e3, "inputs made");
+        let inputs = inputs.make(graph);
         if release {
             runner.run_and_release(graph, &inputs)
         } else {

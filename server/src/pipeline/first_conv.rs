@@ -4,9 +4,10 @@
 //!
 //! Each row of a plane, channels last with one cell of zeros at each end, is read in windows of
 //! three cells (3·C values, consecutive in memory) and multiplied by the kernel, whose rows are the
-//! 9 (dz, dy) taps times the output channels: one matrix product per row gives that row's terms of
-//! the three output planes and three output rows it reaches, added into place. The products run
-//! in `matrixmultiply` (through ndarray) with the CPU's widest vectors; ONNX Runtime's 3-D
+//! 9 (dz, dy) taps times the output channels: the product gives the row's terms of the three
+//! output planes and three output rows it reaches, added into place. One product takes 8 rows laid
+//! end to end, cut to the cells that hold anything (`Band`). The products run in `matrixmultiply`
+//! (through ndarray) with the CPU's widest vectors, chosen at run time; ONNX Runtime's 3-D
 //! convolution copied every cost value 27 times before a product with 8 output channels.
 //!
 //! The kernel comes from the bundle's `cost_conv.onnx` (the convolution as a graph, what ONNX

@@ -104,7 +104,6 @@ pub fn slab_planes(depth: &Array1<f32>, planes: Range<usize>) -> (Array1<f32>, A
 
 /// The inputs every volume graph takes: the sources' features and images, their feature-grid
 /// projections and the volume's depth planes.
-#[derive(Clone)]
 pub struct VolumeInputs {
     pub features: ArcArray4<f32>,
     pub images: ArcArray4<f32>,
@@ -231,15 +230,16 @@ fn swept_first_convolution(inputs: &VolumeInputs, conv: &FirstConvolution, pad: 
     let depths = inputs.depth_planes.as_slice().expect("a new array");
     let (hp, wp) = sweep.grid();
     let mut conv0 = Array5::zeros((1, conv.outputs(), depths.len(), hp, wp));
-    let band = hp.div_ceil(threads.max(1)).max(1);
+    let rows_per_thread = hp.div_ceil(threads.max(1)).max(1);
     std::thread::scope(|scope| {
-        for (i, rows) in conv0.axis_chunks_iter_mut(Axis(3), band).enumerate() {
+        for (i, rows) in conv0.axis_chunks_iter_mut(Axis(3), rows_per_thread).enumerate() {
             let sweep = &sweep;
             scope.spawn(move || {
                 let mut scratch = sweep.scratch();
                 let mut cost_row =
                     |p: usize, y: usize, row: &mut [f32]| sweep.cost_row(depths[p], y, row, &mut scratch);
-                conv.accumulate(0..depths.len(), rows.index_axis_move(Axis(0), 0), i * band, hp, &mut cost_row);
+                let first_row = i * rows_per_thread;
+                conv.accumulate(0..depths.len(), rows.index_axis_move(Axis(0), 0), first_row, hp, &mut cost_row);
             });
         }
     });
