@@ -28,6 +28,7 @@ from scnerf_client import Client, ConnectionFailed, ServerError
 from scnerf_export.cameras import camera_json
 from scnerf_export.data.datasets import get_views, load_scene
 from scnerf_export.data.scene import resize_view
+from scnerf_export.runtime.volume_slabs import volume_build
 from scnerf_export.serving import REPO, ServerProcess, find_server_binary, png_bytes
 
 SHARED = REPO.parent / "shared" / "data"
@@ -162,7 +163,7 @@ def measure(binary: Path, bundle: Path, size: tuple[int, int], args) -> dict:
 
 
 def table(rows: list[dict]) -> str:
-    stages = ["decode", "encoder", "volume", "cost_slab", "volume_net", "renderer"]
+    stages = ["decode", "encoder", "volume", "cost_slab", "cost_conv", "volume_net", "renderer"]
     used = [s for s in stages if any(s in r.get("stages", {}) for r in rows)]
     head = ["bundle", "sources", "at rest"] + [f"{s} peak / after" for s in used] + ["request peak", "after request"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
@@ -193,7 +194,7 @@ def update_fixture(path: Path, rows: list[dict]) -> None:
         if r.get("status") != 200 or not r.get("request_peak_mib"):
             continue
         manifest = json.loads((Path(r["bundle"]) / "manifest.json").read_text())
-        build = "slabs" if "cost_slab" in manifest["graphs"] else "whole"
+        build = volume_build(manifest["graphs"])
         fixture["bundles"][r["model_id"]] = {"config": manifest["config"]}
         row = {
             "bundle": r["model_id"],

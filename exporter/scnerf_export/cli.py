@@ -176,15 +176,16 @@ def cmd_add_guided(args) -> None:
 def cmd_split_volume(args) -> None:
     from .export.split_volume import split_volume_bundle
 
-    manifest = split_volume_bundle(args.bundle, args.out)
+    manifest = split_volume_bundle(args.bundle, args.out, args.volume)
     diff = manifest["provenance"]["volume_split"]["volume_max_abs_difference"]
     print(f"wrote {args.out} ({manifest['model_id']}; the volume agrees with {args.bundle} to {diff:.2g})")
 
 
 VOLUME_OPTION = dict(
-    choices=["slabs", "whole"],
-    default="slabs",
-    help="the cost volume as cost_slab + volume_net graphs built slab by slab (default) or one volume graph",
+    choices=["sweep", "slabs", "whole"],
+    default="sweep",
+    help="how the graphs build the volume: slab by slab of planes from the server's plane sweep (cost_conv + "
+    "volume_net, the default and fastest), slab by slab in the graphs (cost_slab + volume_net), or one volume graph",
 )
 
 
@@ -335,10 +336,11 @@ def parser() -> argparse.ArgumentParser:
     g.set_defaults(func=cmd_add_guided)
 
     s = sub.add_parser(
-        "split-volume", help="bundle with one volume graph -> the same model with the volume built slab by slab"
+        "split-volume", help="bundle -> the same model with its volume graphs for another build (default: sweep)"
     )
     s.add_argument("--bundle", required=True, type=Path)
     s.add_argument("--out", required=True, type=Path)
+    s.add_argument("--volume", choices=["sweep", "slabs"], default="sweep", help="how the new graphs build the volume")
     s.set_defaults(func=cmd_split_volume)
     return p
 

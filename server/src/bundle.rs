@@ -29,13 +29,16 @@ pub struct BundleError {
 /// The sub-graphs, in pipeline order. A bundle has the encoder, the renderer, and the graphs of
 /// one way to build the encoding volume (`VolumeBuild`): `volume` (the cost volume and G2 in one
 /// run), or `cost_slab` (the cost volume of a slab of depth planes and G2's first convolution
-/// over it) and `volume_net` (the rest of G2, over the whole volume). A bundle that can render by
-/// guided sampling (`pipeline::guided`) also has `renderer_guide` and `renderer_fine`.
+/// over it) and `volume_net` (the rest of G2, over the whole volume), or `cost_conv` (G2's first
+/// convolution over a slab of the cost volume that the server computes) and `volume_net`. A bundle
+/// that can render by guided sampling (`pipeline::guided`) also has `renderer_guide` and
+/// `renderer_fine`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub enum GraphKind {
     Encoder,
     Volume,
     CostSlab,
+    CostConv,
     VolumeNet,
     Renderer,
     RendererGuide,
@@ -47,10 +50,11 @@ pub enum GraphKind {
 pub const GUIDED_GRAPHS: [GraphKind; 2] = [GraphKind::RendererGuide, GraphKind::RendererFine];
 
 impl GraphKind {
-    pub const ALL: [GraphKind; 7] = [
+    pub const ALL: [GraphKind; 8] = [
         GraphKind::Encoder,
         GraphKind::Volume,
         GraphKind::CostSlab,
+        GraphKind::CostConv,
         GraphKind::VolumeNet,
         GraphKind::Renderer,
         GraphKind::RendererGuide,
@@ -67,6 +71,7 @@ impl GraphKind {
             GraphKind::Encoder => "encoder",
             GraphKind::Volume => "volume",
             GraphKind::CostSlab => "cost_slab",
+            GraphKind::CostConv => "cost_conv",
             GraphKind::VolumeNet => "volume_net",
             GraphKind::Renderer => "renderer",
             GraphKind::RendererGuide => "renderer_guide",
@@ -82,6 +87,9 @@ pub enum VolumeBuild {
     Whole,
     /// `cost_slab.onnx` over slabs of depth planes, then `volume_net.onnx`.
     Slabs,
+    /// The server's plane sweep (`pipeline::sweep`) and `cost_conv.onnx` over slabs of depth
+    /// planes, then `volume_net.onnx`.
+    Sweep,
 }
 
 impl VolumeBuild {
@@ -89,17 +97,24 @@ impl VolumeBuild {
         match self {
             VolumeBuild::Whole => &[GraphKind::Volume],
             VolumeBuild::Slabs => &[GraphKind::CostSlab, GraphKind::VolumeNet],
+            VolumeBuild::Sweep => &[GraphKind::CostConv, GraphKind::VolumeNet],
         }
     }
 
     /// The way the graphs a manifest names build the volume.
     fn of(graphs: &BTreeMap<String, GraphEntry>) -> Result<VolumeBuild, String> {
         let has = |kind: GraphKind| graphs.contains_key(kind.name());
-        match (has(GraphKind::Volume), has(GraphKind::CostSlab), has(GraphKind::VolumeNet)) {
-            (true, false, false) => Ok(VolumeBuild::Whole),
-            (false, true, true) => Ok(VolumeBuild::Slabs),
-            (false, false, false) => Err("graphs.volume: missing (or graphs.cost_slab and graphs.volume_net)".into()),
-            _ => Err("graphs: either volume, or cost_slab and volume_net, not both or one of the two".into()),
+        let volume = [GraphKind::Volume, GraphKind::CostSlab, GraphKind::CostConv, GraphKind::VolumeNet].map(has);
+        match volume {
+            [true, false, false, false] => Ok(VolumeBuild::Whole),
+            [false, true, false, true] => Ok(VolumeBuild::Slabs),
+            [false, false, true, true] => Ok(VolumeBuild::Sweep),
+            [false, false, false, false] => {
+                Err("graphs.volume: missing (or graphs.cost_slab and graphs.volume_net, or graphs.cost_conv and \
+                 graphs.volume_net)"
+                    .into())
+            }
+            _ => Err("graphs: one of volume, cost_slab and volume_net, or cost_conv and volume_net, not a mix".into()),
         }
     }
 
@@ -276,8 +291,8 @@ pub fn validate_manifest(m: &Manifest) -> Result<ModelConfig, String> {
     for name in m.graphs.keys() {
         if !GraphKind::ALL.iter().any(|k| k.name() == name) {
             return Err(format!(
-                "graphs.{name}: unknown graph (expected encoder, volume or cost_slab and volume_net, renderer, \
-                 and renderer_guide and renderer_fine)"
+                "graphs.{name}: unknown graph (expected encoder, volume or cost_slab and volume_net or cost_conv and \
+                 volume_net, renderer, and renderer_guide and renderer_fine)"
             ));
         }
     }
@@ -416,6 +431,12 @@ fn expected_io(kind: GraphKind, c: &ModelConfig) -> (Vec<Expected>, Vec<Expected
             inputs.push(e("plane_inside", true, vec![named("Dh")]));
             let conv0 = vec![fixed(1), fixed(c.volume_channels), named("Ds"), named("Hp"), named("Wp")];
             (inputs, vec![e("conv0", true, conv0)])
+        }
+        GraphKind::CostConv => {
+            let channels = 3 * c.views + c.feature_channels;
+            let cost = vec![fixed(1), fixed(channels), named("Dh"), named("Hp"), named("Wp")];
+            let conv0 = vec![fixed(1), fixed(c.volume_channels), named("Ds"), named("Hp"), named("Wp")];
+            (vec![e("cost", true, cost)], vec![e("conv0", true, conv0)])
         }
         GraphKind::VolumeNet => {
             let conv0 = vec![fixed(1), fixed(c.volume_channels), fixed(c.depth_planes), named("Hp"), named("Wp")];
@@ -681,21 +702,47 @@ mod tests {
         m
     }
 
+    /// The manifest of a bundle whose volume the server's plane sweep starts (`scnerf-export
+    /// export`): `cost_conv` on the sweep's cost (41 channels: 3 views' images and 32 features).
+    fn sweep_manifest() -> Manifest {
+        let mut m = slab_manifest();
+        let slab = m.graphs.remove("cost_slab").unwrap();
+        let cost = serde_json::json!({"name": "cost", "shape": [1, 41, "Dh", "Hp", "Wp"], "dtype": "float32"});
+        let inputs = vec![serde_json::from_value(cost).unwrap()];
+        m.graphs.insert("cost_conv".into(), GraphEntry { file: "cost_conv.onnx".into(), inputs, ..slab });
+        m
+    }
+
     #[test]
-    fn accepts_either_way_to_build_the_volume_but_not_a_mix() {
+    fn accepts_each_way_to_build_the_volume_but_not_a_mix() {
         let m = slab_manifest();
         validate_manifest(&m).unwrap();
         assert_eq!(VolumeBuild::of(&m.graphs), Ok(VolumeBuild::Slabs));
         assert_eq!(VolumeBuild::of(&sample_manifest().graphs), Ok(VolumeBuild::Whole));
+        let m = sweep_manifest();
+        validate_manifest(&m).unwrap();
+        assert_eq!(VolumeBuild::of(&m.graphs), Ok(VolumeBuild::Sweep));
+        assert_eq!(
+            VolumeBuild::Sweep.bundle_graphs().iter().map(|k| k.name()).collect::<Vec<_>>(),
+            ["encoder", "cost_conv", "volume_net", "renderer"]
+        );
         let mut half = slab_manifest();
         half.graphs.remove("volume_net");
-        assert!(validate_manifest(&half).unwrap_err().contains("not both or one of the two"));
+        assert!(validate_manifest(&half).unwrap_err().contains("not a mix"));
         let mut both = slab_manifest();
         both.graphs.insert("volume".into(), sample_manifest().graphs["volume"].clone());
-        assert!(validate_manifest(&both).unwrap_err().contains("not both"));
+        assert!(validate_manifest(&both).unwrap_err().contains("not a mix"));
+        let mut mixed = sweep_manifest();
+        mixed.graphs.insert("cost_slab".into(), slab_manifest().graphs["cost_slab"].clone());
+        assert!(validate_manifest(&mixed).unwrap_err().contains("not a mix"));
         let mut wrong = slab_manifest();
         wrong.graphs.get_mut("cost_slab").unwrap().inputs.pop();
         assert!(validate_manifest(&wrong).unwrap_err().contains("\"plane_inside\" is missing"));
+        // The cost has 3 channels per view's image, then the features.
+        let mut wrong = sweep_manifest();
+        wrong.graphs.get_mut("cost_conv").unwrap().inputs[0].shape[1] = Dim::Fixed(32);
+        let e = validate_manifest(&wrong).unwrap_err();
+        assert!(e.contains("\"cost\": shape is [1, 32, \"Dh\", \"Hp\", \"Wp\"], the pipeline expects [1, 41,"), "{e}");
     }
 
     #[test]

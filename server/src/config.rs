@@ -371,7 +371,10 @@ impl Config {
     }
 
     pub fn slabs(&self) -> SlabPolicy {
-        SlabPolicy { memory_budget_bytes: self.volume_slab_mb.saturating_mul(1024 * 1024) }
+        SlabPolicy {
+            memory_budget_bytes: self.volume_slab_mb.saturating_mul(1024 * 1024),
+            threads: self.intra_threads(),
+        }
     }
 
     pub fn chunking(&self) -> ChunkPolicy {

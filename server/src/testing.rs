@@ -161,6 +161,12 @@ impl GraphRunner for FakeRunner {
                 };
                 vec![(name.into(), filled(&[1, c.volume_channels, planes, hp, wp], f[[0, 0, 0, 0]]))]
             }
+            GraphKind::CostConv => {
+                let cost = input(inputs, "cost");
+                let (planes, hp, wp) = (cost.shape()[2] - 2, cost.shape()[3], cost.shape()[4]);
+                let mean = cost.iter().sum::<f32>() / cost.len() as f32;
+                vec![("conv0".into(), filled(&[1, c.volume_channels, planes, hp, wp], mean))]
+            }
             GraphKind::VolumeNet => {
                 let conv0 = input(inputs, "conv0");
                 vec![("volume".into(), filled(conv0.shape(), conv0[[0, 0, 0, 0, 0]]))]

@@ -931,7 +931,11 @@ async fn hostile_requests_get_named_4xx_and_the_server_still_renders_correctly()
     // Afterwards: the parity case, one-shot and from the cache, matches PyTorch.
     let m = Make::new();
     let accept = [("authorization", m.auth.as_str()), ("accept", "application/json")];
-    let bytes = serde_json::to_vec(&m.request).unwrap();
+    // The fixture's outputs are PyTorch's full sampling.
+    let one_shot = m.edited(|v| {
+        v.as_object_mut().unwrap().insert("sampling".into(), json!("full"));
+    });
+    let bytes = serde_json::to_vec(&one_shot).unwrap();
     let parts: [(&str, &[u8]); 4] =
         [("request", &bytes), ("source_0", &m.images[0]), ("source_1", &m.images[1]), ("source_2", &m.images[2])];
     let got = send(app.clone(), multipart_to("/v1/render", &parts, &accept)).await;
@@ -949,7 +953,7 @@ async fn hostile_requests_get_named_4xx_and_the_server_still_renders_correctly()
     let created = send(app.clone(), multipart_to("/v1/scenes", &parts, &m.headers())).await;
     assert_eq!(created.0, 201, "{}", String::from_utf8_lossy(&created.2));
     let path = format!("/v1/scenes/{}/render", json_of(&created)["scene_id"].as_str().unwrap());
-    let view = json!({"target": m.request["target"], "outputs": m.request["outputs"]});
+    let view = json!({"target": m.request["target"], "outputs": m.request["outputs"], "sampling": "full"});
     // Another client's token cannot see the scene.
     let other = format!("Bearer {OTHER_TOKEN}");
     let got = send(app.clone(), json_to(&path, &view, &[("authorization", &other)])).await;

@@ -20,7 +20,8 @@ fn loadgen(args: &[&str]) -> (bool, Value) {
 #[test]
 fn loadgen_reports_and_overload_yields_only_200_or_503() {
     let bundle = repo_root().join("tests/fixtures/parity/bundle");
-    let args = ["--bundle", bundle.to_str().unwrap(), "--skip-warmup", "--queue-capacity", "2"];
+    // Full sampling: the service rate the overload below was sized for.
+    let args = ["--bundle", bundle.to_str().unwrap(), "--skip-warmup", "--queue-capacity", "2", "--sampling", "full"];
     let mut server = ServerProcess::start(&server_binary(), &args);
     server.wait_ready(Duration::from_secs(120));
     let addr = server.addr.to_string();

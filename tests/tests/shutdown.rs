@@ -22,9 +22,10 @@ fn render_body() -> (String, Vec<u8>) {
 fn start(grace_secs: &str) -> ServerProcess {
     let bundle = fixtures().join("bundle");
     let bundle = bundle.to_str().unwrap();
+    // Full sampling: a render long enough to be in flight when the grace period ends.
     let mut server = ServerProcess::start(
         &server_binary(),
-        &["--bundle", bundle, "--skip-warmup", "--shutdown-grace-secs", grace_secs],
+        &["--bundle", bundle, "--skip-warmup", "--shutdown-grace-secs", grace_secs, "--sampling", "full"],
     );
     server.wait_ready(Duration::from_secs(120));
     server

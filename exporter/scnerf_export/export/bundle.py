@@ -62,6 +62,18 @@ class CostSlabGraph(nn.Module):
         return self.model.volume_slab(features, images, projections, depth_planes, plane_inside)
 
 
+class CostConvGraph(nn.Module):
+    """G2's first convolution over a slab of the cost volume that the server computes (its plane
+    sweep, ``runtime.plane_sweep``)."""
+
+    def __init__(self, model: SCNeRF):
+        super().__init__()
+        self.model = model
+
+    def forward(self, cost):
+        return self.model.volume_net.first_conv_of_slab(cost)
+
+
 class VolumeNetGraph(nn.Module):
     """G2 from its first convolution over the whole volume (the slabs' outputs, concatenated)."""
 
@@ -73,17 +85,15 @@ class VolumeNetGraph(nn.Module):
         return self.model.volume_from_slabs(conv0)
 
 
-# The graphs a bundle holds, in pipeline order: the volume as one graph (the cost volume and G2 in
-# one run) or as VOLUME_GRAPHS, which build the same volume slab by slab of depth planes in a
-# fraction of the memory (`scnerf-export split-volume` turns the one into the other).
-VOLUME_GRAPHS = ("cost_slab", "volume_net")
+# The graphs that build the volume, by way of building it: as one graph (the cost volume and G2 in
+# one run), or slab by slab of depth planes in a fraction of the memory, the cost volume of each
+# slab computed by the graph ("slabs") or by the server's plane sweep ("sweep", the fastest).
+# `scnerf-export split-volume` turns one into another.
+VOLUME_GRAPHS = {"whole": ("volume",), "slabs": ("cost_slab", "volume_net"), "sweep": ("cost_conv", "volume_net")}
 # Guided sampling's two renderers (runtime/guided.py): the renderer that also returns what guides
 # the other rays, and the renderer at K given samples per ray.
 GUIDED_GRAPHS = ("renderer_guide", "renderer_fine")
-GRAPHS = {
-    "whole": ("encoder", "volume", "renderer", *GUIDED_GRAPHS),
-    "slabs": ("encoder", *VOLUME_GRAPHS, "renderer", *GUIDED_GRAPHS),
-}
+GRAPHS = {build: ("encoder", *graphs, "renderer", *GUIDED_GRAPHS) for build, graphs in VOLUME_GRAPHS.items()}
 
 
 def renderer_input_names(model: SCNeRF) -> list[str]:
@@ -205,6 +215,7 @@ def graph_signatures(model: SCNeRF) -> dict[str, dict[str, list]]:
     }
     fine_inputs |= {f"{r}_heads": ["G", heads, cfg.width] for r in model.renderer.rectifiers()}
     conv0 = [1, cfg.volume_channels, d, "Hp", "Wp"]
+    slab_conv0 = [1, cfg.volume_channels, "Ds", "Hp", "Wp"]
     return {
         "encoder": {"inputs": {"images": [v, 3, "H", "W"]}, "outputs": {"features": [v, c, "h", "w"]}},
         "volume": {
@@ -224,8 +235,9 @@ def graph_signatures(model: SCNeRF) -> dict[str, dict[str, list]]:
                 "depth_planes": ["Dh"],
                 "plane_inside": ["Dh"],
             },
-            "outputs": {"conv0": [1, cfg.volume_channels, "Ds", "Hp", "Wp"]},
+            "outputs": {"conv0": slab_conv0},
         },
+        "cost_conv": {"inputs": {"cost": [1, 3 * v + c, "Dh", "Hp", "Wp"]}, "outputs": {"conv0": slab_conv0}},
         "volume_net": {"inputs": {"conv0": conv0}, "outputs": {"volume": vol}},
         "renderer": {
             "inputs": {n: renderer_inputs[n] for n in renderer_input_names(model)},
@@ -264,6 +276,9 @@ def example_inputs(
         cost = build_cost_volume(features, rig["images"], rig["projections"], rig["depth_planes"], cfg.pad)
         volume = model.volume_net(cost)  # = model.build_volume(...)
         conv0 = model.volume_net.conv0.conv(cost)
+        halo = torch.from_numpy(index)
+        slab_cost = build_cost_volume(features, rig["images"], rig["projections"], rig["depth_planes"][halo], cfg.pad)
+        slab_cost = slab_cost * torch.from_numpy(inside).view(1, 1, -1, 1, 1)
     if encode is not None:
         features, volume = encode(rig["images"], rig["projections"], rig["depth_planes"])
     rays = {
@@ -295,6 +310,7 @@ def example_inputs(
             "depth_planes": rig["depth_planes"][torch.from_numpy(index)],
             "plane_inside": torch.from_numpy(inside),
         },
+        "cost_conv": {"cost": slab_cost},
         "volume_net": {"conv0": conv0},
         "renderer": {n: rays[n] for n in renderer_input_names(model)},
         "renderer_guide": guide,
@@ -410,19 +426,22 @@ def validate_graph(path: Path, module: nn.Module, inputs: dict[str, torch.Tensor
     return error
 
 
-def validate_slab_volume(model: SCNeRF, out: Path, inputs: dict[str, torch.Tensor], tolerance: float) -> float:
-    """The slab graphs' volume, over slabs of several sizes, against PyTorch's whole volume: each
-    graph agreeing with its own module does not show that the slabs add up to the volume."""
+def validate_slab_volume(
+    model: SCNeRF, out: Path, build: str, inputs: dict[str, torch.Tensor], tolerance: float
+) -> float:
+    """The slab graphs' volume (``build``: "slabs" or "sweep"), over slabs of several sizes,
+    against PyTorch's whole volume: each graph agreeing with its own module does not show that the
+    slabs add up to the volume."""
     with torch.no_grad():
         want = model.build_volume(*inputs.values()).numpy()
-    error = slab_volume_error(want, out, {k: v.numpy() for k, v in inputs.items()})
+    error = slab_volume_error(want, out, build, {k: v.numpy() for k, v in inputs.items()}, model.cfg.pad)
     if not error <= tolerance:
         raise RuntimeError(f"the slab graphs' volume differs from PyTorch's by {error:.3g} (> {tolerance})")
     return error
 
 
 def export_bundle(model: SCNeRF, out_dir: str | Path, provenance: dict, volume: str = "whole") -> dict:
-    """Write the graphs (``volume``: the volume as one graph, "whole", or slab by slab, "slabs") and
+    """Write the graphs (``volume``: the way they build the volume, a key of VOLUME_GRAPHS) and
     manifest.json into out_dir and validate them."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -430,8 +449,8 @@ def export_bundle(model: SCNeRF, out_dir: str | Path, provenance: dict, volume: 
     inputs = example_inputs(model)
     checks = example_inputs(model, blocks=CHECK_BLOCKS, rays=CHECK_RAYS)
     graphs, errors = export_graphs(model, out, GRAPHS[volume], (inputs, checks))
-    if volume == "slabs":
-        validate_slab_volume(model, out, checks["volume"], tolerance=1e-4)
+    if volume != "whole":
+        validate_slab_volume(model, out, volume, checks["volume"], tolerance=1e-4)
     provenance = write_licences(out, provenance)
     manifest = {
         "format_version": FORMAT_VERSION,
@@ -461,6 +480,7 @@ def graph_modules(model: SCNeRF) -> dict[str, nn.Module]:
         "encoder": EncoderGraph(model),
         "volume": VolumeGraph(model),
         "cost_slab": CostSlabGraph(model),
+        "cost_conv": CostConvGraph(model),
         "volume_net": VolumeNetGraph(model),
         "renderer": RendererGraph(model),
         "renderer_guide": GuideGraph(model),

@@ -1,13 +1,16 @@
-"""`scnerf-export split-volume --bundle IN --out OUT`: a bundle's `volume.onnx` as the two graphs
-that build the volume slab by slab, without its checkpoint.
+"""`scnerf-export split-volume --bundle IN --out OUT [--volume sweep|slabs]`: a bundle's volume
+graphs written again for another way of building the volume (`export.bundle.VOLUME_GRAPHS`), by
+default the server's plane sweep (`cost_conv.onnx` + `volume_net.onnx`), without its checkpoint.
 
-A bundle carries no checkpoint, only its graphs. G2's weights are read back from the volume graph:
-the convolutions under their parameter names (``model.volume_net.<conv>.weight``), each norm's
-scale and shift as the constants that multiply and then add to that convolution's normalised
-output before its leaky ReLU. The two graphs are exported from a model with those weights and run
-side by side with the old graph in ONNX Runtime, at an image size other than the tracing one and
-with slabs of several sizes: they are kept only if the volumes agree (max abs error <= 1e-4).
-encoder.onnx and renderer.onnx are copied unchanged, so the model id stays.
+A bundle carries no checkpoint, only its graphs. G2's weights are read back from its volume
+graphs: the convolutions under their parameter names (``model.volume_net.<conv>.weight``), each
+norm's scale and shift as the constants that multiply and then add to that convolution's
+normalised output before its leaky ReLU (the first convolution's norm follows the ``conv0`` input
+of ``volume_net.onnx`` when the convolution is in a slab graph). The new graphs are exported from
+a model with those weights and run side by side with the old ones in ONNX Runtime, at an image
+size other than the tracing one and with slabs of several sizes: they are kept only if the volumes
+agree (max abs error <= 1e-4). encoder.onnx and renderer.onnx are copied unchanged, so the model
+id stays.
 """
 
 from __future__ import annotations
@@ -26,12 +29,17 @@ from .. import __version__
 from ..config import ModelConfig
 from ..model.network import SCNeRF
 from ..rigs import synthetic_rig
-from ..runtime.volume_slabs import slab_volume_error
+from ..runtime.volume_slabs import build_volume, slab_volume_error, volume_build
 from . import onnx_graph
-from .bundle import CHECK_BLOCKS, CHECK_RAYS, VOLUME_GRAPHS, example_inputs, export_graphs
+from .bundle import CHECK_BLOCKS, CHECK_RAYS, GRAPHS, VOLUME_GRAPHS, example_inputs, export_graphs
 from .manifest import read_manifest, write_manifest
 
 AGREEMENT_TOLERANCE = 1e-4
+# Why G2 may not be found in a bundle's volume graphs.
+_CURRENT_FORM = (
+    "graphs in the form this exporter writes (norms as BatchNormalization, transposed convolutions in sub-pixel "
+    "form) are not read back: export the bundle from its checkpoint"
+)
 _CONV_WEIGHT = re.compile(r"^model\.volume_net\.(conv\d+)\.(conv|0)\.weight$")
 
 
@@ -55,31 +63,37 @@ def _norm_after(conv_output: str, nodes: list, consumers: dict, constants: dict)
                     shift = [constants[n] for n in add.input if n in constants]
                     if len(scale) == 1 and len(shift) == 1:
                         return scale[0].reshape(-1), shift[0].reshape(-1)
-    raise SplitVolumeError(f"no norm scale and shift found after {conv_output}")
+    raise SplitVolumeError(f"no norm scale and shift found after {conv_output} ({_CURRENT_FORM})")
 
 
-def volume_state_from_graph(path: Path, model: SCNeRF) -> dict[str, torch.Tensor]:
-    """G2's parameters (convolutions, norm scales and shifts), read from a volume.onnx."""
-    proto = onnx.load(str(path))
-    nodes = list(proto.graph.node)
-    constants = {t.name: numpy_helper.to_array(t) for t in proto.graph.initializer}
-    consumers = onnx_graph.consumers(nodes)
+def volume_state_from_graphs(paths: list[Path], model: SCNeRF) -> dict[str, torch.Tensor]:
+    """G2's parameters (convolutions, norm scales and shifts), read from a bundle's volume graphs."""
     state = dict(model.volume_net.state_dict())  # the norms' running statistics stay unused
     found = {}
-    for node in nodes:
-        weight = next((m for m in map(_CONV_WEIGHT.match, node.input) if m), None)
-        if node.op_type not in ("Conv", "ConvTranspose") or weight is None:
-            continue
-        conv, kind = weight.groups()
-        norm = f"{conv}.bn" if kind == "conv" else f"{conv}.1"
-        scale, shift = _norm_after(node.output[0], nodes, consumers, constants)
-        found[f"{conv}.{kind}.weight"] = constants[weight.group(0)]
-        found[f"{norm}.weight"], found[f"{norm}.bias"] = scale, shift
+    for path in paths:
+        proto = onnx.load(str(path))
+        nodes = list(proto.graph.node)
+        constants = {t.name: numpy_helper.to_array(t) for t in proto.graph.initializer}
+        consumers = onnx_graph.consumers(nodes)
+        outputs = {o.name for o in proto.graph.output}
+        for node in nodes:
+            weight = next((m for m in map(_CONV_WEIGHT.match, node.input) if m), None)
+            if node.op_type not in ("Conv", "ConvTranspose") or weight is None:
+                continue
+            conv, kind = weight.groups()
+            found[f"{conv}.{kind}.weight"] = constants[weight.group(0)]
+            if node.output[0] in outputs:  # a slab graph's first convolution: its norm is in volume_net
+                continue
+            norm = f"{conv}.bn" if kind == "conv" else f"{conv}.1"
+            found[f"{norm}.weight"], found[f"{norm}.bias"] = _norm_after(node.output[0], nodes, consumers, constants)
+        if "conv0" in {i.name for i in proto.graph.input}:
+            found["conv0.bn.weight"], found["conv0.bn.bias"] = _norm_after("conv0", nodes, consumers, constants)
     for key, param in model.volume_net.named_parameters():
         if key not in found:
-            raise SplitVolumeError(f"{path}: cannot find G2's parameter {key!r} in the graph")
+            where = ", ".join(map(str, paths))
+            raise SplitVolumeError(f"{where}: cannot find G2's parameter {key!r} in the graphs ({_CURRENT_FORM})")
         if tuple(found[key].shape) != tuple(param.shape):
-            raise SplitVolumeError(f"{path}: {key} has shape {found[key].shape}, the config needs {tuple(param.shape)}")
+            raise SplitVolumeError(f"{key} has shape {found[key].shape}, the config needs {tuple(param.shape)}")
         state[key] = torch.tensor(found[key])
     return state
 
@@ -88,12 +102,16 @@ def _session(path: Path) -> ort.InferenceSession:
     return ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
 
 
-def volumes_agree(old_volume: Path, out: Path, inputs: dict[str, np.ndarray], slab_sizes=(1, 5, 64)) -> float:
-    """Largest difference between the old graph's volume and the new graphs' over slabs of each
-    size in ``slab_sizes``, on the volume's ``inputs`` (features, images, projections,
-    depth_planes)."""
-    (old,) = _session(old_volume).run(None, inputs)
-    return slab_volume_error(old, out, inputs, slab_sizes)
+def volumes_agree(
+    src: Path, manifest: dict, out: Path, volume: str, inputs: dict[str, np.ndarray], slab_sizes=(1, 5, 64)
+) -> float:
+    """Largest difference between the volume of the bundle ``src`` (``manifest``: its manifest)
+    and the one of the new graphs of ``volume`` in ``out`` over slabs of each size in
+    ``slab_sizes``, on the volume's ``inputs`` (features, images, projections, depth_planes)."""
+    pad = manifest["config"]["pad"]
+    graphs = VOLUME_GRAPHS[volume_build(manifest["graphs"])]
+    old = build_volume({name: _session(src / manifest["graphs"][name]["file"]) for name in graphs}, inputs, pad)
+    return slab_volume_error(old, out, volume, inputs, pad, slab_sizes)
 
 
 def check_inputs(encoder: Path, cfg: ModelConfig) -> dict[str, np.ndarray]:
@@ -104,42 +122,48 @@ def check_inputs(encoder: Path, cfg: ModelConfig) -> dict[str, np.ndarray]:
     return {"features": features, **{k: rig[k] for k in ("images", "projections", "depth_planes")}}
 
 
-def split_volume_bundle(bundle_dir: str | Path, out_dir: str | Path) -> dict:
+def split_volume_bundle(bundle_dir: str | Path, out_dir: str | Path, volume: str = "sweep") -> dict:
     src, out = Path(bundle_dir), Path(out_dir)
     if src.resolve() == out.resolve():
         raise SplitVolumeError("--out must differ from --bundle")
+    if volume not in ("slabs", "sweep"):
+        raise SplitVolumeError(f"--volume {volume!r}: slabs or sweep")
     manifest = read_manifest(src)
-    if "volume" not in manifest["graphs"]:
-        raise SplitVolumeError(f"{src}: no volume graph (already split?)")
+    old_build = volume_build(manifest["graphs"])
+    if old_build == volume:
+        raise SplitVolumeError(f"{src}: its volume graphs already build the volume as {volume!r}")
     cfg = ModelConfig.from_dict(manifest["config"])
     if cfg.norm_statistics != "batch":
         raise SplitVolumeError(f"{src}: norm_statistics {cfg.norm_statistics!r}; re-export it from its checkpoint")
     model = SCNeRF(cfg).eval()
-    old_volume = src / manifest["graphs"]["volume"]["file"]
-    model.volume_net.load_state_dict(volume_state_from_graph(old_volume, model))
+    old_graphs = [src / manifest["graphs"][name]["file"] for name in VOLUME_GRAPHS[old_build]]
+    model.volume_net.load_state_dict(volume_state_from_graphs(old_graphs, model))
     # The encoder's weights are not read back: the volume graphs' inputs come from the bundle's own
     # encoder graph, the example features only need plausible values.
     out.mkdir(parents=True, exist_ok=True)
     examples = (example_inputs(model), example_inputs(model, blocks=CHECK_BLOCKS, rays=CHECK_RAYS))
-    graphs, errors = export_graphs(model, out, VOLUME_GRAPHS, examples)
-    agreement = volumes_agree(old_volume, out, check_inputs(src / manifest["graphs"]["encoder"]["file"], cfg))
+    graphs, errors = export_graphs(model, out, VOLUME_GRAPHS[volume], examples)
+    inputs = check_inputs(src / manifest["graphs"]["encoder"]["file"], cfg)
+    agreement = volumes_agree(src, manifest, out, volume, inputs)
     if not agreement <= AGREEMENT_TOLERANCE:
-        for name in VOLUME_GRAPHS:
+        for name in VOLUME_GRAPHS[volume]:
             (out / graphs[name]["file"]).unlink()
-        raise SplitVolumeError(f"{src}: the slab graphs' volume differs from the bundle's by {agreement:.3g}")
-    for name in ("encoder", "renderer"):
-        shutil.copyfile(src / manifest["graphs"][name]["file"], out / manifest["graphs"][name]["file"])
+        raise SplitVolumeError(f"{src}: the new graphs' volume differs from the bundle's by {agreement:.3g}")
+    volume_graphs = {name for names in VOLUME_GRAPHS.values() for name in names}
+    kept = {k: entry for k, entry in manifest["graphs"].items() if k not in volume_graphs}
+    for entry in kept.values():
+        shutil.copyfile(src / entry["file"], out / entry["file"])
     for extra in src.iterdir():
         if extra.name.startswith("LICENSE"):
             shutil.copyfile(extra, out / extra.name)
-    del manifest["graphs"]["volume"]
-    manifest["graphs"] = {k: manifest["graphs"].get(k) or graphs[k] for k in ("encoder", *VOLUME_GRAPHS, "renderer")}
+    manifest["graphs"] = {k: kept.get(k) or graphs[k] for k in GRAPHS[volume] if k in kept or k in graphs}
     manifest["provenance"]["volume_split"] = {
         "exporter_version": __version__,
         "volume_max_abs_difference": agreement,
         "export_validation_max_abs_error": errors,
-        "what": "volume.onnx written again as cost_slab.onnx and volume_net.onnx (the volume built slab by slab) "
-        "from the weights in the source volume graph; encoder.onnx and renderer.onnx unchanged",
+        "what": f"{' and '.join(f'{g}.onnx' for g in VOLUME_GRAPHS[old_build])} written again as "
+        f"{' and '.join(f'{g}.onnx' for g in VOLUME_GRAPHS[volume])} from the weights in the source volume graphs "
+        f"(the volume built as {volume!r}); {' and '.join(f'{k}.onnx' for k in kept)} unchanged",
     }
     write_manifest(out, manifest)
     return manifest

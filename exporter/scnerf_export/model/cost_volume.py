@@ -3,6 +3,8 @@ that turns it into the encoding volume V (docs/design.md steps 2-3)."""
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -74,6 +76,38 @@ def build_cost_volume(
     return torch.cat(warped_images + [variance], dim=1)
 
 
+# A transposed convolution of stride 2 (kernel 3, padding 1, output padding 1) along one axis:
+# out[2i] = in[i]·w[1], out[2i+1] = in[i]·w[2] + in[i+1]·w[0]. Per output parity (even, odd): the
+# input offset of each kernel tap it reads.
+SUBPIXEL_TAPS = ({0: 1}, {0: 2, 1: 0})
+
+
+def subpixel_selection(dtype: torch.dtype) -> torch.Tensor:
+    """(27, 64) 0/1: which tap (kz, ky, kx) of a 3x3x3 transposed convolution's kernel each entry
+    (rz, ry, rx, a, b, c) of its sub-pixel kernel holds (parities r, offsets a, b, c; see
+    ``transposed_conv_as_subpixel``)."""
+    selection = torch.zeros(27, 64, dtype=dtype)
+    for rz, ry, rx in itertools.product((0, 1), repeat=3):
+        taps = itertools.product(SUBPIXEL_TAPS[rz].items(), SUBPIXEL_TAPS[ry].items(), SUBPIXEL_TAPS[rx].items())
+        for (a, kz), (b, ky), (c, kx) in taps:
+            selection[(kz * 3 + ky) * 3 + kx, ((rz * 2 + ry) * 2 + rx) * 8 + (a * 2 + b) * 2 + c] = 1
+    return selection
+
+
+def transposed_conv_as_subpixel(x: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """``conv_transpose3d(x, weight, stride=2, padding=1, output_padding=1)`` as an ordinary
+    convolution: kernel 2 over x padded by one cell at the end of each axis, 8·Co outputs (each
+    output channel at each of the 8 parities of its position), interleaved into the output. The
+    same products summed in another order; ONNX Runtime's ConvTranspose scatters each product into
+    place (col2im) and took most of G2's time."""
+    ci, co = weight.shape[:2]
+    kernel = (weight.reshape(ci * co, 27) @ subpixel_selection(weight.dtype)).reshape(ci, co * 8, 2, 2, 2)
+    _, _, d, h, w = x.shape
+    y = F.conv3d(F.pad(x, (0, 1, 0, 1, 0, 1)), kernel.transpose(0, 1))  # (1, Co·8, d, h, w)
+    y = y.reshape(co, 2, 2, 2, d, h, w).permute(0, 4, 1, 5, 2, 6, 3)  # (Co, d, rz, h, ry, w, rx)
+    return y.reshape(1, co, 2 * d, 2 * h, 2 * w)
+
+
 class VolumeNetG2(nn.Module):
     """G2: V = G2(P), a 3D U-Net (down 8->16->32->64, transposed-conv up with skip additions)."""
 
@@ -114,9 +148,17 @@ class VolumeNetG2(nn.Module):
         conv2 = self.conv2(self.conv1(conv0))
         conv4 = self.conv4(self.conv3(conv2))
         x = self.conv6(self.conv5(conv4))
-        x = conv4 + self.conv7(x)
-        x = conv2 + self.conv9(x)
-        return conv0 + self.conv11(x)
+        x = conv4 + self.upsampled(self.conv7, x)
+        x = conv2 + self.upsampled(self.conv9, x)
+        return conv0 + self.upsampled(self.conv11, x)
+
+    @staticmethod
+    def upsampled(block: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
+        """An up block (transposed convolution, norm); exported in sub-pixel form."""
+        if torch.compiler.is_exporting():
+            conv, norm = block
+            return norm(transposed_conv_as_subpixel(x, conv.weight))
+        return block(x)
 
 
 def slab_halo(depth_planes: int, start: int, stop: int) -> tuple[np.ndarray, np.ndarray]:

@@ -1,12 +1,15 @@
 """Properties of the PyTorch network that the server relies on."""
 
+import unittest.mock
+
 import numpy as np
 import pytest
 import torch
 
 from scnerf_export import cameras as cams
 from scnerf_export.config import ModelConfig, small_config
-from scnerf_export.model.layers import affine_inverse
+from scnerf_export.model.cost_volume import transposed_conv_as_subpixel
+from scnerf_export.model.layers import BatchStatNorm, affine_inverse
 from scnerf_export.model.renderer import composite_weights
 from scnerf_export.rigs import random_model, rig_cameras, smooth_pattern
 from scnerf_export.runtime.reference import render_view
@@ -197,3 +200,23 @@ def test_colours_are_the_border_padded_samples():
             images[i : i + 1], grid, mode="bilinear", padding_mode="border", align_corners=True
         ).view(3, -1)
         torch.testing.assert_close(rgb[i], want, rtol=1e-12, atol=1e-12)
+
+
+def test_a_transposed_convolution_is_its_sub_pixel_convolution():
+    """The form the volume graphs export G2's up blocks in: the same sums, interleaved."""
+    conv = torch.nn.ConvTranspose3d(5, 3, 3, stride=2, padding=1, output_padding=1, bias=False).double()
+    x = torch.randn(1, 5, 3, 4, 6, dtype=torch.float64)
+    with torch.no_grad():
+        assert torch.allclose(transposed_conv_as_subpixel(x, conv.weight), conv(x), atol=1e-12)
+
+
+def test_the_exported_norm_is_the_batch_norm():
+    """BatchStatNorm as exported (one BatchNormalization with E[x²] - E[x]²) against PyTorch's."""
+    norm = BatchStatNorm(4, 0.01, 1e-5, "batch").double()
+    with torch.no_grad():
+        norm.weight.uniform_(0.5, 1.5), norm.bias.uniform_(-0.5, 0.5)
+    x = torch.randn(2, 4, 3, 5, 6, dtype=torch.float64) * 3 + 2
+    eager = norm(x)
+    with unittest.mock.patch("torch.compiler.is_exporting", return_value=True), torch.no_grad():
+        exported = norm(x)
+    assert torch.allclose(exported, eager, atol=1e-10)

@@ -4,6 +4,11 @@
 //! Why a thread: `ort::Session::run` takes `&mut self` and blocks for seconds; keeping it off the
 //! async runtime keeps handlers, health checks and uploads responsive.
 //!
+//! A job may make its inputs on the executor thread, just before its graph runs
+//! (`Ticket::run_prepared`): CPU work of the pipeline outside ONNX Runtime (the plane sweep of
+//! the volume build) then takes its turn with the graph runs instead of running beside them, its
+//! time counts as the graph's, and its buffers exist only while the job runs.
+//!
 //! Scheduling. A request is first *admitted* (`BackendHandle::admit` -> `Ticket`) with its
 //! deadline and an estimate of its work (`Work`: pixels for the encoder and the volume net, rays
 //! for the renderer). One job is one graph run (the encoder, the volume net, or one renderer
@@ -127,11 +132,31 @@ impl Rates {
     }
 }
 
+/// A job's inputs: given, or made by the executor when the job runs.
+enum Inputs {
+    Ready(NamedTensors),
+    Prepared(Box<dyn FnOnce() -> NamedTensors + Send>),
+}
+
+impl Inputs {
+    fn make(self, graph: GraphKind) -> NamedTensors {
+        match self {
+            Inputs::Ready(tensors) => tensors,
+            Inputs::Prepared(prepare) => {
+                let started = Instant::now();
+                let tensors = prepare();
+                tracing::debug!(%graph, ms = started.elapsed().as_secs_f64() * 1e3, "inputs prepared");
+                tensors
+            }
+        }
+    }
+}
+
 struct Job {
     ticket: u64,
     graph: GraphKind,
     units: f64,
-    inputs: NamedTensors,
+    inputs: Inputs,
     reply: oneshot::Sender<Result<NamedTensors, BackendError>>,
     span: Span,
     deadline: Instant,
@@ -458,7 +483,7 @@ impl Ticket {
         units: f64,
         inputs: NamedTensors,
     ) -> impl Future<Output = Result<Outputs, BackendError>> + Send + 'static {
-        self.run_job(graph, units, inputs, false)
+        self.run_job(graph, units, Inputs::Ready(inputs), false)
     }
 
     /// [`Ticket::run`] for the request's last run of `graph` (see `GraphRunner::run_and_release`).
@@ -468,14 +493,25 @@ impl Ticket {
         units: f64,
         inputs: NamedTensors,
     ) -> impl Future<Output = Result<Outputs, BackendError>> + Send + 'static {
-        self.run_job(graph, units, inputs, true)
+        self.run_job(graph, units, Inputs::Ready(inputs), true)
+    }
+
+    /// [`Ticket::run`] with inputs that `prepare` makes on the executor thread when the job's turn
+    /// comes (see the module doc).
+    pub fn run_prepared(
+        &self,
+        graph: GraphKind,
+        units: f64,
+        prepare: impl FnOnce() -> NamedTensors + Send + 'static,
+    ) -> impl Future<Output = Result<Outputs, BackendError>> + Send + 'static {
+        self.run_job(graph, units, Inputs::Prepared(Box::new(prepare)), false)
     }
 
     fn run_job(
         &self,
         graph: GraphKind,
         units: f64,
-        inputs: NamedTensors,
+        inputs: Inputs,
         last: bool,
     ) -> impl Future<Output = Result<Outputs, BackendError>> + Send + 'static {
         let (reply, rx) = oneshot::channel();
@@ -524,7 +560,7 @@ fn next_job(shared: &Shared) -> Option<(Job, bool)> {
 }
 
 fn worker(mut runner: Box<dyn GraphRunner>, shared: Arc<Shared>) {
-    while let Some((job, release)) = next_job(&shared) {
+    while let Some((mut job, release)) = next_job(&shared) {
         // The request went away (client disconnected, deadline passed): skip its work.
         if job.reply.is_closed() {
             continue;
@@ -536,7 +572,8 @@ fn worker(mut runner: Box<dyn GraphRunner>, shared: Arc<Shared>) {
         let _entered = job.span.enter();
         let probe = shared.probe.as_deref().map(MemoryProbe::start);
         let started = Instant::now();
-        let result = run_guarded(runner.as_mut(), job.graph, &job.inputs, release);
+        let inputs = std::mem::replace(&mut job.inputs, Inputs::Ready(Vec::new()));
+        let result = run_guarded(runner.as_mut(), job.graph, inputs, release);
         let took = started.elapsed().as_secs_f64();
         if let Some(probe) = probe {
             probe.finish(job.graph.name());
@@ -547,14 +584,22 @@ fn worker(mut runner: Box<dyn GraphRunner>, shared: Arc<Shared>) {
     }
 }
 
-/// A panic inside a runner must not take the process (or the executor thread) down.
+/// A panic inside a runner or while the inputs are made must not take the process (or the
+/// executor thread) down.
 fn run_guarded(
     runner: &mut dyn GraphRunner,
     graph: GraphKind,
-    inputs: &NamedTensors,
+    inputs: Inputs,
     release: bool,
 ) -> Result<NamedTensors, BackendError> {
-    let run = || if release { runner.run_and_release(graph, inputs) } else { runner.run(graph, inputs) };
+    let run = || {
+        let inputs = inputs.make(graph);
+        if release {
+            runner.run_and_release(graph, &inputs)
+        } else {
+            runner.run(graph, &inputs)
+        }
+    };
     std::panic::catch_unwind(std::panic::AssertUnwindSafe(run)).unwrap_or_else(|panic| {
         let message = panic
             .downcast_ref::<String>()
@@ -861,5 +906,29 @@ mod tests {
         first.await.unwrap();
         assert!(matches!(expired.await, Err(BackendError::DeadlineExceeded)));
         assert_eq!(*order.lock().unwrap(), vec![0]);
+    }
+
+    /// Prepared inputs are made on the executor thread in the job's turn (after the job queued
+    /// before it), and a panic while making them is the run's error, not the executor's end.
+    #[tokio::test]
+    async fn prepared_inputs_are_made_in_the_jobs_turn_on_the_executor() {
+        let (backend, order, open) = recorder();
+        let ticket = backend.admit(far(), NONE, 0).unwrap();
+        let first = ticket.run(GraphKind::Encoder, 0.0, tagged(0));
+        let made_on = Arc::new(Mutex::new((None, 0)));
+        let (made, made_order) = (made_on.clone(), order.clone());
+        let prepared = ticket.run_prepared(GraphKind::CostConv, 0.0, move || {
+            *made.lock().unwrap() = (std::thread::current().name().map(String::from), made_order.lock().unwrap().len());
+            tagged(1)
+        });
+        let failing = ticket.run_prepared(GraphKind::CostConv, 0.0, || panic!("no inputs"));
+        open.send(()).unwrap();
+        first.await.unwrap();
+        prepared.await.unwrap();
+        let err = failing.await.unwrap_err();
+        assert!(matches!(&err, BackendError::Run { message, .. } if message == "no inputs"), "{err}");
+        assert_eq!(*made_on.lock().unwrap(), (Some("scnerf-inference".to_string()), 1));
+        assert_eq!(*order.lock().unwrap(), vec![0, 1]);
+        ticket.run(GraphKind::Renderer, 0.0, tagged(2)).await.unwrap();
     }
 }

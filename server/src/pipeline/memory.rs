@@ -5,7 +5,7 @@
 //! features and the encoding volume (and, while a slab-built volume is assembled, G2's first
 //! convolution over it). On top of that, one stage at a time adds its working memory: the
 //! encoder's activations, the cost volume (all of it with `volume.onnx`, one slab of planes with
-//! `cost_slab.onnx`), G2, or one renderer chunk. The renderer's chunk is added to the other
+//! `cost_slab.onnx`, a band of rows with the plane sweep), G2, or one renderer chunk. The renderer's chunk is added to the other
 //! stages rather than maxed with them: the renderer's session keeps ONNX Runtime's arena (see
 //! `backend::ort`), so a chunk's worth of memory may still be held from an earlier request while
 //! this one builds its volume.
@@ -29,6 +29,13 @@ pub const WHOLE_VOLUME_BYTES_PER_CELL: u64 = 800;
 /// `volume_net.onnx`'s working memory per cell: G2's activations over the 8-channel volume.
 /// Measured 140-170 above the conv0 input and the volume output.
 pub const VOLUME_NET_BYTES_PER_CELL: u64 = 208;
+
+/// The sweep build's largest stage per cell: the run of `volume_net.onnx` whose preparation
+/// computes G2's first convolution over the plane sweep (a band of rows per thread): that
+/// convolution, G2's activations and the volume. Measured 138-144 above the process at rest at
+/// 640x512-1024x1024 (the graph of the current exporter: one-pass norms need less than the old
+/// ones' 208 of `VOLUME_NET_BYTES_PER_CELL`).
+pub const SWEEP_BYTES_PER_CELL: u64 = 160;
 
 /// What one request keeps for its lifetime per cell of the volume: the encoding volume (8
 /// channels of f32).
@@ -102,6 +109,7 @@ pub fn parts(config: &ModelConfig, plan: &MemoryPlan, sizes: &RequestSizes) -> E
                 let slab = planes * plane * SLAB_BYTES_PER_CELL as u64;
                 conv0 + slab.max(cells * VOLUME_NET_BYTES_PER_CELL)
             }
+            VolumeBuild::Sweep => cells * SWEEP_BYTES_PER_CELL,
         };
         e.held = images + cells * VOLUME_BYTES_PER_CELL;
         e.stage = encoder.max(volume);
@@ -156,7 +164,11 @@ mod tests {
         assert!(m.rows.len() >= 6, "the fixture holds the measured table");
         for row in &m.rows {
             let config = &m.bundles[&row.bundle].config;
-            let build = if row.build == "slabs" { VolumeBuild::Slabs } else { VolumeBuild::Whole };
+            let build = match row.build.as_str() {
+                "sweep" => VolumeBuild::Sweep,
+                "slabs" => VolumeBuild::Slabs,
+                _ => VolumeBuild::Whole,
+            };
             let sizes = RequestSizes {
                 sources: Some((row.sources[0], row.sources[1])),
                 target_pixels: row.target[0] * row.target[1],
@@ -195,6 +207,7 @@ mod tests {
         assert!(at(640, 512, VolumeBuild::Whole) > at(320, 256, VolumeBuild::Whole));
         assert!(at(1024, 1024, VolumeBuild::Slabs) > at(800, 800, VolumeBuild::Slabs));
         assert!(at(800, 800, VolumeBuild::Slabs) * 2 < at(800, 800, VolumeBuild::Whole));
+        assert!(at(800, 800, VolumeBuild::Sweep) < at(800, 800, VolumeBuild::Slabs));
         // A cached scene's view: the renderer chunk and the target only.
         let view = estimate(
             &config,

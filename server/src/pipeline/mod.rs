@@ -12,10 +12,12 @@
 pub mod assemble;
 pub mod chunks;
 pub mod encoder;
+pub mod first_conv;
 pub mod guided;
 pub mod memory;
 pub mod rays;
 pub mod sources;
+pub mod sweep;
 pub mod views;
 pub mod volume;
 
@@ -33,7 +35,7 @@ use crate::request::{Limits, ValidRequest, ValidScene};
 use crate::sysmem::MemoryProbe;
 use chunks::{ChunkPolicy, RawView};
 use guided::{Guidance, Sampling, SamplingReport};
-use volume::SlabPolicy;
+use volume::{SlabPolicy, VolumeBuilder};
 
 /// Wall time per stage, in the order the stages ran.
 #[derive(Debug, Clone, Default)]
@@ -110,7 +112,7 @@ pub struct Pipeline {
     backend: BackendHandle,
     bundle: Arc<Bundle>,
     chunking: ChunkPolicy,
-    slabs: SlabPolicy,
+    volume: Arc<VolumeBuilder>,
     limits: Limits,
     /// How a view is sampled when its request does not say.
     sampling: Sampling,
@@ -158,7 +160,8 @@ impl Pipeline {
         limits: Limits,
     ) -> Pipeline {
         let sampling = if bundle.guided().is_some() { Sampling::Guided } else { Sampling::Full };
-        Pipeline { backend, bundle: Arc::new(bundle), chunking, slabs, limits, sampling }
+        let volume = Arc::new(VolumeBuilder::new(bundle.volume_build(), slabs));
+        Pipeline { backend, bundle: Arc::new(bundle), chunking, volume, limits, sampling }
     }
 
     /// The sampling of views whose request does not name one (`--sampling`); guided only when
@@ -315,7 +318,8 @@ impl Pipeline {
             target_pixels: target.map_or(0, |(t, _)| u64::from(t.width) * u64::from(t.height)),
             sampling_bytes: target.map_or(0, |(t, sampling)| self.sampling_bytes(t, sampling)),
         };
-        let plan = memory::MemoryPlan { build: self.bundle.volume_build(), slabs: self.slabs, chunking: self.chunking };
+        let plan =
+            memory::MemoryPlan { build: self.volume.build(), slabs: *self.volume.policy(), chunking: self.chunking };
         memory::estimate(&self.bundle.config, &plan, &sizes)
     }
 
@@ -326,7 +330,7 @@ impl Pipeline {
         let Some((w, h)) = self.padded_source_size(sources) else { return Work::default() };
         let pixels = (sources.len() * w * h) as f64;
         let cells = volume::plane_cells(config, w, h);
-        let volume = volume::work(config, self.bundle.volume_build(), &self.slabs, pixels, cells);
+        let volume = self.volume.work(config, pixels, cells);
         Work::of(GraphKind::Encoder, pixels).plus(volume)
     }
 
@@ -398,8 +402,7 @@ impl Pipeline {
         let config = &self.bundle.config;
         let features = timings.time("encoder", encoder::run(ticket, config, &images)).await?;
         let inputs = volume::VolumeInputs::new(config, &features, &images, cameras, near, far);
-        let build = self.bundle.volume_build();
-        let volume = timings.time("volume", volume::run(ticket, config, build, &self.slabs, inputs)).await?;
+        let volume = timings.time("volume", self.volume.run(ticket, config, inputs)).await?;
         let intrinsics: Vec<_> = cameras.iter().map(|c| c.k).collect();
         let extrinsics: Vec<_> = cameras.iter().map(|c| c.w2c).collect();
         Ok(Scene {

@@ -1,6 +1,6 @@
 //! Stage 2: cost volume + 3D U-Net G2 -> encoding volume in the reference (first) view's frustum.
 //!
-//! A bundle builds it one of two ways (`VolumeBuild`). `volume.onnx` computes the whole cost
+//! A bundle builds it one of three ways (`VolumeBuild`). `volume.onnx` computes the whole cost
 //! volume at once: the warped features of every depth plane exist together (at paper size, 128
 //! planes of 3 views x 32 channels: 3.4 GB for 640x512 sources, 10 GB for 1024x1024). A bundle
 //! with `cost_slab.onnx` and `volume_net.onnx` builds it slab by slab: the cost volume's variance
@@ -8,15 +8,22 @@
 //! each side, which G2's first 3x3x3 convolution reads) and returns that convolution's output for
 //! its planes. The outputs are written into one (1, C0, D, Hp, Wp) tensor, 8 channels instead of
 //! the cost volume's 41, and `volume_net.onnx` runs the rest of G2 over it, its norms with the
-//! whole volume's statistics. The result is the same volume (bit-identical on the bundles we ship,
-//! `scnerf-export split-volume` checks it).
+//! whole volume's statistics. A bundle with `cost_conv.onnx` and `volume_net.onnx` (the fastest)
+//! has the server compute that first convolution itself, a row of a plane at a time: the plane
+//! sweep (`sweep`) gives the row's cost, the convolution (`first_conv`, its kernel read from
+//! `cost_conv.onnx`) adds the row's terms into place; this runs on the executor thread as the
+//! preparation of the `volume_net` run (`Ticket::run_prepared`). Every way gives the same volume
+//! up to float rounding (the exporter checks each bundle's graphs against PyTorch's).
 
 use std::ops::Range;
 
 use futures_util::{stream, StreamExt, TryStreamExt};
 use nalgebra::{Matrix4, Vector4};
-use ndarray::{s, ArcArray4, ArcArray5, Array1, Array3, Array5};
+use ndarray::{s, ArcArray4, ArcArray5, Array1, Array3, Array5, Axis, Ix5};
+use tokio::sync::OnceCell;
 
+use super::first_conv::{self, FirstConvolution};
+use super::sweep::PlaneSweep;
 use crate::backend::{BackendError, NamedTensors, Ticket, Work};
 use crate::bundle::{GraphKind, ModelConfig, VolumeBuild};
 use crate::camera::{stack_rows, Camera};
@@ -27,16 +34,20 @@ use crate::camera::{stack_rows, Camera};
 /// 320x256-800x800 sources (docs/results.md, "Memory at paper size"); rounded up.
 pub const SLAB_BYTES_PER_CELL: usize = 1024;
 
-/// How many depth planes one cost slab run takes.
+/// How many depth planes one cost slab run takes, and how many threads the plane sweep uses.
 #[derive(Debug, Clone, Copy)]
 pub struct SlabPolicy {
     /// Working memory a slab run may take (`--volume-slab-mb`).
     pub memory_budget_bytes: usize,
+    /// Threads of the plane sweep and the first convolution: ONNX Runtime's (`--threads`), whose
+    /// runs they take turns with on the executor.
+    pub threads: usize,
 }
 
 impl Default for SlabPolicy {
     fn default() -> Self {
-        SlabPolicy { memory_budget_bytes: 512 << 20 }
+        let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+        SlabPolicy { memory_budget_bytes: 512 << 20, threads }
     }
 }
 
@@ -138,44 +149,124 @@ impl VolumeInputs {
     }
 }
 
-/// The work of building the volume of padded sources of `pixels` (V·H·W) pixels with `cells`
-/// cells per plane: the volume graph over the pixels, or each slab over its share of them (halo
-/// planes included) and G2 over the pixels.
-pub fn work(config: &ModelConfig, build: VolumeBuild, policy: &SlabPolicy, pixels: f64, cells: usize) -> Work {
-    match build {
-        VolumeBuild::Whole => Work::of(GraphKind::Volume, pixels),
-        VolumeBuild::Slabs => {
-            let d = config.depth_planes;
-            let planes: usize = policy.slabs(d, cells).iter().map(|p| p.len() + 2).sum();
-            Work::of(GraphKind::CostSlab, pixels * planes as f64 / d as f64)
-                .plus(Work::of(GraphKind::VolumeNet, pixels))
+/// How this server builds volumes: the bundle's way, the slab policy and, for the plane sweep,
+/// the first convolution's kernel, read from `cost_conv.onnx` by the first build.
+pub struct VolumeBuilder {
+    build: VolumeBuild,
+    policy: SlabPolicy,
+    first_conv: OnceCell<FirstConvolution>,
+}
+
+impl VolumeBuilder {
+    pub fn new(build: VolumeBuild, policy: SlabPolicy) -> VolumeBuilder {
+        VolumeBuilder { build, policy, first_conv: OnceCell::new() }
+    }
+
+    pub fn build(&self) -> VolumeBuild {
+        self.build
+    }
+
+    pub fn policy(&self) -> &SlabPolicy {
+        &self.policy
+    }
+
+    /// The work of building the volume of padded sources of `pixels` (V·H·W) pixels with `cells`
+    /// cells per plane: the volume graph over the pixels, or each slab over its share of them
+    /// (halo planes included) and G2 over the pixels, or the sweep and G2 (one run) over the
+    /// pixels.
+    pub fn work(&self, config: &ModelConfig, pixels: f64, cells: usize) -> Work {
+        match self.build {
+            VolumeBuild::Whole => Work::of(GraphKind::Volume, pixels),
+            VolumeBuild::Slabs => {
+                let d = config.depth_planes;
+                let planes: usize = self.policy.slabs(d, cells).iter().map(|p| p.len() + 2).sum();
+                Work::of(GraphKind::CostSlab, pixels * planes as f64 / d as f64)
+                    .plus(Work::of(GraphKind::VolumeNet, pixels))
+            }
+            VolumeBuild::Sweep => Work::of(GraphKind::VolumeNet, pixels),
         }
+    }
+
+    /// features (V, C, h, w) + images + cameras -> volume (1, Cv, D, h + 2·pad, w + 2·pad).
+    pub async fn run(
+        &self,
+        ticket: &Ticket,
+        config: &ModelConfig,
+        inputs: VolumeInputs,
+    ) -> Result<ArcArray5<f32>, BackendError> {
+        let (_, _, h, w) = inputs.features.dim();
+        let pixels = super::pixel_units(&inputs.images);
+        let mut out = match self.build {
+            VolumeBuild::Whole => {
+                let named = inputs.named(inputs.depth_planes.clone(), None);
+                ticket.run(GraphKind::Volume, pixels, named).await?
+            }
+            VolumeBuild::Slabs => {
+                let conv0 = first_convolution(ticket, config, &self.policy, &inputs).await?;
+                let named = vec![("conv0".to_string(), conv0.into_shared().into_dyn())];
+                ticket.run(GraphKind::VolumeNet, pixels, named).await?
+            }
+            VolumeBuild::Sweep => {
+                let conv = self.first_conv.get_or_try_init(|| read_first_convolution(ticket, config)).await?.clone();
+                let (pad, threads) = (config.pad, self.policy.threads);
+                ticket
+                    .run_prepared(GraphKind::VolumeNet, pixels, move || {
+                        let conv0 = swept_first_convolution(&inputs, &conv, pad, threads);
+                        vec![("conv0".to_string(), conv0.into_shared().into_dyn())]
+                    })
+                    .await?
+            }
+        };
+        let (d, cv, p) = (config.depth_planes, config.volume_channels, config.pad);
+        out.take("volume", &[Some(1), Some(cv), Some(d), Some(h + 2 * p), Some(w + 2 * p)])
     }
 }
 
-/// features (V, C, h, w) + images + cameras -> volume (1, Cv, D, h + 2·pad, w + 2·pad).
-pub async fn run(
-    ticket: &Ticket,
-    config: &ModelConfig,
-    build: VolumeBuild,
-    policy: &SlabPolicy,
-    inputs: VolumeInputs,
-) -> Result<ArcArray5<f32>, BackendError> {
-    let (_, _, h, w) = inputs.features.dim();
-    let pixels = super::pixel_units(&inputs.images);
-    let mut out = match build {
-        VolumeBuild::Whole => {
-            let named = inputs.named(inputs.depth_planes.clone(), None);
-            ticket.run(GraphKind::Volume, pixels, named).await?
+/// G2's first convolution over the cost volume of the plane sweep, (1, C0, D, Hp, Wp): each of
+/// `threads` threads sweeps and convolves a band of rows of every plane (and the rows either side
+/// of its band, which its rows' convolution reads).
+fn swept_first_convolution(inputs: &VolumeInputs, conv: &FirstConvolution, pad: usize, threads: usize) -> Array5<f32> {
+    let sweep = PlaneSweep::new(inputs.features.view(), inputs.images.view(), inputs.projections.view(), pad);
+    let depths = inputs.depth_planes.as_slice().expect("a new array");
+    let (hp, wp) = sweep.grid();
+    let mut conv0 = Array5::zeros((1, conv.outputs(), depths.len(), hp, wp));
+    let rows_per_thread = hp.div_ceil(threads.max(1)).max(1);
+    std::thread::scope(|scope| {
+        for (i, rows) in conv0.axis_chunks_iter_mut(Axis(3), rows_per_thread).enumerate() {
+            let sweep = &sweep;
+            scope.spawn(move || {
+                let mut scratch = sweep.scratch();
+                let mut cost_row =
+                    |p: usize, y: usize, row: &mut [f32]| sweep.cost_row(depths[p], y, row, &mut scratch);
+                let first_row = i * rows_per_thread;
+                conv.accumulate(0..depths.len(), rows.index_axis_move(Axis(0), 0), first_row, hp, &mut cost_row);
+            });
         }
-        VolumeBuild::Slabs => {
-            let conv0 = first_convolution(ticket, config, policy, &inputs).await?;
-            let named = vec![("conv0".to_string(), conv0.into_shared().into_dyn())];
-            ticket.run(GraphKind::VolumeNet, pixels, named).await?
-        }
+    });
+    conv0
+}
+
+/// The first convolution's kernel, read from the bundle's `cost_conv.onnx` by its response to
+/// impulses, and checked against the graph on another input.
+async fn read_first_convolution(ticket: &Ticket, config: &ModelConfig) -> Result<FirstConvolution, BackendError> {
+    let channels = 3 * config.views + config.feature_channels;
+    let conv0 = |cost: &Array5<f32>| {
+        let (_, _, planes, h, w) = cost.dim();
+        let run = ticket.run(GraphKind::CostConv, 0.0, vec![("cost".to_string(), cost.to_shared().into_dyn())]);
+        let shape = [Some(1), Some(config.volume_channels), Some(planes - 2), Some(h), Some(w)];
+        async move { run.await?.take::<Ix5>("conv0", &shape) }
     };
-    let (d, cv, p) = (config.depth_planes, config.volume_channels, config.pad);
-    out.take("volume", &[Some(1), Some(cv), Some(d), Some(h + 2 * p), Some(w + 2 * p)])
+    let probe = first_conv::probe(channels);
+    let conv = FirstConvolution::from_probe(conv0(&probe).await?.view(), channels);
+    // Any values but impulses: a pattern that is not symmetric in any axis.
+    let check = Array5::from_shape_fn((1, channels, 4, 5, 7), |(_, c, p, y, x)| {
+        ((c * 7 + p * 5 + y * 3 + x * 2) % 13) as f32 - 6.0
+    });
+    conv.check(check.view(), conv0(&check).await?.view()).map_err(|message| BackendError::BadOutput {
+        graph: GraphKind::CostConv,
+        message: format!("not the first convolution the server computes: {message}"),
+    })?;
+    Ok(conv)
 }
 
 /// Cost slab runs that one request keeps queued: one runs while the previous one's output is
@@ -233,10 +324,10 @@ mod tests {
         let (at, inside) = slab_planes(&depth, 4..5);
         assert_eq!((at.to_vec(), inside.to_vec()), (vec![5.0, 6.0, 6.0], vec![1.0, 1.0, 0.0]));
         // 1 MiB at 1024 bytes per cell of 64 cells: 16 planes, 14 after the halo.
-        let policy = SlabPolicy { memory_budget_bytes: 1 << 20 };
-        assert_eq!(policy.slabs(32, 64), vec![0..14, 14..28, 28..32]);
-        assert_eq!(SlabPolicy { memory_budget_bytes: 0 }.slabs(3, 64), vec![0..1, 1..2, 2..3]);
-        assert_eq!(SlabPolicy { memory_budget_bytes: usize::MAX }.slabs(3, 64), vec![0..3]);
+        let policy = |memory_budget_bytes| SlabPolicy { memory_budget_bytes, threads: 1 };
+        assert_eq!(policy(1 << 20).slabs(32, 64), vec![0..14, 14..28, 28..32]);
+        assert_eq!(policy(0).slabs(3, 64), vec![0..1, 1..2, 2..3]);
+        assert_eq!(policy(usize::MAX).slabs(3, 64), vec![0..3]);
     }
 
     #[test]
