@@ -59,7 +59,7 @@ fn a_json_file_of_more_values_than_a_capture_has_is_refused_before_it_is_built()
     text.push_str(&",0".repeat(MAX_JSON_VALUES));
     text.push_str("]}");
     let err = error(&fixture_with("blender", &[("transforms_train.json", text.into_bytes())]), ReadOptions::default());
-    assert!(err.contains("transforms_train.json: invalid JSON: more than 1048576 values"), "{err}");
+    assert!(err.contains(&format!("transforms_train.json: invalid JSON: more than {MAX_JSON_VALUES} values")), "{err}");
 }
 
 #[test]
@@ -85,7 +85,7 @@ fn an_npy_header_declaring_more_rows_than_the_file_holds_is_refused() {
 #[test]
 fn untracked_colmap_points_seen_from_every_image_are_bounded() {
     // 2^16 points without a track, each seen from all images: 4 x 2^16 depths are fine,
-    // 264 x 2^16 (more than 2^24) are not.
+    // 264 x 2^16 (more than MAX_DEPTHS, 2^22) are not.
     let points: String = (0..1 << 16).map(|i| format!("{i} 0 0 1 0 0 0 0\n")).collect();
     let images = std::fs::read_to_string(fixtures().join("colmap/sparse/0/images.txt")).unwrap();
     let mut many = images.clone();

@@ -191,9 +191,10 @@ fn pose(q: [f64; 4], t: [f64; 3]) -> Option<Pose> {
     Some(Pose::from_parts(Translation3::new(t[0], t[1], t[2]), rotation))
 }
 
-/// Most depths (a point's z in one image) ranked for the depth range: 128 MiB of them. A point
-/// without a track counts in every image, so a file of them could ask for points x images.
-const MAX_DEPTHS: usize = 1 << 24;
+/// Most depths (a point's z in one image) ranked for the depth range: 32 MiB of them, more than
+/// a 64 MiB points3D file of real tracks gives. A point without a track counts in every image,
+/// so a file of them could ask for points x images.
+pub const MAX_DEPTHS: usize = 1 << 22;
 
 /// near = 0.9 x the 1st, far = 1.1 x the 99th percentile of the positive z-depths of each point
 /// in the images that observe it (in every image for a point without a track);
@@ -302,19 +303,21 @@ mod text {
             if s.is_empty() || s.starts_with('#') {
                 continue;
             }
-            let parse = || -> Option<(i64, [f64; 4], [f64; 3], i64, String)> {
+            // id, qw qx qy qz tx ty tz, camera id, name
+            let parse = || -> Option<(i64, [f64; 7], i64, String)> {
                 let mut t = s.split_whitespace();
                 let id = t.next()?.parse().ok()?;
-                let (q, tv) = (numbers(&mut t)?, numbers(&mut t)?);
+                let qt = numbers(&mut t)?;
                 let camera_id = t.next()?.parse().ok()?;
                 // Python: " ".join(elems[9:])
                 let name = t
                     .fold(String::new(), |name, token| if name.is_empty() { token.into() } else { name + " " + token });
-                (!name.is_empty()).then_some((id, q, tv, camera_id, name))
+                (!name.is_empty()).then_some((id, qt, camera_id, name))
             };
-            let (id, q, tv, camera_id, name) = parse().ok_or_else(|| malformed(path, i + 1, "image", s))?;
-            let w2c =
-                pose(q, tv).ok_or_else(|| Error::dataset(path, format!("line {}: zero or non-finite pose", i + 1)))?;
+            let (id, [qw, qx, qy, qz, tx, ty, tz], camera_id, name) =
+                parse().ok_or_else(|| malformed(path, i + 1, "image", s))?;
+            let w2c = pose([qw, qx, qy, qz], [tx, ty, tz])
+                .ok_or_else(|| Error::dataset(path, format!("line {}: zero or non-finite pose", i + 1)))?;
             out.push(ImageRecord { id, name, w2c, camera_id });
             lines.next(); // its 2D points
         }

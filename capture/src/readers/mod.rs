@@ -158,7 +158,8 @@ pub fn load_from(fs: &dyn Files, path: &Path, format: Option<Format>, opts: Read
 /// Extensions the Python loaders accept (datasets.py IMAGE_EXTENSIONS) and the server decodes.
 pub const IMAGE_EXTENSIONS: [&str; 6] = ["png", "jpg", "jpeg", "PNG", "JPG", "JPEG"];
 
-fn has_image_extension(path: &Path) -> bool {
+/// Whether `path` names an image the readers use (by its extension).
+pub fn has_image_extension(path: &Path) -> bool {
     path.extension().and_then(|e| e.to_str()).is_some_and(|e| IMAGE_EXTENSIONS.contains(&e))
 }
 
@@ -174,7 +175,7 @@ pub fn read_json(fs: &dyn Files, path: &Path) -> Result<serde_json::Value> {
 
 /// Most values (numbers, strings, arrays, objects...) a JSON file of a capture may hold: a
 /// transforms file of 10,000 frames holds about 300,000.
-pub const MAX_JSON_VALUES: usize = 1 << 20;
+pub const MAX_JSON_VALUES: usize = 1 << 19;
 
 mod json_check {
     use std::collections::HashSet;

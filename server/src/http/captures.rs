@@ -3,15 +3,22 @@
 //! `sparse/0/cameras.txt`, ...) read in memory by the readers the `scnerf` client uses
 //! (`scnerf_capture`: COLMAP, nerfstudio, Blender, LLFF, DTU), thinned to `--max-scene-views`
 //! and kept as a scene. Nothing is written to disk.
+//!
+//! Memory: the files are the body (held against the memory budget as it arrives, see
+//! `middleware::limit_in_flight`); the files other than images, which the readers parse, are
+//! capped (`--max-capture-metadata-bytes`), and what parsing them takes is held against the
+//! budget before it starts (`memory::capture_parse_bytes`); the views are then decoded as any
+//! scene's are, admitted by their estimate. Parsing stops when the request is gone.
 
-use std::path::Path;
+use std::borrow::Cow;
+use std::path::{Path, PathBuf};
 
 use axum::extract::rejection::QueryRejection;
 use axum::extract::{FromRequest, Multipart, Query, Request, State};
 use axum::http::StatusCode;
 use axum::response::Response;
 use bytes::Bytes;
-use scnerf_capture::files::MemoryFiles;
+use scnerf_capture::files::{Files, MemoryFiles};
 use scnerf_capture::readers::{self, Capture, ReadOptions};
 use serde::{Deserialize, Serialize};
 
@@ -20,11 +27,14 @@ use super::deadline::Deadline;
 use super::negotiate::{request_format, RequestFormat};
 use super::scenes::{owner_of, proxy_scene_id, scene_response, store_scene};
 use super::state::AppState;
+use crate::backend::BackendError;
+use crate::blocking::{self, Cancel};
 use crate::cache::rfc3339;
 use crate::camera::{Axes, Camera, CameraSpec, Intrinsics, Pose, PoseKind};
 use crate::error::ApiError;
+use crate::pipeline::memory::capture_parse_bytes;
 use crate::pipeline::Timings;
-use crate::request::{SceneRequest, SourceSpec};
+use crate::request::{Limits, SceneRequest, SourceSpec};
 
 /// What the readers take from the command line in the client, as query parameters.
 #[derive(Debug, Default, Deserialize, utoipa::IntoParams)]
@@ -110,16 +120,22 @@ async fn create_within(
         });
     }
     let owner = owner_of(&req);
-    let files = read_files(req, state.pipeline.limits().max_capture_bytes).await?;
+    let (files, metadata_bytes) = read_files(req, state.pipeline.limits()).await?;
+    let parsing = state.pipeline.executor().lease(capture_parse_bytes(metadata_bytes as u64)).map_err(|e| match e {
+        BackendError::TooLarge { .. } => {
+            ApiError::invalid("file", format!("parsing {metadata_bytes} bytes of capture files needs {e}"))
+        }
+        other => other.into(),
+    })?;
     let (config, limits) = (state.pipeline.config().clone(), state.pipeline.limits().clone());
-    let parsed = tokio::task::spawn_blocking(move || -> Result<_, ApiError> {
-        let read = read_capture(files, &options, limits.max_scene_views)?;
+    let parsed = blocking::run(move |cancel| {
+        let read = read_capture(files, &options, limits.max_scene_views, cancel)?;
         let names = read.names.clone();
         let valid = read.request.validate(&config, &limits).map_err(|e| name_the_file(e, &names))?;
         Ok((valid, read.names, read.format, read.warnings))
     })
-    .await
-    .map_err(|e| ApiError::Internal(format!("capture parsing task failed: {e}")))??;
+    .await?;
+    drop(parsing);
     let (valid, names, format, warnings) = parsed;
     let cameras = valid.sources.iter().map(|s| camera_json(&s.camera)).collect();
     let (near, far) = (valid.near, valid.far);
@@ -139,13 +155,15 @@ async fn create_within(
     Ok(scene_response(&state, status, &stored.id, body, &timings))
 }
 
-/// Every `file` part, by its filename.
-async fn read_files(req: Request, limit: usize) -> Result<MemoryFiles, ApiError> {
+/// Every `file` part, by its filename, and the bytes of those that are not images (at most
+/// `--max-capture-metadata-bytes`: 413 naming the file that goes past it, as it arrives).
+async fn read_files(req: Request, limits: &Limits) -> Result<(MemoryFiles, usize), ApiError> {
+    let limit = limits.max_capture_bytes;
     let mut multipart = Multipart::from_request(req, &()).await.map_err(|e| {
         ApiError::malformed(Some("content-type".to_string()), format!("invalid multipart request: {}", e.body_text()))
     })?;
-    let mut files = MemoryFiles::new();
-    while let Some(field) = multipart.next_field().await.map_err(|e| multipart_error(e, "body", limit))? {
+    let (mut files, mut metadata) = (MemoryFiles::new(), 0usize);
+    while let Some(mut field) = multipart.next_field().await.map_err(|e| multipart_error(e, "body", limit))? {
         let name = field.name().unwrap_or_default().to_string();
         if name != "file" {
             return Err(ApiError::malformed(
@@ -153,11 +171,26 @@ async fn read_files(req: Request, limit: usize) -> Result<MemoryFiles, ApiError>
                 format!("unknown multipart part \"{name}\": every part is a file named `file`"),
             ));
         }
-        let filename = field.file_name().map(str::to_string).ok_or_else(|| {
-            ApiError::malformed(Some("file".to_string()), "a file part needs a filename: its path in the capture")
-        })?;
-        let data = field.bytes().await.map_err(|e| multipart_error(e, &filename, limit))?;
-        if !files.insert(&filename, Vec::from(data)) {
+        let filename = field.file_name().map(str::to_string).ok_or_else(|| missing_filename(field.headers()))?;
+        let is_image = readers::has_image_extension(Path::new(&filename));
+        let mut chunks = Vec::new();
+        while let Some(chunk) = field.chunk().await.map_err(|e| multipart_error(e, &filename, limit))? {
+            if !is_image {
+                metadata += chunk.len();
+                if metadata > limits.max_capture_metadata_bytes {
+                    return Err(ApiError::TooLarge {
+                        field: Some(filename),
+                        message: format!(
+                            "a capture's files other than images (transforms, COLMAP models, poses) may hold {} \
+                             bytes in all (--max-capture-metadata-bytes)",
+                            limits.max_capture_metadata_bytes
+                        ),
+                    });
+                }
+            }
+            chunks.push(chunk);
+        }
+        if !files.insert(&filename, chunks.concat()) {
             return Err(ApiError::malformed(
                 Some(filename),
                 "sent twice, or not a relative path inside the capture folder",
@@ -167,7 +200,18 @@ async fn read_files(req: Request, limit: usize) -> Result<MemoryFiles, ApiError>
     if files.is_empty() {
         return Err(ApiError::invalid("file", "no files: send the capture folder's files as parts named `file`"));
     }
-    Ok(files)
+    Ok((files, metadata))
+}
+
+/// A file part without a (UTF-8) filename: which of the two it is.
+fn missing_filename(headers: &axum::http::HeaderMap) -> ApiError {
+    let disposition = headers.get(axum::http::header::CONTENT_DISPOSITION).map(|v| v.as_bytes()).unwrap_or_default();
+    let has_one = disposition.windows(9).any(|w| w.eq_ignore_ascii_case(b"filename="));
+    let message = match has_one {
+        true => "the part's filename is not UTF-8: name the file's path in UTF-8",
+        false => "a file part needs a filename: its path in the capture",
+    };
+    ApiError::malformed(Some("file".to_string()), message)
 }
 
 /// A capture read from `files`, as a scene request (at most `max_views` views).
@@ -178,9 +222,16 @@ struct ReadCapture {
     warnings: Vec<String>,
 }
 
-fn read_capture(mut files: MemoryFiles, options: &CaptureOptions, max_views: usize) -> Result<ReadCapture, ApiError> {
+fn read_capture(
+    mut files: MemoryFiles,
+    options: &CaptureOptions,
+    max_views: usize,
+    cancel: &Cancel,
+) -> Result<ReadCapture, ApiError> {
     let opts = ReadOptions { near: options.near, far: options.far, ignore_distortion: options.ignore_distortion };
-    let capture = readers::load_from(&files, Path::new(""), None, opts).map_err(capture_error)?;
+    let read = readers::load_from(&Interruptible { files: &files, cancel }, Path::new(""), None, opts);
+    cancel.check()?;
+    let capture = read.map_err(capture_error)?;
     let Capture { format, views, near, far, background, mut warnings } = capture;
     let kept = scnerf_capture::thin_evenly(views.len(), max_views);
     if kept.len() < views.len() {
@@ -213,6 +264,42 @@ fn read_capture(mut files: MemoryFiles, options: &CaptureOptions, max_views: usi
         format: format.name().to_string(),
         warnings,
     })
+}
+
+/// `files`, failing every access once the request is gone: the readers then stop at their next
+/// look at a file.
+struct Interruptible<'a> {
+    files: &'a MemoryFiles,
+    cancel: &'a Cancel,
+}
+
+impl Interruptible<'_> {
+    fn check(&self, path: &Path) -> scnerf_capture::Result<()> {
+        match self.cancel.is_set() {
+            true => Err(scnerf_capture::Error::io(path, std::io::ErrorKind::Interrupted.into())),
+            false => Ok(()),
+        }
+    }
+}
+
+impl Files for Interruptible<'_> {
+    fn is_file(&self, path: &Path) -> bool {
+        !self.cancel.is_set() && self.files.is_file(path)
+    }
+
+    fn is_dir(&self, path: &Path) -> bool {
+        !self.cancel.is_set() && self.files.is_dir(path)
+    }
+
+    fn read(&self, path: &Path) -> scnerf_capture::Result<Cow<'_, [u8]>> {
+        self.check(path)?;
+        self.files.read(path)
+    }
+
+    fn list(&self, dir: &Path) -> scnerf_capture::Result<Vec<PathBuf>> {
+        self.check(dir)?;
+        self.files.list(dir)
+    }
 }
 
 /// A capture the readers refuse: 422 naming the file (relative to the capture's folder).

@@ -179,14 +179,15 @@ impl Pipeline {
     /// A cached scene goes through exactly the same `render_view`, so its views are
     /// bit-identical to these.
     pub async fn render(&self, req: &ValidRequest, deadline: Instant, timings: &mut Timings) -> Result<View, ApiError> {
-        let ticket = self.admit_request(deadline, Some(&req.scene.cameras()), Some(&req.view.target))?;
+        let ticket = self.admit_request(deadline, Some(&req.scene.cameras()), true, Some(&req.view.target))?;
         let scene = self.prepare_scene(&ticket, &req.scene, timings).await?;
         Ok(self.render_view(&ticket, &scene, &req.view.target, req.scene.background, None, timings).await?)
     }
 
     /// The scene of `POST /v1/scenes`: its views decoded; a scene of exactly the model's view
     /// count also gets its encoder features and volume now (admitted until `deadline`), as scenes
-    /// always did. A larger one (a capture) builds the volume of each triple a render needs.
+    /// always did. A larger one (a capture) builds the volume of each triple a render needs; its
+    /// decoding holds its memory estimate against the budget (a lease: no graph runs).
     pub async fn encode_scene(
         &self,
         req: &ValidScene,
@@ -194,9 +195,19 @@ impl Pipeline {
         timings: &mut Timings,
     ) -> Result<(Views, Option<Scene>), ApiError> {
         let cameras = req.cameras();
-        let ticket = match cameras.len() == self.bundle.config.views {
-            true => Some(self.admit_request(deadline, Some(&cameras), None)?),
+        let builds = cameras.len() == self.bundle.config.views;
+        let ticket = match builds {
+            true => Some(self.admit_request(deadline, Some(&cameras), true, None)?),
             false => None,
+        };
+        let _decoding = match builds {
+            true => None,
+            false => Some(self.backend.lease(self.memory_estimate(Some(&cameras), true, false, None)).map_err(
+                |e| match e {
+                    BackendError::TooLarge { .. } => too_large(Some(&cameras), None, &e),
+                    other => other.into(),
+                },
+            )?),
         };
         let images = timings.time("decode", self.decode_sources(req)).await?.into_shared();
         let views = Views { images, cameras, near: req.near, far: req.far };
@@ -225,7 +236,7 @@ impl Pipeline {
     ) -> Result<(View, Option<Arc<Scene>>), ApiError> {
         let cameras = views.cameras_of(sources);
         // A cached triple costs the renderer alone; otherwise its scene is built here too.
-        let ticket = self.admit_request(deadline, cached.is_none().then_some(&cameras[..]), Some(target))?;
+        let ticket = self.admit_request(deadline, cached.is_none().then_some(&cameras[..]), false, Some(target))?;
         let (scene, built) = match cached {
             Some(scene) => (scene, None),
             None => {
@@ -246,33 +257,45 @@ impl Pipeline {
         Ok(self.backend.admit(deadline, work, memory)?)
     }
 
-    /// Admits a request that encodes `sources` (`None`: a cached scene) and renders `target`
-    /// (`None`: a scene only), before anything is decoded. Too large for the memory budget: 422
-    /// naming the sizes.
+    /// Admits a request that builds the volume of `sources` (`None`: a cached scene), decoding
+    /// them first when `decodes`, and renders `target` (`None`: a scene only), before anything
+    /// is decoded. Too large for the memory budget: 422 naming the sizes.
     fn admit_request(
         &self,
         deadline: Instant,
         sources: Option<&[Camera]>,
+        decodes: bool,
         target: Option<&Camera>,
     ) -> Result<Ticket, ApiError> {
         let scene = sources.map_or_else(Work::default, |s| self.scene_work(s));
         let work = target.map_or(scene, |t| scene.plus(self.view_work(t)));
-        let memory = self.memory_estimate(sources, target);
+        let memory = self.memory_estimate(sources, decodes, sources.is_some(), target);
         self.backend.admit(deadline, work, memory).map_err(|e| match e {
             BackendError::TooLarge { .. } => too_large(sources, target, &e),
             other => other.into(),
         })
     }
 
-    /// The most memory a request over `sources` and `target` adds to the process (see
-    /// [`memory::estimate`]).
-    fn memory_estimate(&self, sources: Option<&[Camera]>, target: Option<&Camera>) -> u64 {
+    /// The most memory a request over `sources` adds to the process (see [`memory::estimate`]):
+    /// it decodes them when `decodes`, builds a volume from the model's view count of them when
+    /// `builds`, renders `target`.
+    fn memory_estimate(&self, sources: Option<&[Camera]>, decodes: bool, builds: bool, target: Option<&Camera>) -> u64 {
         let sizes = memory::RequestSizes {
             sources: sources.and_then(|s| self.padded_source_size(s)),
+            decoded_views: sources.filter(|_| decodes).map_or(0, <[Camera]>::len),
+            builds_volume: builds,
             target_pixels: target.map_or(0, |t| u64::from(t.width) * u64::from(t.height)),
         };
         let plan = memory::MemoryPlan { build: self.bundle.volume_build(), slabs: self.slabs, chunking: self.chunking };
         memory::estimate(&self.bundle.config, &plan, &sizes)
+    }
+
+    /// What the scene of `req` will hold in the scene cache (see [`memory::scene_bytes`]).
+    pub fn scene_bytes(&self, req: &ValidScene) -> u64 {
+        let cameras = req.cameras();
+        let builds = cameras.len() == self.bundle.config.views;
+        self.padded_source_size(&cameras)
+            .map_or(0, |size| memory::scene_bytes(&self.bundle.config, size, cameras.len(), builds))
     }
 
     /// The work of building a scene from `sources` (the encoder and the volume net over the
