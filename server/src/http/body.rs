@@ -305,8 +305,10 @@ pub(super) fn multipart_error(e: axum::extract::multipart::MultipartError, field
         return too_large(field, limit);
     }
     match body_error(&e, field) {
-        slow @ ApiError::BodyTimeout { .. } => slow,
-        _ => ApiError::malformed(Some(field.to_string()), format!("invalid multipart body: {}", e.body_text())),
+        ApiError::Malformed { .. } => {
+            ApiError::malformed(Some(field.to_string()), format!("invalid multipart body: {}", e.body_text()))
+        }
+        slow_or_refused => slow_or_refused,
     }
 }
 
