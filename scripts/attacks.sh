@@ -3,7 +3,8 @@
 # by default (CI: the parity-fixture bundle, a debug build, small sizes, a small memory budget);
 # SCALE=full with PROFILE=release BUNDLE=bundles/default for the probe's own sizes. The server's
 # peak resident set must stay under MEMORY_BUDGET_MB. Environment: see scripts/_server.sh, and
-#   SCALE (short), MEMORY_BUDGET_MB (short: 1200, full: 3000), STALL_SECS (short: 3, full: 10).
+#   SCALE (short), MEMORY_BUDGET_MB (short: 1200 with a 256 MiB scene cache; full: 3000 and the
+#   default cache), STALL_SECS (short: 3, full: 10).
 set -euo pipefail
 source "$(dirname "${BASH_SOURCE[0]}")/_server.sh"
 SCALE=${SCALE:-short}
@@ -12,6 +13,7 @@ if [[ ${SCALE} == full ]]; then
   STALL_SECS=${STALL_SECS:-10}
 else
   MEMORY_BUDGET_MB=${MEMORY_BUDGET_MB:-1200}
+  SERVER_ARGS="--scene-cache-mb 256 ${SERVER_ARGS:-}"
   STALL_SECS=${STALL_SECS:-3}
 fi
 SERVER_ARGS="--memory-budget-mb ${MEMORY_BUDGET_MB} --body-stall-secs ${STALL_SECS} ${SERVER_ARGS:-}"
