@@ -1,6 +1,9 @@
 //! Hostile clients against the real binary over real sockets: trickling and stalled uploads,
 //! declared lengths over the limit, abandoned uploads, partial headers, idle keep-alive
-//! connections, oversized headers, the connection cap and a shutdown with idle connections.
+//! connections, oversized headers, the connection caps (in all, per address, the probes'
+//! reserve), refused and expired requests answered without their bodies, bodies held against
+//! the memory budget, and a shutdown with idle connections. scripts/attacks.sh runs the probe's
+//! attacks at their own sizes.
 //! Settings go through the environment (`SCNERF_*`), so each test also runs against a build
 //! that predates them (`SCNERF_SERVER_BIN`), where it fails.
 

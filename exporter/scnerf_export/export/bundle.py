@@ -277,9 +277,9 @@ def io_spec(names_shapes: dict[str, list]) -> list[dict]:
 # A graph agrees with PyTorch when its largest difference is within `tolerance` (absolute) or
 # within this share of the output's scale (its largest magnitude), whichever is larger: float32
 # sums taken in another order differ in proportion to the values summed. Measured on the public
-# MVSNeRF weights (docs/results.md, "Export tolerances"): at most 4.6e-6 of the scale (cost_slab:
-# 1.06e-3 on outputs of magnitude 330), the same at 1, 2 and 4 ONNX Runtime threads and 1 and 2
-# torch threads; 2e-5 leaves 4x room for other CPUs and libraries.
+# MVSNeRF weights (`python -m bench.export_spread`, docs/results.md "Export tolerances"): at most
+# 4.6e-6 of the scale (cost_slab: 1.06e-3 on outputs of magnitude 330), the same at 1, 2 and 4
+# ONNX Runtime threads and 1 and 2 torch threads; 2e-5 leaves 4x room for other CPUs.
 RELATIVE_TOLERANCE = 2e-5
 
 
