@@ -15,11 +15,11 @@
 //! Admission refuses (503 + Retry-After, at once rather than a 504 later) a request that cannot
 //! finish by its deadline given the work admitted before it, or whose work would make an
 //! admitted request miss its deadline. Work is turned into time with the executor's measured
-//! seconds per unit, on the slow side: per graph, a moving average of the rate plus twice a
-//! moving average of its deviation (as TCP estimates a retransmission timeout from round trips),
-//! so that the noise of a shared machine does not turn admitted requests into 504s. Before the
-//! first run of a graph there is no estimate: admitted. A graph run cannot be interrupted, so the
-//! rest of the run in progress counts ahead of every new request. At most `capacity` requests
+//! seconds per unit (`Rates`), on the slow side when requests compete: the rate plus twice its
+//! deviation (as TCP estimates a retransmission timeout from round trips), so that the noise of
+//! a shared machine does not turn admitted requests into 504s. Before the first run of a graph
+//! there is no estimate: admitted. A graph run cannot be interrupted, so the rest of the run in
+//! progress counts ahead of a request due sooner than its own. At most `capacity` requests
 //! are admitted at once (`QueueFull`). Jobs whose request is gone (client disconnected: the
 //! handler future and its `Ticket` were dropped) or past its deadline are dropped unrun.
 //!
@@ -309,16 +309,18 @@ impl Queue {
         }
     }
 
+    /// The refusal of `needed` bytes, more than the budget for requests ever has.
+    fn too_large(&mut self, needed: u64, budget: u64) -> BackendError {
+        self.refusals.too_large += 1;
+        BackendError::TooLarge { needed_mib: needed.div_ceil(1 << 20), budget_mib: budget >> 20 }
+    }
+
     /// Holds `more` bytes of the budget for requests (`budget`) for something that holds
     /// `held` already: `TooLarge` when `held + more` exceeds it, `MemoryBusy` when what is held
     /// now leaves too little.
     fn hold(&mut self, budget: u64, held: u64, more: u64) -> Result<(), BackendError> {
         if held.saturating_add(more) > budget {
-            self.refusals.too_large += 1;
-            return Err(BackendError::TooLarge {
-                needed_mib: held.saturating_add(more).div_ceil(1 << 20),
-                budget_mib: budget >> 20,
-            });
+            return Err(self.too_large(held.saturating_add(more), budget));
         }
         if self.memory_in_use + more > budget {
             self.refusals.busy += 1;
@@ -458,7 +460,7 @@ impl BackendHandle {
             return Err(BackendError::Stopped);
         }
         if memory > budget {
-            return Err(q.hold(budget, 0, memory).unwrap_err());
+            return Err(q.too_large(memory, budget));
         }
         if q.requests.len() >= self.shared.capacity {
             return Err(BackendError::QueueFull);

@@ -83,6 +83,9 @@ const PROBE_PATHS: [&str; 3] = ["/healthz", "/readyz", "/metrics"];
 /// How long a probe connection may take to send its request head.
 const PROBE_HEADER_TIMEOUT: Duration = Duration::from_secs(5);
 
+/// How long the answer to a refused connection may take to write.
+const REFUSE_WRITE_TIME: Duration = Duration::from_secs(1);
+
 /// How long a connection answered before its request body was read goes on reading (and
 /// dropping) what the client still sends, after the answer and a FIN: closing a socket with
 /// unread data sends a reset, which makes a client that writes its whole body before it reads
@@ -163,26 +166,24 @@ pub async fn serve(
 }
 
 /// A connection the server cannot take: what the client already sent is read (so that closing
-/// does not reset the answer away), the error is written, and the socket closed, without
-/// waiting for anything.
-fn refuse(stream: TcpStream, error: ApiError) {
-    let mut scratch = [0u8; 4096];
-    let _ = stream.try_read(&mut scratch);
-    let body = serde_json::to_vec(&error.body()).unwrap_or_default();
-    let retry = match &error {
-        ApiError::Unavailable { retry_after_secs, .. } | ApiError::TooManyRequests { retry_after_secs, .. } => {
-            format!("retry-after: {retry_after_secs}\r\n")
+/// does not reset the answer away), `error`'s response (`error.rs`'s mapping, `connection:
+/// close` added) written within `REFUSE_WRITE_TIME`, and the socket closed. Nothing waits for the
+/// client's request.
+fn refuse(mut stream: TcpStream, error: ApiError) {
+    tokio::spawn(async move {
+        let mut scratch = [0u8; 4096];
+        let _ = stream.try_read(&mut scratch);
+        let (parts, body) = error.into_response().into_parts();
+        let Ok(body) = axum::body::to_bytes(body, 1 << 16).await else { return };
+        let mut head = format!("HTTP/1.1 {}\r\nconnection: close\r\ncontent-length: {}\r\n", parts.status, body.len());
+        for (name, value) in &parts.headers {
+            if let Ok(value) = value.to_str() {
+                head.push_str(&format!("{name}: {value}\r\n"));
+            }
         }
-        _ => String::new(),
-    };
-    let status = error.status();
-    let head = format!(
-        "HTTP/1.1 {} {}\r\nconnection: close\r\ncontent-type: application/json\r\n{retry}content-length: {}\r\n\r\n",
-        status.as_u16(),
-        status.canonical_reason().unwrap_or(""),
-        body.len()
-    );
-    let _ = stream.try_write(&[head.as_bytes(), &body].concat());
+        head.push_str("\r\n");
+        let _ = tokio::time::timeout(REFUSE_WRITE_TIME, stream.write_all(&[head.as_bytes(), &body].concat())).await;
+    });
 }
 
 fn too_many_connections(cap: usize) -> ApiError {
