@@ -195,19 +195,12 @@ impl Pipeline {
         timings: &mut Timings,
     ) -> Result<(Views, Option<Scene>), ApiError> {
         let cameras = req.cameras();
-        let builds = cameras.len() == self.bundle.config.views;
-        let ticket = match builds {
-            true => Some(self.admit_request(deadline, Some(&cameras), true, None)?),
-            false => None,
-        };
-        let _decoding = match builds {
-            true => None,
-            false => Some(self.backend.lease(self.memory_estimate(Some(&cameras), true, false, None)).map_err(
-                |e| match e {
-                    BackendError::TooLarge { .. } => too_large(Some(&cameras), None, &e),
-                    other => other.into(),
-                },
-            )?),
+        let (ticket, _decoding) = match cameras.len() == self.bundle.config.views {
+            true => (Some(self.admit_request(deadline, Some(&cameras), true, None)?), None),
+            false => {
+                let estimate = self.memory_estimate(Some(&cameras), true, false, None);
+                (None, Some(self.backend.lease(estimate).map_err(|e| refusal(e, Some(&cameras), None))?))
+            }
         };
         let images = timings.time("decode", self.decode_sources(req)).await?.into_shared();
         let views = Views { images, cameras, near: req.near, far: req.far };
@@ -270,10 +263,7 @@ impl Pipeline {
         let scene = sources.map_or_else(Work::default, |s| self.scene_work(s));
         let work = target.map_or(scene, |t| scene.plus(self.view_work(t)));
         let memory = self.memory_estimate(sources, decodes, sources.is_some(), target);
-        self.backend.admit(deadline, work, memory).map_err(|e| match e {
-            BackendError::TooLarge { .. } => too_large(sources, target, &e),
-            other => other.into(),
-        })
+        self.backend.admit(deadline, work, memory).map_err(|e| refusal(e, sources, target))
     }
 
     /// The most memory a request over `sources` adds to the process (see [`memory::estimate`]):
@@ -398,6 +388,15 @@ impl Pipeline {
         let view = assemble_view(target, raw, background);
         timings.add("assemble", start.elapsed());
         Ok(view)
+    }
+}
+
+/// An admission's refusal; the 422 of a request whose memory estimate exceeds the whole budget
+/// names the sizes.
+fn refusal(e: BackendError, sources: Option<&[Camera]>, target: Option<&Camera>) -> ApiError {
+    match e {
+        BackendError::TooLarge { .. } => too_large(sources, target, &e),
+        other => other.into(),
     }
 }
 
