@@ -6,7 +6,6 @@
 
 mod common;
 
-use std::path::Path;
 use std::time::Duration;
 
 use axum::Router;
@@ -27,29 +26,6 @@ fn app(budget_mib: u64, limits: Limits, cache: CacheConfig) -> (Router, BackendH
     let options = ServiceOptions { request_timeout: Duration::from_secs(60), cache, ..Default::default() };
     let state = state_with_executor(b.clone(), FakeRunner::new(&b), limits, options, executor);
     (router(state.clone()), state.pipeline().executor().clone())
-}
-
-fn datasets() -> std::path::PathBuf {
-    scnerf_e2e::repo_root().join("tests/fixtures/datasets")
-}
-
-/// Every file under `dir` as (path relative to `dir`, bytes).
-fn files_of(dir: &Path) -> Vec<(String, Vec<u8>)> {
-    let mut out = Vec::new();
-    let mut stack = vec![dir.to_path_buf()];
-    while let Some(d) = stack.pop() {
-        for entry in std::fs::read_dir(d).unwrap() {
-            let path = entry.unwrap().path();
-            if path.is_dir() {
-                stack.push(path);
-            } else {
-                let rel = path.strip_prefix(dir).unwrap().to_str().unwrap().to_string();
-                out.push((rel, std::fs::read(&path).unwrap()));
-            }
-        }
-    }
-    out.sort();
-    out
 }
 
 async fn post_capture(app: &Router, files: &[(String, Vec<u8>)], headers: &[(&str, &str)]) -> Got {
