@@ -39,8 +39,15 @@ pub fn request_span(req: &Request) -> tracing::Span {
     tracing::info_span!("request", method = %req.method(), path = %req.uri().path(), request_id = %id)
 }
 
-/// A panicking handler answers 500 with the usual JSON error instead of dropping the connection.
-pub fn panic_response(_panic: Box<dyn std::any::Any + Send + 'static>) -> Response {
+/// A panicking handler answers 500 with the usual JSON error instead of dropping the connection;
+/// the panic's message is logged (a bug of ours: it must be found), not sent.
+pub fn panic_response(panic: Box<dyn std::any::Any + Send + 'static>) -> Response {
+    let message = panic
+        .downcast_ref::<String>()
+        .map(String::as_str)
+        .or_else(|| panic.downcast_ref::<&str>().copied())
+        .unwrap_or("(not a string)");
+    tracing::error!(panic = message, "the request handler panicked");
     ApiError::Internal("the request handler panicked".into()).into_response()
 }
 
