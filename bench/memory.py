@@ -7,8 +7,10 @@ each stage (decoding the sources, each graph run) and reads it after, so each st
 own; the table gives, per stage, that peak and the resident set after the stage's last run (what
 it left held), the process at rest before the request and a few seconds after it. Sizes 320x256
 and 640x512 are DTU scan37 (views 33, 31, 25 -> 32; 640x512 is its own size), 800x800 and
-1024x1024 the Blender lego (r_6, r_43, r_33 -> r_28; 800x800 is its own size), each target at
-80x64.
+1024x1024 the Blender lego (r_6, r_43, r_33 -> r_28; 800x800 is its own size); the targets are
+``--targets`` (each a row; default 80x64). ``--scene-views N`` adds, per source size, a row of
+``POST /v1/scenes`` with N views (the triple's images in turn): a capture's upload, decoded and
+kept, no volume built.
 
 A watchdog stops a server when the machine's available memory falls under ``--keep-free-mb``
 (the machine is shared): that measurement is then reported as stopped, with the peak reached.
@@ -33,7 +35,7 @@ from scnerf_export.serving import REPO, ServerProcess, find_server_binary, png_b
 
 SHARED = REPO.parent / "shared" / "data"
 SIZES = ("320x256", "640x512", "800x800", "1024x1024")
-TARGET = (80, 64)
+TARGETS = ("80x64",)
 
 
 @dataclass(frozen=True)
@@ -53,31 +55,39 @@ def triple_for(size: tuple[int, int]) -> Triple:
     return SCAN37 if size[0] != size[1] else LEGO
 
 
-def request_for(triple: Triple, size: tuple[int, int]) -> dict:
-    """The arguments of ``Client.render`` for one render of ``triple`` with sources at ``size``."""
+def request_for(triple: Triple, size: tuple[int, int], target: tuple[int, int] | None, views: int = 3) -> dict:
+    """The arguments of ``Client.render`` for one render of ``triple`` with sources at ``size`` and
+    a ``target`` view, or (``target`` None) of ``Client.upload_scene`` for a scene of ``views``
+    views: the triple's in turn."""
     scene = load_scene(SHARED / triple.scene, triple.format)
-    views = get_views(scene, list(triple.sources))
-    target = scene.views[triple.target].camera.resized(*TARGET)
+    triple_views = get_views(scene, list(triple.sources))
     sources = []
-    for view in views:
+    for view in triple_views:
         resized = resize_view(view, *size)
         sources.append((resized.camera, png_bytes(resized.image)))
-    return {
+    sources = [sources[i % len(sources)] for i in range(views)]
+    request = {
         "images": [data for _, data in sources],
         "cameras": [camera_json(c) for c, _ in sources],
-        "target": camera_json(target),
         "near": scene.near,
         "far": scene.far,
         "background": list(scene.background),
     }
+    if target:
+        request["target"] = camera_json(scene.views[triple.target].camera.resized(*target))
+    return request
 
 
-def render_status(client: Client, request: dict) -> tuple[int | None, str, float | None]:
-    """Status of one render without retries (``client`` made with ``max_retries=0``): 200, the
-    server's refusal (its message and Retry-After), or None when the server did not answer."""
+def request_status(client: Client, request: dict) -> tuple[int | None, str, float | None]:
+    """Status of one render or scene upload without retries (``client`` made with
+    ``max_retries=0``): 200 or 201, the server's refusal (its message and Retry-After), or None
+    when the server did not answer."""
     try:
-        client.render(**request, outputs=["rgb"])
-        return 200, "", None
+        if "target" in request:
+            client.render(**request, outputs=["rgb"])
+            return 200, "", None
+        client.upload_scene(**request)
+        return 201, "", None
     except ServerError as e:
         return e.status, e.message, getattr(e, "retry_after", None)
     except ConnectionFailed as e:
@@ -126,24 +136,32 @@ def stage_metrics(metrics: str) -> dict:
     return out
 
 
-def measure(binary: Path, bundle: Path, size: tuple[int, int], args) -> dict:
-    request = request_for(triple_for(size), size)
+def measure(binary: Path, bundle: Path, size: tuple[int, int], target: tuple[int, int] | None, views: int, args):
+    """One request on a fresh server: a render of ``target`` from 3 sources at ``size``, or (no
+    target) a scene upload of ``views`` views."""
+    request = request_for(triple_for(size), size, target, views)
     # A server without the probe (one built before it, for the "before" figures) gives only the
     # process's peak over the request (VmHWM: the warm-up's peak is cleared first where possible).
     extra = (*(("--memory-probe", "on") if args.probe else ()), *args.server_arg)
     server = ServerProcess(binary, bundle, args.threads, extra)
     dog = Watchdog(server.proc, args.keep_free_mb)
-    out: dict = {"bundle": str(bundle), "model_id": server.model.get("model_id"), "sources": "x".join(map(str, size))}
+    out: dict = {
+        "bundle": str(bundle),
+        "model_id": server.model.get("model_id"),
+        "sources": "x".join(map(str, size)),
+        "views": views,
+        "target": "x".join(map(str, target)) if target else None,
+    }
     try:
         out["at_rest"] = process_memory(server.proc.pid)
         if not args.probe:
             # Clears the warm-up's peak (proc(5): "5" resets VmHWM to the resident set).
             Path(f"/proc/{server.proc.pid}/clear_refs").write_text("5")
         start = time.perf_counter()
-        status, error, _ = render_status(Client(server.url, max_retries=0), request)
+        status, error, _ = request_status(Client(server.url, max_retries=0), request)
         out["seconds"] = round(time.perf_counter() - start, 1)
         out["status"] = status
-        if status != 200:
+        if status not in (200, 201):
             out["error"] = error[:300]
         if server.proc.poll() is None:
             out["stages"] = stage_metrics(server.client.metrics())
@@ -155,7 +173,10 @@ def measure(binary: Path, bundle: Path, size: tuple[int, int], args) -> dict:
         out["machine_available_mib_lowest"] = round(dog.lowest)
         server.stop()
     stages = out.get("stages", {})
-    if args.probe:
+    if args.probe and not target:
+        # A scene's upload runs no graph: the graphs' figures are the warm-up's.
+        out["request_peak_mib"] = stages.get("decode", {}).get("peak_mib")
+    elif args.probe:
         out["request_peak_mib"] = max((s.get("peak_mib", 0.0) for s in stages.values()), default=None)
     else:
         out["request_peak_mib"] = out.get("after_request", {}).get("hwm_mib")
@@ -165,17 +186,19 @@ def measure(binary: Path, bundle: Path, size: tuple[int, int], args) -> dict:
 def table(rows: list[dict]) -> str:
     stages = ["decode", "encoder", "volume", "cost_slab", "cost_conv", "volume_net", "renderer"]
     used = [s for s in stages if any(s in r.get("stages", {}) for r in rows)]
-    head = ["bundle", "sources", "at rest"] + [f"{s} peak / after" for s in used] + ["request peak", "after request"]
+    head = ["bundle", "sources", "target", "at rest"] + [f"{s} peak / after" for s in used]
+    head += ["request peak", "after request"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
-        cells = [Path(r["bundle"]).name, r["sources"], f"{r['at_rest']['rss_mib']:.0f}"]
+        target = r.get("target") or f"scene of {r.get('views', 3)}"
+        cells = [Path(r["bundle"]).name, r["sources"], target, f"{r['at_rest']['rss_mib']:.0f}"]
         for s in used:
             m = r.get("stages", {}).get(s)
             cells.append(f"{m['peak_mib']:.0f} / {m['after_mib']:.0f}" if m else "-")
         peak = r.get("request_peak_mib")
         note = (
             ""
-            if r.get("status") == 200
+            if r.get("status") in (200, 201)
             else f" ({'stopped by the watchdog' if r['watchdog_stopped'] else r.get('status')})"
         )
         cells.append(f"{peak:.0f}{note}" if peak else f"-{note}")
@@ -187,11 +210,15 @@ def table(rows: list[dict]) -> str:
 def update_fixture(path: Path, rows: list[dict]) -> None:
     """Merges the served rows into the server's fixture of measured peaks
     (tests/fixtures/memory/measured.json, read by pipeline::memory's tests): per bundle (by model
-    id and the way it builds its volume) its config, per source size the peak above the process
-    at rest."""
+    id and the way it builds its volume) its config, per source size, view count and target (0x0:
+    a scene's upload) the peak above the process at rest."""
     fixture = json.loads(path.read_text()) if path.exists() else {"bundles": {}, "rows": []}
+
+    def key(x: dict) -> tuple:
+        return x["bundle"], x["build"], x["sources"], x.get("views", 3), x["target"]
+
     for r in rows:
-        if r.get("status") != 200 or not r.get("request_peak_mib"):
+        if r.get("status") not in (200, 201) or not r.get("request_peak_mib"):
             continue
         manifest = json.loads((Path(r["bundle"]) / "manifest.json").read_text())
         build = volume_build(manifest["graphs"])
@@ -200,11 +227,11 @@ def update_fixture(path: Path, rows: list[dict]) -> None:
             "bundle": r["model_id"],
             "build": build,
             "sources": [int(v) for v in r["sources"].split("x")],
-            "target": list(TARGET),
+            "views": r.get("views", 3),
+            "target": [int(v) for v in r["target"].split("x")] if r.get("target") else [0, 0],
             "peak_above_rest_mib": round(r["request_peak_mib"] - r["at_rest"]["rss_mib"], 1),
         }
-        same = (row["bundle"], row["build"], row["sources"])
-        fixture["rows"] = [x for x in fixture["rows"] if (x["bundle"], x["build"], x["sources"]) != same] + [row]
+        fixture["rows"] = [x for x in fixture["rows"] if key(x) != key(row)] + [row]
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(fixture, indent=1) + "\n")
 
@@ -213,6 +240,10 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--bundle", action="append", required=True, help="bundle directory (repeatable)")
     parser.add_argument("--sizes", default=",".join(SIZES), help="source sizes WxH, comma-separated")
+    parser.add_argument("--targets", default=",".join(TARGETS), help="target sizes WxH, comma-separated")
+    parser.add_argument(
+        "--scene-views", default="", help="view counts of scene uploads to measure per source size, comma-separated"
+    )
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--server-bin", default=None)
     parser.add_argument("--server-arg", action="append", default=[], help="extra server flag (repeatable)")
@@ -225,11 +256,18 @@ def main(argv=None) -> None:
     parser.add_argument("--fixture", type=Path, default=None, help="merge the rows into this measured.json")
     args = parser.parse_args(argv)
     binary = find_server_binary(args.server_bin)
-    sizes = [tuple(int(v) for v in s.split("x")) for s in args.sizes.split(",")]
+
+    def pairs(text: str) -> list[tuple[int, int]]:
+        return [tuple(int(v) for v in s.split("x")) for s in text.split(",") if s]
+
+    sizes, targets = pairs(args.sizes), pairs(args.targets)
+    scene_views = [int(v) for v in args.scene_views.split(",") if v]
+    runs = [(size, target, 3) for size in sizes for target in targets]
+    runs += [(size, None, views) for size in sizes for views in scene_views]
     rows = []
     for bundle in args.bundle:
-        for size in sizes:
-            row = measure(binary, Path(bundle), size, args)
+        for size, target, views in runs:
+            row = measure(binary, Path(bundle), size, target, views, args)
             print(json.dumps(row), flush=True)
             rows.append(row)
     print(table(rows))

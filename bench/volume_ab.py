@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import re
 import statistics
 import time
 from pathlib import Path
@@ -28,31 +27,27 @@ from scnerf_export.data.scene import resize_view
 from scnerf_export.serving import ServerProcess, png_bytes
 
 from .memory import SHARED, triple_for
-from .server import multipart_request
 
 
-def scene_request(size: tuple[int, int]) -> tuple[bytes, dict]:
-    """The multipart body and headers of ``POST /v1/scenes`` with the size's triple of sources."""
+def scene_request(size: tuple[int, int]) -> dict:
+    """The arguments of ``Client.upload_scene`` for the size's triple of sources."""
     triple = triple_for(size)
     scene = load_scene(SHARED / triple.scene, triple.format)
     views = [resize_view(v, *size) for v in get_views(scene, list(triple.sources))]
-    document = {
-        "sources": [{"camera": camera_json(v.camera)} for v in views],
+    return {
+        "images": [png_bytes(v.image) for v in views],
+        "cameras": [camera_json(v.camera) for v in views],
         "near": scene.near,
         "far": scene.far,
         "background": list(scene.background),
     }
-    return multipart_request(document, [png_bytes(v.image) for v in views])
 
 
-def volume_ms(server: ServerProcess, body: bytes, headers: dict) -> float:
+def volume_ms(server: ServerProcess, request: dict) -> float:
     """The server's volume stage time of one scene upload (the scene is deleted afterwards)."""
-    status, answer, answer_headers = server.request("POST", "/v1/scenes", body, headers)
-    if status != 201:
-        raise RuntimeError(f"POST /v1/scenes: {status} {answer[:300]!r}")
-    server.request("DELETE", f"/v1/scenes/{json.loads(answer)['scene_id']}")
-    timing = {k.lower(): v for k, v in answer_headers.items()}["server-timing"]
-    return float(re.search(r"volume;dur=([0-9.]+)", timing).group(1))
+    scene = server.client.upload_scene(**request)
+    server.client.delete_scene(scene)
+    return scene.timings["volume"]
 
 
 def spread(values: list[float]) -> dict:
@@ -60,12 +55,12 @@ def spread(values: list[float]) -> dict:
 
 
 def measure(a: ServerProcess, b: ServerProcess, size: tuple[int, int], rounds: int) -> dict:
-    body, headers = scene_request(size)
-    volume_ms(a, body, headers), volume_ms(b, body, headers)  # warm-up: sessions, first allocations
+    request = scene_request(size)
+    volume_ms(a, request), volume_ms(b, request)  # warm-up: sessions, first allocations
     times: dict[str, list[float]] = {"a": [], "b": []}
     for _ in range(rounds):
         for name, server in (("a", a), ("b", b), ("b", b), ("a", a)):
-            times[name].append(volume_ms(server, body, headers))
+            times[name].append(volume_ms(server, request))
     # Each round's own ratio: B's two runs over A's two, taken together.
     ratios = [sum(times["b"][2 * i : 2 * i + 2]) / sum(times["a"][2 * i : 2 * i + 2]) for i in range(rounds)]
     return {

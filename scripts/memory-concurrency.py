@@ -22,7 +22,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from bench.memory import LEGO, process_memory, render_status, request_for
+from bench.memory import LEGO, process_memory, request_for, request_status
 from scnerf_client import Client
 from scnerf_export.serving import ServerProcess, find_server_binary
 
@@ -37,7 +37,7 @@ def main(argv=None) -> int:
     parser.add_argument("--server-bin", default=None)
     args = parser.parse_args(argv)
     size = tuple(int(v) for v in args.size.split("x"))
-    request = request_for(LEGO, size)
+    request = request_for(LEGO, size, (80, 64))
     extra = ["--request-timeout-secs", "7200"]
     if args.memory_budget_mb:
         extra += ["--memory-budget-mb", str(args.memory_budget_mb)]
@@ -54,7 +54,7 @@ def main(argv=None) -> int:
 
         def one(i: int) -> dict:
             start = time.perf_counter()
-            status, error, retry_after = render_status(client, request)
+            status, error, retry_after = request_status(client, request)
             out = {"request": i, "status": status, "seconds": round(time.perf_counter() - start, 1)}
             if status != 200:
                 out["retry_after"] = retry_after

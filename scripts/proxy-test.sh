@@ -72,7 +72,7 @@ trap cleanup EXIT
 # --- two replicas ---------------------------------------------------------------------------
 replicas=()
 for i in 1 2; do
-  SCNERF_MAX_REQUESTS_PER_CLIENT=0 "${bin}/scnerf-server" --bundle "${BUNDLE}" --addr 127.0.0.1:0 \
+  SCNERF_MAX_REQUESTS_PER_CLIENT=0 SCNERF_MAX_CONNECTIONS_PER_CLIENT=0 "${bin}/scnerf-server" --bundle "${BUNDLE}" --addr 127.0.0.1:0 \
     > "${OUT}/server-${i}.stdout" 2> "${OUT}/server-${i}.log" &
   pids+=($!)
 done

@@ -1,9 +1,10 @@
 #!/usr/bin/env bash
 # Every test of the project: the lint gate (ruff, clippy, rustfmt), the Rust workspace (unit, HTTP,
 # parity against the committed fixtures, end-to-end), scenes across two replicas behind Debian's
-# nginx (scripts/proxy-test.sh), the exporter's pytest suite, the benchmark's, the Python client
-# installed into a fresh venv against the real server (scripts/python-client-test.sh), and the viewer in
-# headless Chromium (scripts/viewer-test.sh). Both scripts install what they miss with apt-get
+# nginx (scripts/proxy-test.sh), the hostile clients' short form (scripts/attacks.sh), the
+# exporter's pytest suite, the benchmark's, the Python client installed into a fresh venv against
+# the real server (scripts/python-client-test.sh), and the viewer in headless Chromium
+# (scripts/viewer-test.sh). Both scripts install what they miss with apt-get
 # (nginx, Chromium) and npm; the proxy test says SKIPPED when nginx cannot be installed. Needs
 # crates.io, PyPI, npm and Debian's packages on the first run only.
 set -euo pipefail
@@ -17,6 +18,7 @@ cargo test -j2 --workspace --locked
 cargo clippy --workspace --all-targets --locked -- -D warnings
 cargo fmt --all --check
 scripts/proxy-test.sh
+scripts/attacks.sh
 .venv/bin/python -m pytest -q -p no:cacheprovider exporter/tests
 .venv/bin/python -m pytest -q -p no:cacheprovider bench/tests
 scripts/python-client-test.sh

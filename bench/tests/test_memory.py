@@ -10,6 +10,8 @@ def row(bundle, sources, peak, status=200):
         "bundle": str(bundle),
         "model_id": "scnerf-mvsnerf-abc",
         "sources": sources,
+        "views": 3,
+        "target": "80x64",
         "status": status,
         "watchdog_stopped": False,
         "at_rest": {"rss_mib": 90.0},
@@ -37,9 +39,16 @@ def test_fixture_rows_are_the_peak_above_rest_per_bundle_build_and_size(tmp_path
             "bundle": "scnerf-mvsnerf-abc",
             "build": "slabs",
             "sources": [640, 512],
+            "views": 3,
             "target": [80, 64],
             "peak_above_rest_mib": 1010.0,
         }
     ]
+    # A scene's upload (no target) is a row of its own.
+    upload = {**row(bundle, "640x512", 400.0, status=201), "views": 16, "target": None}
+    update_fixture(fixture, [upload])
+    rows = json.loads(fixture.read_text())["rows"]
+    got = [(r["views"], r["target"], r["peak_above_rest_mib"]) for r in rows]
+    assert got == [(3, [80, 64], 1010.0), (16, [0, 0], 310.0)]
     text = table([row(bundle, "640x512", 1100.0)])
     assert "| cost_slab peak / after | volume_net peak / after |" in text and "| 1090 / 200 | 1100 / 300 |" in text

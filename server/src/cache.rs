@@ -179,6 +179,15 @@ impl SceneCache {
         self.inner.lock().unwrap_or_else(|p| p.into_inner())
     }
 
+    /// Refuses a scene of `bytes` that the whole cache could not hold (before it is decoded).
+    pub fn check_fits(&self, bytes: u64) -> Result<(), SceneTooLarge> {
+        let needed = usize::try_from(bytes).unwrap_or(usize::MAX);
+        match needed > self.config.max_bytes {
+            true => Err(SceneTooLarge { needed, max: self.config.max_bytes }),
+            false => Ok(()),
+        }
+    }
+
     /// Stores a scene under `id` (replacing `owner`'s scene of that id) or a fresh random id,
     /// making room as the module doc says.
     pub fn insert(

@@ -179,6 +179,12 @@ pub struct Config {
     #[arg(long, env = "SCNERF_MAX_CAPTURE_BYTES", default_value_t = Limits::default().max_capture_bytes)]
     pub max_capture_bytes: usize,
 
+    /// Most bytes of a capture's files that are not images (transforms*.json, COLMAP models,
+    /// poses_bounds.npy, DTU cameras), in all (413 naming the file beyond): the readers parse
+    /// them in memory, and real captures keep them small.
+    #[arg(long, env = "SCNERF_MAX_CAPTURE_METADATA_BYTES", default_value_t = Limits::default().max_capture_metadata_bytes)]
+    pub max_capture_metadata_bytes: usize,
+
     /// Memory for cached scenes (POST /v1/scenes), in MiB; least recently used scenes are evicted
     /// beyond it. A paper-size scene of 640x512 sources takes ~150 MiB.
     #[arg(long, env = "SCNERF_SCENE_CACHE_MB", default_value_t = CacheConfig::default().max_bytes >> 20)]
@@ -236,11 +242,23 @@ pub struct Config {
     #[arg(long, env = "SCNERF_MIN_BODY_BYTES_PER_SEC", default_value_t = UploadPolicy::default().min_bytes_per_sec)]
     pub min_body_bytes_per_sec: u64,
 
-    /// Open connections at most (further clients wait in the listen backlog). Must fit in the
-    /// open-file limit with 64 to spare: checked at start (the soft limit is raised when the
-    /// hard limit allows).
+    /// Longest pause in a request body, whatever it sent before: a body that sends nothing for
+    /// this many seconds ends with 408 (bytes sent early buy no right to stall).
+    #[arg(long, env = "SCNERF_BODY_STALL_SECS", default_value_t = UploadPolicy::default().stall.as_secs())]
+    pub body_stall_secs: u64,
+
+    /// Open connections at most; beyond it a new connection is answered 503 and closed, except
+    /// for a reserve of 8 that serve /healthz, /readyz and /metrics only (one request each), so
+    /// that probes are answered whoever holds the others. Must fit in the open-file limit with 72
+    /// to spare: checked at start (the soft limit is raised when the hard limit allows).
     #[arg(long, env = "SCNERF_MAX_CONNECTIONS", default_value_t = 512)]
     pub max_connections: usize,
+
+    /// Open connections from one client (peer IP address) at most; beyond it a new connection
+    /// is answered 429 and closed, so that one source cannot hold every connection. 0: no cap
+    /// (behind a reverse proxy every connection comes from the proxy's address).
+    #[arg(long, env = "SCNERF_MAX_CONNECTIONS_PER_CLIENT", default_value_t = 64)]
+    pub max_connections_per_client: usize,
 
     /// A connection must send a complete request head within this many seconds of opening or
     /// of its previous response (idle keep-alive), or it is closed.
@@ -321,6 +339,7 @@ impl Config {
             max_json_depth: self.max_json_depth,
             max_scene_views: self.max_scene_views as usize,
             max_capture_bytes: self.max_capture_bytes,
+            max_capture_metadata_bytes: self.max_capture_metadata_bytes,
         }
     }
 
@@ -337,6 +356,7 @@ impl Config {
             uploads: UploadPolicy {
                 grace: Duration::from_secs(self.body_timeout_secs),
                 min_bytes_per_sec: self.min_body_bytes_per_sec.max(1),
+                stall: Duration::from_secs(self.body_stall_secs.max(1)),
             },
             auth: Auth::from_config(&self.auth_tokens, self.auth_token_file.as_deref())?,
         })
@@ -345,6 +365,7 @@ impl Config {
     pub fn serve_options(&self) -> ServeOptions {
         ServeOptions {
             max_connections: self.max_connections.max(1),
+            max_connections_per_client: self.max_connections_per_client,
             header_read_timeout: Duration::from_secs(self.header_read_timeout_secs.max(1)),
             // hyper needs room for at least a request line and a few headers.
             max_header_bytes: self.max_header_bytes.max(1024),

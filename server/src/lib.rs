@@ -4,11 +4,13 @@
 //! `camera` (canonical cameras) -> `pipeline`: `sources` (decode, pad) -> `encoder` ->
 //! `volume` (cost volume) -> `rays` -> `chunks` (renderer runs) -> `assemble` (image) ->
 //! `http::respond`. The graphs run on one inference thread (`backend`, ONNX Runtime in
-//! `backend::ort`); `bundle` is the model contract, `cache` keeps scenes, `error` maps every
+//! `backend::ort`); other CPU work runs on blocking threads and stops with its request
+//! (`blocking`). `bundle` is the model contract, `cache` keeps scenes, `error` maps every
 //! refusal to HTTP, `config` is the one configuration struct.
 
 pub mod auth;
 pub mod backend;
+pub mod blocking;
 pub mod bundle;
 pub mod cache;
 pub mod camera;

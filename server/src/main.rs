@@ -3,6 +3,7 @@ use scnerf_server::config::Config;
 use scnerf_server::logging;
 
 fn main() {
+    scnerf_server::sysmem::return_large_blocks();
     let config = Config::parse();
     // Logs go to stderr; stdout carries only the `listening on` line that scripts read.
     let ansi = std::io::IsTerminal::is_terminal(&std::io::stderr());

@@ -190,7 +190,13 @@ impl Collector for StateCollector {
             &mut e,
             "memory_admitted_bytes",
             "Sum of the estimated peak memory of the requests admitted now",
-            bytes(q.memory_in_use),
+            bytes(q.memory_in_use - q.memory_leased),
+        )?;
+        gauge(
+            &mut e,
+            "memory_leased_bytes",
+            "Memory held against the budget beside the admitted requests: bodies as they arrive, captures being parsed",
+            bytes(q.memory_leased),
         )?;
         let refusals = [
             (ReasonLabels { reason: "busy" }, ConstCounter::new(q.refusals.busy)),

@@ -6,7 +6,6 @@
 
 mod common;
 
-use std::path::Path;
 use std::sync::atomic::Ordering;
 use std::time::Duration;
 
@@ -292,31 +291,6 @@ async fn a_routing_proxy_names_posted_scenes() {
 }
 
 // --- POST /v1/captures
-
-fn datasets() -> std::path::PathBuf {
-    scnerf_e2e::repo_root().join("tests/fixtures/datasets")
-}
-
-/// Every file under `dir` as (path relative to `dir`, bytes).
-fn files_of(dir: &Path) -> Vec<(String, Vec<u8>)> {
-    fn walk(root: &Path, dir: &Path, out: &mut Vec<(String, Vec<u8>)>) {
-        for entry in std::fs::read_dir(dir).unwrap() {
-            let path = entry.unwrap().path();
-            if path.is_dir() {
-                walk(root, &path, out);
-            } else {
-                out.push((
-                    path.strip_prefix(root).unwrap().to_str().unwrap().to_string(),
-                    std::fs::read(&path).unwrap(),
-                ));
-            }
-        }
-    }
-    let mut out = Vec::new();
-    walk(dir, dir, &mut out);
-    out.sort();
-    out
-}
 
 async fn post_capture(app: &App, files: &[(String, Vec<u8>)], query: &str) -> common::Got {
     let parts: Vec<(&str, Option<&str>, &str, &[u8])> = files

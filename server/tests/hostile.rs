@@ -42,6 +42,7 @@ fn limits() -> Limits {
         max_json_depth: 16,
         max_scene_views: 16,
         max_capture_bytes: 4 << 20,
+        max_capture_metadata_bytes: 1 << 20,
     }
 }
 

@@ -26,7 +26,7 @@ fn small_request_estimate() -> u64 {
         slabs: SlabPolicy::default(),
         chunking: ChunkPolicy { max_rays: 100, memory_budget_bytes: usize::MAX },
     };
-    estimate(&b.config, &plan, &RequestSizes { sources: Some((32, 32)), target_pixels: 48, sampling_bytes: 0 })
+    estimate(&b.config, &plan, &RequestSizes::render(&b.config, (32, 32), 48))
 }
 
 /// A router whose executor may hold `total` bytes of estimates; each graph run takes `delay`.

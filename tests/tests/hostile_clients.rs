@@ -1,6 +1,9 @@
 //! Hostile clients against the real binary over real sockets: trickling and stalled uploads,
 //! declared lengths over the limit, abandoned uploads, partial headers, idle keep-alive
-//! connections, oversized headers, the connection cap and a shutdown with idle connections.
+//! connections, oversized headers, the connection caps (in all, per address, the probes'
+//! reserve), refused and expired requests answered without their bodies, bodies held against
+//! the memory budget, and a shutdown with idle connections. scripts/attacks.sh runs the probe's
+//! attacks at their own sizes.
 //! Settings go through the environment (`SCNERF_*`), so each test also runs against a build
 //! that predates them (`SCNERF_SERVER_BIN`), where it fails.
 
@@ -209,4 +212,155 @@ fn sigterm_does_not_wait_for_connections_without_a_request() {
     let status = server.wait_exit(Duration::from_secs(25));
     assert_eq!(status.code(), Some(0), "{status}");
     assert!(signalled.elapsed() < Duration::from_secs(5), "exit took {:?}", signalled.elapsed());
+}
+
+/// The head and header lines of the response on `stream` (lower-case names), if one arrives
+/// within `timeout`.
+fn response_within(stream: &mut TcpStream, timeout: Duration) -> Option<(u16, String)> {
+    stream.set_read_timeout(Some(timeout)).unwrap();
+    let mut buf = vec![0u8; 16 << 10];
+    let n = stream.read(&mut buf).ok().filter(|n| *n > 0)?;
+    let head = String::from_utf8_lossy(&buf[..n]).to_ascii_lowercase();
+    Some((head.split_whitespace().nth(1)?.parse().ok()?, head))
+}
+
+/// A connection from `ip` that sends the head of a POST of `length` bytes, then `sent` of them,
+/// then nothing.
+fn stalled_post(ip: &str, server: SocketAddr, path: &str, headers: &str, length: u64, sent: usize) -> TcpStream {
+    let mut stream = connect_from(ip, server);
+    let head = format!(
+        "POST {path} HTTP/1.1\r\nHost: test\r\nContent-Type: multipart/form-data; boundary=x\r\n{headers}Content-Length: {length}\r\n\r\n"
+    );
+    stream.write_all(head.as_bytes()).unwrap();
+    stream.write_all(&vec![b' '; sent]).unwrap();
+    stream
+}
+
+#[test]
+fn one_address_cannot_take_every_connection_and_probes_are_answered_at_the_cap() {
+    // Idle connections are not closed while the test runs, however slowly the machine runs it.
+    let server = start(&[
+        ("SCNERF_MAX_CONNECTIONS", "16"),
+        ("SCNERF_MAX_CONNECTIONS_PER_CLIENT", "8"),
+        ("SCNERF_HEADER_READ_TIMEOUT_SECS", "600"),
+    ]);
+    // One address holds as many connections as it may: the ninth is told 429 at once.
+    let mut held: Vec<TcpStream> = (0..8).map(|_| connect_from("127.0.0.2", server.addr)).collect();
+    let mut ninth = connect_from("127.0.0.2", server.addr);
+    let (status, head) = response_within(&mut ninth, Duration::from_secs(1)).expect("an answer at once");
+    assert_eq!(status, 429, "{head}");
+    assert!(head.contains("retry-after: 1") && head.contains("connection: close"), "{head}");
+    let probe = |ip: &str, path: &str| {
+        let mut s = connect_from(ip, server.addr);
+        s.write_all(format!("GET {path} HTTP/1.1\r\nHost: test\r\n\r\n").as_bytes()).unwrap();
+        let started = Instant::now();
+        let status = response_within(&mut s, Duration::from_secs(5)).map(|(code, _)| code);
+        (status, started.elapsed())
+    };
+    let (status, took) = probe("127.0.0.3", "/healthz");
+    assert_eq!(status, Some(200));
+    assert!(took < Duration::from_secs(1), "/healthz took {took:?}");
+    // Two more addresses fill every connection: the probes still get theirs, from the reserve,
+    // and only the probes.
+    held.extend((0..8).map(|_| connect_from("127.0.0.3", server.addr)));
+    std::thread::sleep(Duration::from_millis(200));
+    for path in ["/healthz", "/readyz", "/metrics"] {
+        let (status, took) = probe("127.0.0.4", path);
+        assert_eq!(status, Some(200), "{path}");
+        assert!(took < Duration::from_secs(1), "{path} took {took:?}");
+    }
+    assert_eq!(probe("127.0.0.4", "/v1/model").0, Some(503));
+    drop(held);
+}
+
+#[test]
+fn a_refused_request_is_answered_at_once_without_its_body_being_read() {
+    let server = start(&[("SCNERF_MAX_REQUESTS_PER_CLIENT", "1")]);
+    // The client's one slot: an upload that stalls.
+    let _holding = stalled_post("127.0.0.2", server.addr, "/v1/scenes", "", 4 << 20, 1 << 20);
+    std::thread::sleep(Duration::from_millis(300));
+    // Its next upload is refused with 4 MiB declared and 1 MiB sent: the answer comes at once,
+    // with connection: close, although the rest of the body never comes.
+    let mut refused = stalled_post("127.0.0.2", server.addr, "/v1/scenes", "", 4 << 20, 1 << 20);
+    let (status, head) = response_within(&mut refused, Duration::from_secs(1)).expect("an answer within 1 s");
+    assert_eq!(status, 429, "{head}");
+    assert!(head.contains("connection: close"), "{head}");
+    assert!(closed_within(&mut refused, Duration::from_secs(5)), "the refused connection stayed open");
+}
+
+#[test]
+fn an_expired_request_is_answered_at_its_deadline_and_a_stalled_body_at_the_stall_limit() {
+    let server = start(&[("SCNERF_BODY_STALL_SECS", "2")]);
+    // 1 MiB of a 4 MiB body, then nothing: the 1 s deadline passes while the body is read.
+    let started = Instant::now();
+    let mut expired =
+        stalled_post("127.0.0.2", server.addr, "/v1/render", "x-scnerf-deadline-ms: 1000\r\n", 4 << 20, 1 << 20);
+    let (status, head) = response_within(&mut expired, Duration::from_secs(5)).expect("an answer");
+    assert_eq!(status, 504, "{head}");
+    assert!(head.contains("connection: close"), "{head}");
+    assert!(started.elapsed() < Duration::from_secs(2), "the 504 came after {:?}", started.elapsed());
+    // 2 MiB at once and then nothing buys no time: 408 at the stall limit, well before the
+    // 30 s grace and the 64 s the bytes would have bought.
+    let started = Instant::now();
+    let mut stalled = stalled_post("127.0.0.3", server.addr, "/v1/render", "", 4 << 20, 2 << 20);
+    let (status, head) = response_within(&mut stalled, Duration::from_secs(10)).expect("an answer");
+    assert_eq!(status, 408, "{head}");
+    assert!(started.elapsed() < Duration::from_secs(4), "the 408 came after {:?}", started.elapsed());
+}
+
+/// `/metrics` gauge `name`.
+fn metric(server: SocketAddr, name: &str) -> f64 {
+    let got = http_request(server, "GET", "/metrics", &[], b"", Duration::from_secs(120)).unwrap();
+    let text = String::from_utf8_lossy(&got.body).into_owned();
+    text.lines()
+        .find_map(|l| l.strip_prefix(name)?.strip_prefix(' ')?.trim().parse().ok())
+        .unwrap_or_else(|| panic!("no {name} in /metrics"))
+}
+
+#[test]
+fn bodies_in_flight_are_held_against_the_memory_budget() {
+    let server = start(&[
+        ("SCNERF_MEMORY_BUDGET_MB", "300"),
+        ("SCNERF_SCENE_CACHE_MB", "0"),
+        ("SCNERF_MAX_REQUESTS_PER_CLIENT", "0"),
+        // Reading the uploads is slow in a debug build: they must not stall out meanwhile.
+        ("SCNERF_BODY_STALL_SECS", "300"),
+        ("SCNERF_BODY_TIMEOUT_SECS", "300"),
+    ]);
+    let for_requests =
+        metric(server.addr, "scnerf_memory_budget_bytes") - metric(server.addr, "scnerf_memory_reserved_bytes");
+    // Two uploads that stall halfway hold all but 16 MiB of what requests may have.
+    let upload = (for_requests as usize - (16 << 20)) / 2;
+    let addr = server.addr;
+    let uploads: Vec<_> = (0..2)
+        .map(|_| std::thread::spawn(move || stalled_post("127.0.0.2", addr, "/v1/captures", "", 250 << 20, upload)))
+        .collect();
+    let stalled: Vec<TcpStream> = uploads.into_iter().map(|u| u.join().unwrap()).collect();
+    let start = Instant::now();
+    let mut leased = 0.0;
+    while leased < (2 * upload) as f64 && start.elapsed() < Duration::from_secs(60) {
+        std::thread::sleep(Duration::from_millis(100));
+        leased = metric(server.addr, "scnerf_memory_leased_bytes");
+    }
+    assert!(leased >= (2 * upload) as f64, "{leased} bytes leased for {} sent", 2 * upload);
+    // A third is refused as its bytes come (503, at once), and so is a render.
+    let mut third = stalled_post("127.0.0.3", server.addr, "/v1/captures", "", 250 << 20, 32 << 20);
+    let (status, head) = response_within(&mut third, Duration::from_secs(2)).expect("an answer");
+    assert_eq!(status, 503, "{head}");
+    assert!(head.contains("retry-after") && head.contains("connection: close"), "{head}");
+    let case = scnerf_e2e::Case::load(&repo_root().join("tests/fixtures/parity/cases/opencv_64x96")).unwrap();
+    let (ctype, body) = case.multipart(&case.request);
+    let render = |timeout| {
+        http_request(server.addr, "POST", "/v1/render", &[("content-type", ctype.as_str())], &body, timeout).unwrap()
+    };
+    let busy = render(Duration::from_secs(60));
+    assert_eq!(busy.status, 503, "{}", String::from_utf8_lossy(&busy.body));
+    assert!(String::from_utf8_lossy(&busy.body).contains("MiB"));
+    // The uploads' clients leave: their bytes, and their hold on the budget, go with them.
+    drop(stalled);
+    let start = Instant::now();
+    while metric(server.addr, "scnerf_memory_leased_bytes") > 0.0 && start.elapsed() < Duration::from_secs(5) {
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    assert_eq!(render(Duration::from_secs(120)).status, 200);
 }

@@ -53,8 +53,7 @@ async fn eight_concurrent_renders_within_a_memory_budget() {
     let bundle = scnerf_server::bundle::Bundle::load(&fixtures.join("bundle")).unwrap();
     let plan =
         MemoryPlan { build: bundle.volume_build(), slabs: SlabPolicy::default(), chunking: ChunkPolicy::default() };
-    let sizes =
-        RequestSizes { sources: Some(padded_size(w, h, 32)), target_pixels: (tw * th) as u64, sampling_bytes: 0 };
+    let sizes = RequestSizes::render(&bundle.config, padded_size(w, h, 32), (tw * th) as u64);
     let one = estimate(&bundle.config, &plan, &sizes);
     let budget = one * 5 / 2;
     let executor = ExecutorOptions { capacity: 32, memory: MemoryBudget { total: budget, reserved: 0 }, probe: None };

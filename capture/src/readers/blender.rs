@@ -83,12 +83,11 @@ fn transforms_files(fs: &dyn Files, path: &Path) -> Result<Vec<PathBuf>> {
 
 /// The file's JSON object and its `frames` list.
 pub(super) fn frames_of(fs: &dyn Files, file: &Path) -> Result<(serde_json::Value, Vec<serde_json::Value>)> {
-    let data = read_json(fs, file)?;
-    let frames = data
-        .get("frames")
-        .and_then(|f| f.as_array())
-        .cloned()
-        .ok_or_else(|| Error::dataset(file, "not a transforms.json (needs a 'frames' list)"))?;
+    let mut data = read_json(fs, file)?;
+    let frames = match data.get_mut("frames").map(serde_json::Value::take) {
+        Some(serde_json::Value::Array(frames)) => frames,
+        _ => return Err(Error::dataset(file, "not a transforms.json (needs a 'frames' list)")),
+    };
     Ok((data, frames))
 }
 

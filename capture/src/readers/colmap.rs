@@ -115,12 +115,14 @@ pub fn load(fs: &dyn Files, path: &Path, opts: ReadOptions) -> Result<Capture> {
         ));
     }
     let points_file = dir.join(format!("points3D.{ext}"));
-    let from_points = if fs.is_file(&points_file) {
+    // The points serve only the depth range: not read when the options give it.
+    let given = opts.near.is_some() && opts.far.is_some();
+    let from_points = if fs.is_file(&points_file) && !given {
         let points = match encoding {
             Encoding::Text => text::points(fs, &points_file)?,
             Encoding::Binary => binary::points(fs, &points_file)?,
         };
-        points_near_far(&points, &images)
+        points_near_far(&points, &images, &points_file)?
     } else {
         None
     };
@@ -191,10 +193,15 @@ fn pose(q: [f64; 4], t: [f64; 3]) -> Option<Pose> {
     Some(Pose::from_parts(Translation3::new(t[0], t[1], t[2]), rotation))
 }
 
+/// Most depths (a point's z in one image) ranked for the depth range: 32 MiB of them, more than
+/// a 64 MiB points3D file of real tracks gives. A point without a track counts in every image,
+/// so a file of them could ask for points x images.
+pub const MAX_DEPTHS: usize = 1 << 22;
+
 /// near = 0.9 x the 1st, far = 1.1 x the 99th percentile of the positive z-depths of each point
 /// in the images that observe it (in every image for a point without a track);
 /// datasets.py `_colmap_points_near_far`. Images whose file is missing still count.
-fn points_near_far(points: &Points, images: &[ImageRecord]) -> Option<(f64, f64)> {
+fn points_near_far(points: &Points, images: &[ImageRecord], file: &Path) -> Result<Option<(f64, f64)>> {
     // Python keeps the last record of a repeated image id
     let poses: HashMap<i64, &Pose> = images.iter().map(|i| (i.id, &i.w2c)).collect();
     let mut observed: HashMap<i64, Vec<usize>> = HashMap::new();
@@ -207,6 +214,20 @@ fn points_near_far(points: &Points, images: &[ImageRecord]) -> Option<(f64, f64)
             observed.entry(*id).or_default().push(k);
         }
     }
+    let observations: usize = poses.keys().map(|id| observed.get(id).map_or(0, Vec::len)).sum();
+    let depth_count = untracked.len().checked_mul(poses.len()).and_then(|n| n.checked_add(observations));
+    if depth_count.is_none_or(|n| n > MAX_DEPTHS) {
+        return Err(Error::dataset(
+            file,
+            format!(
+                "{} points ({} without a track, seen from all {} images) give more than {MAX_DEPTHS} depths to \
+                 rank for near/far: pass --near and --far",
+                points.xyz.len(),
+                untracked.len(),
+                poses.len()
+            ),
+        ));
+    }
     let mut depths = Vec::new();
     for (id, w2c) in &poses {
         let own = observed.get(id).map(Vec::as_slice).unwrap_or_default();
@@ -218,42 +239,53 @@ fn points_near_far(points: &Points, images: &[ImageRecord]) -> Option<(f64, f64)
         }
     }
     if depths.is_empty() {
-        return None;
+        return Ok(None);
     }
     depths.sort_by(f64::total_cmp);
-    Some((0.9 * percentile(&depths, 1.0), 1.1 * percentile(&depths, 99.0)))
+    Ok(Some((0.9 * percentile(&depths, 1.0), 1.1 * percentile(&depths, 99.0))))
 }
 
 mod text {
     use super::*;
 
-    /// Lines with their 1-based numbers, comments and blank lines kept (images.txt needs them).
-    fn lines(fs: &dyn Files, path: &Path) -> Result<Vec<String>> {
-        Ok(fs.read_text(path)?.lines().map(str::to_string).collect())
+    /// The line quoted in an error, cut short (a malformed line may be the whole file).
+    fn malformed(path: &Path, line: usize, what: &str, text: &str) -> Error {
+        let shown: String = text.chars().take(80).collect();
+        let cut = if shown.len() < text.len() { "..." } else { "" };
+        Error::dataset(path, format!("line {line}: malformed {what} line: {shown:?}{cut}"))
     }
 
-    fn malformed(path: &Path, line: usize, what: &str, text: &str) -> Error {
-        Error::dataset(path, format!("line {line}: malformed {what} line: {text:?}"))
+    /// The lines with their 1-based numbers, blank lines and comments left out.
+    fn records(text: &str) -> impl Iterator<Item = (usize, &str)> {
+        text.lines().enumerate().map(|(i, l)| (i + 1, l.trim())).filter(|(_, s)| !s.is_empty() && !s.starts_with('#'))
     }
+
+    /// The next `N` tokens as numbers.
+    fn numbers<'a, T: std::str::FromStr, const N: usize>(tokens: &mut impl Iterator<Item = &'a str>) -> Option<[T; N]> {
+        let mut out = Vec::with_capacity(N);
+        for _ in 0..N {
+            out.push(tokens.next()?.parse().ok()?);
+        }
+        out.try_into().ok()
+    }
+
+    /// The most parameters of any model (`MODELS`): a longer line is malformed without being
+    /// read further.
+    const MAX_PARAMS: usize = 12;
 
     pub(super) fn cameras(fs: &dyn Files, path: &Path) -> Result<Vec<(i64, CameraModel)>> {
         let mut out = Vec::new();
-        for (i, line) in lines(fs, path)?.iter().enumerate() {
-            let s = line.trim();
-            if s.is_empty() || s.starts_with('#') {
-                continue;
-            }
-            let t: Vec<&str> = s.split_whitespace().collect();
+        for (n, s) in records(&fs.read_text(path)?) {
             let parse = || -> Option<(i64, CameraModel)> {
-                let params = t.get(4..)?.iter().map(|x| x.parse().ok()).collect::<Option<Vec<f64>>>()?;
-                let model = t.get(1)?.to_uppercase();
-                Some((
-                    t[0].parse().ok()?,
-                    CameraModel { model, width: t[2].parse().ok()?, height: t[3].parse().ok()?, params },
-                ))
+                let mut t = s.split_whitespace();
+                let id = t.next()?.parse().ok()?;
+                let model = t.next()?.to_uppercase();
+                let [width, height] = numbers(&mut t)?;
+                let params = t.by_ref().take(MAX_PARAMS).map(|x| x.parse().ok()).collect::<Option<Vec<f64>>>()?;
+                t.next().is_none().then_some((id, CameraModel { model, width, height, params }))
             };
-            let (id, cam) = parse().ok_or_else(|| malformed(path, i + 1, "camera", s))?;
-            check_params(&cam, path, &format!("line {}", i + 1))?;
+            let (id, cam) = parse().ok_or_else(|| malformed(path, n, "camera", s))?;
+            check_params(&cam, path, &format!("line {n}"))?;
             out.push((id, cam));
         }
         if out.is_empty() {
@@ -265,29 +297,31 @@ mod text {
     /// Every image takes two lines; the second (its 2D points) may be empty, so records are read
     /// in pairs instead of filtering blank lines.
     pub(super) fn images(fs: &dyn Files, path: &Path) -> Result<Vec<ImageRecord>> {
-        let lines = lines(fs, path)?;
+        let text = fs.read_text(path)?;
+        let mut lines = text.lines().enumerate();
         let mut out = Vec::new();
-        let mut i = 0;
-        while i < lines.len() {
-            let s = lines[i].trim();
+        while let Some((i, line)) = lines.next() {
+            let s = line.trim();
             if s.is_empty() || s.starts_with('#') {
-                i += 1;
                 continue;
             }
-            let t: Vec<&str> = s.split_whitespace().collect();
-            let parse = || -> Option<([f64; 4], [f64; 3], i64, i64)> {
-                let n: Vec<f64> = t.get(1..8)?.iter().map(|x| x.parse().ok()).collect::<Option<_>>()?;
-                Some(([n[0], n[1], n[2], n[3]], [n[4], n[5], n[6]], t[0].parse().ok()?, t.get(8)?.parse().ok()?))
+            // id, qw qx qy qz tx ty tz, camera id, name
+            let parse = || -> Option<(i64, [f64; 7], i64, String)> {
+                let mut t = s.split_whitespace();
+                let id = t.next()?.parse().ok()?;
+                let qt = numbers(&mut t)?;
+                let camera_id = t.next()?.parse().ok()?;
+                // Python: " ".join(elems[9:])
+                let name = t
+                    .fold(String::new(), |name, token| if name.is_empty() { token.into() } else { name + " " + token });
+                (!name.is_empty()).then_some((id, qt, camera_id, name))
             };
-            let (q, tv, id, camera_id) = parse().ok_or_else(|| malformed(path, i + 1, "image", s))?;
-            let name = t[9..].join(" ");
-            if name.is_empty() {
-                return Err(malformed(path, i + 1, "image", s));
-            }
-            let w2c =
-                pose(q, tv).ok_or_else(|| Error::dataset(path, format!("line {}: zero or non-finite pose", i + 1)))?;
+            let (id, [qw, qx, qy, qz, tx, ty, tz], camera_id, name) =
+                parse().ok_or_else(|| malformed(path, i + 1, "image", s))?;
+            let w2c = pose([qw, qx, qy, qz], [tx, ty, tz])
+                .ok_or_else(|| Error::dataset(path, format!("line {}: zero or non-finite pose", i + 1)))?;
             out.push(ImageRecord { id, name, w2c, camera_id });
-            i += 2;
+            lines.next(); // its 2D points
         }
         if out.is_empty() {
             return Err(Error::dataset(path, "no images"));
@@ -295,20 +329,17 @@ mod text {
         Ok(out)
     }
 
+    /// `POINT3D_ID X Y Z R G B ERROR (IMAGE_ID POINT2D_IDX)*`
     pub(super) fn points(fs: &dyn Files, path: &Path) -> Result<Points> {
         let mut points = Points { xyz: Vec::new(), tracks: Vec::new() };
-        for (i, line) in lines(fs, path)?.iter().enumerate() {
-            let s = line.trim();
-            if s.is_empty() || s.starts_with('#') {
-                continue;
-            }
-            let t: Vec<&str> = s.split_whitespace().collect();
+        for (n, s) in records(&fs.read_text(path)?) {
             let parse = || -> Option<(Point3<f64>, Vec<i64>)> {
-                let xyz: Vec<f64> = t.get(1..4)?.iter().map(|x| x.parse().ok()).collect::<Option<_>>()?;
-                let track = t.iter().skip(8).step_by(2).map(|x| x.parse().ok()).collect::<Option<_>>()?;
-                Some((Point3::new(xyz[0], xyz[1], xyz[2]), track))
+                let mut t = s.split_whitespace();
+                let [x, y, z] = numbers::<f64, 3>(t.by_ref().skip(1).by_ref())?;
+                let track = t.skip(4).step_by(2).map(|x| x.parse().ok()).collect::<Option<_>>()?;
+                Some((Point3::new(x, y, z), track))
             };
-            let (xyz, track) = parse().ok_or_else(|| malformed(path, i + 1, "point", s))?;
+            let (xyz, track) = parse().ok_or_else(|| malformed(path, n, "point", s))?;
             points.xyz.push(xyz);
             points.tracks.push(track);
         }
@@ -338,13 +369,13 @@ mod binary {
 
     struct Reader<'a> {
         path: &'a Path,
-        bytes: Vec<u8>,
+        bytes: std::borrow::Cow<'a, [u8]>,
         at: usize,
     }
 
     impl<'a> Reader<'a> {
-        fn open(fs: &dyn Files, path: &'a Path) -> Result<Self> {
-            Ok(Reader { path, bytes: fs.read(path)?.into_owned(), at: 0 })
+        fn open(fs: &'a dyn Files, path: &'a Path) -> Result<Self> {
+            Ok(Reader { path, bytes: fs.read(path)?, at: 0 })
         }
 
         fn take<const N: usize>(&mut self) -> Result<[u8; N]> {

@@ -33,7 +33,7 @@ pub fn load(fs: &dyn Files, path: &Path, opts: ReadOptions) -> Result<Capture> {
     let image_dir = image_dir(fs, path)?;
     let (mut views, mut nears, mut fars, mut skipped) = (Vec::new(), Vec::new(), Vec::new(), 0);
     for (id, file) in &cam_files {
-        let image_path = image_dir.join(format!("rect_{:03}_3_r5000.png", id + 1));
+        let image_path = image_dir.join(format!("rect_{:03}_3_r5000.png", u64::from(*id) + 1));
         if !fs.is_file(&image_path) {
             skipped += 1;
             continue;
@@ -134,20 +134,30 @@ struct DtuCamera {
 /// depth_interval; scaled to MVSNeRF's units.
 fn parse_cam(fs: &dyn Files, path: &Path) -> Result<DtuCamera> {
     let text = fs.read_text(path)?;
-    let low = text.to_lowercase();
+    // ASCII only: the indices found in `low` must be those of `text`.
+    let low = text.to_ascii_lowercase();
     let (i_ext, i_int) = match (low.find("extrinsic"), low.find("intrinsic")) {
         (Some(e), Some(i)) if e < i => (e, i),
         _ => return Err(Error::dataset(path, "not an MVSNet cam.txt (needs 'extrinsic' then 'intrinsic' sections)")),
     };
-    let numbers = |s: &str| -> Result<Vec<f64>> {
+    // At most `max` numbers: 16 then 11 are all a camera has (a longer section is refused or
+    // its tail ignored, as before, without being read into memory).
+    let numbers = |s: &str, max: usize| -> Result<Vec<f64>> {
         s.split_whitespace()
-            .map(|t| t.parse().map_err(|_| Error::dataset(path, format!("malformed number in cam.txt: {t:?}"))))
+            .take(max)
+            .map(|t| {
+                t.parse().map_err(|_| {
+                    let shown: String = t.chars().take(32).collect();
+                    Error::dataset(path, format!("malformed number in cam.txt: {shown:?}"))
+                })
+            })
             .collect()
     };
-    let ext = numbers(&text[i_ext + "extrinsic".len()..i_int])?;
-    let rest = numbers(&text[i_int + "intrinsic".len()..])?;
+    let ext = numbers(&text[i_ext + "extrinsic".len()..i_int], 17)?;
+    let rest = numbers(&text[i_int + "intrinsic".len()..], 11)?;
     if ext.len() != 16 {
-        return Err(Error::dataset(path, format!("extrinsic must have 16 numbers, found {}", ext.len())));
+        let found = if ext.len() > 16 { "more".to_string() } else { ext.len().to_string() };
+        return Err(Error::dataset(path, format!("extrinsic must have 16 numbers, found {found}")));
     }
     if rest.len() < 11 {
         return Err(Error::dataset(

@@ -61,12 +61,22 @@ pub fn load(fs: &dyn Files, path: &Path, opts: ReadOptions) -> Result<Capture> {
 fn read_rows(fs: &dyn Files, npy: &Path) -> Result<Vec<[f64; 17]>> {
     let bytes = fs.read(npy)?;
     let bad = |what: String| Error::dataset(npy, what);
-    let file = npyz::NpyFile::new(&bytes[..]).map_err(|e| bad(format!("not a .npy file ({e})")))?;
-    let shape = file.shape().to_vec();
-    let order = file.order();
+    // The shape is checked against the file's size before npyz reads the header: it multiplies
+    // the declared dimensions unchecked, and sizes its buffer from them.
+    let (shape, data_bytes) =
+        declared_shape(&bytes).ok_or_else(|| bad("not a .npy file (no readable header)".into()))?;
     if shape.len() != 2 || shape[1] != 17 || shape[0] == 0 {
         return Err(bad(format!("expected an N x 17 array, got shape {shape:?}")));
     }
+    // float32 is the smallest accepted element.
+    if shape[0].checked_mul(17 * 4).is_none_or(|needed| needed > data_bytes) {
+        return Err(bad(format!(
+            "the header declares {} rows, more than the file's {data_bytes} bytes hold",
+            shape[0]
+        )));
+    }
+    let file = npyz::NpyFile::new(&bytes[..]).map_err(|e| bad(format!("not a .npy file ({e})")))?;
+    let order = file.order();
     let dtype = match file.dtype() {
         npyz::DType::Plain(ty) => ty.to_string(),
         other => other.descr(),
@@ -86,6 +96,24 @@ fn read_rows(fs: &dyn Files, npy: &Path) -> Result<Vec<[f64; 17]>> {
         npyz::Order::Fortran => j * n + i,
     };
     Ok((0..n).map(|i| std::array::from_fn(|j| values[index(i, j)])).collect())
+}
+
+/// The shape a .npy file's header declares and the bytes after the header (NEP 1: magic,
+/// version, header length (2 bytes in version 1, 4 after), a Python dict with a `shape` tuple).
+fn declared_shape(bytes: &[u8]) -> Option<(Vec<u64>, u64)> {
+    let rest = bytes.strip_prefix(b"\x93NUMPY")?;
+    let (len, header_at): (usize, usize) = match rest.first()? {
+        1 => (usize::from(u16::from_le_bytes(rest.get(2..4)?.try_into().ok()?)), 4),
+        _ => (usize::try_from(u32::from_le_bytes(rest.get(2..6)?.try_into().ok()?)).ok()?, 6),
+    };
+    let header = std::str::from_utf8(rest.get(header_at..header_at.checked_add(len)?)?).ok()?;
+    let data_bytes = rest.len().checked_sub(header_at + len)? as u64;
+    let after = &header[header.find("'shape'").or_else(|| header.find("\"shape\""))?..];
+    let tuple = &after[after.find('(')? + 1..];
+    let tuple = &tuple[..tuple.find(')')?];
+    let shape =
+        tuple.split(',').map(str::trim).filter(|d| !d.is_empty()).map(|d| d.parse().ok()).collect::<Option<_>>()?;
+    Some((shape, data_bytes))
 }
 
 /// Image files of a folder, sorted by name, hidden files left out (datasets.py `_list_images`).

@@ -413,16 +413,45 @@ def io_spec(names_shapes: dict[str, list]) -> list[dict]:
     return [{"name": n, "shape": s, "dtype": "float32"} for n, s in names_shapes.items()]
 
 
+# A graph agrees with PyTorch when its largest difference is within `tolerance` (absolute) or
+# within this share of the output's scale (its largest magnitude), whichever is larger: float32
+# sums taken in another order differ in proportion to the values summed. Measured on the public
+# MVSNeRF weights (`python -m bench.export_spread`, docs/results.md "Export tolerances"): at most
+# 4.6e-6 of the scale (cost_slab: 1.06e-3 on outputs of magnitude 330), the same at 1, 2 and 4
+# ONNX Runtime threads and 1 and 2 torch threads; 2e-5 leaves 4x room for other CPUs.
+RELATIVE_TOLERANCE = 2e-5
+
+
+class GraphMismatch(ValueError):
+    """A written graph that does not compute what the PyTorch model does; one line, for the CLI."""
+
+
+def allowed_error(tolerance: float, outputs) -> float:
+    """``tolerance``, or ``RELATIVE_TOLERANCE`` of the outputs' scale when that is larger."""
+    scale = max(float(np.abs(np.asarray(o)).max(initial=0.0)) for o in outputs)
+    return max(tolerance, RELATIVE_TOLERANCE * scale)
+
+
+def mismatch(what: str, error: float, allowed: float) -> GraphMismatch:
+    return GraphMismatch(
+        f"{what} differs from PyTorch's by {error:.3g}, more than the {allowed:.3g} allowed "
+        f"(the larger of an absolute bound and {RELATIVE_TOLERANCE:g} of the output's scale): the exported graph "
+        "does not compute what the model does on this machine; nothing was written to the manifest"
+    )
+
+
 def validate_graph(path: Path, module: nn.Module, inputs: dict[str, torch.Tensor], tolerance: float) -> float:
-    """Run the written graph in ONNX Runtime on the tracing inputs; return max abs error vs torch."""
+    """Run the written graph in ONNX Runtime on the tracing inputs; return max abs error vs torch,
+    refused beyond ``allowed_error``."""
     session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     got = session.run(None, {k: v.numpy() for k, v in inputs.items()})
     with torch.no_grad():
         want = module(*inputs.values())
-    want = want if isinstance(want, (tuple, list)) else (want,)
-    error = max(float(np.abs(g - w.numpy()).max()) for g, w in zip(got, want))
-    if not error <= tolerance:
-        raise RuntimeError(f"{path.name}: ONNX Runtime differs from PyTorch by {error:.3g} (> {tolerance})")
+    want = [w.numpy() for w in (want if isinstance(want, (tuple, list)) else (want,))]
+    error = max(float(np.abs(g - w).max()) for g, w in zip(got, want))
+    allowed = allowed_error(tolerance, want)
+    if not error <= allowed:
+        raise mismatch(f"{path.name}: ONNX Runtime's output", error, allowed)
     return error
 
 
@@ -435,8 +464,9 @@ def validate_slab_volume(
     with torch.no_grad():
         want = model.build_volume(*inputs.values()).numpy()
     error = slab_volume_error(want, out, build, {k: v.numpy() for k, v in inputs.items()}, model.cfg.pad)
-    if not error <= tolerance:
-        raise RuntimeError(f"the slab graphs' volume differs from PyTorch's by {error:.3g} (> {tolerance})")
+    allowed = allowed_error(tolerance, [want])
+    if not error <= allowed:
+        raise mismatch("the slab graphs' volume", error, allowed)
     return error
 
 

@@ -3,6 +3,8 @@
 use std::collections::BTreeMap;
 use std::future::Future;
 use std::pin::Pin;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
 use std::task::{Context, Poll};
 use std::time::Duration;
 
@@ -14,6 +16,7 @@ use futures_util::StreamExt;
 use http_body::{Frame, SizeHint};
 
 use super::negotiate::RequestFormat;
+use crate::backend::{BackendError, MemoryLease};
 use crate::error::ApiError;
 use crate::request::{check_json_size, HasSources, ImageMode, Limits, RenderRequest, SceneRequest, TargetRequest};
 
@@ -116,62 +119,73 @@ pub fn body_limit(limits: &Limits, path: &str) -> usize {
     }
 }
 
-/// `body`, and the part of it that is left unread when it is dropped before its end.
-///
-/// Why: a handler that refuses a request from its first bytes (a bad `request` part, too many
-/// views) returns while the client is still sending. Closing the connection then makes the
-/// client's kernel see a reset, and the client a broken pipe instead of the answer. The
-/// in-flight layer reads what is left (see [`drain`]) before the answer goes out.
-pub fn keep_rest(body: Body) -> (Body, tokio::sync::oneshot::Receiver<Body>) {
-    let (tx, rx) = tokio::sync::oneshot::channel();
-    (Body::new(KeepRest { inner: Some(body), rest: Some(tx) }), rx)
+/// What a request's body holds and whether it was read to its end; shared between the body (as
+/// the handler reads it) and the in-flight layer, which keeps it until the answer is ready.
+pub struct BodyUse {
+    /// The body's bytes as they arrive, held against the memory budget: they stay in memory
+    /// (parsed, or as the images of the request) until it is answered.
+    lease: std::sync::Mutex<MemoryLease>,
+    ended: AtomicBool,
 }
 
-/// Reads and discards `body` up to `limit` bytes (it already runs under the upload policy, so
-/// a trickle ends in its error).
-pub async fn drain(body: Body, limit: usize) {
-    let mut frames = body.into_data_stream();
-    let mut seen = 0usize;
-    while let Some(Ok(frame)) = frames.next().await {
-        seen += frame.len();
-        if seen > limit {
-            break;
-        }
+impl BodyUse {
+    /// `body`, whose bytes grow `lease` as they arrive (a body the budget cannot hold fails
+    /// with `BodyRefused`), and its use.
+    pub fn track(body: Body, lease: MemoryLease) -> (Body, Arc<BodyUse>) {
+        let used =
+            Arc::new(BodyUse { lease: std::sync::Mutex::new(lease), ended: AtomicBool::new(body.is_end_stream()) });
+        (Body::new(HeldBody { inner: body, used: used.clone() }), used)
+    }
+
+    /// Whether the body was read to its end.
+    pub fn ended(&self) -> bool {
+        self.ended.load(Ordering::Acquire)
+    }
+
+    fn hold(&self, bytes: usize) -> Result<(), BackendError> {
+        self.lease.lock().unwrap_or_else(|p| p.into_inner()).grow(bytes as u64)
     }
 }
 
-struct KeepRest {
-    inner: Option<Body>,
-    rest: Option<tokio::sync::oneshot::Sender<Body>>,
+struct HeldBody {
+    inner: Body,
+    used: Arc<BodyUse>,
 }
 
-impl HttpBody for KeepRest {
+/// The error a body fails with when the memory budget cannot hold it (found again in the error
+/// chain by `body_error`).
+#[derive(Debug, thiserror::Error)]
+#[error("{0}")]
+struct BodyRefused(BackendError);
+
+impl HttpBody for HeldBody {
     type Data = Bytes;
     type Error = axum::Error;
 
     fn poll_frame(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<Option<Result<Frame<Bytes>, axum::Error>>> {
-        match self.inner.as_mut() {
-            Some(inner) => Pin::new(inner).poll_frame(cx),
-            None => Poll::Ready(None),
+        let this = &mut *self;
+        let polled = Pin::new(&mut this.inner).poll_frame(cx);
+        match &polled {
+            Poll::Ready(Some(Ok(frame))) => {
+                if let Err(e) = frame.data_ref().map_or(Ok(()), |data| this.used.hold(data.len())) {
+                    return Poll::Ready(Some(Err(axum::Error::new(BodyRefused(e)))));
+                }
+                if this.inner.is_end_stream() {
+                    this.used.ended.store(true, Ordering::Release);
+                }
+            }
+            Poll::Ready(None) => this.used.ended.store(true, Ordering::Release),
+            _ => {}
         }
+        polled
     }
 
     fn is_end_stream(&self) -> bool {
-        self.inner.as_ref().is_none_or(HttpBody::is_end_stream)
+        self.inner.is_end_stream()
     }
 
     fn size_hint(&self) -> SizeHint {
-        self.inner.as_ref().map(HttpBody::size_hint).unwrap_or_default()
-    }
-}
-
-impl Drop for KeepRest {
-    fn drop(&mut self) {
-        if let (Some(inner), Some(rest)) = (self.inner.take(), self.rest.take()) {
-            if !inner.is_end_stream() {
-                let _ = rest.send(inner);
-            }
-        }
+        self.inner.size_hint()
     }
 }
 
@@ -183,12 +197,22 @@ pub fn refuse_declared_length(body: &Body, limit: usize) -> Result<(), ApiError>
     Ok(())
 }
 
-/// A failure while reading the body: too slow (408), or broken off or malformed (400).
+/// A failure while reading the body: too slow (408), more than the memory budget holds now
+/// (503) or ever (413), or broken off or malformed (400).
 fn body_error(e: &(dyn std::error::Error + 'static), field: &str) -> ApiError {
     let mut cur: Option<&(dyn std::error::Error + 'static)> = Some(e);
     while let Some(err) = cur {
         if let Some(slow) = err.downcast_ref::<TooSlow>() {
             return ApiError::BodyTimeout { message: slow.to_string() };
+        }
+        if let Some(BodyRefused(refusal)) = err.downcast_ref::<BodyRefused>() {
+            return match refusal {
+                BackendError::TooLarge { .. } => ApiError::TooLarge {
+                    field: Some(field.to_string()),
+                    message: format!("the request body needs {refusal}"),
+                },
+                other => other.clone().into(),
+            };
         }
         cur = err.source();
     }
@@ -280,24 +304,29 @@ pub(super) fn multipart_error(e: axum::extract::multipart::MultipartError, field
         return too_large(field, limit);
     }
     match body_error(&e, field) {
-        slow @ ApiError::BodyTimeout { .. } => slow,
-        _ => ApiError::malformed(Some(field.to_string()), format!("invalid multipart body: {}", e.body_text())),
+        ApiError::Malformed { .. } => {
+            ApiError::malformed(Some(field.to_string()), format!("invalid multipart body: {}", e.body_text()))
+        }
+        slow_or_refused => slow_or_refused,
     }
 }
 
 /// How slowly a request body may arrive: any rate for `grace`, then on average at least
-/// `min_bytes_per_sec` (each byte received buys 1/min_bytes_per_sec s more). Separate from the
-/// render deadline: a trickling upload would otherwise hold its slot, and the bytes it sent,
-/// until the deadline (900 s by default).
+/// `min_bytes_per_sec` (each byte received buys 1/min_bytes_per_sec s more), and never `stall`
+/// without a byte (bytes sent early buy no right to stall: a client that sent 2 MiB and then
+/// nothing would otherwise keep its slot and its bytes for a minute). Separate from the render
+/// deadline: a trickling upload would otherwise hold its slot, and the bytes it sent, until the
+/// deadline (900 s by default).
 #[derive(Debug, Clone, Copy)]
 pub struct UploadPolicy {
     pub grace: Duration,
     pub min_bytes_per_sec: u64,
+    pub stall: Duration,
 }
 
 impl Default for UploadPolicy {
     fn default() -> Self {
-        UploadPolicy { grace: Duration::from_secs(30), min_bytes_per_sec: 32 * 1024 }
+        UploadPolicy { grace: Duration::from_secs(30), min_bytes_per_sec: 32 * 1024, stall: Duration::from_secs(10) }
     }
 }
 
@@ -310,12 +339,15 @@ impl UploadPolicy {
             policy: self,
             started,
             received: 0,
-            timer: Box::pin(tokio::time::sleep_until(started + self.grace)),
+            timer: Box::pin(tokio::time::sleep_until(self.until(started, started, 0))),
         })
     }
 
-    fn allowed(&self, received: u64) -> Duration {
-        self.grace + Duration::from_secs_f64(received as f64 / self.min_bytes_per_sec as f64)
+    /// When a body that started at `started` and has received `received` bytes, the last of
+    /// them at `last`, falls behind.
+    fn until(&self, started: tokio::time::Instant, last: tokio::time::Instant, received: u64) -> tokio::time::Instant {
+        let by_rate = self.grace + Duration::from_secs_f64(received as f64 / self.min_bytes_per_sec as f64);
+        (started + by_rate).min(last + self.stall)
     }
 }
 
@@ -331,13 +363,15 @@ struct MinRateBody {
 /// The error a too slow body fails with (found again in the error chain by `body_error`).
 #[derive(Debug, thiserror::Error)]
 #[error(
-    "the request body arrived too slowly: {received} bytes in {secs} s (any rate for the first {grace} s, then at least {rate} bytes/s)"
+    "the request body arrived too slowly: {received} bytes in {secs} s (any rate for the first {grace} s, then at least \
+     {rate} bytes/s, and never {stall} s without a byte)"
 )]
 struct TooSlow {
     received: u64,
     secs: u64,
     grace: u64,
     rate: u64,
+    stall: u64,
 }
 
 impl HttpBody for MinRateBody {
@@ -350,7 +384,7 @@ impl HttpBody for MinRateBody {
             Poll::Ready(Some(Ok(frame))) => {
                 if let Some(data) = frame.data_ref() {
                     this.received += data.len() as u64;
-                    let until = this.started + this.policy.allowed(this.received);
+                    let until = this.policy.until(this.started, tokio::time::Instant::now(), this.received);
                     this.timer.as_mut().reset(until);
                 }
                 Poll::Ready(Some(Ok(frame)))
@@ -361,6 +395,7 @@ impl HttpBody for MinRateBody {
                     secs: this.started.elapsed().as_secs(),
                     grace: this.policy.grace.as_secs(),
                     rate: this.policy.min_bytes_per_sec,
+                    stall: this.policy.stall.as_secs(),
                 }))))
             }
             other => other,

@@ -4,17 +4,24 @@
 //! (`scnerf_capture`: COLMAP, nerfstudio, Blender, LLFF, DTU), from the image set the client
 //! names (`downscale`) or else the largest within `--max-source-pixels`, thinned to
 //! `--max-scene-views` and kept as a scene. Nothing is written to disk.
+//!
+//! Memory: the files are the body (held against the memory budget as it arrives, see
+//! `middleware::limit_in_flight`); the files other than images, which the readers parse, are
+//! capped (`--max-capture-metadata-bytes`), and what parsing them takes is held against the
+//! budget before it starts (`memory::capture_parse_bytes`); the views are then decoded as any
+//! scene's are, admitted by their estimate. Parsing stops when the request is gone.
 
-use std::path::Path;
+use std::borrow::Cow;
+use std::path::{Path, PathBuf};
 
 use axum::extract::rejection::QueryRejection;
 use axum::extract::{FromRequest, Multipart, Query, Request, State};
 use axum::http::StatusCode;
 use axum::response::Response;
 use bytes::Bytes;
-use scnerf_capture::files::MemoryFiles;
+use scnerf_capture::files::{Files, MemoryFiles};
 use scnerf_capture::image_sets::{load_picked, ImageSet, Pick, Picked};
-use scnerf_capture::readers::{Capture, ReadOptions};
+use scnerf_capture::readers::{self, Capture, ReadOptions};
 use serde::{Deserialize, Serialize};
 
 use super::body::multipart_error;
@@ -22,9 +29,12 @@ use super::deadline::Deadline;
 use super::negotiate::{request_format, RequestFormat};
 use super::scenes::{owner_of, proxy_scene_id, scene_response, store_scene};
 use super::state::AppState;
+use crate::backend::BackendError;
+use crate::blocking::{self, Cancel};
 use crate::cache::rfc3339;
 use crate::camera::{Axes, Camera, CameraSpec, Intrinsics, Pose, PoseKind};
 use crate::error::ApiError;
+use crate::pipeline::memory::capture_parse_bytes;
 use crate::pipeline::Timings;
 use crate::request::{Limits, SceneRequest, SourceSpec};
 
@@ -85,11 +95,11 @@ pub struct CaptureCreated {
         (status = 400, description = "Malformed body, a part not named `file`, a file without a filename or sent twice", body = crate::error::ErrorBody),
         (status = 401, description = "Missing or wrong bearer token", body = crate::error::ErrorBody),
         (status = 408, description = "The body arrived too slowly", body = crate::error::ErrorBody),
-        (status = 413, description = "Body over --max-capture-bytes", body = crate::error::ErrorBody),
+        (status = 413, description = "Body over --max-capture-bytes, or files other than images over --max-capture-metadata-bytes (`field` names the file)", body = crate::error::ErrorBody),
         (status = 415, description = "Not multipart/form-data, or an image format other than PNG/JPEG", body = crate::error::ErrorBody),
         (status = 422, description = "Not a usable capture; `field` names the file (missing poses, unknown format, distorted camera, too few images, ...)", body = crate::error::ErrorBody),
         (status = 429, description = "This client has too many requests in flight (Retry-After)", body = crate::error::ErrorBody),
-        (status = 503, description = "Warming up or overloaded (Retry-After)", body = crate::error::ErrorBody),
+        (status = 503, description = "Warming up, overloaded, or the memory budget is in use (Retry-After)", body = crate::error::ErrorBody),
         (status = 504, description = "Deadline exceeded", body = crate::error::ErrorBody),
     ),
     security((), ("bearer" = [])),
@@ -119,15 +129,22 @@ async fn create_within(
         });
     }
     let owner = owner_of(&req);
-    let files = read_files(req, state.pipeline.limits().max_capture_bytes).await?;
+    let (files, metadata_bytes) = read_files(req, state.pipeline.limits()).await?;
+    let parsing = state.pipeline.executor().lease(capture_parse_bytes(metadata_bytes as u64)).map_err(|e| match e {
+        BackendError::TooLarge { .. } => {
+            ApiError::invalid("file", format!("parsing {metadata_bytes} bytes of capture files needs {e}"))
+        }
+        other => other.into(),
+    })?;
     let (config, limits) = (state.pipeline.config().clone(), state.pipeline.limits().clone());
-    let parsed = tokio::task::spawn_blocking(move || -> Result<_, ApiError> {
-        let ReadCapture { request, names, format, image_set, warnings } = read_capture(files, &options, &limits)?;
-        let valid = request.validate(&config, &limits).map_err(|e| name_the_file(e, &names))?;
-        Ok((valid, names, format, image_set, warnings))
+    let parsed = blocking::run(move |cancel| {
+        let read = read_capture(files, &options, &limits, cancel)?;
+        let names = read.names.clone();
+        let valid = read.request.validate(&config, &limits).map_err(|e| name_the_file(e, &names))?;
+        Ok((valid, read.names, read.format, read.image_set, read.warnings))
     })
-    .await
-    .map_err(|e| ApiError::Internal(format!("capture parsing task failed: {e}")))??;
+    .await?;
+    drop(parsing);
     let (valid, names, format, image_set, warnings) = parsed;
     let cameras = valid.sources.iter().map(|s| camera_json(&s.camera)).collect();
     let (near, far) = (valid.near, valid.far);
@@ -148,13 +165,15 @@ async fn create_within(
     Ok(scene_response(&state, status, &stored.id, body, &timings))
 }
 
-/// Every `file` part, by its filename.
-async fn read_files(req: Request, limit: usize) -> Result<MemoryFiles, ApiError> {
+/// Every `file` part, by its filename, and the bytes of those that are not images (at most
+/// `--max-capture-metadata-bytes`: 413 naming the file that goes past it, as it arrives).
+async fn read_files(req: Request, limits: &Limits) -> Result<(MemoryFiles, usize), ApiError> {
+    let limit = limits.max_capture_bytes;
     let mut multipart = Multipart::from_request(req, &()).await.map_err(|e| {
         ApiError::malformed(Some("content-type".to_string()), format!("invalid multipart request: {}", e.body_text()))
     })?;
-    let mut files = MemoryFiles::new();
-    while let Some(field) = multipart.next_field().await.map_err(|e| multipart_error(e, "body", limit))? {
+    let (mut files, mut metadata) = (MemoryFiles::new(), 0usize);
+    while let Some(mut field) = multipart.next_field().await.map_err(|e| multipart_error(e, "body", limit))? {
         let name = field.name().unwrap_or_default().to_string();
         if name != "file" {
             return Err(ApiError::malformed(
@@ -162,11 +181,26 @@ async fn read_files(req: Request, limit: usize) -> Result<MemoryFiles, ApiError>
                 format!("unknown multipart part \"{name}\": every part is a file named `file`"),
             ));
         }
-        let filename = field.file_name().map(str::to_string).ok_or_else(|| {
-            ApiError::malformed(Some("file".to_string()), "a file part needs a filename: its path in the capture")
-        })?;
-        let data = field.bytes().await.map_err(|e| multipart_error(e, &filename, limit))?;
-        if !files.insert(&filename, Vec::from(data)) {
+        let filename = field.file_name().map(str::to_string).ok_or_else(|| missing_filename(field.headers()))?;
+        let is_image = readers::has_image_extension(Path::new(&filename));
+        let mut chunks = Vec::new();
+        while let Some(chunk) = field.chunk().await.map_err(|e| multipart_error(e, &filename, limit))? {
+            if !is_image {
+                metadata += chunk.len();
+                if metadata > limits.max_capture_metadata_bytes {
+                    return Err(ApiError::TooLarge {
+                        field: Some(filename),
+                        message: format!(
+                            "a capture's files other than images (transforms, COLMAP models, poses) may hold {} \
+                             bytes in all (--max-capture-metadata-bytes)",
+                            limits.max_capture_metadata_bytes
+                        ),
+                    });
+                }
+            }
+            chunks.push(chunk);
+        }
+        if !files.insert(&filename, chunks.concat()) {
             return Err(ApiError::malformed(
                 Some(filename),
                 "sent twice, or not a relative path inside the capture folder",
@@ -176,7 +210,18 @@ async fn read_files(req: Request, limit: usize) -> Result<MemoryFiles, ApiError>
     if files.is_empty() {
         return Err(ApiError::invalid("file", "no files: send the capture folder's files as parts named `file`"));
     }
-    Ok(files)
+    Ok((files, metadata))
+}
+
+/// A file part without a (UTF-8) filename: which of the two it is.
+fn missing_filename(headers: &axum::http::HeaderMap) -> ApiError {
+    let disposition = headers.get(axum::http::header::CONTENT_DISPOSITION).map(|v| v.as_bytes()).unwrap_or_default();
+    let has_one = disposition.windows(9).any(|w| w.eq_ignore_ascii_case(b"filename="));
+    let message = match has_one {
+        true => "the part's filename is not UTF-8: name the file's path in UTF-8",
+        false => "a file part needs a filename: its path in the capture",
+    };
+    ApiError::malformed(Some("file".to_string()), message)
 }
 
 /// A capture read from `files`, as a scene request (at most `max_views` views).
@@ -188,7 +233,12 @@ struct ReadCapture {
     warnings: Vec<String>,
 }
 
-fn read_capture(mut files: MemoryFiles, options: &CaptureOptions, limits: &Limits) -> Result<ReadCapture, ApiError> {
+fn read_capture(
+    mut files: MemoryFiles,
+    options: &CaptureOptions,
+    limits: &Limits,
+    cancel: &Cancel,
+) -> Result<ReadCapture, ApiError> {
     let opts = ReadOptions {
         near: options.near,
         far: options.far,
@@ -199,7 +249,9 @@ fn read_capture(mut files: MemoryFiles, options: &CaptureOptions, limits: &Limit
         Some(factor) => Pick::Downscale(factor),
         None => Pick::Fit { max_pixels: limits.max_source_pixels },
     };
-    let (capture, picked) = load_picked(&files, Path::new(""), None, opts, rule).map_err(capture_error)?;
+    let read = load_picked(&Interruptible { files: &files, cancel }, Path::new(""), None, opts, rule);
+    cancel.check()?;
+    let (capture, picked) = read.map_err(capture_error)?;
     let Capture { format, views, near, far, background, mut warnings } = capture;
     let image_set = picked.map(|p| picked_set(p, limits.max_source_pixels, &mut warnings)).transpose()?;
     let kept = scnerf_capture::thin_evenly(views.len(), limits.max_scene_views);
@@ -256,6 +308,42 @@ fn picked_set(picked: Picked, max_pixels: u64, warnings: &mut Vec<String>) -> Re
         warnings.push(format!("read the image set {}; not read: {}", picked.set.describe(), unused.join(", ")));
     }
     Ok(folder)
+}
+
+/// `files`, failing every access once the request is gone: the readers then stop at their next
+/// look at a file.
+struct Interruptible<'a> {
+    files: &'a MemoryFiles,
+    cancel: &'a Cancel,
+}
+
+impl Interruptible<'_> {
+    fn check(&self, path: &Path) -> scnerf_capture::Result<()> {
+        match self.cancel.is_set() {
+            true => Err(scnerf_capture::Error::io(path, std::io::ErrorKind::Interrupted.into())),
+            false => Ok(()),
+        }
+    }
+}
+
+impl Files for Interruptible<'_> {
+    fn is_file(&self, path: &Path) -> bool {
+        !self.cancel.is_set() && self.files.is_file(path)
+    }
+
+    fn is_dir(&self, path: &Path) -> bool {
+        !self.cancel.is_set() && self.files.is_dir(path)
+    }
+
+    fn read(&self, path: &Path) -> scnerf_capture::Result<Cow<'_, [u8]>> {
+        self.check(path)?;
+        self.files.read(path)
+    }
+
+    fn list(&self, dir: &Path) -> scnerf_capture::Result<Vec<PathBuf>> {
+        self.check(dir)?;
+        self.files.list(dir)
+    }
 }
 
 /// A capture the readers refuse: 422 naming the file (relative to the capture's folder).

@@ -1,18 +1,19 @@
 //! Cross-cutting layers: request ids, tracing spans, panics, metrics and the in-flight limit.
 
-use std::collections::HashMap;
 use std::net::{IpAddr, SocketAddr};
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::time::Instant;
 
+use axum::body::HttpBody;
 use axum::extract::{ConnectInfo, MatchedPath, Request, State};
-use axum::http::{HeaderValue, Method};
+use axum::http::{header, HeaderValue, Method};
 use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
 
 use tokio::sync::{OwnedSemaphorePermit, Semaphore};
 
-use super::body::{body_limit, drain, keep_rest, refuse_declared_length};
+use super::body::{body_limit, refuse_declared_length, BodyUse};
+use super::serve::{AddressGuard, PerAddress};
 use super::state::AppState;
 use crate::error::ApiError;
 
@@ -38,8 +39,15 @@ pub fn request_span(req: &Request) -> tracing::Span {
     tracing::info_span!("request", method = %req.method(), path = %req.uri().path(), request_id = %id)
 }
 
-/// A panicking handler answers 500 with the usual JSON error instead of dropping the connection.
-pub fn panic_response(_panic: Box<dyn std::any::Any + Send + 'static>) -> Response {
+/// A panicking handler answers 500 with the usual JSON error instead of dropping the connection;
+/// the panic's message is logged (a bug of ours: it must be found), not sent.
+pub fn panic_response(panic: Box<dyn std::any::Any + Send + 'static>) -> Response {
+    let message = panic
+        .downcast_ref::<String>()
+        .map(String::as_str)
+        .or_else(|| panic.downcast_ref::<&str>().copied())
+        .unwrap_or("(not a string)");
+    tracing::error!(panic = message, "the request handler panicked");
     ApiError::Internal("the request handler panicked".into()).into_response()
 }
 
@@ -53,33 +61,44 @@ pub async fn record_metrics(State(state): State<AppState>, req: Request, next: N
     response
 }
 
-/// Bounds the requests with a body (POST, PUT) handled at once, in all and per client (their
-/// bodies are held in memory while they wait for the executor), and holds each upload to the
-/// minimum rate. A body declared larger than the route's limit is refused at once: 413 before
-/// anything is read. A request refused before its body was read to the end has the rest read
-/// (up to the limit, at the upload rate) before the answer goes out, so that a client still
-/// sending receives the answer (see `body::keep_rest`).
+/// Bounds the requests with a body (POST, PUT) handled at once, in all and per client, holds
+/// each upload to the minimum rate, and holds its bytes against the memory budget as they
+/// arrive (`body::BodyUse`: 503 when the budget is full). A body declared larger than the
+/// route's limit is refused at once: 413 before anything is read.
+///
+/// A request answered before its body was read to the end (refused, past its deadline, or a
+/// client that sends more than it said) is answered at once with `connection: close`, and the
+/// rest of its body is not read: the slot and the memory are freed with the answer. The
+/// connection then closes the way `serve` closes one with unread data (see `serve::linger`).
 pub async fn limit_in_flight(State(state): State<AppState>, req: Request, next: Next) -> Response {
     if req.method() != Method::POST && req.method() != Method::PUT {
         return next.run(req).await;
     }
+    let unread = !req.body().is_end_stream();
+    let refuse = |e: ApiError| close_unless(!unread, e.into_response());
     let limit = body_limit(state.pipeline.limits(), req.uri().path());
     if let Err(e) = refuse_declared_length(req.body(), limit) {
-        return e.into_response();
+        return refuse(e);
     }
     let client = req.extensions().get::<ConnectInfo<SocketAddr>>().map(|c| c.0.ip());
     let _slot = match state.in_flight.acquire(client) {
         Ok(slot) => slot,
-        Err(e) => return e.into_response(),
+        Err(e) => return refuse(e),
     };
-    let policy = state.uploads;
+    let lease = match state.pipeline.executor().lease(0) {
+        Ok(lease) => lease,
+        Err(e) => return refuse(e.into()),
+    };
     let (parts, body) = req.into_parts();
-    let (body, mut rest) = keep_rest(policy.apply(body));
+    let (body, used) = BodyUse::track(state.uploads.apply(body), lease);
     let response = next.run(Request::from_parts(parts, body)).await;
-    if !response.status().is_success() {
-        if let Ok(rest) = rest.try_recv() {
-            drain(rest, limit).await;
-        }
+    close_unless(used.ended(), response)
+}
+
+/// `response` with `connection: close` unless `read`: the request's body was read to its end.
+fn close_unless(read: bool, mut response: Response) -> Response {
+    if !read {
+        response.headers_mut().insert(header::CONNECTION, HeaderValue::from_static("close"));
     }
     response
 }
@@ -87,44 +106,29 @@ pub async fn limit_in_flight(State(state): State<AppState>, req: Request, next: 
 /// Slots for requests being handled: `total` in all, `per_client` (0: any) per peer address.
 pub struct Slots {
     total: Arc<Semaphore>,
-    per_client: usize,
-    clients: Arc<Mutex<HashMap<IpAddr, usize>>>,
+    clients: PerAddress,
 }
 
 /// A taken slot, given back when dropped.
 pub struct Slot {
     _total: OwnedSemaphorePermit,
-    _client: Option<ClientSlot>,
-}
-
-struct ClientSlot {
-    ip: IpAddr,
-    clients: Arc<Mutex<HashMap<IpAddr, usize>>>,
-}
-
-impl Drop for ClientSlot {
-    fn drop(&mut self) {
-        let mut clients = self.clients.lock().unwrap_or_else(|p| p.into_inner());
-        if let Some(held) = clients.get_mut(&self.ip) {
-            *held -= 1;
-            if *held == 0 {
-                clients.remove(&self.ip);
-            }
-        }
-    }
+    _client: Option<AddressGuard>,
 }
 
 impl Slots {
     pub fn new(total: usize, per_client: usize) -> Slots {
-        Slots { total: Arc::new(Semaphore::new(total.max(1))), per_client, clients: Arc::default() }
+        Slots { total: Arc::new(Semaphore::new(total.max(1))), clients: PerAddress::new(per_client) }
     }
 
     /// `client`: the peer address (`None` in-process, where there is no peer to tell apart).
     /// The client's own cap is checked first, so that the client holding many slots is the one
     /// told (429), not the others (503).
     pub fn acquire(&self, client: Option<IpAddr>) -> Result<Slot, ApiError> {
-        let client = match client.filter(|_| self.per_client > 0) {
-            Some(ip) => Some(self.client_slot(ip)?),
+        let client = match client {
+            Some(ip) => self.clients.enter(ip).ok_or_else(|| ApiError::TooManyRequests {
+                message: format!("this client already has {} requests in flight", self.clients.cap()),
+                retry_after_secs: 1,
+            })?,
             None => None,
         };
         let total = self.total.clone().try_acquire_owned().map_err(|_| ApiError::Unavailable {
@@ -132,18 +136,5 @@ impl Slots {
             retry_after_secs: 1,
         })?;
         Ok(Slot { _total: total, _client: client })
-    }
-
-    fn client_slot(&self, ip: IpAddr) -> Result<ClientSlot, ApiError> {
-        let mut clients = self.clients.lock().unwrap_or_else(|p| p.into_inner());
-        let held = clients.entry(ip).or_default();
-        if *held >= self.per_client {
-            return Err(ApiError::TooManyRequests {
-                message: format!("this client already has {} requests in flight", self.per_client),
-                retry_after_secs: 1,
-            });
-        }
-        *held += 1;
-        Ok(ClientSlot { ip, clients: self.clients.clone() })
     }
 }

@@ -74,6 +74,8 @@ pub(super) async fn store_scene(
     deadline: &Deadline,
     timings: &mut Timings,
 ) -> Result<Stored, ApiError> {
+    // A scene larger than the whole cache is refused before its images are decoded.
+    state.scenes.check_fits(state.pipeline.scene_bytes(&valid))?;
     let (views, volume) = state.pipeline.encode_scene(&valid, deadline.at(), timings).await?;
     let new = NewScene { views, volume, background: valid.background };
     let stored = state.scenes.insert(id, owner, new, Instant::now())?;

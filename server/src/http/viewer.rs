@@ -115,8 +115,13 @@ async fn example_file(State(dir): State<Arc<PathBuf>>, Path(name): Path<String>)
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Err(not_found()),
         Err(e) => return Err(ApiError::Internal(format!("cannot read the example {}: {e}", dir.display()))),
     };
-    Ok((StatusCode::OK, [(header::CONTENT_TYPE, content_type), (header::CACHE_CONTROL, "no-cache")], bytes)
-        .into_response())
+    // nosniff: the example folder is the operator's; a file served as an image stays an image.
+    let headers = [
+        (header::CONTENT_TYPE, content_type),
+        (header::CACHE_CONTROL, "no-cache"),
+        (header::X_CONTENT_TYPE_OPTIONS, "nosniff"),
+    ];
+    Ok((StatusCode::OK, headers, bytes).into_response())
 }
 
 #[cfg(test)]
@@ -130,6 +135,9 @@ mod tests {
         let request = Request::builder().method(method).uri(uri).body(Body::empty()).unwrap();
         let response = app.clone().oneshot(request).await.unwrap();
         let status = response.status();
+        if status == StatusCode::OK {
+            assert_eq!(response.headers()[header::X_CONTENT_TYPE_OPTIONS], "nosniff", "{uri}");
+        }
         let content_type =
             response.headers().get(header::CONTENT_TYPE).map_or("", |v| v.to_str().unwrap_or("")).to_string();
         let body = http_body_util::BodyExt::collect(response.into_body()).await.unwrap().to_bytes().to_vec();

@@ -1,7 +1,8 @@
 //! The most memory a request adds to the process, estimated from its sizes and the bundle's
 //! config before anything is decoded (admission by memory, `backend`'s module doc).
 //!
-//! A request holds, from its decode to its last renderer run: the padded source images, their
+//! A request holds, from its decode to its last renderer run: the padded source images (decoded
+//! one at a time into their stack: the stack and one image being decoded), their
 //! features and the encoding volume (and, while a slab-built volume is assembled, G2's first
 //! convolution over it). On top of that, one stage at a time adds its working memory: the
 //! encoder's activations, the cost volume (all of it with `volume.onnx`, one slab of planes with
@@ -10,24 +11,34 @@
 //! `backend::ort`), so a chunk's worth of memory may still be held from an earlier request while
 //! this one builds its volume.
 //!
-//! The per-unit figures are calibrated on measured peaks (`bench/memory.py`, the table in
-//! docs/results.md, "Memory at paper size"; the rows are the fixture `tests/fixtures/memory/measured.json`,
-//! and a test checks that the estimate never falls below any of them), rounded up by ~10-25 %.
+//! Every term follows the request's sizes: the sources' pixels, the volume's cells, the planes
+//! of one cost slab (as many as `--volume-slab-mb` gives the sources' size), the rays of one
+//! renderer chunk (the target's, up to the chunk policy's).
+//!
+//! The per-unit figures are calibrated on measured peaks over a grid of source and target sizes
+//! (`bench/memory.py`, the table in docs/results.md, "The estimate (admission by memory)"; the
+//! rows are the fixture `tests/fixtures/memory/measured.json`, and a test checks that the
+//! estimate never falls below any of them nor far above), rounded up by ~10-25 %.
 
 use crate::bundle::{ModelConfig, VolumeBuild};
-use crate::pipeline::chunks::{ChunkPolicy, BYTES_PER_SAMPLE};
-use crate::pipeline::volume::{plane_cells, SlabPolicy, SLAB_BYTES_PER_CELL};
+use crate::pipeline::chunks::ChunkPolicy;
+use crate::pipeline::volume::{plane_cells, SlabPolicy};
 
-/// Encoder working memory and the decode's buffers per source pixel (V·H·W of the padded
-/// images). Measured 94-156 at 320x256-800x800.
+/// Encoder working memory per source pixel (V·H·W of the padded images). Measured 94-156 at
+/// 320x256-800x800.
 pub const ENCODER_BYTES_PER_PIXEL: u64 = 192;
+
+/// Decoding one source image, per pixel: the decoder's 8-bit buffer, its float copy and the
+/// composited RGB.
+pub const DECODE_BYTES_PER_PIXEL: u64 = 80;
 
 /// `volume.onnx`'s working memory per cell of the volume (D·Hp·Wp): the warped features of every
 /// plane, the 41-channel cost volume and G2's activations at once. Measured 674-699.
 pub const WHOLE_VOLUME_BYTES_PER_CELL: u64 = 800;
 
 /// `volume_net.onnx`'s working memory per cell: G2's activations over the 8-channel volume.
-/// Measured 140-170 above the conv0 input and the volume output.
+/// Measured 140-170 above the conv0 input and the volume output (213-226 with them, 80x64 to
+/// 640x512).
 pub const VOLUME_NET_BYTES_PER_CELL: u64 = 208;
 
 /// The sweep build's largest stage per cell: the run of `volume_net.onnx` whose preparation
@@ -36,6 +47,15 @@ pub const VOLUME_NET_BYTES_PER_CELL: u64 = 208;
 /// 640x512-1024x1024 (the graph of the current exporter: one-pass norms need less than the old
 /// ones' 208 of `VOLUME_NET_BYTES_PER_CELL`).
 pub const SWEEP_BYTES_PER_CELL: u64 = 160;
+
+/// One `cost_slab.onnx` run's working memory per cell of its planes (halo included): the warped
+/// features and the 41-channel cost of those planes. Measured 600-730 (80x64 to 640x512).
+pub const COST_SLAB_BYTES_PER_CELL: u64 = 800;
+
+/// One renderer run's working memory per sample point (rays x samples): every point's features
+/// through the MLP and the rectifiers. Measured 5.4-6.1 KiB with the paper-size `scnerf`
+/// renderer at chunks of 455 rays (the default policy at 128 samples).
+pub const RENDERER_BYTES_PER_SAMPLE: u64 = 6656;
 
 /// What one request keeps for its lifetime per cell of the volume: the encoding volume (8
 /// channels of f32).
@@ -59,12 +79,29 @@ pub struct MemoryPlan {
 /// The sizes an estimate reads.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct RequestSizes {
-    /// Padded width and height of the sources to encode (`None`: a cached scene).
+    /// Padded width and height of the sources (`None`: a cached scene's view).
     pub sources: Option<(usize, usize)>,
+    /// Source views the request decodes (0: its scene is decoded already).
+    pub decoded_views: usize,
+    /// Whether it builds a volume (encoder, cost volume, G2) from the model's view count of them.
+    pub builds_volume: bool,
     /// Pixels of the view to render (0: none).
     pub target_pixels: u64,
     /// What the view's sampling holds beside its pixels (guided sampling's weights and heads).
     pub sampling_bytes: u64,
+}
+
+impl RequestSizes {
+    /// A `/v1/render`: three sources decoded, their volume built, a view rendered.
+    pub fn render(config: &ModelConfig, sources: (usize, usize), target_pixels: u64) -> RequestSizes {
+        RequestSizes {
+            sources: Some(sources),
+            decoded_views: config.views,
+            builds_volume: true,
+            target_pixels,
+            sampling_bytes: 0,
+        }
+    }
 }
 
 /// The request's estimate split into what it holds and the largest working set of its stages.
@@ -92,12 +129,20 @@ pub fn estimate(config: &ModelConfig, plan: &MemoryPlan, sizes: &RequestSizes) -
 /// [`estimate`] by part.
 pub fn parts(config: &ModelConfig, plan: &MemoryPlan, sizes: &RequestSizes) -> Estimate {
     let mut e = Estimate::default();
-    if let Some((w, h)) = sizes.sources {
+    let Some((w, h)) = sizes.sources else { return with_target(config, plan, sizes, e) };
+    let image_pixels = w as u64 * h as u64;
+    if sizes.decoded_views > 0 {
+        e.held += sizes.decoded_views as u64 * image_pixels * 3 * 4;
+        e.stage = image_pixels * DECODE_BYTES_PER_PIXEL;
+    }
+    if sizes.builds_volume {
         let plane = plane_cells(config, w, h) as u64;
-        let pixels = config.views as u64 * w as u64 * h as u64;
+        let pixels = config.views as u64 * image_pixels;
         let cells = config.depth_planes as u64 * plane;
-        // Images (3 channels) and features (feature_channels at 1/16 of the pixels), f32.
-        let images = pixels * 3 * 4 + pixels / 16 * config.feature_channels as u64 * 4;
+        // The images, unless decoded here (a triple taken from a scene's views is a copy), and
+        // the features (feature_channels at 1/16 of the pixels), f32.
+        let images = if sizes.decoded_views > 0 { 0 } else { pixels * 3 * 4 };
+        let features = pixels / 16 * config.feature_channels as u64 * 4;
         let encoder = pixels * ENCODER_BYTES_PER_PIXEL;
         let volume = match plan.build {
             VolumeBuild::Whole => cells * WHOLE_VOLUME_BYTES_PER_CELL,
@@ -106,26 +151,57 @@ pub fn parts(config: &ModelConfig, plan: &MemoryPlan, sizes: &RequestSizes) -> E
                 // the slabs run and during G2.
                 let conv0 = cells * config.volume_channels as u64 * 4;
                 let planes = plan.slabs.planes_per_slab(config.depth_planes, plane as usize) as u64 + 2;
-                let slab = planes * plane * SLAB_BYTES_PER_CELL as u64;
+                let slab = planes * plane * COST_SLAB_BYTES_PER_CELL;
                 conv0 + slab.max(cells * VOLUME_NET_BYTES_PER_CELL)
             }
             VolumeBuild::Sweep => cells * SWEEP_BYTES_PER_CELL,
         };
-        e.held = images + cells * VOLUME_BYTES_PER_CELL;
-        e.stage = encoder.max(volume);
+        e.held += images + features + cells * VOLUME_BYTES_PER_CELL;
+        e.stage = e.stage.max(encoder).max(volume);
     }
+    with_target(config, plan, sizes, e)
+}
+
+/// `e` with the renderer's chunk and the target's buffers.
+fn with_target(config: &ModelConfig, plan: &MemoryPlan, sizes: &RequestSizes, mut e: Estimate) -> Estimate {
     if sizes.target_pixels > 0 {
         let rays = (plan.chunking.rays_per_chunk(config.samples) as u64).min(sizes.target_pixels);
-        e.renderer = rays * config.samples as u64 * BYTES_PER_SAMPLE as u64;
+        e.renderer = rays * config.samples as u64 * RENDERER_BYTES_PER_SAMPLE;
         e.held += sizes.target_pixels * TARGET_BYTES_PER_PIXEL + sizes.sampling_bytes;
     }
     e
+}
+
+/// What a scene of `views` padded `width` x `height` views keeps in the scene cache: the views'
+/// images, and when its volume is built with them (the model's view count), the features and
+/// the volume. The cache's own accounting (`Scene::bytes`, `Views::bytes`), before anything is
+/// decoded.
+pub fn scene_bytes(config: &ModelConfig, (w, h): (usize, usize), views: usize, builds_volume: bool) -> u64 {
+    let images = (views * 3 * w * h) as u64;
+    let built = builds_volume.then(|| {
+        let features = views * config.feature_channels * (w / 4) * (h / 4);
+        let volume = config.volume_channels * config.depth_planes * plane_cells(config, w, h);
+        (features + volume) as u64
+    });
+    4 * (images + built.unwrap_or(0))
+}
+
+/// Reading a capture's text and metadata files (`metadata_bytes` of them): the text's copy and
+/// what the readers build from it, per byte of it (measured on hostile files, docs/results.md),
+/// and bounds that do not grow with the files: a JSON file's values (`MAX_JSON_VALUES` of ~64
+/// bytes in `serde_json::Value`) and the depths ranked for a COLMAP model's near/far.
+pub fn capture_parse_bytes(metadata_bytes: u64) -> u64 {
+    const PER_BYTE: u64 = 8;
+    let fixed =
+        scnerf_capture::readers::MAX_JSON_VALUES as u64 * 64 + scnerf_capture::readers::colmap::MAX_DEPTHS as u64 * 8;
+    PER_REQUEST_BYTES + metadata_bytes * PER_BYTE + fixed
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::bundle::ModelConfig;
+    use crate::pipeline::sources::padded_size;
 
     /// The measured rows (tests/fixtures/memory/measured.json): each bundle's config and how it
     /// was run, and per source size the peak resident set above the process at rest.
@@ -145,8 +221,16 @@ mod tests {
         bundle: String,
         build: String,
         sources: [usize; 2],
+        /// A render's three, or a scene's upload (with no target).
+        #[serde(default = "three")]
+        views: usize,
+        /// [0, 0]: a scene's upload.
         target: [u64; 2],
         peak_above_rest_mib: f64,
+    }
+
+    fn three() -> usize {
+        3
     }
 
     fn measured() -> Measured {
@@ -169,27 +253,29 @@ mod tests {
                 "slabs" => VolumeBuild::Slabs,
                 _ => VolumeBuild::Whole,
             };
-            let sizes = RequestSizes {
-                sources: Some((row.sources[0], row.sources[1])),
-                target_pixels: row.target[0] * row.target[1],
-                sampling_bytes: 0,
+            let padded = padded_size(row.sources[0], row.sources[1], config.image_multiple);
+            let target_pixels = row.target[0] * row.target[1];
+            let sizes = match target_pixels {
+                0 => RequestSizes {
+                    sources: Some(padded),
+                    decoded_views: row.views,
+                    builds_volume: row.views == config.views,
+                    target_pixels: 0,
+                    sampling_bytes: 0,
+                },
+                _ => RequestSizes::render(config, padded, target_pixels),
             };
             let estimate = estimate(config, &plan(build), &sizes) as f64 / (1 << 20) as f64;
             let (w, h, measured) = (row.sources[0], row.sources[1], row.peak_above_rest_mib);
-            eprintln!("{} {} {w}x{h}: measured {measured:.0} MiB, estimate {estimate:.0} MiB", row.bundle, row.build);
-            assert!(
-                estimate >= measured,
-                "{} {} {w}x{h}: estimate {estimate:.0} < measured {measured:.0}",
-                row.bundle,
-                row.build
-            );
+            let what = format!("{} {} {w}x{h} x{} -> {:?}", row.bundle, row.build, row.views, row.target);
+            eprintln!("{what}: measured {measured:.0} MiB, estimate {estimate:.0} MiB");
+            assert!(estimate >= measured, "{what}: estimate {estimate:.0} < measured {measured:.0}");
             // An estimate far above the truth wastes the budget: at most 2.5x plus the renderer
             // chunk (sized for the heaviest renderer, the paper-size scnerf), and 256 MiB.
             let chunk = parts(config, &plan(build), &sizes).renderer as f64 / (1 << 20) as f64;
             assert!(
                 estimate <= 2.5 * measured + chunk + 256.0,
-                "{} {w}x{h}: estimate {estimate:.0} far above {measured:.0}",
-                row.bundle
+                "{what}: estimate {estimate:.0} far above {measured:.0}"
             );
         }
     }
@@ -197,23 +283,20 @@ mod tests {
     #[test]
     fn grows_with_the_sources_and_is_smaller_slab_by_slab() {
         let config = measured().bundles.into_values().next().unwrap().config;
-        let at = |w, h, build| {
-            estimate(
-                &config,
-                &plan(build),
-                &RequestSizes { sources: Some((w, h)), target_pixels: 80 * 64, sampling_bytes: 0 },
-            )
-        };
+        let at = |w, h, build| estimate(&config, &plan(build), &RequestSizes::render(&config, (w, h), 80 * 64));
         assert!(at(640, 512, VolumeBuild::Whole) > at(320, 256, VolumeBuild::Whole));
         assert!(at(1024, 1024, VolumeBuild::Slabs) > at(800, 800, VolumeBuild::Slabs));
         assert!(at(800, 800, VolumeBuild::Slabs) * 2 < at(800, 800, VolumeBuild::Whole));
         assert!(at(800, 800, VolumeBuild::Sweep) < at(800, 800, VolumeBuild::Slabs));
         // A cached scene's view: the renderer chunk and the target only.
-        let view = estimate(
-            &config,
-            &plan(VolumeBuild::Whole),
-            &RequestSizes { sources: None, target_pixels: 100, sampling_bytes: 0 },
-        );
+        let cached = RequestSizes {
+            sources: None,
+            decoded_views: 0,
+            builds_volume: false,
+            target_pixels: 100,
+            sampling_bytes: 0,
+        };
+        let view = estimate(&config, &plan(VolumeBuild::Whole), &cached);
         assert!(view < at(320, 256, VolumeBuild::Whole) && view > PER_REQUEST_BYTES);
     }
 }

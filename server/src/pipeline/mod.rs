@@ -222,14 +222,16 @@ impl Pipeline {
     /// bit-identical to these.
     pub async fn render(&self, req: &ValidRequest, deadline: Instant, timings: &mut Timings) -> Result<View, ApiError> {
         let sampling = self.sampling_of(req.view.sampling)?;
-        let ticket = self.admit_request(deadline, Some(&req.scene.cameras()), Some((&req.view.target, sampling)))?;
+        let target = Some((&req.view.target, sampling));
+        let ticket = self.admit_request(deadline, Some(&req.scene.cameras()), true, target)?;
         let scene = self.prepare_scene(&ticket, &req.scene, timings).await?;
         Ok(self.render_view(&ticket, &scene, &req.view.target, req.scene.background, sampling, None, timings).await?)
     }
 
     /// The scene of `POST /v1/scenes`: its views decoded; a scene of exactly the model's view
     /// count also gets its encoder features and volume now (admitted until `deadline`), as scenes
-    /// always did. A larger one (a capture) builds the volume of each triple a render needs.
+    /// always did. A larger one (a capture) builds the volume of each triple a render needs; its
+    /// decoding holds its memory estimate against the budget (a lease: no graph runs).
     pub async fn encode_scene(
         &self,
         req: &ValidScene,
@@ -237,9 +239,12 @@ impl Pipeline {
         timings: &mut Timings,
     ) -> Result<(Views, Option<Scene>), ApiError> {
         let cameras = req.cameras();
-        let ticket = match cameras.len() == self.bundle.config.views {
-            true => Some(self.admit_request(deadline, Some(&cameras), None)?),
-            false => None,
+        let (ticket, _decoding) = match cameras.len() == self.bundle.config.views {
+            true => (Some(self.admit_request(deadline, Some(&cameras), true, None)?), None),
+            false => {
+                let estimate = self.memory_estimate(Some(&cameras), true, false, None);
+                (None, Some(self.backend.lease(estimate).map_err(|e| refusal(e, Some(&cameras), None))?))
+            }
         };
         let images = timings.time("decode", self.decode_sources(req)).await?.into_shared();
         let views = Views { images, cameras, near: req.near, far: req.far };
@@ -271,7 +276,7 @@ impl Pipeline {
         let sampling = self.sampling_of(sampling)?;
         // A cached triple costs the renderer alone; otherwise its scene is built here too.
         let ticket =
-            self.admit_request(deadline, cached.is_none().then_some(&cameras[..]), Some((target, sampling)))?;
+            self.admit_request(deadline, cached.is_none().then_some(&cameras[..]), false, Some((target, sampling)))?;
         let (scene, built) = match cached {
             Some(scene) => (scene, None),
             None => {
@@ -292,35 +297,50 @@ impl Pipeline {
         Ok(self.backend.admit(deadline, work, memory)?)
     }
 
-    /// Admits a request that encodes `sources` (`None`: a cached scene) and renders `target`
-    /// (`None`: a scene only), before anything is decoded. Too large for the memory budget: 422
-    /// naming the sizes.
+    /// Admits a request that builds the volume of `sources` (`None`: a cached scene), decoding
+    /// them first when `decodes`, and renders `target` (`None`: a scene only), before anything
+    /// is decoded. Too large for the memory budget: 422 naming the sizes.
     fn admit_request(
         &self,
         deadline: Instant,
         sources: Option<&[Camera]>,
+        decodes: bool,
         target: Option<(&Camera, Sampling)>,
     ) -> Result<Ticket, ApiError> {
         let scene = sources.map_or_else(Work::default, |s| self.scene_work(s));
         let work = target.map_or(scene, |(t, sampling)| scene.plus(self.view_work(t, sampling)));
-        let memory = self.memory_estimate(sources, target);
-        self.backend.admit(deadline, work, memory).map_err(|e| match e {
-            BackendError::TooLarge { .. } => too_large(sources, target.map(|(t, _)| t), &e),
-            other => other.into(),
-        })
+        let memory = self.memory_estimate(sources, decodes, sources.is_some(), target);
+        self.backend.admit(deadline, work, memory).map_err(|e| refusal(e, sources, target.map(|(t, _)| t)))
     }
 
-    /// The most memory a request over `sources` and `target` adds to the process (see
-    /// [`memory::estimate`]).
-    fn memory_estimate(&self, sources: Option<&[Camera]>, target: Option<(&Camera, Sampling)>) -> u64 {
+    /// The most memory a request over `sources` adds to the process (see [`memory::estimate`]):
+    /// it decodes them when `decodes`, builds a volume from the model's view count of them when
+    /// `builds`, renders `target` with its sampling.
+    fn memory_estimate(
+        &self,
+        sources: Option<&[Camera]>,
+        decodes: bool,
+        builds: bool,
+        target: Option<(&Camera, Sampling)>,
+    ) -> u64 {
         let sizes = memory::RequestSizes {
             sources: sources.and_then(|s| self.padded_source_size(s)),
+            decoded_views: sources.filter(|_| decodes).map_or(0, <[Camera]>::len),
+            builds_volume: builds,
             target_pixels: target.map_or(0, |(t, _)| u64::from(t.width) * u64::from(t.height)),
             sampling_bytes: target.map_or(0, |(t, sampling)| self.sampling_bytes(t, sampling)),
         };
         let plan =
             memory::MemoryPlan { build: self.volume.build(), slabs: *self.volume.policy(), chunking: self.chunking };
         memory::estimate(&self.bundle.config, &plan, &sizes)
+    }
+
+    /// What the scene of `req` will hold in the scene cache (see [`memory::scene_bytes`]).
+    pub fn scene_bytes(&self, req: &ValidScene) -> u64 {
+        let cameras = req.cameras();
+        let builds = cameras.len() == self.bundle.config.views;
+        self.padded_source_size(&cameras)
+            .map_or(0, |size| memory::scene_bytes(&self.bundle.config, size, cameras.len(), builds))
     }
 
     /// The work of building a scene from `sources` (the encoder and the volume net over the
@@ -464,6 +484,15 @@ impl Pipeline {
         }
         let samples_per_ray = self.bundle.config.samples as f64;
         Ok((raw, SamplingReport { mode: Sampling::Full, samples_per_ray }))
+    }
+}
+
+/// An admission's refusal; the 422 of a request whose memory estimate exceeds the whole budget
+/// names the sizes.
+fn refusal(e: BackendError, sources: Option<&[Camera]>, target: Option<&Camera>) -> ApiError {
+    match e {
+        BackendError::TooLarge { .. } => too_large(sources, target, &e),
+        other => other.into(),
     }
 }
 

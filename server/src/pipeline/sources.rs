@@ -1,8 +1,9 @@
 //! Stage 0: the source images, decoded off the async runtime and stacked into one
 //! (V, 3, H, W) tensor padded to the bundle's image multiple.
 
-use ndarray::{s, Array3, Array4, Axis};
+use ndarray::{s, Array3, Array4, ArrayViewMut3, Axis};
 
+use crate::blocking;
 use crate::error::ApiError;
 use crate::image_io;
 use crate::request::ValidSource;
@@ -13,8 +14,9 @@ pub fn padded_size(width: usize, height: usize, multiple: usize) -> (usize, usiz
     (width.div_ceil(multiple) * multiple, height.div_ceil(multiple) * multiple)
 }
 
-/// Decodes the sources' images (PNG/JPEG, transparency composited on `background`) and stacks
-/// them padded to `multiple`.
+/// Decodes the sources' images (PNG/JPEG, transparency composited on `background`) into one
+/// stack padded to `multiple`, one image at a time: what a request holds is the stack and the
+/// image being decoded (`memory::decode_bytes`). Stops between images when the request is gone.
 pub async fn decode(
     sources: &[ValidSource],
     background: [f32; 3],
@@ -22,12 +24,27 @@ pub async fn decode(
     multiple: usize,
 ) -> Result<Array4<f32>, ApiError> {
     let sources = sources.to_vec();
-    tokio::task::spawn_blocking(move || {
-        let images = sources.iter().map(|s| decode_one(s, background, max_pixels)).collect::<Result<Vec<_>, _>>()?;
-        Ok(stack_padded(&images, multiple, background))
+    blocking::run(move |cancel| {
+        let first = &sources.first().ok_or_else(|| ApiError::invalid("sources", "no source views"))?.camera;
+        let mut stacked =
+            padded_stack(sources.len(), first.width as usize, first.height as usize, multiple, background);
+        for (view, source) in stacked.outer_iter_mut().zip(&sources) {
+            cancel.check()?;
+            put(view, &decode_one(source, background, max_pixels)?);
+        }
+        Ok(stacked)
     })
     .await
-    .map_err(|e| ApiError::Internal(format!("image decoding task failed: {e}")))?
+}
+
+/// `count` views of `width` x `height` padded to `padded_size`, filled with `background`.
+fn padded_stack(count: usize, width: usize, height: usize, multiple: usize, background: [f32; 3]) -> Array4<f32> {
+    let (wp, hp) = padded_size(width, height, multiple);
+    let mut stacked = Array4::zeros((count, 3, hp, wp));
+    for (c, bg) in background.into_iter().enumerate() {
+        stacked.index_axis_mut(Axis(1), c).fill(bg);
+    }
+    stacked
 }
 
 fn decode_one(source: &ValidSource, background: [f32; 3], max_pixels: u64) -> Result<Array3<f32>, ApiError> {
@@ -43,19 +60,10 @@ fn decode_one(source: &ValidSource, background: [f32; 3], max_pixels: u64) -> Re
     image_io::decode_source(&source.image, field, background, max_pixels)
 }
 
-/// Stacks same-size (H, W, 3) views into one NCHW array (V, 3, Hp, Wp), padded with
-/// `background` to `padded_size`.
-pub fn stack_padded(images: &[Array3<f32>], multiple: usize, background: [f32; 3]) -> Array4<f32> {
-    let (h, w, _) = images[0].dim();
-    let (wp, hp) = padded_size(w, h, multiple);
-    let mut stacked = Array4::zeros((images.len(), 3, hp, wp));
-    for (c, bg) in background.into_iter().enumerate() {
-        stacked.index_axis_mut(Axis(1), c).fill(bg);
-    }
-    for (mut view, image) in stacked.outer_iter_mut().zip(images) {
-        view.slice_mut(s![.., ..h, ..w]).assign(&image.view().permuted_axes([2, 0, 1]));
-    }
-    stacked
+/// An (H, W, 3) image into the top left of its padded (3, Hp, Wp) place in the stack.
+fn put(mut view: ArrayViewMut3<f32>, image: &Array3<f32>) {
+    let (h, w, _) = image.dim();
+    view.slice_mut(s![.., ..h, ..w]).assign(&image.view().permuted_axes([2, 0, 1]));
 }
 
 #[cfg(test)]
@@ -65,7 +73,10 @@ mod tests {
     #[test]
     fn pads_with_background() {
         let img = ndarray::arr3(&[[[0.1, 0.2, 0.3]]]);
-        let t = stack_padded(&[img.clone(), img], 4, [1.0, 0.5, 0.0]);
+        let mut t = padded_stack(2, 1, 1, 4, [1.0, 0.5, 0.0]);
+        for view in t.outer_iter_mut() {
+            put(view, &img);
+        }
         assert_eq!(t.shape(), &[2, 3, 4, 4]);
         let flat = t.as_slice().unwrap();
         assert_eq!(flat[0], 0.1);

@@ -34,6 +34,9 @@ pub struct Limits {
     pub max_scene_views: usize,
     /// Largest body of `POST /v1/captures` (every file of a capture).
     pub max_capture_bytes: usize,
+    /// Most bytes of a capture's files other than images (transforms, COLMAP models, poses):
+    /// they are parsed in memory, images are not.
+    pub max_capture_metadata_bytes: usize,
 }
 
 impl Default for Limits {
@@ -46,6 +49,7 @@ impl Default for Limits {
             max_json_depth: 16,
             max_scene_views: 64,
             max_capture_bytes: 256 << 20,
+            max_capture_metadata_bytes: 64 << 20,
         }
     }
 }

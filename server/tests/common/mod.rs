@@ -189,3 +189,29 @@ pub fn proto_request(r: &Value, images: &[Vec<u8>]) -> scnerf_proto::v1::RenderR
         sampling: r["sampling"].as_str().unwrap_or_default().to_string(),
     }
 }
+
+/// The dataset fixtures of every capture format.
+pub fn datasets() -> std::path::PathBuf {
+    scnerf_e2e::repo_root().join("tests/fixtures/datasets")
+}
+
+/// Every file under `dir` as (path relative to `dir`, bytes).
+pub fn files_of(dir: &std::path::Path) -> Vec<(String, Vec<u8>)> {
+    fn walk(root: &std::path::Path, dir: &std::path::Path, out: &mut Vec<(String, Vec<u8>)>) {
+        for entry in std::fs::read_dir(dir).unwrap() {
+            let path = entry.unwrap().path();
+            if path.is_dir() {
+                walk(root, &path, out);
+            } else {
+                out.push((
+                    path.strip_prefix(root).unwrap().to_str().unwrap().to_string(),
+                    std::fs::read(&path).unwrap(),
+                ));
+            }
+        }
+    }
+    let mut out = Vec::new();
+    walk(dir, dir, &mut out);
+    out.sort();
+    out
+}
