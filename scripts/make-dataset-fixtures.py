@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
-"""Writes the small dataset fixtures of tests/fixtures/datasets/ that both the Rust client's
-readers (client/tests/readers.rs) and the Python loaders (exporter/tests/test_dataset_fixtures.py)
-read, so the two cannot drift apart.
+"""Writes the small dataset fixtures of tests/fixtures/datasets/ that both the Rust readers of the
+capture crate (capture/tests/readers.rs) and the Python loaders
+(exporter/tests/data/test_dataset_fixtures.py) read, so the two cannot drift apart.
 
 One folder per format (blender, nerfstudio, llff, colmap, colmap_binary, dtu), each with tiny
 images and the cameras of a few views on a ring around the origin, plus the corner cases each

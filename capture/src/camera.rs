@@ -1,5 +1,6 @@
 //! Cameras in the project's canonical form, in one place (docs/design.md, "HTTP API"; the reference
-//! implementation is `exporter/scnerf_export/datasets.py` and `cameras.py`):
+//! implementation is `exporter/scnerf_export/cameras.py`, which the Python parsers of
+//! `exporter/scnerf_export/data/dataparsers/` convert to):
 //!
 //! * OpenCV axes: x right, y down, z forward;
 //! * world-to-camera poses;
@@ -33,9 +34,9 @@ pub struct Camera {
     pub w2c: Pose,
 }
 
-/// Whether datasets.py `_invert_rigid` inverts a matrix by transposing its rotation:
-/// `np.allclose(R Rᵀ, I, atol=1e-6)` and `np.allclose(last row, [0, 0, 0, 1])`, with numpy's
-/// default rtol of 1e-5. Mirrored exactly so both sides give the same numbers.
+/// Whether `cameras.py::invert_rigid` (the Python loaders' inverse) inverts a matrix by transposing
+/// its rotation: `np.allclose(R Rᵀ, I, atol=1e-6)` and `np.allclose(last row, [0, 0, 0, 1])`, with
+/// numpy's default rtol of 1e-5. Mirrored exactly so both sides give the same numbers.
 fn python_treats_as_rigid(m: &Matrix4<f64>) -> bool {
     let allclose = |a: f64, b: f64| (a - b).abs() <= 1e-6 + 1e-5 * b.abs();
     let r = m.fixed_view::<3, 3>(0, 0);
@@ -65,7 +66,7 @@ impl Camera {
     }
 
     /// The same view resampled to `width` x `height`: f' = f s, c' = (c + 0.5) s - 0.5, so that
-    /// pixel centres stay at integers (datasets.py `resize_camera`).
+    /// pixel centres stay at integers (`cameras.py::Camera.resized`).
     pub fn resized(&self, width: u32, height: u32) -> Camera {
         let sx = f64::from(width) / f64::from(self.width);
         let sy = f64::from(height) / f64::from(self.height);
@@ -118,7 +119,7 @@ pub fn pose_from_matrix(m: &Matrix4<f64>) -> Option<Pose> {
 }
 
 /// Inverse of a rigid 4x4 [R|t]: the transpose when R is orthonormal (by Python's test), else a
-/// general inverse (datasets.py `_invert_rigid`).
+/// general inverse (`cameras.py::invert_rigid`).
 fn invert_rigid(m: &Matrix4<f64>) -> Option<Matrix4<f64>> {
     if python_treats_as_rigid(m) {
         pose_from_matrix(m).map(|p| p.inverse().to_homogeneous())
@@ -137,7 +138,7 @@ pub fn w2c_from_c2w(c2w: &Matrix4<f64>) -> Option<Pose> {
     invert_rigid(c2w).as_ref().and_then(pose_from_matrix)
 }
 
-/// Any of the API's pose conventions -> canonical world-to-camera (cameras.py `Camera.from_pose`).
+/// Any of the API's pose conventions -> canonical world-to-camera (`cameras.py::Camera.from_pose`).
 pub fn w2c_from_api(matrix: &Matrix4<f64>, camera_to_world: bool, opengl: bool) -> Option<Pose> {
     let pose = pose_from_matrix(matrix)?;
     let c2w = if camera_to_world { pose } else { pose.inverse() };
@@ -146,7 +147,7 @@ pub fn w2c_from_api(matrix: &Matrix4<f64>, camera_to_world: bool, opengl: bool) 
 }
 
 /// World-to-camera of a camera at `eye` looking at `target`, with `up` pointing up in the image
-/// (cameras.py `look_at`: x = forward x up, y = forward x right).
+/// (`cameras.py::look_at`: x = forward x up, y = forward x right).
 pub fn look_at(eye: &Point3<f64>, target: &Point3<f64>, up: &Vector3<f64>) -> Pose {
     // face_towards maps z to the direction and y towards the given vector: OpenCV's y is down.
     let rotation = Rotation3::face_towards(&(target - eye), &-up);
@@ -167,7 +168,7 @@ pub struct Viewpoint {
 }
 
 impl Viewpoint {
-    /// Of a world-to-camera matrix [R | t] (OpenCV axes), as cameras.py computes them:
+    /// Of a world-to-camera matrix [R | t] (OpenCV axes), as `cameras.py::Camera` computes them:
     /// centre = -Rᵀ t, forward = the third row of R.
     pub fn of_w2c(w2c: &Matrix4<f64>) -> Viewpoint {
         let r = w2c.fixed_view::<3, 3>(0, 0);
@@ -176,7 +177,7 @@ impl Viewpoint {
     }
 }
 
-/// Source ranking, MVSNeRF's rule (cameras.py `rank_sources`): candidates by the distance of
+/// Source ranking, MVSNeRF's rule (`cameras.py::rank_sources`): candidates by the distance of
 /// their centre to the target's, nearest first, ties to the lower index; a candidate whose
 /// optical axis makes 90 degrees or more with the target's (dot of the forward axes <= 0) sees
 /// the other side and is left out. The first becomes the volume's reference view.
@@ -241,7 +242,7 @@ mod tests {
     }
 
     /// A rig of exactly representable cameras with ties in distance, views facing away and one
-    /// at exactly 90 degrees. The expected order is what cameras.py `rank_sources` printed for
+    /// at exactly 90 degrees. The expected order is what `cameras.py::rank_sources` printed for
     /// the same matrices (exporter of the main tree, `PYTHONPATH=exporter .venv/bin/python`):
     /// `[5, 6, 0, 1, 7, 4]`.
     #[test]

@@ -1,4 +1,4 @@
-//! PSNR and SSIM against exporter/scnerf_export/metrics.py on the fixed arrays of
+//! PSNR and SSIM against exporter/scnerf_export/evaluate/metrics.py on the fixed arrays of
 //! tests/fixtures/datasets/metrics.json (written by scripts/make-dataset-fixtures.py with
 //! metrics.py; exporter/tests/data/test_dataset_fixtures.py checks the Python side).
 

@@ -1,6 +1,6 @@
 //! The `sampling` field of render requests: `full` and `guided` both answer and say how they
 //! sampled, a bad value is 422 naming the field, and a bundle without guided graphs renders full
-//! (over the fake graph runner; guided pixels against PyTorch are in tests/tests/parity_guided.rs).
+//! (over the fake graph runner; guided pixels against PyTorch are in tests/tests/parity.rs).
 
 use std::sync::atomic::Ordering;
 use std::time::Duration;

@@ -1,10 +1,11 @@
 //! NeRF-synthetic ("Blender") scenes: `transforms_{train,val,test}.json` (or one given file).
 //!
-//! Convention (datasets.py `load_blender`, MVSNeRF's): fx = fy = 0.5 W / tan(0.5 camera_angle_x)
-//! (fy from camera_angle_y when given), cx = W/2, cy = H/2 with W, H read from each image, no
-//! half-pixel shift; `transform_matrix` is camera-to-world in OpenGL axes; near/far 2/6; RGBA
-//! composited on white. Frames without an image file are skipped (one warning). View names are
-//! the image stems ("r_6"), or "split/stem" for all views when two splits share a stem.
+//! Convention (`exporter/scnerf_export/data/dataparsers/blender.py::BlenderParser`, MVSNeRF's):
+//! fx = fy = 0.5 W / tan(0.5 camera_angle_x) (fy from camera_angle_y when given), cx = W/2,
+//! cy = H/2 with W, H read from each image, no half-pixel shift; `transform_matrix` is
+//! camera-to-world in OpenGL axes; near/far 2/6; RGBA composited on white. Frames without an image
+//! file are skipped (one warning). View names are the image stems ("r_6"), or "split/stem" for all
+//! views when two splits share a stem.
 
 use std::path::{Path, PathBuf};
 
@@ -138,7 +139,7 @@ pub(super) fn frame_file_path<'a>(frame: &'a serde_json::Value, file: &Path, i: 
         .ok_or_else(|| Error::dataset(file, format!("frames[{i}] has no 'file_path'")))
 }
 
-/// Stems when unique, else "split/stem" for every view (datasets.py `_unique_names`).
+/// Stems when unique, else "split/stem" for every view (`blender.py::_unique_names`).
 fn unique_names(entries: &[Entry], path: &Path) -> Result<Vec<String>> {
     let stems: Vec<String> = entries.iter().map(|e| e.stem.clone()).collect();
     if all_unique(&stems) {

@@ -1,12 +1,12 @@
 //! DTU scans in MVSNeRF's layout: `Cameras/train/000000NN_cam.txt` (or `Cameras/`) and
 //! `Rectified/scanS_train/rect_{NN+1:03}_3_r5000.png` (lighting 3, 640x512).
 //!
-//! Convention (datasets.py `load_dtu`): MVSNet cam.txt, world-to-camera in millimetres and
-//! intrinsics at 1/4 of 640x512; the first two rows of K are multiplied by 4 (MVSNeRF's
-//! convention: no half-pixel shift) and the world is scaled by 1/200. near = smallest
-//! depth_min / 200, far = largest (depth_min + 192 depth_interval) / 200 (2.125 / 4.525 for the
-//! usual "425 2.5"). Views are named by their number ("25"); cameras without an image are
-//! skipped (one warning).
+//! Convention (`exporter/scnerf_export/data/dataparsers/dtu.py::DtuParser`): MVSNet cam.txt,
+//! world-to-camera in millimetres and intrinsics at 1/4 of 640x512; the first two rows of K are
+//! multiplied by 4 (MVSNeRF's convention: no half-pixel shift) and the world is scaled by 1/200.
+//! near = smallest depth_min / 200, far = largest (depth_min + 192 depth_interval) / 200
+//! (2.125 / 4.525 for the usual "425 2.5"). Views are named by their number ("25"); cameras
+//! without an image are skipped (one warning).
 
 use std::path::{Path, PathBuf};
 

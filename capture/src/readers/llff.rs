@@ -1,13 +1,13 @@
 //! LLFF: `poses_bounds.npy` (N x 17) and `images/` (file names sorted, one per row).
 //!
-//! Convention (datasets.py `load_llff`): each row is a 3x5 matrix [R | t | hwf] then the view's
-//! near and far bounds. R is camera-to-world with columns in LLFF's [down, right, back] axes, so
-//! OpenCV's [right, down, forward] = [col1, col0, -col2]. hwf is the full-resolution height,
-//! width and focal: f = focal W_image / W_hwf, and the principal point is the image centre
-//! (W/2, H/2), as in LLFF's and MVSNeRF's code. The world stays in LLFF's units (no NeRF
-//! bd_factor rescale). near = smallest near bound, far = largest far bound. hwf describes the
-//! full-size images: a downscaled set (`images_N`, `--downscale N`) gets f scaled by its width,
-//! f W_N / W_hwf, which is LLFF's f / N for sizes that divide exactly.
+//! Convention (`exporter/scnerf_export/data/dataparsers/llff.py::LlffParser`): each row is a 3x5
+//! matrix [R | t | hwf] then the view's near and far bounds. R is camera-to-world with columns in
+//! LLFF's [down, right, back] axes, so OpenCV's [right, down, forward] = [col1, col0, -col2]. hwf
+//! is the full-resolution height, width and focal: f = focal W_image / W_hwf, and the principal
+//! point is the image centre (W/2, H/2), as in LLFF's and MVSNeRF's code. The world stays in LLFF's
+//! units (no NeRF bd_factor rescale). near = smallest near bound, far = largest far bound. hwf
+//! describes the full-size images: a downscaled set (`images_N`, `--downscale N`) gets f scaled by
+//! its width, f W_N / W_hwf, which is LLFF's f / N for sizes that divide exactly.
 
 use std::path::{Path, PathBuf};
 
@@ -116,7 +116,7 @@ fn declared_shape(bytes: &[u8]) -> Option<(Vec<u64>, u64)> {
     Some((shape, data_bytes))
 }
 
-/// Image files of a folder, sorted by name, hidden files left out (datasets.py `_list_images`).
+/// Image files of a folder, sorted by name, hidden files left out (`llff.py::_list_images`).
 fn list_images(fs: &dyn Files, dir: &Path) -> Result<Vec<PathBuf>> {
     let mut files: Vec<PathBuf> = fs
         .list(dir)?

@@ -1,6 +1,6 @@
 //! Dataset readers, one module per format (like nerfstudio's `data/dataparsers/`), all giving a
-//! [`Capture`] in the canonical camera form of [`crate::camera`]. Each mirrors the Python loader
-//! of the same name in `exporter/scnerf_export/datasets.py`; the fixtures under
+//! [`Capture`] in the canonical camera form of [`crate::camera`]. Each mirrors the Python parser
+//! of the same format in `exporter/scnerf_export/data/dataparsers/`; the fixtures under
 //! `tests/fixtures/datasets/` are read by both and compared with what the Python loader wrote.
 //!
 //! Readers read through [`Files`]: a folder on disk ([`load`]) or files held in memory
@@ -158,7 +158,8 @@ pub fn load_from(fs: &dyn Files, path: &Path, format: Option<Format>, opts: Read
     Ok(capture)
 }
 
-/// Extensions the Python loaders accept (datasets.py IMAGE_EXTENSIONS) and the server decodes.
+/// Extensions the Python loaders accept (`exporter/scnerf_export/data/scene.py::IMAGE_EXTENSIONS`)
+/// and the server decodes.
 pub const IMAGE_EXTENSIONS: [&str; 6] = ["png", "jpg", "jpeg", "PNG", "JPG", "JPEG"];
 
 /// Whether `path` names an image the readers use (by its extension).
@@ -301,7 +302,7 @@ mod json_check {
 }
 
 /// `near`/`far`, each from the command line if given, else from the dataset; checked as the
-/// Python loaders do (`_check_near_far`).
+/// Python loaders do (`data/scene.py::check_near_far`).
 fn depth_range(opts: ReadOptions, from_data: (Option<f64>, Option<f64>), source: &Path) -> Result<(f64, f64)> {
     let (Some(near), Some(far)) = (opts.near.or(from_data.0), opts.far.or(from_data.1)) else {
         return Err(Error::dataset(
@@ -315,8 +316,8 @@ fn depth_range(opts: ReadOptions, from_data: (Option<f64>, Option<f64>), source:
     Ok((near, far))
 }
 
-/// The image a transforms.json `file_path` refers to: the path itself, else with one of the
-/// image extensions appended (Blender files omit it). datasets.py `_resolve_image`.
+/// The image a transforms.json `file_path` refers to: the path itself, else with one of the image
+/// extensions appended (Blender files omit it). `data/dataparsers/transforms.py::_resolve_image`.
 fn resolve_image(fs: &dyn Files, base: &Path, file_path: &str) -> Option<PathBuf> {
     let p = base.join(file_path);
     if fs.is_file(&p) {
@@ -374,7 +375,7 @@ fn base_name(path: &str) -> String {
     Path::new(path).file_name().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default()
 }
 
-/// Natural order ("img2" before "img10"), datasets.py `_natural_key`: runs of digits compare by
+/// Natural order ("img2" before "img10"), `data/scene.py::natural_key`: runs of digits compare by
 /// value, everything else by code point.
 pub fn natural_cmp(a: &str, b: &str) -> Ordering {
     let (ka, kb) = (natural_key(a), natural_key(b));
@@ -452,7 +453,7 @@ mod tests {
     fn natural_order_matches_python() {
         let mut names = vec!["img10.png", "img2.png", "img02.png", "a", "10", "9b", "img2.jpg"];
         names.sort_by(|a, b| natural_cmp(a, b));
-        // Python: sorted(names, key=_natural_key)
+        // Python: sorted(names, key=natural_key)
         assert_eq!(names, vec!["9b", "10", "a", "img2.jpg", "img2.png", "img02.png", "img10.png"]);
     }
 

@@ -1,13 +1,14 @@
 //! nerfstudio `transforms.json`: fl_x, fl_y, cx, cy, w, h at the top level and/or per frame,
 //! `file_path` per frame, `transform_matrix` camera-to-world in OpenGL axes.
 //!
-//! Convention (datasets.py `load_nerfstudio`): nerfstudio puts the first pixel's centre at
-//! (0.5, 0.5), so cx, cy are shifted by -0.5; if the image on disk has another size than w x h the
-//! intrinsics are rescaled to it (pixel centres kept at integers). Lens distortion (k1..k4, p1,
-//! p2) is refused unless `--ignore-distortion`. near/far from the flags, else the file's
-//! `near`/`far` (or `near_far`) keys. View names are the file stems, or the file paths without
-//! extension when stems repeat. A downscaled set (`--downscale N`) is nerfstudio's:
-//! `images_N/<file name>` beside the transforms file, the intrinsics scaled to its images.
+//! Convention (`exporter/scnerf_export/data/dataparsers/nerfstudio.py::NerfstudioParser`):
+//! nerfstudio puts the first pixel's centre at (0.5, 0.5), so cx, cy are shifted by -0.5; if the
+//! image on disk has another size than w x h the intrinsics are rescaled to it (pixel centres kept
+//! at integers). Lens distortion (k1..k4, p1, p2) is refused unless `--ignore-distortion`. near/far
+//! from the flags, else the file's `near`/`far` (or `near_far`) keys. View names are the file
+//! stems, or the file paths without extension when stems repeat. A downscaled set (`--downscale N`)
+//! is nerfstudio's: `images_N/<file name>` beside the transforms file, the intrinsics scaled to its
+//! images.
 
 use std::path::{Path, PathBuf};
 

@@ -1,7 +1,7 @@
-"""The dataset fixtures shared with the Rust client (tests/fixtures/datasets/, written by
+"""The dataset fixtures shared with the Rust readers (tests/fixtures/datasets/, written by
 scripts/make-dataset-fixtures.py): the Python loaders must still give the cameras, near/far and
 background recorded in each folder's expected.json, which the Rust readers are tested against
-too (client/tests/readers.rs). A change to a loader that fails here needs the fixtures
+too (capture/tests/readers.rs). A change to a loader that fails here needs the fixtures
 regenerated and the Rust reader changed to match."""
 
 from __future__ import annotations
