@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import time
-from pathlib import Path
 
 import numpy as np
 import onnxruntime as ort
@@ -40,7 +39,7 @@ def renderer_run(spec: str, threads: int, spin: bool, first_ray: int, rays: int)
     for entry in entries:
         key, value = entry.split("=", 1)
         options.add_session_config_entry(key, value)
-    renderer = Path(path) / bundle.manifest["graphs"]["renderer"]["file"]
+    renderer = bundle.graph_path("renderer")
     session = ort.InferenceSession(str(renderer), options, providers=["CPUExecutionProvider"])
     return session, renderer_run_feeds(bundle, EXAMPLE, slice(first_ray, first_ray + rays))
 

@@ -80,7 +80,7 @@ def main() -> None:
     options.enable_profiling = True
     options.profile_file_prefix = str(Path(args.cache) / "tmp" / "chunk-profile")
     Path(options.profile_file_prefix).parent.mkdir(parents=True, exist_ok=True)
-    renderer = Path(args.bundle) / bundle.manifest["graphs"]["renderer"]["file"]
+    renderer = bundle.graph_path("renderer")
     session = ort.InferenceSession(str(renderer), options, providers=["CPUExecutionProvider"])
     for f in feeds:  # first runs allocate the arenas; not counted
         session.run(None, f)

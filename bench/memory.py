@@ -30,6 +30,7 @@ from scnerf_client import Client, ConnectionFailed, ServerError
 from scnerf_export.cameras import camera_json
 from scnerf_export.data.datasets import get_views, load_scene
 from scnerf_export.data.scene import resize_view
+from scnerf_export.export.manifest import Manifest
 from scnerf_export.runtime.volume_slabs import volume_build
 from scnerf_export.serving import REPO, ServerProcess, find_server_binary, png_bytes
 
@@ -220,9 +221,9 @@ def update_fixture(path: Path, rows: list[dict]) -> None:
     for r in rows:
         if r.get("status") not in (200, 201) or not r.get("request_peak_mib"):
             continue
-        manifest = json.loads((Path(r["bundle"]) / "manifest.json").read_text())
-        build = volume_build(manifest["graphs"])
-        fixture["bundles"][r["model_id"]] = {"config": manifest["config"]}
+        manifest = Manifest.load(r["bundle"])
+        build = volume_build(manifest.graphs)
+        fixture["bundles"][r["model_id"]] = {"config": manifest.config.to_dict()}
         row = {
             "bundle": r["model_id"],
             "build": build,

@@ -26,8 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from scnerf_export.config import ModelConfig
-from scnerf_export.export.manifest import read_manifest
+from scnerf_export.export.manifest import Manifest
 from scnerf_export.runtime.chunks import rays_per_run
 from scnerf_export.runtime.view import renderer_passes
 from scnerf_export.serving import find_server_binary
@@ -138,8 +137,8 @@ def write_results(out: Path, results: dict, md: str) -> None:
 
 def run(args) -> dict:
     """Every size of the plan, each method interleaved in ``--rounds`` rounds; then the figures."""
-    manifest = read_manifest(args.bundle)
-    chunk = args.chunk or rays_per_run(manifest["config"]["samples"])
+    manifest = Manifest.load(args.bundle)
+    chunk = args.chunk or rays_per_run(manifest.config.samples)
     results = start_results(args, manifest, chunk)
     measure_gemm(args, results)
     measured = [
@@ -159,9 +158,9 @@ def run(args) -> dict:
     return results
 
 
-def start_results(args, manifest: dict, chunk: int) -> dict:
+def start_results(args, manifest: Manifest, chunk: int) -> dict:
     """The run's conditions: machine, bundle, plan, contention before it; the server binary found."""
-    cfg = manifest["config"]
+    cfg = manifest.config
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     variants = dict(v.split("=", 1) for v in args.variant)
     server_bin = None
@@ -171,7 +170,7 @@ def start_results(args, manifest: dict, chunk: int) -> dict:
             raise SystemExit("no server binary: cargo build --release -j2 -p scnerf-server (or pass --server-bin)")
         args.server_bin = str(server_bin)
     busy_before, load_before = busy_processes(), load()
-    log(f"bundle {args.bundle} ({manifest['model_id']}), sizes {args.sizes}, threads {args.threads}, chunk {chunk}")
+    log(f"bundle {args.bundle} ({manifest.model_id}), sizes {args.sizes}, threads {args.threads}, chunk {chunk}")
     if busy_before:
         log(f"CONTENDED: {len(busy_before)} training/eval processes running")
     return {
@@ -179,10 +178,10 @@ def start_results(args, manifest: dict, chunk: int) -> dict:
         "machine": machine(),
         "bundle": {
             "dir": args.bundle,
-            "model_id": manifest["model_id"],
-            "variant": manifest["variant"],
-            "precision": manifest.get("precision", "fp32"),
-            "config": {k: cfg[k] for k in ("width", "samples", "depth_planes", "views", "pad")},
+            "model_id": manifest.model_id,
+            "variant": manifest.variant,
+            "precision": manifest.precision,
+            "config": {k: getattr(cfg, k) for k in ("width", "samples", "depth_planes", "views", "pad")},
         },
         "threads": args.threads,
         "rounds": args.rounds,
@@ -191,25 +190,23 @@ def start_results(args, manifest: dict, chunk: int) -> dict:
         "server_args": args.server_args,
         "methods": methods,
         "variants": variants,
-        "variant_precision": {name: read_manifest(d).get("precision", "fp32") for name, d in variants.items()},
+        "variant_precision": {name: Manifest.load(d).precision for name, d in variants.items()},
         "contention": {"busy_processes_before": busy_before, "loadavg_before": load_before},
         "gemm": None,
         "sizes": {},
     }
 
 
-def measure_size(args, results: dict, manifest: dict, width: int, height: int, chunk: int):
+def measure_size(args, results: dict, manifest: Manifest, width: int, height: int, chunk: int):
     """One size: the renderer's FLOPs, every job in every round, the profile if asked for.
     Returns the size's entry, the fastest round's image of each job, and the ground truth."""
-    cfg = manifest["config"]
+    cfg = manifest.config
     key = f"{width}x{height}"
     scene_dir = make_scene_dir(Path(args.cache), width, height)
-    multiple = cfg["image_multiple"]
+    multiple = cfg.image_multiple
     padded = (-(-height // multiple) * multiple, -(-width // multiple) * multiple)
-    flops = renderer_flops_for(
-        Path(args.bundle) / manifest["graphs"]["renderer"]["file"], width * height, padded, cfg["pad"]
-    )
-    flops["flops"] *= renderer_passes(ModelConfig.from_dict(cfg))
+    flops = renderer_flops_for(manifest.graph_path(args.bundle, "renderer"), width * height, padded, cfg.pad)
+    flops["flops"] *= renderer_passes(cfg)
     entry: dict = {"rays": width * height, "renderer_gemm_flops": flops, "methods": {}}
     results["sizes"][key] = entry
     tmp = Path(args.cache) / "tmp"

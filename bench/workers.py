@@ -14,8 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from scnerf_export.config import ModelConfig
-from scnerf_export.export.manifest import read_manifest
+from scnerf_export.export.manifest import Manifest, Provenance
 from scnerf_export.serving import png_bytes
 
 from . import REPO
@@ -128,7 +127,7 @@ def worker_profile(args) -> dict:
     options.enable_profiling = True
     options.profile_file_prefix = str(Path(args.scene_dir).parent / "tmp" / "ort-profile")
     session = ort.InferenceSession(
-        str(Path(args.bundle) / bundle.manifest["graphs"]["renderer"]["file"]),
+        str(bundle.graph_path("renderer")),
         options,
         providers=["CPUExecutionProvider"],
     )
@@ -166,12 +165,11 @@ def load_torch_model(bundle_dir: str, checkpoint: str):
     from scnerf_export.model.checkpoint import load_checkpoint, sha256_file
     from scnerf_export.rigs import random_model
 
-    manifest = read_manifest(bundle_dir)
-    cfg = ModelConfig.from_dict(manifest["config"])
-    prov = manifest.get("provenance") or {}
+    manifest = Manifest.load(bundle_dir)
+    cfg, prov = manifest.config, manifest.provenance
     if checkpoint == "auto":
-        seed = re.search(r"torch seed (\d+)", str(prov.get("training", "")))
-        if prov.get("source_kind") == "random-weights" and seed:
+        seed = re.search(r"torch seed (\d+)", str(prov.training or ""))
+        if prov.source_kind == "random-weights" and seed:
             checkpoint = f"random:{seed.group(1)}"
         else:
             checkpoint = find_checkpoint(bundle_dir, prov)
@@ -179,17 +177,17 @@ def load_torch_model(bundle_dir: str, checkpoint: str):
         return random_model(cfg, int(checkpoint.split(":", 1)[1])).eval(), checkpoint
     model, _ = load_checkpoint(checkpoint)
     note = str(checkpoint)
-    if prov.get("source_sha256") and sha256_file(Path(checkpoint)) != prov["source_sha256"]:
+    if prov.source_sha256 and sha256_file(Path(checkpoint)) != prov.source_sha256:
         note += " (sha256 differs from the bundle's source checkpoint: timings valid, outputs not comparable)"
     if model.cfg != cfg:
         raise SystemExit(f"{checkpoint}: its model config differs from {bundle_dir}'s manifest")
     return model.eval(), note
 
 
-def find_checkpoint(bundle_dir: str, prov: dict) -> str:
+def find_checkpoint(bundle_dir: str, prov: Provenance) -> str:
     from scnerf_export.model.checkpoint import sha256_file
 
-    name, want = prov.get("source_checkpoint"), prov.get("source_sha256")
+    name, want = prov.source_checkpoint, prov.source_sha256
     if not name:
         raise SystemExit(f"{bundle_dir}: manifest names no source checkpoint; pass --checkpoint")
     roots = [Path(bundle_dir), REPO, REPO.parent / "shared" / "weights", Path("/work/runs")]

@@ -1,8 +1,13 @@
 """bench.memory: the table and the estimate's fixture rows from the measured rows."""
 
 import json
+import shutil
 
+from bench import REPO
 from bench.memory import table, update_fixture
+
+# A bundle whose volume graphs build the volume slab by slab.
+SLABS_BUNDLE = REPO / "tests" / "fixtures" / "parity-slabs"
 
 
 def row(bundle, sources, peak, status=200):
@@ -27,13 +32,13 @@ def row(bundle, sources, peak, status=200):
 def test_fixture_rows_are_the_peak_above_rest_per_bundle_build_and_size(tmp_path):
     bundle = tmp_path / "b"
     bundle.mkdir()
-    manifest = {"config": {"depth_planes": 128}, "graphs": {"encoder": {}, "cost_slab": {}, "volume_net": {}}}
-    (bundle / "manifest.json").write_text(json.dumps(manifest))
+    shutil.copyfile(SLABS_BUNDLE / "manifest.json", bundle / "manifest.json")
     fixture = tmp_path / "measured.json"
     update_fixture(fixture, [row(bundle, "640x512", 1090.0), row(bundle, "800x800", 0.0, status=503)])
     update_fixture(fixture, [row(bundle, "640x512", 1100.0)])  # measured again: replaces the row
     got = json.loads(fixture.read_text())
-    assert got["bundles"] == {"scnerf-mvsnerf-abc": {"config": {"depth_planes": 128}}}
+    config = json.loads((SLABS_BUNDLE / "manifest.json").read_text())["config"]
+    assert got["bundles"] == {"scnerf-mvsnerf-abc": {"config": config}}
     assert got["rows"] == [
         {
             "bundle": "scnerf-mvsnerf-abc",

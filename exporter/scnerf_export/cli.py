@@ -18,7 +18,7 @@ def cmd_convert(args) -> None:
 
     model, provenance = load_mvsnerf(args.ckpt)
     manifest = export_bundle(model, args.out, provenance, args.volume)
-    print(f"wrote {args.out} ({manifest['model_id']})")
+    print(f"wrote {args.out} ({manifest.model_id})")
 
 
 def cmd_init_scnerf(args) -> None:
@@ -35,7 +35,7 @@ def cmd_export(args) -> None:
     if args.metrics:
         provenance["metrics"] = json.loads(args.metrics.read_text())
     manifest = export_bundle(model, args.out, provenance, args.volume)
-    print(f"wrote {args.out} ({manifest['model_id']})")
+    print(f"wrote {args.out} ({manifest.model_id})")
 
 
 def cmd_fixtures(args) -> None:
@@ -132,7 +132,7 @@ def cmd_quantize(args) -> None:
 
     graphs = tuple(g.strip() for g in args.graphs.split(",") if g.strip())
     manifest = quantize_bundle(args.bundle, args.out, args.precision, graphs=graphs, min_inner=args.min_inner)
-    print(f"wrote {args.out} ({manifest['model_id']}, {args.precision}: {', '.join(graphs)})")
+    print(f"wrote {args.out} ({manifest.model_id}, {args.precision}: {', '.join(graphs)})")
     if args.compare:
         width, height = (int(x) for x in args.compare_size.lower().split("x"))
         report = compare_bundles(
@@ -159,8 +159,8 @@ def cmd_reexport(args) -> None:
     from .export.reexport import reexport_bundle
 
     manifest = reexport_bundle(args.bundle, args.out)
-    diff = manifest["provenance"]["reexport"]["renderer_max_abs_difference"]
-    print(f"wrote {args.out} ({manifest['model_id']}; renderer agrees with {args.bundle} to {diff:.2g})")
+    diff = manifest.provenance.reexport["renderer_max_abs_difference"]
+    print(f"wrote {args.out} ({manifest.model_id}; renderer agrees with {args.bundle} to {diff:.2g})")
 
 
 def cmd_add_guided(args) -> None:
@@ -168,17 +168,17 @@ def cmd_add_guided(args) -> None:
 
     out = args.out or args.bundle
     manifest = add_guided(args.bundle, out, args.checkpoint)
-    diff = manifest["provenance"]["guided_graphs"]["guide_max_abs_difference_from_renderer"]
+    diff = manifest.provenance.guided_graphs["guide_max_abs_difference_from_renderer"]
     agreement = f"the guide renders what the renderer renders to {diff:.2g}"
-    print(f"wrote the guided-sampling graphs into {out} ({manifest['model_id']}; {agreement})")
+    print(f"wrote the guided-sampling graphs into {out} ({manifest.model_id}; {agreement})")
 
 
 def cmd_split_volume(args) -> None:
     from .export.split_volume import split_volume_bundle
 
     manifest = split_volume_bundle(args.bundle, args.out, args.volume)
-    diff = manifest["provenance"]["volume_split"]["volume_max_abs_difference"]
-    print(f"wrote {args.out} ({manifest['model_id']}; the volume agrees with {args.bundle} to {diff:.2g})")
+    diff = manifest.provenance.volume_split["volume_max_abs_difference"]
+    print(f"wrote {args.out} ({manifest.model_id}; the volume agrees with {args.bundle} to {diff:.2g})")
 
 
 VOLUME_OPTION = dict(

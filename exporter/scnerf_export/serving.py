@@ -94,8 +94,12 @@ class ServedBundle:
 
     def __init__(self, url: str):
         self.client = Client(url)
-        self.manifest = self.client.model()
+        self.model = self.client.model()
         self.scenes: dict = {}
+
+    @property
+    def model_id(self) -> str:
+        return self.model["model_id"]
 
     def encode_scene(self, images: np.ndarray, cameras: list[Camera], near: float, far: float, background) -> str:
         scene = self.client.upload_scene(list(images), [camera_json(c) for c in cameras], near, far, background)

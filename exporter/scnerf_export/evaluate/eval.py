@@ -83,7 +83,7 @@ def evaluate(
         print(format_row(row), flush=True)
     summary = {
         "bundle": server or str(bundle_dir),
-        "model_id": bundle.manifest["model_id"],
+        "model_id": bundle.model_id,
         "scene": str(scene_dir),
         "protocol": PROTOCOL_FIXED if sources else PROTOCOL_NEAREST,
         "encode_seconds": sum(seconds for _, seconds in encoded.values()),

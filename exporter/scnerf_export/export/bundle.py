@@ -19,12 +19,10 @@ from ..model.cost_volume import build_cost_volume, slab_halo
 from ..model.network import SCNeRF
 from ..model.renderer import nearest_heads
 from ..rigs import synthetic_rig
-from ..runtime.guided import GuidedPolicy
 from ..runtime.volume_slabs import slab_volume_error
-from .manifest import model_id, write_manifest
+from .manifest import FORMAT_VERSION, GraphEntry, GuidedPolicy, Manifest, Provenance, model_id, tensor_specs
 from .ray_groups import attention_cores_in_ray_groups
 
-FORMAT_VERSION = 1
 OPSET = 20
 
 # Example sizes for tracing: small and unlike any other axis so that no dimension is specialised.
@@ -409,8 +407,12 @@ def export_graph(module: nn.Module, inputs: dict[str, torch.Tensor], model: SCNe
     onnx.save(proto, path)
 
 
-def io_spec(names_shapes: dict[str, list]) -> list[dict]:
-    return [{"name": n, "shape": s, "dtype": "float32"} for n, s in names_shapes.items()]
+def graph_entry(path: Path, signature: dict[str, dict[str, list]]) -> GraphEntry:
+    """The manifest's entry of the graph written at ``path`` (in the bundle's folder) with
+    ``signature`` (one of ``graph_signatures``)."""
+    return GraphEntry(
+        path.name, sha256_file(path), tensor_specs(signature["inputs"]), tensor_specs(signature["outputs"])
+    )
 
 
 # A graph agrees with PyTorch when its largest difference is within `tolerance` (absolute) or
@@ -470,9 +472,10 @@ def validate_slab_volume(
     return error
 
 
-def export_bundle(model: SCNeRF, out_dir: str | Path, provenance: dict, volume: str = "whole") -> dict:
+def export_bundle(model: SCNeRF, out_dir: str | Path, provenance: dict, volume: str = "whole") -> Manifest:
     """Write the graphs (``volume``: the way they build the volume, a key of VOLUME_GRAPHS) and
-    manifest.json into out_dir and validate them."""
+    manifest.json into out_dir and validate them. ``provenance``: what the checkpoint loader says
+    of the weights (source, training, licence)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     model = model.eval()
@@ -481,27 +484,26 @@ def export_bundle(model: SCNeRF, out_dir: str | Path, provenance: dict, volume: 
     graphs, errors = export_graphs(model, out, GRAPHS[volume], (inputs, checks))
     if volume != "whole":
         validate_slab_volume(model, out, volume, checks["volume"], tolerance=1e-4)
-    provenance = write_licences(out, provenance)
-    manifest = {
-        "format_version": FORMAT_VERSION,
-        "model_id": model_id(model.cfg.variant, graphs["renderer"]["sha256"]),
-        "variant": model.cfg.variant,
-        "config": model.cfg.to_dict(),
-        "graphs": graphs,
-        "guided": GuidedPolicy().to_dict(),
-        "provenance": {
-            "exporter_version": __version__,
-            "torch_version": torch.__version__,
-            "opset": OPSET,
-            "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-            "export_validation_max_abs_error": errors,
-            "metrics": None,
-            "source_checkpoint": None,
-            "source_sha256": None,
-            **provenance,
-        },
+    export = {
+        "exporter_version": __version__,
+        "torch_version": torch.__version__,
+        "opset": OPSET,
+        "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "export_validation_max_abs_error": errors,
+        "metrics": None,
+        "source_checkpoint": None,
+        "source_sha256": None,
     }
-    write_manifest(out, manifest)
+    manifest = Manifest(
+        format_version=FORMAT_VERSION,
+        model_id=model_id(model.cfg.variant, graphs["renderer"].sha256),
+        variant=model.cfg.variant,
+        config=model.cfg,
+        graphs=graphs,
+        provenance=Provenance.from_json({**export, **write_licences(out, provenance)}),
+        guided=GuidedPolicy(),
+    )
+    manifest.save(out)
     return manifest
 
 
@@ -520,7 +522,7 @@ def graph_modules(model: SCNeRF) -> dict[str, nn.Module]:
 
 def export_graphs(
     model: SCNeRF, out: Path, names: tuple[str, ...], examples: tuple[dict, ...]
-) -> tuple[dict[str, dict], dict[str, float]]:
+) -> tuple[dict[str, GraphEntry], dict[str, float]]:
     """Writes the graphs ``names`` of ``model`` into ``out``, each checked against PyTorch on every
     example's inputs (traced on the first); their manifest entries and largest errors."""
     modules, signatures = graph_modules(model), graph_signatures(model)
@@ -529,12 +531,7 @@ def export_graphs(
         path = out / f"{name}.onnx"
         export_graph(modules[name], examples[0][name], model, name, path)
         errors[name] = max(validate_graph(path, modules[name], example[name], tolerance=1e-4) for example in examples)
-        graphs[name] = {
-            "file": path.name,
-            "sha256": sha256_file(path),
-            "inputs": io_spec(signatures[name]["inputs"]),
-            "outputs": io_spec(signatures[name]["outputs"]),
-        }
+        graphs[name] = graph_entry(path, signatures[name])
     return graphs, errors
 
 

@@ -21,26 +21,25 @@ import onnxruntime as ort
 import torch
 
 from .. import __version__
-from ..config import ModelConfig
 from ..model.checkpoint import load_checkpoint
 from ..model.network import SCNeRF
-from ..runtime.guided import GuidedPolicy
 from ..runtime.volume_slabs import build_volume
 from .bundle import CHECK_BLOCKS, CHECK_RAYS, GUIDED_GRAPHS, example_inputs, export_graphs
-from .manifest import read_manifest, write_manifest
+from .manifest import FLOAT32, GuidedPolicy, Manifest
 from .reexport import ReexportError, renderer_state_from_current_graph
 
 AGREEMENT_TOLERANCE = 1e-4
 
 
-def bundle_encoder(bundle: Path, manifest: dict, pad: int):
+def bundle_encoder(bundle: Path, manifest: Manifest):
     """The bundle's own G1 and G2 in ONNX Runtime, as ``example_inputs``'s ``encode``: the example
     rays then see features and volumes of the scale the renderer was trained on."""
     sessions = {
-        name: ort.InferenceSession(str(bundle / g["file"]), providers=["CPUExecutionProvider"])
-        for name, g in manifest["graphs"].items()
-        if name in ("encoder", "volume", "cost_slab", "volume_net")
+        name: ort.InferenceSession(str(manifest.graph_path(bundle, name)), providers=["CPUExecutionProvider"])
+        for name in manifest.graphs
+        if name in ("encoder", "volume", "cost_slab", "cost_conv", "volume_net")
     }
+    pad = manifest.config.pad
 
     def encode(images, projections, depth_planes):
         (features,) = sessions["encoder"].run(None, {"images": images.numpy()})
@@ -61,25 +60,25 @@ def guide_agrees_with_renderer(bundle: Path, examples: dict) -> float:
     return max(float(np.abs(a - b).max()) for a, b in zip(run["renderer"], run["renderer_guide"][:3]))
 
 
-def add_guided(bundle_dir: str | Path, out_dir: str | Path | None = None, checkpoint: str | Path | None = None) -> dict:
+def add_guided(
+    bundle_dir: str | Path, out_dir: str | Path | None = None, checkpoint: str | Path | None = None
+) -> Manifest:
     src = Path(bundle_dir)
     out = Path(out_dir) if out_dir else src
-    manifest = read_manifest(src)
-    if manifest.get("precision", "fp32") != "fp32":
-        raise ReexportError(f"{src}: a {manifest['precision']} bundle; add the graphs to its float32 source")
-    cfg = ModelConfig.from_dict(manifest["config"])
+    manifest = Manifest.load(src)
+    if manifest.precision != FLOAT32:
+        raise ReexportError(f"{src}: a {manifest.precision} bundle; add the graphs to its float32 source")
+    cfg = manifest.config
     if checkpoint:
         model, _ = load_checkpoint(checkpoint)
         if model.cfg != cfg:
             raise ReexportError(f"{checkpoint}: its config differs from the bundle's")
     else:
         model = SCNeRF(cfg).eval()
-        model.renderer.load_state_dict(
-            renderer_state_from_current_graph(src / manifest["graphs"]["renderer"]["file"], model)
-        )
+        model.renderer.load_state_dict(renderer_state_from_current_graph(manifest.graph_path(src, "renderer"), model))
     if out.resolve() != src.resolve():
         shutil.copytree(src, out, dirs_exist_ok=True)
-    encode = bundle_encoder(src, manifest, cfg.pad)
+    encode = bundle_encoder(src, manifest)
     examples = (
         example_inputs(model, encode=encode),
         example_inputs(model, blocks=CHECK_BLOCKS, rays=CHECK_RAYS, encode=encode),
@@ -88,15 +87,15 @@ def add_guided(bundle_dir: str | Path, out_dir: str | Path | None = None, checkp
     agreement = guide_agrees_with_renderer(out, examples[1])
     if not agreement <= AGREEMENT_TOLERANCE:
         for entry in graphs.values():
-            (out / entry["file"]).unlink()
+            (out / entry.file).unlink()
         raise ReexportError(f"{src}: the guide graph differs from the bundle's renderer by {agreement:.3g}")
-    manifest["graphs"].update(graphs)
-    manifest["guided"] = GuidedPolicy().to_dict()
-    manifest["provenance"]["guided_graphs"] = {
+    manifest.graphs.update(graphs)
+    manifest.guided = GuidedPolicy()
+    manifest.provenance.guided_graphs = {
         "exporter_version": __version__,
         "weights": str(Path(checkpoint).name) if checkpoint else "read back from renderer.onnx",
         "export_validation_max_abs_error": errors,
         "guide_max_abs_difference_from_renderer": agreement,
     }
-    write_manifest(out, manifest)
+    manifest.save(out)
     return manifest

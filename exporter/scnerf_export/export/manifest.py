@@ -1,21 +1,336 @@
-"""manifest.json, the bundle's description of itself (docs/bundle.md): read and written without
-torch, so that running a bundle does not load the training stack."""
+"""manifest.json, the bundle's description of itself (docs/bundle.md), as typed objects: read and
+written without torch, so that running a bundle does not load the training stack.
+
+The server reads the same file into ``Manifest`` of server/src/bundle.rs, and this module takes
+serde's rules from there, so that the two accept the same files:
+
+* keys serde ignores (unknown keys of the manifest, a graph or a tensor) are kept in ``extra`` and
+  written back, so a tool that rewrites a manifest (quantize, add-guided, split-volume) never drops
+  what another wrote;
+* ``guided`` denies unknown keys (``deny_unknown_fields``), and every key of it is required;
+* ``provenance`` is free JSON to the server; the keys the exporter reads are typed here, the rest
+  kept in ``Provenance.extra``.
+
+``config`` is stricter than the server's, which reads only what it needs: it is the exporter's
+``ModelConfig`` with every key present, since a key left out would silently become the paper's
+default and describe another network than the graphs.
+
+``Manifest.load(dir).save(dir)`` writes the file it read, byte for byte, for manifests in the
+order this module writes (every committed one).
+"""
 
 from __future__ import annotations
 
+import dataclasses
 import json
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
+
+from ..config import ModelConfig
+
+FORMAT_VERSION = 1
+FLOAT32 = "fp32"
 
 
-def write_manifest(bundle_dir: Path, manifest: dict) -> None:
-    (Path(bundle_dir) / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
-
-
-def read_manifest(bundle_dir: str | Path) -> dict:
-    return json.loads((Path(bundle_dir) / "manifest.json").read_text())
+class ManifestError(ValueError):
+    """A manifest.json that does not describe a bundle; the message names the key at fault."""
 
 
 def model_id(variant: str, renderer_sha256: str) -> str:
     """A bundle's id: its variant and the start of its renderer graph's sha256 (docs/bundle.md), so a
     changed renderer is a new model."""
     return f"scnerf-{variant}-{renderer_sha256[:12]}"
+
+
+# ------------------------------------------------------------------------------------------ reading
+
+
+def _object(value: Any, where: str) -> dict:
+    if not isinstance(value, dict):
+        raise ManifestError(f"{where}: expected an object, got {json.dumps(value)[:40]}")
+    return value
+
+
+def _typed(value: Any, kinds: type | tuple[type, ...], where: str) -> Any:
+    kinds = kinds if isinstance(kinds, tuple) else (kinds,)
+    # true and false are ints to Python, never to serde.
+    if not isinstance(value, kinds) or (isinstance(value, bool) and bool not in kinds):
+        expected = " or ".join(k.__name__ for k in kinds)
+        raise ManifestError(f"{where}: expected {expected}, got {json.dumps(value)[:40]}")
+    return value
+
+
+def _list(value: Any, where: str) -> list:
+    return _typed(value, list, where)
+
+
+def _at(where: str, key: str) -> str:
+    return f"{where}.{key}" if where else key
+
+
+def _require(data: dict, keys: list[str], where: str) -> None:
+    missing = [key for key in keys if key not in data]
+    if missing:
+        raise ManifestError(f"missing {', '.join(_at(where, key) for key in missing)}")
+
+
+def _keys(cls: type, data: Any, where: str, open_keys: bool = True) -> tuple[dict, dict]:
+    """``data``'s values of the fields of the dataclass ``cls`` and the keys it has no field for.
+    A field without a default must be there; unknown keys are an error unless ``open_keys``."""
+    data = _object(data, where or "manifest")
+    declared = [f for f in dataclasses.fields(cls) if f.name != "extra"]
+    no_default = dataclasses.MISSING
+    _require(data, [f.name for f in declared if f.default is no_default and f.default_factory is no_default], where)
+    names = {f.name for f in declared}
+    unknown = {k: v for k, v in data.items() if k not in names}
+    if unknown and not open_keys:
+        raise ManifestError(f"{where}: unknown {', '.join(sorted(unknown))} (known: {', '.join(sorted(names))})")
+    return {k: v for k, v in data.items() if k in names}, unknown
+
+
+# ------------------------------------------------------------------------------------------ objects
+
+
+@dataclass
+class TensorSpec:
+    """A graph input or output: shapes list integers for fixed axes, names for dynamic ones."""
+
+    name: str
+    shape: list[int | str]
+    dtype: str
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @classmethod
+    def from_json(cls, data: Any, where: str) -> TensorSpec:
+        values, extra = _keys(cls, data, where)
+        for i, axis in enumerate(_list(values["shape"], f"{where}.shape")):
+            _typed(axis, (int, str), f"{where}.shape[{i}]")
+        return cls(
+            name=_typed(values["name"], str, f"{where}.name"),
+            shape=list(values["shape"]),
+            dtype=_typed(values["dtype"], str, f"{where}.dtype"),
+            extra=extra,
+        )
+
+    def to_json(self) -> dict:
+        return {"name": self.name, "shape": list(self.shape), "dtype": self.dtype, **self.extra}
+
+
+def tensor_specs(names_shapes: dict[str, list]) -> list[TensorSpec]:
+    """float32 tensors of these names and shapes, in order."""
+    return [TensorSpec(name, list(shape), "float32") for name, shape in names_shapes.items()]
+
+
+@dataclass
+class GraphEntry:
+    """One ONNX graph of the bundle: its file (relative to the bundle), sha256 and signature."""
+
+    file: str
+    sha256: str
+    inputs: list[TensorSpec]
+    outputs: list[TensorSpec]
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @classmethod
+    def from_json(cls, data: Any, where: str) -> GraphEntry:
+        values, extra = _keys(cls, data, where)
+
+        def specs(key: str) -> list[TensorSpec]:
+            items = _list(values[key], f"{where}.{key}")
+            return [TensorSpec.from_json(t, f"{where}.{key}[{i}]") for i, t in enumerate(items)]
+
+        return cls(
+            file=_typed(values["file"], str, f"{where}.file"),
+            sha256=_typed(values["sha256"], str, f"{where}.sha256"),
+            inputs=specs("inputs"),
+            outputs=specs("outputs"),
+            extra=extra,
+        )
+
+    def to_json(self) -> dict:
+        return {
+            "file": self.file,
+            "sha256": self.sha256,
+            "inputs": [t.to_json() for t in self.inputs],
+            "outputs": [t.to_json() for t in self.outputs],
+            **self.extra,
+        }
+
+    def input_names(self) -> list[str]:
+        return [t.name for t in self.inputs]
+
+
+@dataclass(frozen=True)
+class GuidedPolicy:
+    """The manifest's ``guided`` object: guided sampling's policy (docs/bundle.md; the algorithm is
+    runtime/guided.py)."""
+
+    step: int = 8
+    samples: tuple[int, ...] = (32, 16, 8)
+    support_threshold: float = 1e-3
+    smooth_tolerance: float = 0.03
+    smooth_max_step: int = 2
+
+    def __post_init__(self) -> None:
+        if self.step < 1 or self.step & (self.step - 1):
+            raise ValueError(f"guided.step must be a power of two, got {self.step}")
+        if len(self.samples) != self.step.bit_length() - 1:
+            raise ValueError(f"guided.samples needs one count per level below step {self.step}")
+
+    @staticmethod
+    def for_model(cfg: ModelConfig) -> GuidedPolicy:
+        """The default policy for a model of ``cfg.samples`` samples per ray."""
+        default = GuidedPolicy()
+        return GuidedPolicy(samples=tuple(min(k, cfg.samples) for k in default.samples))
+
+    @classmethod
+    def from_json(cls, data: Any, where: str = "guided") -> GuidedPolicy:
+        # Every key, and no other: the server's GuidedPolicy has no defaults and denies unknown keys.
+        _require(_object(data, where), [f.name for f in dataclasses.fields(cls)], where)
+        values, _ = _keys(cls, data, where, open_keys=False)
+        samples = _list(values["samples"], f"{where}.samples")
+        try:
+            return cls(
+                step=_typed(values["step"], int, f"{where}.step"),
+                samples=tuple(_typed(k, int, f"{where}.samples[{i}]") for i, k in enumerate(samples)),
+                support_threshold=_typed(values["support_threshold"], (int, float), f"{where}.support_threshold"),
+                smooth_tolerance=_typed(values["smooth_tolerance"], (int, float), f"{where}.smooth_tolerance"),
+                smooth_max_step=_typed(values["smooth_max_step"], int, f"{where}.smooth_max_step"),
+            )
+        except ValueError as exc:
+            raise ManifestError(str(exc)) from None
+
+    def to_json(self) -> dict:
+        return {**dataclasses.asdict(self), "samples": list(self.samples)}
+
+    def levels(self) -> list[tuple[int, int]]:
+        """(grid spacing, samples per pixel) of every level after the first, coarse to fine."""
+        return [(self.step >> (i + 1), k) for i, k in enumerate(self.samples)]
+
+
+# Sections a tool adds to the provenance of a bundle it rewrites, in the order they are written.
+TOOL_RECORDS = ("reexport", "volume_split", "guided_graphs", "quantization")
+
+
+@dataclass
+class Provenance:
+    """Where the bundle's weights come from and what made its graphs. The first eight keys are
+    written by every export; ``metrics``, ``source_checkpoint`` and ``source_sha256`` may be null.
+    The other typed keys are written when known; ``training`` always (null when unknown)."""
+
+    exporter_version: str
+    torch_version: str
+    opset: int
+    created: str
+    export_validation_max_abs_error: dict[str, float]
+    metrics: dict | None
+    source_checkpoint: str | None
+    source_sha256: str | None
+    source_kind: str | None = None
+    training: str | dict | None = None
+    derived_from: dict | None = None  # the weights a trained model started from (licence included)
+    reexport: dict | None = None
+    volume_split: dict | None = None
+    guided_graphs: dict | None = None
+    quantization: dict | None = None
+    extra: dict[str, Any] = field(default_factory=dict)  # e.g. the public weights' licence
+
+    @classmethod
+    def from_json(cls, data: Any, where: str = "provenance") -> Provenance:
+        values, extra = _keys(cls, data, where)
+        for key in ("export_validation_max_abs_error", "derived_from", *TOOL_RECORDS):
+            if values.get(key) is not None:
+                _object(values[key], f"{where}.{key}")
+        return cls(**values, extra=extra)
+
+    def to_json(self) -> dict:
+        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "extra"}
+        kept_when_null = {"metrics", "source_checkpoint", "source_sha256", "training"}
+        return {**{k: v for k, v in out.items() if v is not None or k in kept_when_null}, **self.extra}
+
+
+@dataclass
+class Manifest:
+    """manifest.json. ``graphs`` in the bundle's pipeline order; ``guided`` is there exactly when
+    the guided graphs are; ``precision`` is written only for reduced-precision bundles."""
+
+    format_version: int
+    model_id: str
+    variant: str
+    config: ModelConfig
+    graphs: dict[str, GraphEntry]
+    provenance: Provenance
+    guided: GuidedPolicy | None = None
+    precision: str = FLOAT32
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @classmethod
+    def load(cls, bundle_dir: str | Path) -> Manifest:
+        path = Path(bundle_dir) / "manifest.json"
+        try:
+            data = json.loads(path.read_text())
+        except json.JSONDecodeError as exc:
+            raise ManifestError(f"{path}: not JSON ({exc})") from None
+        try:
+            return cls.from_json(data)
+        except ManifestError as exc:
+            raise ManifestError(f"{path}: {exc}") from None
+
+    @classmethod
+    def from_json(cls, data: Any) -> Manifest:
+        values, extra = _keys(cls, data, "")
+        version = _typed(values["format_version"], int, "format_version")
+        if version != FORMAT_VERSION:
+            raise ManifestError(f"format_version is {version}, this exporter reads format_version {FORMAT_VERSION}")
+        graphs = _object(values["graphs"], "graphs")
+        guided = values.get("guided")
+        return cls(
+            format_version=version,
+            model_id=_typed(values["model_id"], str, "model_id"),
+            variant=_typed(values["variant"], str, "variant"),
+            config=model_config(values["config"]),
+            graphs={name: GraphEntry.from_json(g, f"graphs.{name}") for name, g in graphs.items()},
+            provenance=Provenance.from_json(values["provenance"]),
+            guided=None if guided is None else GuidedPolicy.from_json(guided),
+            precision=_typed(values.get("precision", FLOAT32), str, "precision"),
+            extra=extra,
+        )
+
+    def to_json(self) -> dict:
+        out = {
+            "format_version": self.format_version,
+            "model_id": self.model_id,
+            "variant": self.variant,
+            "config": self.config.to_dict(),
+            "graphs": {name: g.to_json() for name, g in self.graphs.items()},
+            "provenance": self.provenance.to_json(),
+        }
+        if self.guided is not None:
+            out["guided"] = self.guided.to_json()
+        if self.precision != FLOAT32:
+            out["precision"] = self.precision
+        return {**out, **self.extra}
+
+    def text(self) -> str:
+        return json.dumps(self.to_json(), indent=2) + "\n"
+
+    def save(self, bundle_dir: str | Path) -> None:
+        (Path(bundle_dir) / "manifest.json").write_text(self.text())
+
+    def graph_path(self, bundle_dir: str | Path, name: str) -> Path:
+        """The file of graph ``name`` in the bundle at ``bundle_dir``."""
+        return Path(bundle_dir) / self.graphs[name].file
+
+    def renderer_model_id(self) -> str:
+        """The id this manifest's variant and renderer graph give (what ``model_id`` must say)."""
+        return model_id(self.variant, self.graphs["renderer"].sha256)
+
+
+def model_config(data: Any, where: str = "config") -> ModelConfig:
+    """The manifest's ``config``: every key of ModelConfig (see the module's doc), no other."""
+    _require(_object(data, where), [f.name for f in dataclasses.fields(ModelConfig)], where)
+    try:
+        return ModelConfig.from_dict(data)
+    except (TypeError, ValueError) as exc:
+        raise ManifestError(f"{where}: {exc}") from None

@@ -40,14 +40,10 @@ from onnx import helper, numpy_helper
 from ..model.checkpoint import sha256_file
 from ..runtime.onnx_pipeline import OnnxBundle
 from . import onnx_graph
-from .manifest import model_id, read_manifest, write_manifest
+from .manifest import FLOAT32, Manifest
 
 PRECISIONS = ("fp32", "int8", "fp16")
 MAX_PSNR_DROP_DB = 0.1
-
-
-def bundle_precision(manifest: dict) -> str:
-    return manifest.get("precision", "fp32")
 
 
 def gemm_to_matmul(model: onnx.ModelProto) -> int:
@@ -223,25 +219,25 @@ def quantize_bundle(
     graphs: tuple[str, ...] = ("renderer",),
     min_inner: int = 16,
     exclude: tuple[str, ...] = (),
-) -> dict:
+) -> Manifest:
     """Write a copy of the float32 bundle ``src_dir`` to ``out_dir`` with ``graphs`` converted to
     ``precision``; returns the new manifest."""
     if precision not in ("int8", "fp16"):
         raise ValueError(f"precision must be int8 or fp16, got {precision!r}")
     src, out = Path(src_dir), Path(out_dir)
-    manifest = read_manifest(src)
-    if bundle_precision(manifest) != "fp32":
-        raise ValueError(f"{src} is already {bundle_precision(manifest)}: start from a float32 bundle")
-    unknown = set(graphs) - set(manifest["graphs"])
+    manifest = Manifest.load(src)
+    if manifest.precision != FLOAT32:
+        raise ValueError(f"{src} is already {manifest.precision}: start from a float32 bundle")
+    unknown = set(graphs) - set(manifest.graphs)
     if unknown:
-        raise ValueError(f"unknown graphs {sorted(unknown)} (bundle has {sorted(manifest['graphs'])})")
+        raise ValueError(f"unknown graphs {sorted(unknown)} (bundle has {sorted(manifest.graphs)})")
     if out.resolve() == src.resolve():
         raise ValueError("--out must differ from --bundle")
     out.mkdir(parents=True, exist_ok=True)
     details = {}
-    for name, entry in manifest["graphs"].items():
-        source_file, target_file = src / entry["file"], out / entry["file"]
-        if sha256_file(source_file) != entry["sha256"]:
+    for name, entry in manifest.graphs.items():
+        source_file, target_file = src / entry.file, out / entry.file
+        if sha256_file(source_file) != entry.sha256:
             raise ValueError(f"{source_file}: sha256 does not match the manifest")
         if name in graphs:
             if precision == "int8":
@@ -250,27 +246,28 @@ def quantize_bundle(
                 details[name] = convert_graph_fp16(source_file, target_file, min_inner, exclude)
         else:
             shutil.copyfile(source_file, target_file)
-        entry["sha256"] = sha256_file(target_file)
-    manifest["model_id"] = model_id(manifest["variant"], manifest["graphs"]["renderer"]["sha256"])
-    manifest["precision"] = precision
-    manifest.setdefault("provenance", {})["quantization"] = {
+        entry.sha256 = sha256_file(target_file)
+    source_model_id = manifest.model_id
+    manifest.model_id = manifest.renderer_model_id()
+    manifest.precision = precision
+    manifest.provenance.quantization = {
         "precision": precision,
-        "source_model_id": read_manifest(src)["model_id"],
+        "source_model_id": source_model_id,
         "graphs": details,
         "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
     }
-    write_manifest(out, manifest)
+    manifest.save(out)
     return manifest
 
 
 def verify_bundle_hashes(bundle_dir: str | Path) -> None:
-    manifest = read_manifest(bundle_dir)
-    for name, entry in manifest["graphs"].items():
-        if sha256_file(Path(bundle_dir) / entry["file"]) != entry["sha256"]:
+    manifest = Manifest.load(bundle_dir)
+    for name, entry in manifest.graphs.items():
+        if sha256_file(Path(bundle_dir) / entry.file) != entry.sha256:
             raise ValueError(f"{bundle_dir}: graphs.{name} sha256 mismatch")
-    expected = model_id(manifest["variant"], manifest["graphs"]["renderer"]["sha256"])
-    if manifest["model_id"] != expected:
-        raise ValueError(f"{bundle_dir}: model_id {manifest['model_id']} != {expected}")
+    expected = manifest.renderer_model_id()
+    if manifest.model_id != expected:
+        raise ValueError(f"{bundle_dir}: model_id {manifest.model_id} != {expected}")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -347,7 +344,7 @@ def compare_bundles(
     return {
         "reference": str(reference_dir),
         "candidate": str(candidate_dir),
-        "precision": bundle_precision(cand.manifest),
+        "precision": cand.manifest.precision,
         "rows": rows,
         "mean": mean,
         "psnr_drop_db": drop,

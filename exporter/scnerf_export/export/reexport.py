@@ -28,8 +28,6 @@ import torch
 from onnx import numpy_helper
 
 from .. import __version__
-from ..config import ModelConfig
-from ..model.checkpoint import sha256_file
 from ..model.network import SCNeRF
 from . import onnx_graph
 from .bundle import (
@@ -38,11 +36,11 @@ from .bundle import (
     RendererGraph,
     example_inputs,
     export_graph,
+    graph_entry,
     graph_signatures,
-    io_spec,
     validate_graph,
 )
-from .manifest import model_id, read_manifest, write_manifest
+from .manifest import FLOAT32, Manifest
 
 AGREEMENT_TOLERANCE = 1e-4
 READABLE_EXPORTER_VERSION = "0.1.0"
@@ -253,50 +251,44 @@ def graphs_agree(bundle: Path, old_renderer: Path, new_renderer: Path, model: SC
     return max(float(np.abs(a - b).max()) for a, b in zip(old, new))
 
 
-def reexport_bundle(bundle_dir: str | Path, out_dir: str | Path) -> dict:
+def reexport_bundle(bundle_dir: str | Path, out_dir: str | Path) -> Manifest:
     src, out = Path(bundle_dir), Path(out_dir)
     if src.resolve() == out.resolve():
         raise ReexportError("--out must differ from --bundle")
-    manifest = read_manifest(src)
-    version = manifest.get("provenance", {}).get("exporter_version")
-    if version != READABLE_EXPORTER_VERSION or "reexport" in manifest.get("provenance", {}):
+    manifest = Manifest.load(src)
+    version = manifest.provenance.exporter_version
+    if version != READABLE_EXPORTER_VERSION or manifest.provenance.reexport is not None:
         raise ReexportError(
             f"{src}: written by scnerf-export {version}; reexport reads the renderer graphs of "
             f"{READABLE_EXPORTER_VERSION} bundles"
         )
-    if manifest.get("precision", "fp32") != "fp32":
-        raise ReexportError(f"{src}: a {manifest['precision']} bundle; re-export its float32 source instead")
-    model = SCNeRF(ModelConfig.from_dict(manifest["config"])).eval()
-    model.renderer.load_state_dict(renderer_state_from_graph(src / manifest["graphs"]["renderer"]["file"], model))
+    if manifest.precision != FLOAT32:
+        raise ReexportError(f"{src}: a {manifest.precision} bundle; re-export its float32 source instead")
+    model = SCNeRF(manifest.config).eval()
+    old_renderer = manifest.graph_path(src, "renderer")
+    model.renderer.load_state_dict(renderer_state_from_graph(old_renderer, model))
 
     out.mkdir(parents=True, exist_ok=True)
     for name in ("encoder", "volume"):
-        shutil.copyfile(src / manifest["graphs"][name]["file"], out / manifest["graphs"][name]["file"])
+        shutil.copyfile(manifest.graph_path(src, name), manifest.graph_path(out, name))
     renderer_path = out / "renderer.onnx"
     inputs = example_inputs(model)["renderer"]
     export_graph(RendererGraph(model), inputs, model, "renderer", renderer_path)
     validate_graph(renderer_path, RendererGraph(model), inputs, tolerance=AGREEMENT_TOLERANCE)
-    agreement = graphs_agree(src, src / manifest["graphs"]["renderer"]["file"], renderer_path, model)
+    agreement = graphs_agree(src, old_renderer, renderer_path, model)
     if not agreement <= AGREEMENT_TOLERANCE:
         renderer_path.unlink()
         raise ReexportError(f"{src}: the re-exported renderer differs from the bundle's by {agreement:.3g}")
 
-    signature = graph_signatures(model)["renderer"]
-    renderer = manifest["graphs"]["renderer"]
-    renderer.update(
-        file=renderer_path.name,
-        sha256=sha256_file(renderer_path),
-        inputs=io_spec(signature["inputs"]),
-        outputs=io_spec(signature["outputs"]),
-    )
-    previous_id = manifest["model_id"]
-    manifest["model_id"] = model_id(model.cfg.variant, renderer["sha256"])
-    manifest["provenance"]["reexport"] = {
+    manifest.graphs["renderer"] = graph_entry(renderer_path, graph_signatures(model)["renderer"])
+    previous_id = manifest.model_id
+    manifest.model_id = manifest.renderer_model_id()
+    manifest.provenance.reexport = {
         "exporter_version": __version__,
         "source_model_id": previous_id,
         "renderer_max_abs_difference": agreement,
         "what": "renderer.onnx written again by this exporter from the weights in the source renderer graph; "
         "encoder.onnx and volume.onnx unchanged",
     }
-    write_manifest(out, manifest)
+    manifest.save(out)
     return manifest

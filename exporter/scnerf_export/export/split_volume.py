@@ -32,7 +32,7 @@ from ..rigs import synthetic_rig
 from ..runtime.volume_slabs import build_volume, slab_volume_error, volume_build
 from . import onnx_graph
 from .bundle import CHECK_BLOCKS, CHECK_RAYS, GRAPHS, VOLUME_GRAPHS, example_inputs, export_graphs
-from .manifest import read_manifest, write_manifest
+from .manifest import Manifest
 
 AGREEMENT_TOLERANCE = 1e-4
 # Why G2 may not be found in a bundle's volume graphs.
@@ -103,14 +103,14 @@ def _session(path: Path) -> ort.InferenceSession:
 
 
 def volumes_agree(
-    src: Path, manifest: dict, out: Path, volume: str, inputs: dict[str, np.ndarray], slab_sizes=(1, 5, 64)
+    src: Path, manifest: Manifest, out: Path, volume: str, inputs: dict[str, np.ndarray], slab_sizes=(1, 5, 64)
 ) -> float:
     """Largest difference between the volume of the bundle ``src`` (``manifest``: its manifest)
     and the one of the new graphs of ``volume`` in ``out`` over slabs of each size in
     ``slab_sizes``, on the volume's ``inputs`` (features, images, projections, depth_planes)."""
-    pad = manifest["config"]["pad"]
-    graphs = VOLUME_GRAPHS[volume_build(manifest["graphs"])]
-    old = build_volume({name: _session(src / manifest["graphs"][name]["file"]) for name in graphs}, inputs, pad)
+    pad = manifest.config.pad
+    graphs = VOLUME_GRAPHS[volume_build(manifest.graphs)]
+    old = build_volume({name: _session(manifest.graph_path(src, name)) for name in graphs}, inputs, pad)
     return slab_volume_error(old, out, volume, inputs, pad, slab_sizes)
 
 
@@ -122,42 +122,42 @@ def check_inputs(encoder: Path, cfg: ModelConfig) -> dict[str, np.ndarray]:
     return {"features": features, **{k: rig[k] for k in ("images", "projections", "depth_planes")}}
 
 
-def split_volume_bundle(bundle_dir: str | Path, out_dir: str | Path, volume: str = "sweep") -> dict:
+def split_volume_bundle(bundle_dir: str | Path, out_dir: str | Path, volume: str = "sweep") -> Manifest:
     src, out = Path(bundle_dir), Path(out_dir)
     if src.resolve() == out.resolve():
         raise SplitVolumeError("--out must differ from --bundle")
     if volume not in ("slabs", "sweep"):
         raise SplitVolumeError(f"--volume {volume!r}: slabs or sweep")
-    manifest = read_manifest(src)
-    old_build = volume_build(manifest["graphs"])
+    manifest = Manifest.load(src)
+    old_build = volume_build(manifest.graphs)
     if old_build == volume:
         raise SplitVolumeError(f"{src}: its volume graphs already build the volume as {volume!r}")
-    cfg = ModelConfig.from_dict(manifest["config"])
+    cfg = manifest.config
     if cfg.norm_statistics != "batch":
         raise SplitVolumeError(f"{src}: norm_statistics {cfg.norm_statistics!r}; re-export it from its checkpoint")
     model = SCNeRF(cfg).eval()
-    old_graphs = [src / manifest["graphs"][name]["file"] for name in VOLUME_GRAPHS[old_build]]
+    old_graphs = [manifest.graph_path(src, name) for name in VOLUME_GRAPHS[old_build]]
     model.volume_net.load_state_dict(volume_state_from_graphs(old_graphs, model))
     # The encoder's weights are not read back: the volume graphs' inputs come from the bundle's own
     # encoder graph, the example features only need plausible values.
     out.mkdir(parents=True, exist_ok=True)
     examples = (example_inputs(model), example_inputs(model, blocks=CHECK_BLOCKS, rays=CHECK_RAYS))
     graphs, errors = export_graphs(model, out, VOLUME_GRAPHS[volume], examples)
-    inputs = check_inputs(src / manifest["graphs"]["encoder"]["file"], cfg)
+    inputs = check_inputs(manifest.graph_path(src, "encoder"), cfg)
     agreement = volumes_agree(src, manifest, out, volume, inputs)
     if not agreement <= AGREEMENT_TOLERANCE:
         for name in VOLUME_GRAPHS[volume]:
-            (out / graphs[name]["file"]).unlink()
+            (out / graphs[name].file).unlink()
         raise SplitVolumeError(f"{src}: the new graphs' volume differs from the bundle's by {agreement:.3g}")
     volume_graphs = {name for names in VOLUME_GRAPHS.values() for name in names}
-    kept = {k: entry for k, entry in manifest["graphs"].items() if k not in volume_graphs}
+    kept = {k: entry for k, entry in manifest.graphs.items() if k not in volume_graphs}
     for entry in kept.values():
-        shutil.copyfile(src / entry["file"], out / entry["file"])
+        shutil.copyfile(src / entry.file, out / entry.file)
     for extra in src.iterdir():
         if extra.name.startswith("LICENSE"):
             shutil.copyfile(extra, out / extra.name)
-    manifest["graphs"] = {k: kept.get(k) or graphs[k] for k in GRAPHS[volume] if k in kept or k in graphs}
-    manifest["provenance"]["volume_split"] = {
+    manifest.graphs = {k: kept.get(k) or graphs[k] for k in GRAPHS[volume] if k in kept or k in graphs}
+    manifest.provenance.volume_split = {
         "exporter_version": __version__,
         "volume_max_abs_difference": agreement,
         "export_validation_max_abs_error": errors,
@@ -165,5 +165,5 @@ def split_volume_bundle(bundle_dir: str | Path, out_dir: str | Path, volume: str
         f"{' and '.join(f'{g}.onnx' for g in VOLUME_GRAPHS[volume])} from the weights in the source volume graphs "
         f"(the volume built as {volume!r}); {' and '.join(f'{k}.onnx' for k in kept)} unchanged",
     }
-    write_manifest(out, manifest)
+    manifest.save(out)
     return manifest

@@ -1,7 +1,8 @@
 """Guided sampling: a view rendered coarse to fine, the network run only where the surface is.
 
 The one description of the policy in Python (the server's is server/src/pipeline/guided.rs; the
-two are held to each other by the parity fixtures). A view is rendered in levels of pixels on
+two are held to each other by the parity fixtures); its numbers are the manifest's ``guided``
+object, ``export.manifest.GuidedPolicy``. A view is rendered in levels of pixels on
 nested grids:
 
 * level 0, every ``step``-th pixel in both axes: the full network at the S uniform samples
@@ -27,6 +28,7 @@ import numpy as np
 
 from .. import cameras as cams
 from ..cameras import Camera
+from ..export.manifest import GuidedPolicy
 from .view import Rendering, renderer_passes
 
 # What a guide run returns per ray: rgb (R,3), depth (R), opacity (R), weights (R,S), and per
@@ -35,40 +37,6 @@ GuideRun = Callable[[np.ndarray, np.ndarray], dict[str, np.ndarray]]
 # What a fine run takes: origins, directions, sample_index (R,K), multiplicity (R,K), each ray's
 # guide ray (R) (the guide rays' heads are the caller's); returns rgb, depth, opacity, weights (R,K).
 FineRun = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray], dict[str, np.ndarray]]
-
-
-@dataclass(frozen=True)
-class GuidedPolicy:
-    """The manifest's ``guided`` object (docs/bundle.md)."""
-
-    step: int = 8
-    samples: tuple[int, ...] = (32, 16, 8)
-    support_threshold: float = 1e-3
-    smooth_tolerance: float = 0.03
-    smooth_max_step: int = 2
-
-    def __post_init__(self) -> None:
-        if self.step < 1 or self.step & (self.step - 1):
-            raise ValueError(f"guided.step must be a power of two, got {self.step}")
-        if len(self.samples) != self.step.bit_length() - 1:
-            raise ValueError(f"guided.samples needs one count per level below step {self.step}")
-
-    @staticmethod
-    def for_model(cfg) -> GuidedPolicy:
-        """The default policy for a model of ``cfg.samples`` samples per ray."""
-        default = GuidedPolicy()
-        return GuidedPolicy(samples=tuple(min(k, cfg.samples) for k in default.samples))
-
-    @staticmethod
-    def from_dict(d: dict) -> GuidedPolicy:
-        return GuidedPolicy(**{**d, "samples": tuple(d["samples"])})
-
-    def to_dict(self) -> dict:
-        return {**self.__dict__, "samples": list(self.samples)}
-
-    def levels(self) -> list[tuple[int, int]]:
-        """(grid spacing, samples per pixel) of every level after the first, coarse to fine."""
-        return [(self.step >> (i + 1), k) for i, k in enumerate(self.samples)]
 
 
 def level_pixels(width: int, height: int, spacing: int) -> np.ndarray:

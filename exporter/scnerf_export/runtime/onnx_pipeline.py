@@ -11,10 +11,9 @@ import onnxruntime as ort
 
 from .. import cameras as cams
 from ..cameras import Camera
-from ..config import ModelConfig
-from ..export.manifest import read_manifest
+from ..export.manifest import Manifest
 from .chunks import fine_rays_per_run, rays_per_run
-from .guided import GuidedPolicy, guided_rendering
+from .guided import guided_rendering
 from .view import Rendering, pad_images, render_in_passes
 from .volume_slabs import build_volume
 
@@ -30,16 +29,23 @@ def session_options(threads: int | None) -> ort.SessionOptions:
 class OnnxBundle:
     def __init__(self, bundle_dir: str | Path, threads: int | None = None):
         self.path = Path(bundle_dir)
-        self.manifest = read_manifest(self.path)
-        self.cfg = ModelConfig.from_dict(self.manifest["config"])
+        self.manifest = Manifest.load(self.path)
+        self.cfg = self.manifest.config
         options = session_options(threads)
         self.sessions = {
-            name: ort.InferenceSession(str(self.path / g["file"]), options, providers=["CPUExecutionProvider"])
-            for name, g in self.manifest["graphs"].items()
+            name: ort.InferenceSession(str(self.path / g.file), options, providers=["CPUExecutionProvider"])
+            for name, g in self.manifest.graphs.items()
         }
         self.renderer_inputs = [i.name for i in self.sessions["renderer"].get_inputs()]
-        self.policy = GuidedPolicy.from_dict(self.manifest["guided"]) if "guided" in self.manifest else None
+        self.policy = self.manifest.guided
         self.timings: dict[str, float] = {}
+
+    @property
+    def model_id(self) -> str:
+        return self.manifest.model_id
+
+    def graph_path(self, name: str) -> Path:
+        return self.manifest.graph_path(self.path, name)
 
     def _timed(self, stage: str, graph: str, feeds: dict) -> list[np.ndarray]:
         start = time.perf_counter()

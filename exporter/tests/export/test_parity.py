@@ -76,17 +76,17 @@ def test_full_render_matches_pytorch(exported, height, width):
 
 def test_manifest_describes_the_graphs(exported):
     model, out, manifest = exported
-    assert manifest["variant"] == model.cfg.variant
-    assert manifest["config"] == model.cfg.to_dict()
-    for name, graph in manifest["graphs"].items():
-        proto = onnx.load(out / graph["file"])
+    assert manifest.variant == model.cfg.variant
+    assert manifest.config == model.cfg
+    for name, graph in manifest.graphs.items():
+        proto = onnx.load(out / graph.file)
         declared = {
             i.name: [d.dim_param or d.dim_value for d in i.type.tensor_type.shape.dim]
             for i in list(proto.graph.input) + list(proto.graph.output)
         }
-        for io in graph["inputs"] + graph["outputs"]:
-            assert declared[io["name"]] == io["shape"], f"{name}.{io['name']}"
-        assert [i["name"] for i in graph["inputs"]] == [i.name for i in proto.graph.input]
+        for io in graph.inputs + graph.outputs:
+            assert declared[io.name] == io.shape, f"{name}.{io.name}"
+        assert graph.input_names() == [i.name for i in proto.graph.input]
 
 
 def test_committed_fixtures_match_the_committed_bundle(parity_fixtures):

@@ -13,7 +13,7 @@ import pytest
 from scnerf_export.cli import main
 from scnerf_export.evaluate.metrics import psnr
 from scnerf_export.export import onnx_graph
-from scnerf_export.export.manifest import read_manifest
+from scnerf_export.export.manifest import Manifest
 from scnerf_export.export.precision import (
     compare_bundles,
     gemm_to_matmul,
@@ -66,18 +66,18 @@ def test_converted_bundle_keeps_contract_and_renders_close(
 ):
     out = tmp_path / precision
     manifest = quantize_bundle(fp32_bundle, out, precision)
-    source = read_manifest(fp32_bundle)
+    source = Manifest.load(fp32_bundle)
 
-    assert manifest["precision"] == precision
-    assert manifest == read_manifest(out)
+    assert manifest.precision == precision
+    assert manifest == Manifest.load(out)
     verify_bundle_hashes(out)  # every graph's sha256 and the model id (= what the server checks)
     renderer_sha = sha256_file(out / "renderer.onnx")
-    assert manifest["model_id"] == f"scnerf-{source['variant']}-{renderer_sha[:12]}" != source["model_id"]
+    assert manifest.model_id == f"scnerf-{source.variant}-{renderer_sha[:12]}" != source.model_id
     for name in ("encoder", "volume"):  # untouched graphs are byte-identical
-        assert manifest["graphs"][name]["sha256"] == source["graphs"][name]["sha256"]
-    assert manifest["graphs"]["renderer"]["inputs"] == source["graphs"]["renderer"]["inputs"]
+        assert manifest.graphs[name].sha256 == source.graphs[name].sha256
+    assert manifest.graphs["renderer"].inputs == source.graphs["renderer"].inputs
     assert io_signature(out / "renderer.onnx") == io_signature(fp32_bundle / "renderer.onnx")  # float32 I/O
-    assert manifest["provenance"]["quantization"]["source_model_id"] == source["model_id"]
+    assert manifest.provenance.quantization["source_model_id"] == source.model_id
     ops = {n.op_type for n in onnx.load(str(out / "renderer.onnx")).graph.node}
     assert ("MatMulInteger" in ops) if precision == "int8" else ("Cast" in ops and "Gemm" not in ops)
 
@@ -143,9 +143,9 @@ def test_refuses_bad_requests(tmp_path, fp32_bundle):
     quantize_bundle(fp32_bundle, tmp_path / "q", "int8")
     with pytest.raises(ValueError, match="already int8"):
         quantize_bundle(tmp_path / "q", tmp_path / "qq", "fp16")
-    manifest = json.loads((tmp_path / "q" / "manifest.json").read_text())
-    manifest["graphs"]["renderer"]["sha256"] = "0" * 64
-    (tmp_path / "q" / "manifest.json").write_text(json.dumps(manifest))
+    manifest = Manifest.load(tmp_path / "q")
+    manifest.graphs["renderer"].sha256 = "0" * 64
+    manifest.save(tmp_path / "q")
     with pytest.raises(ValueError, match="sha256"):
         verify_bundle_hashes(tmp_path / "q")
 

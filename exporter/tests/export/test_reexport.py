@@ -4,7 +4,6 @@ tests/fixtures/reexport-0.1 is the parity fixture bundle as scnerf-export 0.1 wr
 weights, small config)."""
 
 import hashlib
-import json
 import shutil
 
 import onnx
@@ -12,7 +11,7 @@ import pytest
 
 from scnerf_export import __version__
 from scnerf_export.cli import main
-from scnerf_export.export.manifest import read_manifest
+from scnerf_export.export.manifest import Manifest
 from scnerf_export.export.reexport import ReexportError, reexport_bundle
 
 from conftest import REPO
@@ -28,16 +27,16 @@ def sha256(path):
 def test_reexport_reproduces_the_renderer_and_keeps_the_other_graphs(tmp_path):
     out = tmp_path / "again"
     manifest = reexport_bundle(FIXTURE_BUNDLE, out)
-    source = read_manifest(FIXTURE_BUNDLE)
-    assert manifest["provenance"]["reexport"]["source_model_id"] == source["model_id"]
-    assert manifest["provenance"]["reexport"]["renderer_max_abs_difference"] <= 1e-4
-    assert manifest["model_id"] == f"scnerf-{source['variant']}-{sha256(out / 'renderer.onnx')[:12]}"
-    assert manifest["graphs"]["renderer"]["sha256"] == sha256(out / "renderer.onnx")
+    source = Manifest.load(FIXTURE_BUNDLE)
+    assert manifest.provenance.reexport["source_model_id"] == source.model_id
+    assert manifest.provenance.reexport["renderer_max_abs_difference"] <= 1e-4
+    assert manifest.model_id == f"scnerf-{source.variant}-{sha256(out / 'renderer.onnx')[:12]}"
+    assert manifest.graphs["renderer"].sha256 == sha256(out / "renderer.onnx")
     for name in ("encoder", "volume"):
         assert sha256(out / f"{name}.onnx") == sha256(FIXTURE_BUNDLE / f"{name}.onnx")
-        assert manifest["graphs"][name] == source["graphs"][name]
-    assert manifest["config"] == source["config"]
-    assert json.loads((out / "manifest.json").read_text()) == manifest
+        assert manifest.graphs[name] == source.graphs[name]
+    assert manifest.config == source.config
+    assert Manifest.load(out) == manifest
 
 
 def test_a_renderer_missing_a_weight_is_refused_in_one_line(tmp_path, capsys):
@@ -71,5 +70,5 @@ def test_the_same_weights_export_to_the_same_bytes(tmp_path):
     """No addresses or stack traces in the graphs: the model id of a re-export is reproducible."""
     first = reexport_bundle(FIXTURE_BUNDLE, tmp_path / "a")
     second = reexport_bundle(FIXTURE_BUNDLE, tmp_path / "b")
-    assert first["model_id"] == second["model_id"]
+    assert first.model_id == second.model_id
     assert (tmp_path / "a" / "renderer.onnx").read_bytes() == (tmp_path / "b" / "renderer.onnx").read_bytes()

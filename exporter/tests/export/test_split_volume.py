@@ -12,8 +12,9 @@ import numpy as np
 import pytest
 
 from scnerf_export.cli import main
-from scnerf_export.config import ModelConfig, small_config
-from scnerf_export.export.manifest import read_manifest
+from scnerf_export.config import small_config
+from scnerf_export.export.bundle import GUIDED_GRAPHS
+from scnerf_export.export.manifest import Manifest
 from scnerf_export.export.split_volume import SplitVolumeError, check_inputs, split_volume_bundle, volumes_agree
 from scnerf_export.model.checkpoint import save_checkpoint
 from scnerf_export.rigs import random_model
@@ -44,20 +45,20 @@ def split_bundle(tmp_path, build):
 
 
 def check_inputs_of_the_whole_bundle():
-    cfg = ModelConfig.from_dict(read_manifest(WHOLE)["config"])
+    cfg = Manifest.load(WHOLE).config
     return cfg, check_inputs(WHOLE / "encoder.onnx", cfg)
 
 
 def test_the_committed_slab_graphs_give_the_volume_graphs_volume_at_any_slab_size():
     cfg, inputs = check_inputs_of_the_whole_bundle()
     sizes = (1, 3, 7, cfg.depth_planes)
-    assert volumes_agree(WHOLE, read_manifest(WHOLE), SPLIT["slabs"][0], "slabs", inputs, sizes) == 0.0
+    assert volumes_agree(WHOLE, Manifest.load(WHOLE), SPLIT["slabs"][0], "slabs", inputs, sizes) == 0.0
 
 
 def test_the_committed_sweep_graphs_give_the_volume_graphs_volume_at_any_slab_size():
     cfg, inputs = check_inputs_of_the_whole_bundle()
     sizes = (1, 3, 7, cfg.depth_planes)
-    assert volumes_agree(WHOLE, read_manifest(WHOLE), SPLIT["sweep"][0], "sweep", inputs, sizes) <= 1e-4
+    assert volumes_agree(WHOLE, Manifest.load(WHOLE), SPLIT["sweep"][0], "sweep", inputs, sizes) <= 1e-4
 
 
 @pytest.mark.parametrize("build", ["slabs", "sweep"])
@@ -78,26 +79,26 @@ def test_a_split_bundle_renders_what_the_whole_one_renders(tmp_path, build):
 @pytest.mark.parametrize("build", ["slabs", "sweep"])
 def test_the_manifest_keeps_the_model_and_names_the_split(build):
     fixture, slab_graph = SPLIT[build]
-    whole, split = read_manifest(WHOLE), read_manifest(fixture)
-    assert split["model_id"] == whole["model_id"] and split["config"] == whole["config"]
-    assert list(split["graphs"]) == ["encoder", slab_graph, "volume_net", "renderer"]
+    whole, split = Manifest.load(WHOLE), Manifest.load(fixture)
+    assert split.model_id == whole.model_id and split.config == whole.config
+    assert list(split.graphs) == ["encoder", slab_graph, "volume_net", "renderer"]
     for name in ("encoder", "renderer"):
-        assert split["graphs"][name] == whole["graphs"][name]
+        assert split.graphs[name] == whole.graphs[name]
     for name in (slab_graph, "volume_net"):
-        assert split["graphs"][name]["sha256"] == sha256(fixture / f"{name}.onnx")
-    assert split["provenance"]["volume_split"]["volume_max_abs_difference"] <= (0.0 if build == "slabs" else 1e-4)
+        assert split.graphs[name].sha256 == sha256(fixture / f"{name}.onnx")
+    assert split.provenance.volume_split["volume_max_abs_difference"] <= (0.0 if build == "slabs" else 1e-4)
 
 
 @pytest.mark.slow
 def test_split_volume_writes_graphs_that_agree_with_the_volume_graph(tmp_path):
     out = tmp_path / "out"
     manifest = split_volume_bundle(WHOLE, out)
-    assert list(manifest["graphs"]) == ["encoder", "cost_conv", "volume_net", "renderer"]
-    assert manifest["provenance"]["volume_split"]["volume_max_abs_difference"] <= 1e-4
+    assert list(manifest.graphs) == ["encoder", "cost_conv", "volume_net", "renderer", *GUIDED_GRAPHS]
+    assert manifest.provenance.volume_split["volume_max_abs_difference"] <= 1e-4
     assert not (out / "volume.onnx").exists()
     for name in ("encoder.onnx", "renderer.onnx"):
         assert (out / name).read_bytes() == (WHOLE / name).read_bytes()
-    assert read_manifest(out) == manifest
+    assert Manifest.load(out) == manifest
     with pytest.raises(SplitVolumeError, match="already build the volume as 'sweep'"):
         split_volume_bundle(out, tmp_path / "again")
     # Graphs in the form the exporter writes now are not read back.
@@ -111,9 +112,9 @@ def test_split_volume_reads_g2_back_from_a_slab_bundle(tmp_path):
     them)."""
     slabs = split_bundle(tmp_path, "slabs")
     swept = split_volume_bundle(slabs, tmp_path / "slabs-sweep")
-    assert list(swept["graphs"]) == ["encoder", "cost_conv", "volume_net", "renderer"]
-    assert swept["provenance"]["volume_split"]["volume_max_abs_difference"] <= 1e-4
-    assert swept["model_id"] == read_manifest(WHOLE)["model_id"]
+    assert list(swept.graphs) == ["encoder", "cost_conv", "volume_net", "renderer"]
+    assert swept.provenance.volume_split["volume_max_abs_difference"] <= 1e-4
+    assert swept.model_id == Manifest.load(WHOLE).model_id
 
 
 def test_split_volume_refuses_to_overwrite_its_source_in_one_line(capsys):
@@ -131,8 +132,8 @@ def test_export_writes_the_sweep_graphs_unless_asked_for_another_build(tmp_path)
     assert main(["export", "--checkpoint", checkpoint, "--out", str(tmp_path / "sweep")]) == 0
     for build in ("slabs", "whole"):
         assert main(["export", "--checkpoint", checkpoint, "--out", str(tmp_path / build), "--volume", build]) == 0
-    manifests = {build: read_manifest(tmp_path / build) for build in ("sweep", "slabs", "whole")}
-    assert set(manifests["sweep"]["graphs"]) == {"encoder", "cost_conv", "volume_net", "renderer"}
-    assert set(manifests["slabs"]["graphs"]) == {"encoder", "cost_slab", "volume_net", "renderer"}
-    assert set(manifests["whole"]["graphs"]) == {"encoder", "volume", "renderer"}
-    assert len({m["model_id"] for m in manifests.values()}) == 1
+    manifests = {build: Manifest.load(tmp_path / build) for build in ("sweep", "slabs", "whole")}
+    assert set(manifests["sweep"].graphs) == {"encoder", "cost_conv", "volume_net", "renderer", *GUIDED_GRAPHS}
+    assert set(manifests["slabs"].graphs) == {"encoder", "cost_slab", "volume_net", "renderer", *GUIDED_GRAPHS}
+    assert set(manifests["whole"].graphs) == {"encoder", "volume", "renderer", *GUIDED_GRAPHS}
+    assert len({m.model_id for m in manifests.values()}) == 1

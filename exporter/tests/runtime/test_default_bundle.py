@@ -15,6 +15,7 @@ from scnerf_export.cameras import intrinsics_from_json as _k
 from scnerf_export.data import datasets
 from scnerf_export.evaluate import metrics
 from scnerf_export.evaluate.eval import downscale_target, source_pool
+from scnerf_export.export.manifest import Manifest
 from scnerf_export.runtime.onnx_pipeline import OnnxBundle
 from scnerf_export.serving import ServerProcess, find_server_binary
 
@@ -36,17 +37,13 @@ def camera(c: dict) -> Camera:
 
 
 def test_default_bundle_is_scnerf_derived_from_the_public_weights_with_their_licence():
-    manifest = json.loads((BUNDLE / "manifest.json").read_text())
-    assert manifest["variant"] == "scnerf"
-    assert (manifest["config"]["depth_planes"], manifest["config"]["samples"], manifest["config"]["width"]) == (
-        128,
-        128,
-        128,
-    )
-    base = manifest["provenance"]["derived_from"]
+    manifest = Manifest.load(BUNDLE)
+    assert manifest.variant == "scnerf"
+    assert (manifest.config.depth_planes, manifest.config.samples, manifest.config.width) == (128, 128, 128)
+    base = manifest.provenance.derived_from
     assert base["source_sha256"] == PUBLIC_SHA256 and base["licence"] == "MIT"
     assert "Permission is hereby granted" in (BUNDLE / base["licence_file"]).read_text()
-    training = manifest["provenance"]["training"]
+    training = manifest.provenance.training
     assert {"data", "steps", "seed"} <= set(training)
     assert sum(p.stat().st_size for p in BUNDLE.rglob("*") if p.is_file()) < 10 * 2**20
 
@@ -54,7 +51,7 @@ def test_default_bundle_is_scnerf_derived_from_the_public_weights_with_their_lic
 def test_default_bundle_renders_the_example_above_its_floor():
     expected = json.loads((EXAMPLE / "regression.json").read_text())
     bundle = OnnxBundle(BUNDLE)
-    assert bundle.manifest["model_id"] == expected["model_id"], "default bundle changed: re-measure the floor"
+    assert bundle.model_id == expected["model_id"], "default bundle changed: re-measure the floor"
     request = json.loads((EXAMPLE / "request.json").read_text())
     images = np.stack([load_rgb(EXAMPLE / f"source_{i}.png") for i in range(3)])
     result = bundle.render_view(

@@ -2,24 +2,21 @@
 two implementations are held to one behaviour), the renderer's guided entry points against its full
 forward, and a guided view through ONNX Runtime against the PyTorch reference."""
 
-import json
-
 import numpy as np
 import onnxruntime as ort
 import pytest
 import torch
 
-from scnerf_export.config import ModelConfig, small_config
+from scnerf_export.config import small_config
 from scnerf_export.export.bundle import GUIDED_GRAPHS, RendererGraph, example_inputs, export_bundle
 from scnerf_export.export.guided import add_guided
-from scnerf_export.export.manifest import read_manifest, write_manifest
+from scnerf_export.export.manifest import GuidedPolicy, Manifest
 from scnerf_export.export.reexport import renderer_state_from_current_graph
 from scnerf_export.model.checkpoint import save_checkpoint
 from scnerf_export.model.network import SCNeRF
 from scnerf_export.model.renderer import composite_weights, nearest_heads, uniform_depths
 from scnerf_export.rigs import random_model, rig_cameras, smooth_pattern, synthetic_rig
 from scnerf_export.runtime.guided import (
-    GuidedPolicy,
     first_level_pixels,
     level_pixels,
     nearest_guide,
@@ -196,25 +193,24 @@ def test_add_guided_writes_graphs_that_agree_with_the_renderer(exported_scene, t
     save_checkpoint(checkpoint, model, {})
     stripped = tmp_path / "plain"
     stripped.mkdir()
-    manifest = read_manifest(out)
-    for name, graph in manifest["graphs"].items():
+    manifest = Manifest.load(out)
+    for name, graph in manifest.graphs.items():
         if name not in GUIDED_GRAPHS:
-            (stripped / graph["file"]).write_bytes((out / graph["file"]).read_bytes())
-    manifest["graphs"] = {k: v for k, v in manifest["graphs"].items() if k not in GUIDED_GRAPHS}
-    del manifest["guided"]
-    write_manifest(stripped, manifest)
+            (stripped / graph.file).write_bytes((out / graph.file).read_bytes())
+    manifest.graphs = {k: v for k, v in manifest.graphs.items() if k not in GUIDED_GRAPHS}
+    manifest.guided = None
+    manifest.save(stripped)
     again = add_guided(stripped, tmp_path / "guided", checkpoint)
-    assert again["model_id"] == manifest["model_id"]
-    assert again["provenance"]["guided_graphs"]["guide_max_abs_difference_from_renderer"] <= 1e-4
-    assert set(GUIDED_GRAPHS) <= set(again["graphs"])
-    assert json.loads((tmp_path / "guided" / "manifest.json").read_text())["guided"] == again["guided"]
+    assert again.model_id == manifest.model_id
+    assert again.provenance.guided_graphs["guide_max_abs_difference_from_renderer"] <= 1e-4
+    assert set(GUIDED_GRAPHS) <= set(again.graphs)
+    assert Manifest.load(tmp_path / "guided").guided == again.guided == GuidedPolicy()
 
 
 def test_the_default_bundles_renderer_weights_read_back_render_what_it_renders():
     """add-guided without a checkpoint reads the renderer's weights back from its graph; on the
     default bundle they must render what its renderer.onnx renders."""
-    manifest = read_manifest(DEFAULT_BUNDLE)
-    model = SCNeRF(ModelConfig.from_dict(manifest["config"])).eval()
+    model = SCNeRF(Manifest.load(DEFAULT_BUNDLE).config).eval()
     model.renderer.load_state_dict(renderer_state_from_current_graph(DEFAULT_BUNDLE / "renderer.onnx", model))
     feeds = example_inputs(model, blocks=(3, 2), rays=256)["renderer"]
     session = ort.InferenceSession(str(DEFAULT_BUNDLE / "renderer.onnx"), providers=["CPUExecutionProvider"])
