@@ -90,11 +90,10 @@ def cmd_experiment(args) -> None:
 
 
 def cmd_train(args) -> None:
-    from .train.from_scratch import train
+    from .train.from_scratch import preset, train
 
     last = train(
-        args.variant,
-        args.preset,
+        preset(args.preset, args.variant),
         args.out,
         resume=args.resume,
         steps=args.steps,

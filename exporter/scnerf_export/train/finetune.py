@@ -302,8 +302,8 @@ def finetune(
     threads: int | None = None,
     cache_dir: str | Path | None = None,
 ) -> Path:
-    """Train the heads and write ``best.pt``: the validated step with the best mean gain over the
-    initialisation, among those no worse than it on any validation scene (step 0 if none)."""
+    """Train the heads of the ``init`` checkpoint on procedural scenes, chosen on the validation
+    scenes of ``shared`` (:func:`train_heads`), and write ``best.pt``."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     if threads:
@@ -312,20 +312,7 @@ def finetune(
     model, provenance = load_checkpoint(init)
     if model.cfg.variant != "scnerf":
         raise ValueError(f"{init}: finetune trains scnerf's heads, got a {model.cfg.variant} network")
-    derived_from = provenance.get("derived_from")
     model.eval()
-    for p in model.parameters():
-        p.requires_grad_(False)
-    groups = [
-        {
-            "params": list(getattr(model.renderer, name).parameters()),
-            "lr": recipe.lr * (1.0 if name in RECTIFIERS else recipe.pretrained_lr_scale),
-        }
-        for name in HEADS
-    ]
-    for group in groups:
-        for p in group["params"]:
-            p.requires_grad_(True)
 
     start = time.perf_counter()
     cache = Path(cache_dir) if cache_dir else out / "cache"
@@ -344,7 +331,60 @@ def finetune(
         )
         for spec in VALIDATION
     }
-    bank_seconds = time.perf_counter() - start
+    about = {
+        "data": f"procedural scenes (scnerf_export.data.procedural, layouts {', '.join(LAYOUTS)}), "
+        f"{recipe.scenes} scenes of the training seed range at 640x512, {recipe.targets_per_scene} "
+        f"targets each with their 3 nearest views, {recipe.rays_per_target} random rays per target, "
+        "each target on a random black, white or coloured background",
+        "ray_bank_seconds": time.perf_counter() - start,
+        "validation_scenes": [spec.__dict__ for spec in VALIDATION],
+    }
+    return train_heads(model, train_bank, val_banks, recipe, out, about, provenance.get("derived_from"))
+
+
+def head_parameter_groups(model: SCNeRF, recipe: Recipe) -> list[dict]:
+    """The heads' parameters with their learning rates; every other parameter frozen."""
+    for p in model.parameters():
+        p.requires_grad_(False)
+    groups = [
+        {
+            "params": list(getattr(model.renderer, name).parameters()),
+            "lr": recipe.lr * (1.0 if name in RECTIFIERS else recipe.pretrained_lr_scale),
+        }
+        for name in HEADS
+    ]
+    for group in groups:
+        for p in group["params"]:
+            p.requires_grad_(True)
+    return groups
+
+
+def heads_step(model: SCNeRF, optimiser: torch.optim.Optimizer, bank: RayBank, idx: torch.Tensor) -> float:
+    """One optimiser step on the rays ``idx`` of ``bank``; the loss before it."""
+    loss = torch.mean((shade(model, bank, idx) - bank.truth[idx]) ** 2)
+    optimiser.zero_grad(set_to_none=True)
+    loss.backward()
+    optimiser.step()
+    return float(loss.detach())
+
+
+def train_heads(
+    model: SCNeRF,
+    train_bank: RayBank,
+    val_banks: dict[str, RayBank],
+    recipe: Recipe,
+    out: Path,
+    about: dict,
+    derived_from: dict | None,
+) -> Path:
+    """Train the heads on ``train_bank`` and write ``out/best.pt``: among the validated steps (every
+    ``recipe.validate_every`` and the last), the one with the best mean PSNR gain over the
+    initialisation on ``val_banks``, no worse than it on any of them (step 0 if none).
+
+    ``about``: what the checkpoint's training record says of the training rays (``data``, how long
+    they took, ``ray_bank_seconds``) and of the validation banks (``validation_scenes``)."""
+    model.eval()
+    groups = head_parameter_groups(model, recipe)
     log = open(out / "log.jsonl", "a")
 
     def validate(step: int) -> dict:
@@ -358,20 +398,17 @@ def finetune(
         return {
             "what": "M2, the geometry and appearance rectifiers and M4 trained on top of the exact MVSNeRF "
             "initialisation; G1, G2 and M1 frozen",
-            "data": f"procedural scenes (scnerf_export.data.procedural, layouts {', '.join(LAYOUTS)}), "
-            f"{recipe.scenes} scenes of the training seed range at 640x512, {recipe.targets_per_scene} "
-            f"targets each with their 3 nearest views, {recipe.rays_per_target} random rays per target, "
-            "each target on a random black, white or coloured background",
+            "data": about["data"],
             "recipe": recipe.__dict__,
             "steps": best_step,
             "seed": recipe.seed,
             "hardware": hardware(),
             "seconds": seconds,
-            "ray_bank_seconds": bank_seconds,
+            "ray_bank_seconds": about["ray_bank_seconds"],
             "selection": {
                 "rule": "validated step with the best mean PSNR gain over the initialisation, no worse "
                 "than it on any validation scene (validation scenes choose, never train)",
-                "scenes": [spec.__dict__ for spec in VALIDATION],
+                "scenes": about["validation_scenes"],
                 "initial": initial,
                 "chosen": chosen,
             },
@@ -388,12 +425,8 @@ def finetune(
     for step in bar:
         tick = time.perf_counter()
         idx = torch.randint(len(train_bank), (recipe.rays,), generator=rng)
-        loss = torch.mean((shade(model, train_bank, idx) - train_bank.truth[idx]) ** 2)
-        optimiser.zero_grad(set_to_none=True)
-        loss.backward()
-        optimiser.step()
+        value = heads_step(model, optimiser, train_bank, idx)
         seconds += time.perf_counter() - tick
-        value = float(loss.detach())
         bar.set_postfix(loss=f"{value:.5f}")
         log.write(json.dumps({"step": step + 1, "loss": value, "seconds": seconds}) + "\n")
         log.flush()

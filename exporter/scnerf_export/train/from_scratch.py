@@ -18,7 +18,7 @@ from tqdm import tqdm
 from .. import cameras as cams
 from ..config import ModelConfig
 from ..data.procedural import ProceduralDataset
-from ..model.checkpoint import PROJECT_FORMAT, load_checkpoint, save_checkpoint
+from ..model.checkpoint import save_checkpoint
 from ..model.network import SCNeRF
 from ..runtime.reference import render_view
 
@@ -27,6 +27,7 @@ from ..runtime.reference import render_view
 class Preset:
     """Sizes of one training recipe; written into the checkpoint and the bundle's provenance."""
 
+    name: str
     config: ModelConfig
     width: int
     height: int
@@ -37,6 +38,8 @@ class Preset:
     checkpoint_every: int = 100
     validate_every: int = 500
     lr: float = 5e-4
+    views: int = 20  # per procedural scene
+    validation_scenes: int = 3
 
 
 def preset(name: str, variant: str) -> Preset:
@@ -44,10 +47,11 @@ def preset(name: str, variant: str) -> Preset:
         # The paper's network shrunk to train on one CPU core in about an hour: width 64, 48 planes and
         # samples, 384 rays per step (measured ~1.1 s of CPU per scnerf step, ~0.6 s per mvsnerf step).
         cfg = ModelConfig(variant=variant, width=64, depth_planes=48, samples=48, pad=8, colour_hidden=32)
-        return Preset(cfg, width=160, height=128, rays=384, steps=3000, train_scenes=96)
+        return Preset(name, cfg, width=160, height=128, rays=384, steps=3000, train_scenes=96)
     if name == "gpu":
         cfg = ModelConfig(variant=variant)
         return Preset(
+            name,
             cfg,
             width=320,
             height=256,
@@ -73,7 +77,7 @@ def to_tensors(example, device):
     }
 
 
-def training_step(model: SCNeRF, example, rays: int, rng: np.random.Generator, device) -> tuple[torch.Tensor, int]:
+def training_loss(model: SCNeRF, example, rays: int, rng: np.random.Generator, device) -> torch.Tensor:
     """Loss L = ||rgb - rgb_hat||^2 on ``rays`` random pixels of the target (paper Eq. 15)."""
     x = to_tensors(example, device)
     planes = torch.from_numpy(cams.depth_planes(example.near, example.far, model.cfg.depth_planes)).to(device)
@@ -93,7 +97,18 @@ def training_step(model: SCNeRF, example, rays: int, rng: np.random.Generator, d
         x["intrinsics"],
         x["extrinsics"],
     )
-    return torch.mean((rgb - gt) ** 2), rays
+    return torch.mean((rgb - gt) ** 2)
+
+
+def training_step(
+    model: SCNeRF, optimiser: torch.optim.Optimizer, example, rays: int, rng: np.random.Generator, device
+) -> float:
+    """One optimiser step on ``rays`` random pixels of the example's target; the loss before it."""
+    loss = training_loss(model, example, rays, rng, device)
+    optimiser.zero_grad(set_to_none=True)
+    loss.backward()
+    optimiser.step()
+    return float(loss.detach())
 
 
 def psnr_from_mse(mse: float) -> float:
@@ -130,8 +145,7 @@ def hardware() -> str:
 
 
 def train(
-    variant: str,
-    preset_name: str,
+    p: Preset,
     out_dir: str | Path,
     resume: bool = False,
     steps: int | None = None,
@@ -144,7 +158,6 @@ def train(
     if threads:
         torch.set_num_threads(threads)
     device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    p = preset(preset_name, variant)
     total = steps or p.steps
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
@@ -164,6 +177,7 @@ def train(
     train_set = ProceduralDataset(
         "train",
         n_scenes=p.train_scenes,
+        n_views=p.views,
         width=p.width,
         height=p.height,
         gaps=p.gaps,
@@ -171,15 +185,22 @@ def train(
         seed=seed,
     )
     val_set = ProceduralDataset(
-        "val", n_scenes=3, width=p.width, height=p.height, gaps=("small",), cache_dir=cache / "val", seed=seed
+        "val",
+        n_scenes=p.validation_scenes,
+        n_views=p.views,
+        width=p.width,
+        height=p.height,
+        gaps=("small",),
+        cache_dir=cache / "val",
+        seed=seed,
     )
     val_examples = list(val_set.fixed_examples(targets_per_scene=1))
     log = open(out / "log.jsonl", "a")
 
     def training_record(step: int) -> dict:
         return {
-            "preset": preset_name,
-            "variant": variant,
+            "preset": p.name,
+            "variant": p.config.variant,
             "steps": step,
             "data_seed": seed,
             "train_scenes": p.train_scenes,
@@ -211,20 +232,16 @@ def train(
         range(start, total),
         initial=start,
         total=total,
-        desc=f"{variant}/{preset_name}",
+        desc=f"{p.config.variant}/{p.name}",
         mininterval=5.0,
         dynamic_ncols=True,
     )
     for step in bar:
         tick = time.perf_counter()
-        loss, rays = training_step(model, train_set.sample(rng), p.rays, rng, device)
-        optimiser.zero_grad(set_to_none=True)
-        loss.backward()
-        optimiser.step()
+        value = training_step(model, optimiser, train_set.sample(rng), p.rays, rng, device)
         elapsed = time.perf_counter() - tick
         seconds += elapsed
-        value = float(loss.detach())
-        bar.set_postfix(loss=f"{value:.4f}", psnr=f"{psnr_from_mse(value):.2f}", rays_s=f"{rays / elapsed:.0f}")
+        bar.set_postfix(loss=f"{value:.4f}", psnr=f"{psnr_from_mse(value):.2f}", rays_s=f"{p.rays / elapsed:.0f}")
         record = {"step": step + 1, "loss": value, "psnr": psnr_from_mse(value), "seconds": seconds}
         if (step + 1) % p.validate_every == 0 or step + 1 == total:
             record["val_psnr"] = validate(model, val_examples, out, step + 1)
@@ -235,11 +252,3 @@ def train(
             save(step + 1)
     log.close()
     return last
-
-
-def final_checkpoint(path: str | Path) -> tuple[SCNeRF, dict]:
-    """A training checkpoint as an exportable model (optimizer state stays behind)."""
-    model, provenance = load_checkpoint(path)
-    if provenance["source_kind"] != "scnerf-serve-training":
-        raise ValueError(f"{path}: not a {PROJECT_FORMAT} training checkpoint")
-    return model, provenance
