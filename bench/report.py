@@ -220,7 +220,8 @@ def markdown(res: dict) -> str:
         f"Bundle `{res['bundle']['dir']}` ({res['bundle']['model_id']}, {res['bundle']['precision']}; "
         f"width {res['bundle']['config']['width']}, S = {res['bundle']['config']['samples']}, "
         f"D = {res['bundle']['config']['depth_planes']}); threads {res['threads']}; "
-        f"Python chunk {res['python_chunk']} rays; server `{res['server_bin']}` {' '.join(res['server_args'])}.",
+        f"Python chunk {res['python_chunk']} rays; server `{res['server_bin']}` {' '.join(res['server_args'])} "
+        f"(sampling {res.get('sampling', 'full')}).",
         "",
         f"fp32 GEMM ({g['n']}x{g['n']}, {g['threads']} threads): numpy {g['numpy_gflops']:.0f} GFLOP/s, "
         f"torch {g['torch_gflops']:.0f} GFLOP/s" + rounds_note(res),

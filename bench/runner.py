@@ -81,6 +81,13 @@ def parser() -> argparse.ArgumentParser:
         default=[],
         help="extra server flag (repeatable), e.g. --server-arg=--ort-arena=off",
     )
+    p.add_argument(
+        "--sampling",
+        choices=("full", "guided"),
+        default="full",
+        help="the server's sampling (PyTorch and ONNX Runtime from Python render in full; "
+        "python -m bench.sampling compares the two modes)",
+    )
     p.add_argument("--gemm-n", type=int, default=4096)
     p.add_argument("--gemm-repeats", type=int, default=5)
     p.add_argument("--out", default=str(REPO / "bench/results"))
@@ -188,6 +195,7 @@ def start_results(args, manifest: Manifest, chunk: int) -> dict:
         "python_chunk": chunk,
         "server_bin": str(server_bin) if server_bin else None,
         "server_args": args.server_args,
+        "sampling": args.sampling,
         "methods": methods,
         "variants": variants,
         "variant_precision": {name: Manifest.load(d).precision for name, d in variants.items()},

@@ -25,7 +25,8 @@ def bench_server(args, bundle: str, scene_dir: Path, cached: bool = True) -> dic
     and a /v1/scenes/{id}/render of the same target (cached scene)."""
     request = json.loads((scene_dir / "request.json").read_text())
     sources = [(scene_dir / f"source_{i}.png").read_bytes() for i in range(len(request["sources"]))]
-    server = ServerProcess(Path(args.server_bin), bundle, args.threads, tuple(args.server_args))
+    extra = (*args.server_args, "--sampling", args.sampling)
+    server = ServerProcess(Path(args.server_bin), bundle, args.threads, extra)
     out: dict = {
         "method": "server",
         "startup_ms": server.startup_ms,

@@ -9,6 +9,10 @@ scene's fixed triple. Writes one
 
     .venv/bin/python scripts/quality.py --out results/quality \\
         default=bundles/default mvsnerf=bundles/mvsnerf-public procedural=bundles/procedural-only
+
+A column may be one bundle with another sampling than the server's default (``--sampling
+NAME=full|guided``): ``full=bundles/default guided=bundles/default --sampling full=full
+--sampling guided=guided`` puts the two side by side.
 """
 
 from __future__ import annotations
@@ -35,12 +39,14 @@ def measure(
     views: dict,
     protocols: list[str],
     threads: int | None,
+    sampling: str | None,
 ) -> None:
     binary = find_server_binary()
     if binary is None:
         sys.exit("no target/release/scnerf-server: cargo build --release -p scnerf-server")
     # Paper-size views take minutes on a few cores: a deadline far beyond the default 900 s.
-    with ServerProcess(binary, bundle, threads=threads, extra=("--request-timeout-secs", "7200")) as server:
+    extra = ("--request-timeout-secs", "7200", *(("--sampling", sampling) if sampling else ()))
+    with ServerProcess(binary, bundle, threads=threads, extra=extra) as server:
         for scene, (folder, fmt) in SCENES.items():
             for protocol in protocols:
                 sources = PROTOCOLS[protocol]
@@ -101,14 +107,19 @@ def main(argv=None) -> int:
     p.add_argument("--views", action="append", default=[], metavar="SCENE=V,V", help="only these targets of a scene")
     p.add_argument("--protocols", type=lambda t: t.split(","), default=list(PROTOCOLS), help="nearest,fixed")
     p.add_argument("--threads", type=int)
+    p.add_argument(
+        "--sampling", action="append", default=[], metavar="NAME=MODE", help="a column's sampling (full or guided)"
+    )
     args = p.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     pairs = [item.partition("=")[::2] for item in args.bundles]
     views = per_scene(args.views, lambda names: names.split(","))
     scales = per_scene(args.scale, float)
     target_scales = per_scene(args.target_scale, float)
+    samplings = per_scene(args.sampling, str)
     for name, bundle in pairs:
-        measure(name, bundle, args.out, scales, target_scales, views, args.protocols, args.threads)
+        sampling = samplings.get(name)
+        measure(name, bundle, args.out, scales, target_scales, views, args.protocols, args.threads, sampling)
     print(table([name for name, _ in pairs], args.out, args.protocols))
     return 0
 

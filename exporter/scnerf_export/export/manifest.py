@@ -167,7 +167,7 @@ class GuidedPolicy:
     runtime/guided.py)."""
 
     step: int = 8
-    samples: tuple[int, ...] = (32, 16, 8)
+    samples: tuple[int, ...] = (32, 16, 12)
     support_threshold: float = 1e-3
     smooth_tolerance: float = 0.03
     smooth_max_step: int = 2

@@ -94,7 +94,7 @@ def test_the_nearest_guide_ray_rounds_half_way_up():
 
 
 def test_policy_fits_the_model():
-    assert GuidedPolicy.for_model(small_config("scnerf")).samples == (32, 16, 8)
+    assert GuidedPolicy.for_model(small_config("scnerf")).samples == (32, 16, 12)
     with pytest.raises(ValueError):
         GuidedPolicy(step=6)
     with pytest.raises(ValueError):
