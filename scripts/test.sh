@@ -3,10 +3,11 @@
 # parity against the committed fixtures, end-to-end), scenes across two replicas behind Debian's
 # nginx (scripts/proxy-test.sh), the hostile clients' short form (scripts/attacks.sh), the
 # exporter's pytest suite, the benchmark's, the Python client installed into a fresh venv against
-# the real server (scripts/python-client-test.sh), and the viewer in headless Chromium
-# (scripts/viewer-test.sh). Both scripts install what they miss with apt-get
-# (nginx, Chromium) and npm; the proxy test says SKIPPED when nginx cannot be installed. Needs
-# crates.io, PyPI, npm and Debian's packages on the first run only.
+# the real server (scripts/python-client-test.sh), the viewer in headless Chromium
+# (scripts/viewer-test.sh) and the container files' static checks (docker/lint.sh). The scripts
+# install what they miss with apt-get (nginx, Chromium), npm and pip, and fail when they cannot
+# (SCNERF_ALLOW_SKIP=1 lets the proxy test skip on a machine without nginx). Needs crates.io, PyPI,
+# npm and Debian's packages on the first run only.
 set -euo pipefail
 repo=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 cd "${repo}"
@@ -23,3 +24,4 @@ scripts/attacks.sh
 .venv/bin/python -m pytest -q -p no:cacheprovider bench/tests
 scripts/python-client-test.sh
 scripts/viewer-test.sh
+docker/lint.sh
