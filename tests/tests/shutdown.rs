@@ -11,11 +11,24 @@ fn fixtures() -> PathBuf {
     repo_root().join("tests/fixtures/parity")
 }
 
-/// The first parity case as a multipart render request (96x64 target, a few seconds of CPU).
-fn render_body() -> (String, Vec<u8>) {
+/// The first parity case as a multipart render request, its target camera enlarged `scale` times
+/// (96x64 at scale 1: about a second of CPU on 2 cores).
+fn render_body(scale: u32) -> (String, Vec<u8>) {
     let case = Case::load(&fixtures().join("cases/opencv_64x96")).expect("parity fixtures are committed");
     let mut request = case.request.clone();
     request["outputs"] = serde_json::json!(["rgb"]);
+    let target = &mut request["target"];
+    for side in ["width", "height"] {
+        target[side] = (target[side].as_u64().unwrap() * u64::from(scale)).into();
+    }
+    // Pixel centres stay on the same rays: c' = (c + 0.5) * scale - 0.5.
+    let intrinsics = &mut target["intrinsics"];
+    for focal in ["fx", "fy"] {
+        intrinsics[focal] = (intrinsics[focal].as_f64().unwrap() * f64::from(scale)).into();
+    }
+    for centre in ["cx", "cy"] {
+        intrinsics[centre] = ((intrinsics[centre].as_f64().unwrap() + 0.5) * f64::from(scale) - 0.5).into();
+    }
     case.multipart(&request)
 }
 
@@ -32,10 +45,10 @@ fn start(grace_secs: &str) -> ServerProcess {
 }
 
 /// Sends the render on another thread; returns once the server has admitted it.
-fn render_in_flight(server: &ServerProcess) -> std::thread::JoinHandle<std::io::Result<HttpResponse>> {
+fn render_in_flight(server: &ServerProcess, scale: u32) -> std::thread::JoinHandle<std::io::Result<HttpResponse>> {
     let addr = server.addr;
     let client = std::thread::spawn(move || {
-        let (ctype, body) = render_body();
+        let (ctype, body) = render_body(scale);
         http_request(addr, "POST", "/v1/render", &[("content-type", &ctype)], &body, Duration::from_secs(600))
     });
     let start = Instant::now();
@@ -52,7 +65,7 @@ fn render_in_flight(server: &ServerProcess) -> std::thread::JoinHandle<std::io::
 #[test]
 fn sigterm_finishes_the_request_in_flight_and_exits_0() {
     let mut server = start("300");
-    let client = render_in_flight(&server);
+    let client = render_in_flight(&server, 1);
     let signalled = Instant::now();
     server.terminate();
 
@@ -76,13 +89,14 @@ fn sigterm_finishes_the_request_in_flight_and_exits_0() {
 #[test]
 fn past_the_grace_period_requests_in_flight_get_503_and_the_exit_status_is_1() {
     let mut server = start("1");
-    let client = render_in_flight(&server);
+    // 384x256: 16 times the pixels, well past the 1 s grace period on any machine.
+    let client = render_in_flight(&server, 4);
     let signalled = Instant::now();
     server.terminate();
     let status = server.wait_exit(Duration::from_secs(30));
     let took = signalled.elapsed();
     assert_eq!(status.code(), Some(1), "{status}");
-    // The render alone takes several seconds here: the client is told, not cut off.
+    // The client is told, not cut off.
     let response = client.join().unwrap().expect("the request in flight is answered");
     assert_eq!(response.status, 503, "{}", String::from_utf8_lossy(&response.body));
     assert_eq!(response.header("retry-after"), Some("1"));
