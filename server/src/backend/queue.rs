@@ -1,0 +1,148 @@
+//! The executor's queue: the admitted requests, each with its own jobs, and the order they run
+//! in (the job of the request with the earliest deadline first).
+
+use std::collections::{HashMap, VecDeque};
+use std::time::Instant;
+
+use tokio::sync::oneshot;
+use tracing::Span;
+
+use super::memory::MemoryRefusals;
+use super::rates::{Rates, Work};
+use super::{BackendError, NamedTensors};
+use crate::bundle::GraphKind;
+
+/// A job's inputs: given, or made by the executor when the job runs.
+pub(super) enum Inputs {
+    Ready(NamedTensors),
+    Prepared(Box<dyn FnOnce() -> NamedTensors + Send>),
+}
+
+impl Inputs {
+    pub(super) fn make(self, graph: GraphKind) -> NamedTensors {
+        match self {
+            Inputs::Ready(tensors) => tensors,
+            Inputs::Prepared(prepare) => {
+                let started = Instant::now();
+                let tensors = prepare();
+                tracing::debug!(%graph, ms = started.elapsed().as_secs_f64() * 1e3, "inputs prepared");
+                tensors
+            }
+        }
+    }
+}
+
+pub(super) struct Job {
+    pub(super) ticket: u64,
+    pub(super) graph: GraphKind,
+    pub(super) units: f64,
+    pub(super) inputs: Inputs,
+    pub(super) reply: oneshot::Sender<Result<NamedTensors, BackendError>>,
+    pub(super) span: Span,
+    pub(super) deadline: Instant,
+    /// The request's last run of this graph: release what the runner keeps for the next run
+    /// when nothing else waits (`GraphRunner::run_and_release`).
+    pub(super) last: bool,
+}
+
+/// The graph run in progress: its request's deadline, its planned seconds, when it started.
+#[derive(Debug, Clone, Copy)]
+pub(super) struct Running {
+    pub(super) deadline: Instant,
+    pub(super) secs: f64,
+    pub(super) started: Instant,
+}
+
+/// An admitted request: its deadline, the work it has not finished, the memory it may use at
+/// most, its waiting jobs.
+pub(super) struct Admitted {
+    pub(super) deadline: Instant,
+    pub(super) remaining: Work,
+    pub(super) memory: u64,
+    pub(super) jobs: VecDeque<Job>,
+}
+
+/// Executor queue state, behind `Shared::queue`.
+#[derive(Default)]
+pub(super) struct Queue {
+    /// Requests admitted and not yet finished (running, waiting, or between jobs).
+    pub(super) requests: HashMap<u64, Admitted>,
+    pub(super) queued_jobs: usize,
+    pub(super) next_ticket: u64,
+    pub(super) rates: Rates,
+    /// Sum of the admitted requests' memory estimates and of the leases, bytes.
+    pub(super) memory_in_use: u64,
+    /// The leases' part of it.
+    pub(super) memory_leased: u64,
+    /// The graph run in progress.
+    pub(super) running: Option<Running>,
+    pub(super) refusals: MemoryRefusals,
+    /// Every handle is gone: the executor finishes the queued jobs and stops.
+    pub(super) closed: bool,
+    /// The executor thread has ended; new jobs fail with `Stopped`.
+    pub(super) stopped: bool,
+}
+
+impl Queue {
+    pub(super) fn push(&mut self, job: Job) {
+        if let Some(request) = self.requests.get_mut(&job.ticket) {
+            request.jobs.push_back(job);
+            self.queued_jobs += 1;
+        }
+    }
+
+    /// The next job of the request with the earliest deadline (the earlier admitted on a tie).
+    pub(super) fn pop(&mut self) -> Option<Job> {
+        let (_, request) = self
+            .requests
+            .iter_mut()
+            .filter(|(_, r)| !r.jobs.is_empty())
+            .min_by_key(|(&ticket, r)| (r.deadline, ticket))?;
+        self.queued_jobs -= 1;
+        request.jobs.pop_front()
+    }
+
+    /// A job finished: its request has that much less to do, and the rates learn its time.
+    pub(super) fn done(&mut self, job: &Job, took: f64) {
+        self.rates.record(job.graph, job.units, took);
+        if let Some(request) = self.requests.get_mut(&job.ticket) {
+            let left = &mut request.remaining.0[job.graph.index()];
+            *left = (*left - job.units).max(0.0);
+        }
+    }
+
+    /// Forgets a finished request and drops the jobs it left behind.
+    pub(super) fn release(&mut self, ticket: u64) {
+        if let Some(request) = self.requests.remove(&ticket) {
+            self.queued_jobs -= request.jobs.len();
+            self.memory_in_use -= request.memory;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::time::Duration;
+
+    use crate::backend::testkit::{far, in_secs, recorder, tagged, NONE};
+    use crate::bundle::GraphKind;
+
+    #[tokio::test]
+    async fn jobs_run_earliest_deadline_first() {
+        let (backend, order, open) = recorder();
+        let blocker = backend.admit(far(), NONE, 0).unwrap();
+        let first = blocker.run(GraphKind::Encoder, 0.0, tagged(0)); // holds the executor at the gate
+        tokio::time::sleep(Duration::from_millis(50)).await;
+        let late = backend.admit(in_secs(30), NONE, 0).unwrap();
+        let soon = backend.admit(in_secs(10), NONE, 0).unwrap();
+        let mut pending: Vec<_> = (0..3).map(|_| late.run(GraphKind::Renderer, 0.0, tagged(1))).collect();
+        pending.extend((0..2).map(|_| soon.run(GraphKind::Renderer, 0.0, tagged(2))));
+        assert_eq!(backend.stats().queued_jobs, 5);
+        open.send(()).unwrap();
+        first.await.unwrap();
+        for p in pending {
+            p.await.unwrap();
+        }
+        assert_eq!(*order.lock().unwrap(), vec![0, 2, 2, 1, 1, 1]);
+    }
+}

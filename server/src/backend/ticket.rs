@@ -1,0 +1,132 @@
+//! An admitted request's handle ([`Ticket`]): it queues the request's graph runs and yields
+//! their [`Outputs`].
+
+use std::future::Future;
+use std::sync::Arc;
+use std::time::Instant;
+
+use ndarray::{ArcArray, Dimension};
+use tokio::sync::oneshot;
+use tracing::Span;
+
+use super::executor::Shared;
+use super::queue::{Inputs, Job};
+use super::{BackendError, NamedTensors};
+use crate::bundle::GraphKind;
+
+/// An admitted request. Dropping it (the request finished, failed, timed out, or its client
+/// went away and the handler future was dropped) removes its waiting jobs from the queue.
+pub struct Ticket {
+    pub(super) id: u64,
+    pub(super) deadline: Instant,
+    pub(super) shared: Arc<Shared>,
+}
+
+impl Ticket {
+    pub fn deadline(&self) -> Instant {
+        self.deadline
+    }
+
+    /// Queues one graph run of `units` of work (see `Work`) now and returns a future of its
+    /// outputs. Queuing happens before the future is first polled, so a caller can keep several
+    /// runs in flight (see `pipeline::chunks`).
+    pub fn run(
+        &self,
+        graph: GraphKind,
+        units: f64,
+        inputs: NamedTensors,
+    ) -> impl Future<Output = Result<Outputs, BackendError>> + Send + 'static {
+        self.run_job(graph, units, Inputs::Ready(inputs), false)
+    }
+
+    /// [`Ticket::run`] for the request's last run of `graph` (see `GraphRunner::run_and_release`).
+    pub fn run_last(
+        &self,
+        graph: GraphKind,
+        units: f64,
+        inputs: NamedTensors,
+    ) -> impl Future<Output = Result<Outputs, BackendError>> + Send + 'static {
+        self.run_job(graph, units, Inputs::Ready(inputs), true)
+    }
+
+    /// [`Ticket::run`] with inputs that `prepare` makes on the executor thread when the job's turn
+    /// comes (see the `backend` module doc).
+    pub fn run_prepared(
+        &self,
+        graph: GraphKind,
+        units: f64,
+        prepare: impl FnOnce() -> NamedTensors + Send + 'static,
+    ) -> impl Future<Output = Result<Outputs, BackendError>> + Send + 'static {
+        self.run_job(graph, units, Inputs::Prepared(Box::new(prepare)), false)
+    }
+
+    fn run_job(
+        &self,
+        graph: GraphKind,
+        units: f64,
+        inputs: Inputs,
+        last: bool,
+    ) -> impl Future<Output = Result<Outputs, BackendError>> + Send + 'static {
+        let (reply, rx) = oneshot::channel();
+        let span = Span::current();
+        let job = Job { ticket: self.id, graph, units, inputs, reply, span, deadline: self.deadline, last };
+        let queued = {
+            let mut q = self.shared.lock();
+            if q.stopped {
+                Err(BackendError::Stopped)
+            } else {
+                q.push(job);
+                Ok(())
+            }
+        };
+        self.shared.wake.notify_one();
+        async move {
+            queued?;
+            let outputs = rx.await.map_err(|_| BackendError::Stopped)??;
+            Ok(Outputs { graph, tensors: outputs })
+        }
+    }
+}
+
+impl Drop for Ticket {
+    fn drop(&mut self) {
+        self.shared.lock().release(self.id);
+    }
+}
+
+/// The outputs of one graph run, looked up by name.
+#[derive(Debug)]
+pub struct Outputs {
+    graph: GraphKind,
+    tensors: NamedTensors,
+}
+
+impl Outputs {
+    /// Removes the named output and checks its shape (`None` = any size on that axis), which
+    /// also fixes its rank `D`.
+    pub fn take<D: Dimension>(
+        &mut self,
+        name: &str,
+        shape: &[Option<usize>],
+    ) -> Result<ArcArray<f32, D>, BackendError> {
+        let graph = self.graph;
+        let idx = self
+            .tensors
+            .iter()
+            .position(|(n, _)| n == name)
+            .ok_or_else(|| BackendError::BadOutput { graph, message: format!("no output \"{name}\"") })?;
+        let (_, tensor) = self.tensors.swap_remove(idx);
+        let ok =
+            tensor.ndim() == shape.len() && tensor.shape().iter().zip(shape).all(|(a, b)| b.is_none_or(|b| *a == b));
+        if !ok {
+            return Err(BackendError::BadOutput {
+                graph,
+                message: format!("\"{name}\" has shape {:?}, expected {shape:?}", tensor.shape()),
+            });
+        }
+        // Cannot fail once the rank matched (`shape` has D's rank).
+        tensor
+            .into_dimensionality::<D>()
+            .map_err(|e| BackendError::BadOutput { graph, message: format!("\"{name}\": {e}") })
+    }
+}
