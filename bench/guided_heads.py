@@ -49,7 +49,7 @@ from scnerf_export.runtime.guided import render_guided
 from scnerf_export.runtime.onnx_pipeline import OnnxBundle
 from scnerf_export.runtime.reference import SceneTensors
 
-from .sampling import SCENES, SHARED, cpu_name, cropped_target
+from .sampling import SCENES, SHARED, cpu_name, cropped_target, write_results
 from .scene import parse_sizes
 
 VARIANTS = ("guide", "own-K", "own-S", "none")
@@ -351,11 +351,7 @@ def main() -> None:
     if len(args.sizes) != len(args.scenes):
         raise SystemExit("--sizes: one size per scene")
     results = run(args)
-    stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M")
-    args.out.mkdir(parents=True, exist_ok=True)
-    path = args.out / f"guided-heads-{stamp}.json"
-    path.write_text(json.dumps(results, indent=2, default=float) + "\n")
-    print(f"wrote {path}\n")
+    print(f"wrote {write_results(results, args.out, 'guided-heads')}\n")
     print(tables(results))
 
 

@@ -177,12 +177,17 @@ def main() -> None:
     p.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
     args = p.parse_args()
     results = run(args)
-    stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M")
-    args.out.mkdir(parents=True, exist_ok=True)
-    path = args.out / f"sampling-{stamp}.json"
-    path.write_text(json.dumps(results, indent=2, default=float) + "\n")
-    print(f"wrote {path}\n")
+    print(f"wrote {write_results(results, args.out, 'sampling')}\n")
     print(table(results))
+
+
+def write_results(results: dict, folder: Path, prefix: str) -> Path:
+    """``results`` as ``folder/<prefix>-<date>.json``."""
+    stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M")
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / f"{prefix}-{stamp}.json"
+    path.write_text(json.dumps(results, indent=2, default=float) + "\n")
+    return path
 
 
 if __name__ == "__main__":
