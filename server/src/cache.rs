@@ -27,6 +27,10 @@ pub type Owner = Option<[u8; 32]>;
 /// Longest scene id.
 pub const MAX_ID_LEN: usize = 64;
 
+/// What `is_valid_id` accepts, as the API document's pattern (which cannot say "not `.` or
+/// `..`").
+pub const ID_PATTERN: &str = "^[A-Za-z0-9._-]{1,64}$";
+
 /// A scene id: 1 to 64 characters of `A-Z a-z 0-9 . _ -`, not `.` or `..` (which do not survive
 /// as path segments). Random ids are 32 lowercase hex digits (128 bits, a UUID v4): without auth
 /// such an id is a capability.

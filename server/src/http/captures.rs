@@ -27,7 +27,8 @@ use serde::{Deserialize, Serialize};
 use super::body::multipart_error;
 use super::deadline::Deadline;
 use super::negotiate::{request_format, RequestFormat};
-use super::scenes::{owner_of, proxy_scene_id, scene_response, store_scene};
+use super::openapi::CaptureRefusals;
+use super::scenes::{owner_of, proxy_scene_id, scene_response, store_scene, SceneIdHeader};
 use super::state::AppState;
 use crate::backend::BackendError;
 use crate::blocking::{self, Cancel};
@@ -86,21 +87,13 @@ pub struct CaptureCreated {
         description = "A capture folder's files: COLMAP (cameras/images/points3D .txt or .bin, in ., sparse/0 or sparse; images/), nerfstudio or Blender (transforms*.json + images), LLFF (poses_bounds.npy + images/), DTU (Cameras/ + Rectified/)"),
     params(
         CaptureOptions,
-        ("x-scnerf-deadline-ms" = Option<u64>, Header, nullable = false, minimum = 1, description = "Shortens the server's deadline for this request (ms)"),
-        ("x-scnerf-scene-id" = Option<String>, Header, nullable = false, pattern = "^[A-Za-z0-9._-]{1,64}$", description = "Set by a routing proxy: the id to give the new scene"),
+        Deadline,
+        SceneIdHeader,
     ),
     responses(
         (status = 201, description = "The capture is a scene", body = CaptureCreated,
          headers(("location" = String, description = "/v1/scenes/{scene_id}"))),
-        (status = 400, description = "Malformed body, a part not named `file`, a file without a filename or sent twice", body = crate::error::ErrorBody),
-        (status = 401, description = "Missing or wrong bearer token", body = crate::error::ErrorBody),
-        (status = 408, description = "The body arrived too slowly", body = crate::error::ErrorBody),
-        (status = 413, description = "Body over --max-capture-bytes, or files other than images over --max-capture-metadata-bytes (`field` names the file)", body = crate::error::ErrorBody),
-        (status = 415, description = "Not multipart/form-data, or an image format other than PNG/JPEG", body = crate::error::ErrorBody),
-        (status = 422, description = "Not a usable capture; `field` names the file (missing poses, unknown format, distorted camera, too few images, ...)", body = crate::error::ErrorBody),
-        (status = 429, description = "This client has too many requests in flight (Retry-After)", body = crate::error::ErrorBody),
-        (status = 503, description = "Warming up, overloaded, or the memory budget is in use (Retry-After)", body = crate::error::ErrorBody),
-        (status = 504, description = "Deadline exceeded", body = crate::error::ErrorBody),
+        CaptureRefusals,
     ),
     security((), ("bearer" = [])),
 )]

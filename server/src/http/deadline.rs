@@ -8,6 +8,9 @@ use std::time::{Duration, Instant};
 use axum::extract::FromRequestParts;
 use axum::http::request::Parts;
 use axum::http::HeaderMap;
+use utoipa::openapi::path::{Parameter, ParameterBuilder, ParameterIn};
+use utoipa::openapi::schema::{KnownFormat, ObjectBuilder, SchemaFormat, Type};
+use utoipa::openapi::Required;
 
 use super::state::AppState;
 use crate::error::ApiError;
@@ -30,6 +33,21 @@ impl FromRequestParts<AppState> for Deadline {
         state.check_ready()?;
         let budget = budget(&parts.headers, state.request_timeout)?;
         Ok(Deadline { started, budget })
+    }
+}
+
+/// The header, in the annotation of every handler that takes a `Deadline` (`params(Deadline)`).
+impl utoipa::IntoParams for Deadline {
+    fn into_params(_: impl Fn() -> Option<ParameterIn>) -> Vec<Parameter> {
+        let milliseconds =
+            ObjectBuilder::new().schema_type(Type::Integer).format(Some(SchemaFormat::KnownFormat(KnownFormat::Int64)));
+        let header = ParameterBuilder::new()
+            .name(DEADLINE_HEADER)
+            .parameter_in(ParameterIn::Header)
+            .required(Required::False)
+            .description(Some("Shortens the server's deadline for this request (ms)"))
+            .schema(Some(milliseconds.minimum(Some(1))));
+        vec![header.build()]
     }
 }
 

@@ -6,6 +6,7 @@ use axum::response::Response;
 use super::body::read_render_request;
 use super::deadline::Deadline;
 use super::negotiate::{request_format, response_format};
+use super::openapi::RenderRefusals;
 use super::respond::{finish, Rendered};
 use super::state::AppState;
 use crate::error::ApiError;
@@ -19,25 +20,14 @@ use crate::pipeline::Timings;
         (crate::request::wire::JsonRenderRequest = "application/json"),
         (crate::http::schema::Binary = "application/x-protobuf"),
     ), description = "Source views + cameras, near/far, target camera; protobuf: scnerf.v1.RenderRequest"),
-    params(
-        ("x-scnerf-deadline-ms" = Option<u64>, Header, nullable = false, minimum = 1, description = "Shortens the server's deadline for this request (ms)"),
-    ),
+    params(Deadline),
     responses(
         (status = 200, description = "The rendered view (by Accept: PNG, JSON, or protobuf scnerf.v1.RenderResponse)", content(
             (crate::http::schema::Binary = "image/png"),
             (crate::http::respond::RenderResponseJson = "application/json"),
             (crate::http::schema::Binary = "application/x-protobuf"),
         )),
-        (status = 400, description = "Malformed request", body = crate::error::ErrorBody),
-        (status = 401, description = "Missing or wrong bearer token", body = crate::error::ErrorBody),
-        (status = 406, description = "Accept cannot be satisfied", body = crate::error::ErrorBody),
-        (status = 408, description = "The body arrived too slowly", body = crate::error::ErrorBody),
-        (status = 413, description = "Body or JSON document too large", body = crate::error::ErrorBody),
-        (status = 415, description = "Unsupported content type or image format", body = crate::error::ErrorBody),
-        (status = 422, description = "Semantically invalid (camera, view count, sizes, near/far...)", body = crate::error::ErrorBody),
-        (status = 429, description = "This client has too many requests in flight (Retry-After)", body = crate::error::ErrorBody),
-        (status = 503, description = "Warming up, overloaded, or the request cannot finish by its deadline (Retry-After)", body = crate::error::ErrorBody),
-        (status = 504, description = "Deadline exceeded", body = crate::error::ErrorBody),
+        RenderRefusals,
     ),
     security((), ("bearer" = [])),
 )]

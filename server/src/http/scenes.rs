@@ -9,13 +9,17 @@ use axum::extract::{Path, Request, State};
 use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
 use serde::Serialize;
+use utoipa::openapi::path::{Parameter, ParameterBuilder, ParameterIn};
+use utoipa::openapi::schema::{ObjectBuilder, Type};
+use utoipa::openapi::Required;
 
 use super::body::{read_scene_request, read_target_request};
 use super::deadline::Deadline;
 use super::negotiate::{request_format, response_format};
+use super::openapi::{SceneDeleteRefusals, SceneRenderRefusals, SceneUploadRefusals};
 use super::respond::{finish, set_common_headers, Rendered};
 use super::state::AppState;
-use crate::cache::{is_valid_id, rfc3339, NewScene, Owner, Stored};
+use crate::cache::{is_valid_id, rfc3339, NewScene, Owner, Stored, ID_PATTERN};
 use crate::error::ApiError;
 use crate::pipeline::views::choose;
 use crate::pipeline::Timings;
@@ -25,6 +29,35 @@ use crate::request::ValidScene;
 /// creates: the proxy picks the id, routes the request by its hash, and every later request for
 /// the scene (its id in the path) hashes to the same replica (docs/deploy.md).
 pub const SCENE_ID_HEADER: &str = "x-scnerf-scene-id";
+
+/// The scene id in the path of `/v1/scenes/{id}` and `/v1/scenes/{id}/render`, as the
+/// annotations of their handlers document it (`params(SceneIdInPath)`).
+pub struct SceneIdInPath;
+
+impl utoipa::IntoParams for SceneIdInPath {
+    fn into_params(_: impl Fn() -> Option<ParameterIn>) -> Vec<Parameter> {
+        let description = "The scene's id (the client's own, given with PUT, or the random one from POST), private \
+                           to the client's token";
+        vec![scene_id_parameter("id", ParameterIn::Path, Required::True, description)]
+    }
+}
+
+/// [`SCENE_ID_HEADER`], as the annotations of the handlers that create a scene document it.
+pub struct SceneIdHeader;
+
+impl utoipa::IntoParams for SceneIdHeader {
+    fn into_params(_: impl Fn() -> Option<ParameterIn>) -> Vec<Parameter> {
+        let description =
+            "Set by a routing proxy: the id to give the new scene (replacing this client's scene of that id)";
+        vec![scene_id_parameter(SCENE_ID_HEADER, ParameterIn::Header, Required::False, description)]
+    }
+}
+
+fn scene_id_parameter(name: &str, at: ParameterIn, required: Required, description: &str) -> Parameter {
+    let id = ObjectBuilder::new().schema_type(Type::String).pattern(Some(ID_PATTERN));
+    let parameter = ParameterBuilder::new().name(name).parameter_in(at).required(required);
+    parameter.description(Some(description)).schema(Some(id)).build()
+}
 
 /// `201 Created` (or `200 OK`: replaced) body of `POST /v1/scenes` and `PUT /v1/scenes/{id}`.
 #[derive(Debug, Serialize, serde::Deserialize, utoipa::ToSchema)]
@@ -110,10 +143,7 @@ pub(super) fn scene_response(
         (crate::request::wire::JsonSceneRequest = "application/json"),
         (crate::http::schema::Binary = "application/x-protobuf"),
     ), description = "Source views + cameras, near/far (no target): 3 views, or a capture of up to max_scene_views (GET /v1/model); protobuf: scnerf.v1.SceneRequest"),
-    params(
-        ("x-scnerf-deadline-ms" = Option<u64>, Header, nullable = false, minimum = 1, description = "Shortens the server's deadline for this request (ms)"),
-        ("x-scnerf-scene-id" = Option<String>, Header, nullable = false, pattern = "^[A-Za-z0-9._-]{1,64}$", description = "Set by a routing proxy: the id to give the new scene (replacing this client's scene of that id)"),
-    ),
+    params(Deadline, SceneIdHeader),
     responses(
         (status = 201, description = "Scene cached", body = SceneCreated,
          headers(("location" = String, description = "/v1/scenes/{scene_id}")),
@@ -121,15 +151,7 @@ pub(super) fn scene_response(
              ("RenderScene" = (operation_id = "render_scene", parameters(("id" = "$response.body#/scene_id")))),
              ("DeleteScene" = (operation_id = "delete_scene", parameters(("id" = "$response.body#/scene_id")))),
          )),
-        (status = 400, description = "Malformed request", body = crate::error::ErrorBody),
-        (status = 401, description = "Missing or wrong bearer token", body = crate::error::ErrorBody),
-        (status = 408, description = "The body arrived too slowly", body = crate::error::ErrorBody),
-        (status = 413, description = "Body or JSON document too large", body = crate::error::ErrorBody),
-        (status = 415, description = "Unsupported content type or image format", body = crate::error::ErrorBody),
-        (status = 422, description = "Semantically invalid", body = crate::error::ErrorBody),
-        (status = 429, description = "This client has too many requests in flight (Retry-After)", body = crate::error::ErrorBody),
-        (status = 503, description = "Warming up, overloaded, or the request cannot finish by its deadline (Retry-After)", body = crate::error::ErrorBody),
-        (status = 504, description = "Deadline exceeded", body = crate::error::ErrorBody),
+        SceneUploadRefusals,
     ),
     security((), ("bearer" = [])),
 )]
@@ -146,24 +168,13 @@ pub async fn create(State(state): State<AppState>, deadline: Deadline, req: Requ
         (crate::request::wire::JsonSceneRequest = "application/json"),
         (crate::http::schema::Binary = "application/x-protobuf"),
     ), description = "As for POST /v1/scenes"),
-    params(
-        ("id" = String, Path, description = "The client's name for the scene, private to its token", pattern = "^[A-Za-z0-9._-]{1,64}$"),
-        ("x-scnerf-deadline-ms" = Option<u64>, Header, nullable = false, minimum = 1, description = "Shortens the server's deadline for this request (ms)"),
-    ),
+    params(SceneIdInPath, Deadline),
     responses(
         (status = 201, description = "Scene cached under a new id", body = SceneCreated,
          headers(("location" = String, description = "/v1/scenes/{scene_id}"))),
         (status = 200, description = "Scene cached, replacing the scene of this id", body = SceneCreated,
          headers(("location" = String, description = "/v1/scenes/{scene_id}"))),
-        (status = 400, description = "Malformed request or scene id", body = crate::error::ErrorBody),
-        (status = 401, description = "Missing or wrong bearer token", body = crate::error::ErrorBody),
-        (status = 408, description = "The body arrived too slowly", body = crate::error::ErrorBody),
-        (status = 413, description = "Body or JSON document too large", body = crate::error::ErrorBody),
-        (status = 415, description = "Unsupported content type or image format", body = crate::error::ErrorBody),
-        (status = 422, description = "Semantically invalid", body = crate::error::ErrorBody),
-        (status = 429, description = "This client has too many requests in flight (Retry-After)", body = crate::error::ErrorBody),
-        (status = 503, description = "Warming up, overloaded, or the request cannot finish by its deadline (Retry-After)", body = crate::error::ErrorBody),
-        (status = 504, description = "Deadline exceeded", body = crate::error::ErrorBody),
+        SceneUploadRefusals,
     ),
     security((), ("bearer" = [])),
 )]
@@ -203,10 +214,7 @@ async fn put_within(
         (crate::request::wire::JsonTargetRequest = "application/json"),
         (crate::http::schema::Binary = "application/x-protobuf"),
     ), description = "Target camera, outputs and optionally the views to render from; protobuf: scnerf.v1.SceneRenderRequest"),
-    params(
-        ("id" = String, Path, description = "The scene's id", pattern = "^[A-Za-z0-9._-]{1,64}$"),
-        ("x-scnerf-deadline-ms" = Option<u64>, Header, nullable = false, minimum = 1, description = "Shortens the server's deadline for this request (ms)"),
-    ),
+    params(SceneIdInPath, Deadline),
     responses(
         (status = 200, description = "The rendered view, as for /v1/render", content(
             (crate::http::schema::Binary = "image/png"),
@@ -216,17 +224,7 @@ async fn put_within(
             ("x-scene-expires-at" = String, description = "New expiry of the scene (RFC 3339)"),
             ("x-scnerf-sources" = String, description = "The views rendered from, i,j,k (the volume's reference first)"),
         )),
-        (status = 400, description = "Malformed request or scene id", body = crate::error::ErrorBody),
-        (status = 401, description = "Missing or wrong bearer token", body = crate::error::ErrorBody),
-        (status = 404, description = "No such scene here (unknown, expired, evicted, another token's, or on another replica): `hint: reupload`", body = crate::error::ErrorBody),
-        (status = 406, description = "Accept cannot be satisfied", body = crate::error::ErrorBody),
-        (status = 408, description = "The body arrived too slowly", body = crate::error::ErrorBody),
-        (status = 413, description = "JSON document too large", body = crate::error::ErrorBody),
-        (status = 415, description = "Unsupported content type", body = crate::error::ErrorBody),
-        (status = 422, description = "Semantically invalid target, or bad `sources`", body = crate::error::ErrorBody),
-        (status = 429, description = "This client has too many requests in flight (Retry-After)", body = crate::error::ErrorBody),
-        (status = 503, description = "Warming up, overloaded, or the request cannot finish by its deadline (Retry-After)", body = crate::error::ErrorBody),
-        (status = 504, description = "Deadline exceeded", body = crate::error::ErrorBody),
+        SceneRenderRefusals,
     ),
     security((), ("bearer" = [])),
 )]
@@ -279,12 +277,10 @@ async fn render_within(state: AppState, deadline: Deadline, id: String, req: Req
 /// `DELETE /v1/scenes/{id}`: 204, or 404 when there is no such scene (for this client).
 #[utoipa::path(
     delete, path = "/v1/scenes/{id}", tag = "render", operation_id = "delete_scene",
-    params(("id" = String, Path, description = "The scene's id", pattern = "^[A-Za-z0-9._-]{1,64}$")),
+    params(SceneIdInPath),
     responses(
         (status = 204, description = "Deleted"),
-        (status = 400, description = "Malformed scene id", body = crate::error::ErrorBody),
-        (status = 401, description = "Missing or wrong bearer token", body = crate::error::ErrorBody),
-        (status = 404, description = "No such scene", body = crate::error::ErrorBody),
+        SceneDeleteRefusals,
     ),
     security((), ("bearer" = [])),
 )]
