@@ -1,5 +1,5 @@
 //! What reaches the logs: the binary's JSON subscriber, request ids in every line of a request,
-//! and no tokens or image data. Alone in its test binary: tracing caches per-callsite interest
+//! no tokens or image data, and the level of each response (refusals are not errors). Alone in its test binary: tracing caches per-callsite interest
 //! process-wide, and tests running on other threads without this (thread-local) subscriber
 //! would race with it.
 
@@ -11,8 +11,11 @@ use std::time::Duration;
 
 use common::*;
 use scnerf_server::config::LogFormat;
-use scnerf_server::testing::request_json;
-use serde_json::json;
+use scnerf_server::http::{router, ServiceOptions};
+use scnerf_server::request::Limits;
+use scnerf_server::testing::{bundle, request_json, state_with_options, FakeRunner};
+use serde_json::{json, Value};
+use tracing::subscriber::DefaultGuard;
 
 /// A `MakeWriter` into a shared buffer.
 #[derive(Clone, Default)]
@@ -32,6 +35,14 @@ impl Captured {
     fn text(&self) -> String {
         String::from_utf8_lossy(&self.0.lock().unwrap()).into_owned()
     }
+
+    /// The binary's JSON subscriber at TRACE, writing here, for this thread until the guard drops.
+    fn install(&self) -> DefaultGuard {
+        let writer = self.clone();
+        let filter = tracing_subscriber::EnvFilter::new("trace");
+        let subscriber = scnerf_server::logging::subscriber(LogFormat::Json, filter, move || writer.clone(), false);
+        tracing::subscriber::set_default(subscriber)
+    }
 }
 
 /// The binary's JSON subscriber at TRACE: every line is a JSON object, request lines carry the
@@ -40,10 +51,7 @@ impl Captured {
 #[tokio::test]
 async fn logs_are_json_with_request_ids_and_carry_no_tokens_or_images() {
     let captured = Captured::default();
-    let writer = captured.clone();
-    let filter = tracing_subscriber::EnvFilter::new("trace");
-    let subscriber = scnerf_server::logging::subscriber(LogFormat::Json, filter, move || writer.clone(), false);
-    let _guard = tracing::subscriber::set_default(subscriber);
+    let _guard = captured.install();
 
     let app = two_token_app();
     let alice = bearer(ALICE);
@@ -78,5 +86,41 @@ async fn logs_are_json_with_request_ids_and_carry_no_tokens_or_images() {
     assert!(rendered.contains("\"request_id\":\"req-0042\""), "events inside a request carry its id: {rendered}");
     for secret in [ALICE, BOB, "mallory-secret", &image_b64[..40]] {
         assert!(!logs.contains(secret), "{secret} leaked into the logs:\n{logs}");
+    }
+}
+
+/// Refusals are the API working as documented, not failures: a warming server's `/readyz` 503
+/// and a 404 for a scene the server does not hold are logged at DEBUG, while a failure of the
+/// server (a graph run that fails: 500) is logged at ERROR.
+#[tokio::test]
+async fn refusals_are_not_logged_as_errors_and_failures_are() {
+    let captured = Captured::default();
+    let _guard = captured.install();
+    let b = bundle("scnerf", "near_far");
+    let runner = FakeRunner { fail_with: Some("the graph broke".into()), ..FakeRunner::new(&b) };
+    let state = state_with_options(b, runner, Limits::default(), ServiceOptions::default(), 8);
+    let app = router(state.clone());
+
+    state.set_draining();
+    assert_eq!(send(app.clone(), get("/readyz", &[])).await.0, 503);
+    state.set_ready();
+    let missing = send(app.clone(), json_to("/v1/scenes/nowhere/render", &target_json(32), &[])).await;
+    assert_error(&missing, 404, "scene_not_found", Some("scene_id"));
+    assert_eq!(send(app.clone(), multipart_with("/v1/render", &request_json(32), 32, &[])).await.0, 500);
+
+    let logs = captured.text();
+    let lines: Vec<Value> = logs.lines().map(|l| serde_json::from_str(l).expect("JSON")).collect();
+    let response_level = |path: &str| {
+        let line = lines
+            .iter()
+            .find(|l| l["fields"]["message"] == "response" && l["span"]["path"] == path)
+            .unwrap_or_else(|| panic!("no response line for {path}:\n{logs}"));
+        line["level"].as_str().unwrap().to_string()
+    };
+    assert_eq!(response_level("/readyz"), "DEBUG");
+    assert_eq!(response_level("/v1/scenes/nowhere/render"), "DEBUG");
+    assert_eq!(response_level("/v1/render"), "ERROR");
+    for line in lines.iter().filter(|l| l["level"] == "ERROR" || l["level"] == "WARN") {
+        assert_eq!(line["span"]["path"], "/v1/render", "only the failed render warns:\n{logs}");
     }
 }

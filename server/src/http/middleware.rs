@@ -1,19 +1,22 @@
-//! Cross-cutting layers: request ids, tracing spans, panics, metrics and the in-flight limit.
+//! Cross-cutting layers: request ids, tracing spans, the log line of each response, panics,
+//! metrics and the in-flight limit.
 
 use std::net::{IpAddr, SocketAddr};
 use std::sync::Arc;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use axum::body::HttpBody;
 use axum::extract::{ConnectInfo, MatchedPath, Request, State};
-use axum::http::{header, HeaderValue, Method};
+use axum::http::{header, HeaderValue, Method, StatusCode};
 use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
-
 use tokio::sync::{OwnedSemaphorePermit, Semaphore};
+use tower_http::classify::ServerErrorsFailureClass;
+use tracing::Level;
 
 use super::body::{body_limit, refuse_declared_length, BodyUse};
 use super::serve::{AddressGuard, PerAddress};
+use super::service::READINESS_PATH;
 use super::state::AppState;
 use crate::error::ApiError;
 
@@ -37,6 +40,45 @@ pub async fn sanitize_request_id(mut req: Request, next: Next) -> Response {
 pub fn request_span(req: &Request) -> tracing::Span {
     let id = req.headers().get(REQUEST_ID).and_then(|v| v.to_str().ok()).unwrap_or("-");
     tracing::info_span!("request", method = %req.method(), path = %req.uri().path(), request_id = %id)
+}
+
+/// The log line of every response, in its request's span, at [`response_level`].
+pub async fn log_response(req: Request, next: Next) -> Response {
+    let path = req.uri().path().to_owned();
+    let started = Instant::now();
+    let response = next.run(req).await;
+    let status = response.status().as_u16();
+    let latency_ms = started.elapsed().as_millis() as u64;
+    match response_level(&path, response.status()) {
+        Level::ERROR => tracing::error!(status, latency_ms, "response"),
+        Level::WARN => tracing::warn!(status, latency_ms, "response"),
+        Level::INFO => tracing::info!(status, latency_ms, "response"),
+        _ => tracing::debug!(status, latency_ms, "response"),
+    }
+    response
+}
+
+/// How loud a response is in the logs. Only failures of the server are errors. Refusals are the
+/// API working as documented, and clients and orchestrators cause them in bulk (a readiness probe
+/// polling a warming server, a client asking for a scene this replica no longer holds, a flood of
+/// bad requests): at ERROR they would bury the real failures, so they stay at DEBUG, counted by
+/// status in `/metrics`. A 503 or 504 of the API means the server is out of capacity or time: a
+/// warning for the operator, not a failure.
+pub fn response_level(path: &str, status: StatusCode) -> Level {
+    match status {
+        StatusCode::SERVICE_UNAVAILABLE if path == READINESS_PATH => Level::DEBUG,
+        StatusCode::SERVICE_UNAVAILABLE | StatusCode::GATEWAY_TIMEOUT => Level::WARN,
+        s if s.is_server_error() => Level::ERROR,
+        _ => Level::DEBUG,
+    }
+}
+
+/// The trace layer's failures other than a status: a response body that broke while streaming.
+/// Responses with a 5xx status are [`log_response`]'s, at their [`response_level`].
+pub fn log_stream_failure(failure: ServerErrorsFailureClass, latency: Duration, _span: &tracing::Span) {
+    if let ServerErrorsFailureClass::Error(error) = failure {
+        tracing::error!(error = %error, latency_ms = latency.as_millis() as u64, "response failed");
+    }
 }
 
 /// A panicking handler answers 500 with the usual JSON error instead of dropping the connection;
@@ -136,5 +178,44 @@ impl Slots {
             retry_after_secs: 1,
         })?;
         Ok(Slot { _total: total, _client: client })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn level(path: &str, status: u16) -> Level {
+        response_level(path, StatusCode::from_u16(status).unwrap())
+    }
+
+    #[test]
+    fn a_warming_server_answering_its_readiness_probe_is_not_an_error() {
+        assert_eq!(level("/readyz", 503), Level::DEBUG);
+        assert_eq!(level("/readyz", 200), Level::DEBUG);
+        assert_eq!(level("/healthz", 200), Level::DEBUG);
+    }
+
+    #[test]
+    fn client_errors_are_debug() {
+        for status in [400, 401, 404, 405, 408, 413, 415, 422, 429, 431] {
+            assert_eq!(level("/v1/scenes/abc/render", status), Level::DEBUG, "{status}");
+        }
+        assert_eq!(level("/no/such/route", 404), Level::DEBUG);
+    }
+
+    #[test]
+    fn an_api_out_of_capacity_or_time_is_a_warning() {
+        assert_eq!(level("/v1/render", 503), Level::WARN);
+        assert_eq!(level("/v1/scenes", 503), Level::WARN);
+        assert_eq!(level("/v1/scenes/abc/render", 504), Level::WARN);
+    }
+
+    #[test]
+    fn failures_of_the_server_are_errors() {
+        assert_eq!(level("/v1/render", 500), Level::ERROR);
+        assert_eq!(level("/v1/scenes/abc/render", 502), Level::ERROR);
+        assert_eq!(level("/readyz", 500), Level::ERROR);
+        assert_eq!(level("/metrics", 500), Level::ERROR);
     }
 }

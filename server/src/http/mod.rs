@@ -28,14 +28,15 @@ use tower_http::trace::TraceLayer;
 pub use state::{AppState, ServiceOptions};
 
 /// The API with its layers. Outermost first, a request passes: request-id sanitising, request id
-/// (set or kept, echoed in the response), tracing span, panic catcher, metrics, auth, the
-/// in-flight limit, the body limit, the handler.
+/// (set or kept, echoed in the response), tracing span, the response's log line (at a level
+/// by status: `middleware::response_level`), panic catcher, metrics, auth, the in-flight limit,
+/// the body limit, the handler.
 pub fn router(state: AppState) -> Router {
     let body_limit = state.pipeline.limits().max_body_bytes;
     let capture_limit = state.pipeline.limits().max_capture_bytes;
     Router::new()
         .route("/healthz", get(service::healthz))
-        .route("/readyz", get(service::readyz))
+        .route(service::READINESS_PATH, get(service::readyz))
         .route("/metrics", get(service::metrics))
         .route("/openapi.json", get(openapi::serve))
         .route("/v1/model", get(service::model))
@@ -54,7 +55,13 @@ pub fn router(state: AppState) -> Router {
         .layer(axum::middleware::from_fn_with_state(state.auth.clone(), crate::auth::require_token))
         .layer(axum::middleware::from_fn_with_state(state.clone(), middleware::record_metrics))
         .layer(CatchPanicLayer::custom(middleware::panic_response))
-        .layer(TraceLayer::new_for_http().make_span_with(middleware::request_span))
+        .layer(axum::middleware::from_fn(middleware::log_response))
+        .layer(
+            TraceLayer::new_for_http()
+                .make_span_with(middleware::request_span)
+                .on_response(())
+                .on_failure(middleware::log_stream_failure),
+        )
         .layer(PropagateRequestIdLayer::x_request_id())
         .layer(SetRequestIdLayer::x_request_id(MakeRequestUuid))
         .layer(axum::middleware::from_fn(middleware::sanitize_request_id))

@@ -18,6 +18,9 @@ pub async fn healthz() -> Json<serde_json::Value> {
     Json(json!({"status": "ok"}))
 }
 
+/// The readiness probe's path. Its 503 while warming up is the expected answer, not a failure.
+pub(super) const READINESS_PATH: &str = "/readyz";
+
 /// Readiness: bundle loaded and warm-up render done (503 while warming up or shutting down).
 /// Public for orchestrators, so it names no model: `/v1/model` does, behind the token.
 #[utoipa::path(get, path = "/readyz", tag = "service", operation_id = "readyz", responses(
