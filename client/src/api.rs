@@ -18,9 +18,9 @@ use serde::Deserialize;
 use serde_json::{json, Value};
 use sha2::{Digest, Sha256};
 
-use crate::camera::Camera;
 use crate::error::{read_bytes, Error, Result};
-use crate::readers::{Capture, CapturedView};
+use scnerf_capture::camera::Camera;
+use scnerf_capture::readers::{Capture, CapturedView};
 
 /// The server's limits (`GET /v1/limits`): what it accepts, read before anything is uploaded.
 #[derive(Debug, Clone, Copy, Deserialize, PartialEq, Eq)]

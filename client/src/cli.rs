@@ -7,13 +7,13 @@ use clap::{Args, Parser, Subcommand, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::api::{Client, Upload};
-use crate::camera::Camera;
 use crate::error::{Error, Result};
-use crate::readers::{self, Capture, CapturedView, Format, ReadOptions};
 use crate::render::{frame_digits, render_frames, server_summary, write_atomically, write_npy};
 use crate::{eval, paths, video};
+use scnerf_capture::camera::Camera;
 use scnerf_capture::files::Disk;
 use scnerf_capture::image_sets::{self, Pick, Picked};
+use scnerf_capture::readers::{self, Capture, CapturedView, Format, ReadOptions};
 
 #[derive(Parser)]
 #[command(name = "scnerf", version, about = "Render posed photo captures through scnerf-serve")]

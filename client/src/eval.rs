@@ -1,19 +1,20 @@
 //! `scnerf eval`: held-out captured views rendered from the others and scored, with the protocol
 //! of `scnerf-export eval` so the figures compare: per target, the 3 views of the source pool
 //! (every view that is not a target) nearest by camera-centre distance
-//! ([`crate::camera::rank_sources`]), or fixed `--sources`; each source triple is uploaded once
-//! as a scene of exactly those three views (reference first); targets may be rendered at 1/n of
-//! their size against the box-averaged ground truth; PSNR and SSIM as metrics.py.
+//! ([`scnerf_capture::camera::rank_sources`]), or fixed `--sources`; each source triple is
+//! uploaded once as a scene of exactly those three views (reference first); targets may be
+//! rendered at 1/n of their size against the box-averaged ground truth; PSNR and SSIM as
+//! `exporter/scnerf_export/evaluate/metrics.py`.
 
 use std::time::Instant;
 
 use crate::api::{Client, Upload};
-use crate::camera::rank_sources;
 use crate::cli::{say, source_views, EvalArgs};
 use crate::error::{read_bytes, Error, Result};
 use crate::metrics::{psnr, ssim, Image};
-use crate::readers::{Capture, CapturedView};
 use crate::render::write_atomically;
+use scnerf_capture::camera::rank_sources;
+use scnerf_capture::readers::{Capture, CapturedView};
 
 struct Row {
     view: String,
@@ -120,7 +121,7 @@ fn nearest<'a>(target: &CapturedView, pool: &[&'a CapturedView]) -> Result<Vec<&
     Ok(ranked[..3].iter().map(|&i| pool[i]).collect())
 }
 
-/// As evaluate.py `format_row`.
+/// As `exporter/scnerf_export/evaluate/eval.py::format_row` (without its masked columns).
 fn format_row(r: &Row) -> String {
     format!("{:>8}  {:>12}  PSNR {:6.2}  SSIM {:.3}  {:.1} s", r.view, r.sources.join(","), r.psnr, r.ssim, r.seconds)
 }

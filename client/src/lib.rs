@@ -1,9 +1,7 @@
 //! `scnerf`, the command-line client of scnerf-serve: reads a capture (COLMAP, nerfstudio,
 //! Blender, LLFF, DTU), uploads it once as a scene, renders camera paths to frames and video, and
-//! scores held-out views. Cameras and dataset readers live in `scnerf-capture`, shared with the
-//! server; they are re-exported here under their old paths.
-
-pub use scnerf_capture::{camera, readers};
+//! scores held-out views. Cameras and dataset readers are `scnerf_capture`'s (shared with the
+//! server), imported from there by their one name.
 
 pub mod api;
 pub mod cli;

@@ -1,5 +1,6 @@
-//! Image metrics of `scnerf eval`, with the definitions of `exporter/scnerf_export/metrics.py`
-//! (tested on the same arrays: tests/fixtures/datasets/metrics.json), and numpy's percentile.
+//! Image metrics of `scnerf eval`, with the definitions of
+//! `exporter/scnerf_export/evaluate/metrics.py` (tested on the same arrays:
+//! tests/fixtures/datasets/metrics.json).
 
 use crate::error::{Error, Result};
 
@@ -14,7 +15,7 @@ pub struct Image {
 
 impl Image {
     /// 8-bit RGB(A) decoded from PNG/JPEG bytes, alpha composited on `background` as the Python
-    /// loaders do (`_read_image`).
+    /// loaders do (`exporter/scnerf_export/data/scene.py::read_image`).
     pub fn decode(bytes: &[u8], background: [f64; 3]) -> std::result::Result<Image, image::ImageError> {
         let rgba = image::load_from_memory(bytes)?.into_rgba32f();
         let (width, height) = (rgba.width() as usize, rgba.height() as usize);
@@ -26,7 +27,8 @@ impl Image {
         Ok(Image { width, height, channels: 3, data })
     }
 
-    /// The image box-averaged over n x n blocks (evaluate.py `downscale_target`).
+    /// The image box-averaged over n x n blocks
+    /// (`exporter/scnerf_export/evaluate/eval.py::downscale_target`).
     pub fn downscaled(&self, n: usize) -> Image {
         let (w, h, ch) = (self.width / n, self.height / n, self.channels);
         let mut data = vec![0.0; w * h * ch];
@@ -73,7 +75,7 @@ fn gaussian_window() -> [f64; SSIM_WINDOW] {
 }
 
 /// Separable "valid" correlation of one channel (h x w) with the window, along rows then
-/// columns: an (h - 10) x (w - 10) result (metrics.py `_filter_valid`).
+/// columns: an (h - 10) x (w - 10) result (`metrics.py::_filter_valid`).
 fn filter_valid(x: &[f64], w: usize, h: usize, k: &[f64; SSIM_WINDOW]) -> Vec<f64> {
     let (oh, ow) = (h - SSIM_WINDOW + 1, w - SSIM_WINDOW + 1);
     let mut rows = vec![0.0; oh * w];
@@ -92,7 +94,8 @@ fn filter_valid(x: &[f64], w: usize, h: usize, k: &[f64; SSIM_WINDOW]) -> Vec<f6
 }
 
 /// Gaussian-window SSIM (11x11, sigma 1.5, K1 0.01, K2 0.03, data range 1) over the valid region,
-/// averaged over pixels and channels, with JAX-NeRF's guards on the variances (metrics.py `ssim`).
+/// averaged over pixels and channels, with JAX-NeRF's guards on the variances
+/// (`metrics.py::ssim`).
 pub fn ssim(pred: &Image, gt: &Image) -> Result<f64> {
     same_shape(pred, gt)?;
     let (w, h, ch) = (pred.width, pred.height, pred.channels);
@@ -123,8 +126,6 @@ pub fn ssim(pred: &Image, gt: &Image) -> Result<f64> {
     }
     Ok(total / count as f64)
 }
-
-pub use scnerf_capture::percentile;
 
 #[cfg(test)]
 mod tests {

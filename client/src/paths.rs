@@ -15,9 +15,9 @@ use std::path::Path;
 
 use nalgebra::{Matrix3, Point3, UnitQuaternion, Vector3};
 
-use crate::camera::{look_at, unit, w2c_from_api, Camera, Intrinsics, Pose};
 use crate::error::{Error, Result};
-use crate::metrics::percentile;
+use scnerf_capture::camera::{look_at, unit, w2c_from_api, Camera, Intrinsics, Pose};
+use scnerf_capture::percentile;
 
 /// `frames` poses through the captured ones (world-to-camera): frame j sits at parameter
 /// t = j (n - 1) / (frames - 1) along the captured sequence, so with frames = k (n - 1) + 1
@@ -173,7 +173,7 @@ pub struct PathFile {
 /// A camera file: nerfstudio's `camera_path.json` (an object with `camera_path`), or a JSON
 /// array of cameras in the API's form.
 pub fn from_file(path: &Path) -> Result<PathFile> {
-    let data = crate::readers::read_json(&scnerf_capture::files::Disk, path)?;
+    let data = scnerf_capture::readers::read_json(&scnerf_capture::files::Disk, path)?;
     if data.get("camera_path").is_some() {
         return nerfstudio_path(&data, path);
     }

@@ -11,8 +11,8 @@ use indicatif::ProgressBar;
 use serde_json::Value;
 
 use crate::api::{camera_json, Client, Rendered, Scene};
-use crate::camera::Camera;
 use crate::error::{Error, Result};
+use scnerf_capture::camera::Camera;
 
 #[derive(Debug, PartialEq, Eq)]
 pub struct Done {

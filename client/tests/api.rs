@@ -10,10 +10,10 @@ use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use common::FakeServer;
+use scnerf_capture::readers::{self, ReadOptions};
 use scnerf_client::api::{Client, Upload};
-use scnerf_client::readers::{self, ReadOptions};
 
-fn fixture_upload() -> (Upload, scnerf_client::camera::Camera) {
+fn fixture_upload() -> (Upload, scnerf_capture::camera::Camera) {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/fixtures/datasets/blender");
     let capture = readers::load(&dir, None, ReadOptions::default()).unwrap();
     let views: Vec<_> = capture.views.iter().collect();

@@ -14,8 +14,8 @@ use std::time::Duration;
 
 mod common;
 
+use scnerf_capture::readers::{self, ReadOptions};
 use scnerf_client::api::{Client, Upload};
-use scnerf_client::readers::{self, ReadOptions};
 use scnerf_e2e::{http_request, repo_root, server_binary, ServerProcess};
 use serde_json::{json, Value};
 

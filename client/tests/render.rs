@@ -8,9 +8,9 @@ use std::path::{Path, PathBuf};
 
 use common::FakeServer;
 use indicatif::ProgressBar;
+use scnerf_capture::camera::Camera;
+use scnerf_capture::readers::{self, ReadOptions};
 use scnerf_client::api::{Client, Upload};
-use scnerf_client::camera::Camera;
-use scnerf_client::readers::{self, ReadOptions};
 use scnerf_client::render::{frame_path, render_frames, Done};
 use scnerf_client::video;
 
