@@ -7,11 +7,16 @@
 //! * intrinsics in which the centre of pixel (u, v) is at image coordinates (u, v). Formats whose
 //!   first pixel centre is at (0.5, 0.5) (COLMAP, nerfstudio) are shifted by -0.5 when read.
 //!
+//! The conventions of the API's poses are here too ([`PoseKind`], [`Axes`], [`canonical_w2c`]):
+//! the server decodes requests with them and the client reads camera files with them, so a pose
+//! means one camera on both sides.
+//!
 //! Every reader converts its cameras to this form once; paths, the API and the metrics see
 //! nothing else. The source-ranking rule ([`rank_sources`]) lives here too: the client's
 //! evaluation and the server's choice of sources per target are this one function.
 
 use nalgebra::{Matrix3, Matrix4, Point3, Rotation3, Translation3, Unit, Vector3};
+use serde::{Deserialize, Serialize};
 
 /// A rigid world-to-camera transform. Kept as a rotation *matrix* (not a quaternion) so that a
 /// pose read from a file is carried bit for bit to the request.
@@ -46,9 +51,29 @@ fn python_treats_as_rigid(m: &Matrix4<f64>) -> bool {
         && m.row(3).iter().zip([0.0, 0.0, 0.0, 1.0]).all(|(a, b)| allclose(*a, b))
 }
 
-/// Largest |R Rᵀ - I| the server accepts (server/src/camera.rs ROTATION_TOLERANCE): refusing
-/// worse poses here names the file instead of a request field.
+/// Largest deviation of R·Rᵀ from the identity that is still accepted as a rotation, by the
+/// server in requests and by the readers in files (refusing worse poses while reading names the
+/// file instead of a request field). Poses come from JSON files that often hold float32-rounded
+/// numbers; 1e-3 accepts those and rejects scaled or sheared matrices.
 pub const ROTATION_TOLERANCE: f64 = 1e-3;
+
+/// What an API pose matrix maps: world points to camera points, or the reverse.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum PoseKind {
+    WorldToCamera,
+    CameraToWorld,
+}
+
+/// The camera axes an API pose is written in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Axes {
+    /// x right, y down, z forward (the canonical form).
+    Opencv,
+    /// x right, y up, z backward (Blender, NeRF synthetic, nerfstudio).
+    Opengl,
+}
 
 impl Camera {
     /// Camera centre in world coordinates.
@@ -90,13 +115,13 @@ impl Camera {
     }
 }
 
-/// OpenGL camera axes (x right, y up, z back) to OpenCV's: flip y and z.
-fn gl_to_cv() -> Matrix4<f64> {
+/// OpenGL camera axes (x right, y up, z back) to OpenCV's: flip y and z (its own inverse).
+pub fn gl_to_cv() -> Matrix4<f64> {
     Matrix4::from_diagonal(&nalgebra::Vector4::new(1.0, -1.0, -1.0, 1.0))
 }
 
-/// max |R Rᵀ - I| of the upper-left 3x3 block.
-fn orthonormality_error(m: &Matrix4<f64>) -> f64 {
+/// max |R Rᵀ - I| of the upper-left 3x3 block: compared with [`ROTATION_TOLERANCE`].
+pub fn orthonormality_error(m: &Matrix4<f64>) -> f64 {
     let r = m.fixed_view::<3, 3>(0, 0);
     (r * r.transpose() - Matrix3::identity()).amax()
 }
@@ -138,12 +163,29 @@ pub fn w2c_from_c2w(c2w: &Matrix4<f64>) -> Option<Pose> {
     invert_rigid(c2w).as_ref().and_then(pose_from_matrix)
 }
 
-/// Any of the API's pose conventions -> canonical world-to-camera (`cameras.py::Camera.from_pose`).
+/// A pose in any of the API's conventions -> canonical world-to-camera, as the server decodes
+/// requests: a camera-to-world matrix is inverted by the general inverse (numpy.linalg.inv's role
+/// in `cameras.py::canonical_w2c`), not the rigid one, since a rotation is accepted when
+/// orthonormal to [`ROTATION_TOLERANCE`]; the axes are changed on the camera side. `None` when a
+/// camera-to-world matrix is singular. The matrix is not validated: callers check it first.
+pub fn canonical_w2c(matrix: &Matrix4<f64>, kind: PoseKind, axes: Axes) -> Option<Matrix4<f64>> {
+    let w2c_in_own_axes = match kind {
+        PoseKind::WorldToCamera => *matrix,
+        PoseKind::CameraToWorld => matrix.try_inverse()?,
+    };
+    Some(match axes {
+        Axes::Opencv => w2c_in_own_axes,
+        Axes::Opengl => gl_to_cv() * w2c_in_own_axes,
+    })
+}
+
+/// [`canonical_w2c`] of a matrix that is a rigid transform (by [`pose_from_matrix`]) before and
+/// after: the client's reading of camera files, giving the camera the server would compute.
 pub fn w2c_from_api(matrix: &Matrix4<f64>, camera_to_world: bool, opengl: bool) -> Option<Pose> {
-    let pose = pose_from_matrix(matrix)?;
-    let c2w = if camera_to_world { pose } else { pose.inverse() };
-    let c2w = if opengl { c2w.to_homogeneous() * gl_to_cv() } else { c2w.to_homogeneous() };
-    pose_from_matrix(&c2w).map(|p| p.inverse())
+    pose_from_matrix(matrix)?;
+    let kind = if camera_to_world { PoseKind::CameraToWorld } else { PoseKind::WorldToCamera };
+    let axes = if opengl { Axes::Opengl } else { Axes::Opencv };
+    pose_from_matrix(&canonical_w2c(matrix, kind, axes)?)
 }
 
 /// World-to-camera of a camera at `eye` looking at `target`, with `up` pointing up in the image
@@ -224,6 +266,51 @@ mod tests {
         assert!((back.to_homogeneous() - c.w2c.to_homogeneous()).amax() < 1e-12);
         let api = w2c_from_api(&c2w_gl, true, true).unwrap();
         assert!((api.to_homogeneous() - c.w2c.to_homogeneous()).amax() < 1e-12);
+    }
+
+    /// A pose matrix as the API receives it.
+    type ApiPose = (Matrix4<f64>, PoseKind, Axes);
+
+    /// One camera written in the API's four conventions, as a user would write it, and its
+    /// canonical world-to-camera.
+    fn one_camera_in_every_convention() -> (Matrix4<f64>, Vec<ApiPose>) {
+        let w2c_cv = camera_at([1.0, 2.0, 3.0], [0.0, 0.5, 0.0]).w2c.to_homogeneous();
+        let c2w_cv = w2c_cv.try_inverse().unwrap();
+        let c2w_gl = c2w_cv * gl_to_cv();
+        let w2c_gl = c2w_gl.try_inverse().unwrap();
+        let written = vec![
+            (w2c_cv, PoseKind::WorldToCamera, Axes::Opencv),
+            (c2w_cv, PoseKind::CameraToWorld, Axes::Opencv),
+            (c2w_gl, PoseKind::CameraToWorld, Axes::Opengl),
+            (w2c_gl, PoseKind::WorldToCamera, Axes::Opengl),
+        ];
+        (w2c_cv, written)
+    }
+
+    #[test]
+    fn every_api_convention_gives_the_canonical_pose() {
+        let (w2c_cv, written) = one_camera_in_every_convention();
+        for (m, kind, axes) in written {
+            let w2c = canonical_w2c(&m, kind, axes).unwrap();
+            assert!((w2c - w2c_cv).amax() < 1e-12, "{kind:?} {axes:?}: {w2c}");
+        }
+    }
+
+    #[test]
+    fn client_and_server_conversions_give_the_same_numbers() {
+        let (_, written) = one_camera_in_every_convention();
+        for (m, kind, axes) in written {
+            let server = canonical_w2c(&m, kind, axes).unwrap();
+            let client = w2c_from_api(&m, kind == PoseKind::CameraToWorld, axes == Axes::Opengl).unwrap();
+            assert_eq!(client.to_homogeneous().fixed_rows::<3>(0), server.fixed_rows::<3>(0), "{kind:?} {axes:?}");
+        }
+    }
+
+    #[test]
+    fn a_singular_camera_to_world_has_no_canonical_pose() {
+        let singular = Matrix4::from_diagonal(&nalgebra::Vector4::new(1.0, 0.0, 1.0, 1.0));
+        assert!(canonical_w2c(&singular, PoseKind::CameraToWorld, Axes::Opengl).is_none());
+        assert!(w2c_from_api(&singular, true, false).is_none());
     }
 
     #[test]

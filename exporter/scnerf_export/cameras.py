@@ -35,8 +35,8 @@ def canonical_w2c(matrix, kind: str = "world_to_camera", axes: str = "opencv", i
     opencv | opengl; 4x4 or 3x4) -> world-to-camera in OpenCV axes (4, 4).
 
     ``invert`` is the general inverse by default, the arithmetic of the server's decoding
-    (server/src/camera.rs: invert4, Gauss-Jordan like numpy.linalg.inv), so that both feed the graphs
-    the same cameras; the data loaders pass :func:`invert_rigid`."""
+    (capture/src/camera.rs: canonical_w2c, a general inverse like numpy.linalg.inv), so that both feed
+    the graphs the same cameras; the data loaders pass :func:`invert_rigid`."""
     m = np.asarray(matrix, dtype=np.float64)
     if m.shape == (3, 4):
         m = np.vstack([m, [0.0, 0.0, 0.0, 1.0]])

@@ -1,28 +1,15 @@
 //! Cameras: conversion of the accepted conventions (OpenCV/OpenGL axes, world-to-camera or
 //! camera-to-world poses, {fx,fy,cx,cy} or a 3x3 K) to the canonical OpenCV world-to-camera form
-//! of docs/bundle.md, with the validation that makes the math well defined.
+//! of docs/bundle.md, with the validation that makes the math well defined. The conventions
+//! themselves (axes, pose kinds, the conversion, the rotation tolerance) are
+//! `scnerf_capture::camera`'s, shared with the client.
 
-use nalgebra::{Matrix3, Matrix4, RowVector3, RowVector4, SMatrix, Vector4};
+use nalgebra::{Matrix3, Matrix4, RowVector3, RowVector4, SMatrix};
 use ndarray::Array3;
-use serde::{Deserialize, Serialize};
+use scnerf_capture::camera::{canonical_w2c, orthonormality_error, ROTATION_TOLERANCE};
+pub use scnerf_capture::camera::{Axes, PoseKind};
 
 use crate::error::ApiError;
-
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum PoseKind {
-    WorldToCamera,
-    CameraToWorld,
-}
-
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Axes {
-    /// x right, y down, z forward (the canonical form).
-    Opencv,
-    /// x right, y up, z backward (Blender, NeRF synthetic, nerfstudio).
-    Opengl,
-}
 
 #[derive(Debug, Clone, PartialEq)]
 pub enum Intrinsics {
@@ -93,11 +80,6 @@ pub fn stack_rows<const N: usize>(matrices: &[SMatrix<f64, N, N>]) -> Array3<f32
     Array3::from_shape_fn((matrices.len(), N, N), |(i, r, c)| matrices[i][(r, c)] as f32)
 }
 
-/// Largest deviation of R·Rᵀ from the identity that is still accepted as a rotation. Poses come
-/// from JSON files that often hold float32-rounded numbers; 1e-3 accepts those and rejects
-/// scaled or sheared matrices.
-pub const ROTATION_TOLERANCE: f64 = 1e-3;
-
 /// Bounds that keep a camera renderable: the graphs compute rays, sample points and projections
 /// in float32, where 1e-300 is 0 and 1e300 is infinite, and such cameras rendered blank views.
 /// Focal lengths are relative to the image's larger side (fields of view from 0.06 to 179.8
@@ -107,11 +89,6 @@ pub const MAX_PRINCIPAL_OFFSET_PER_SIZE: f64 = 1e3;
 /// Largest camera translation, near and far plane in world units; smallest near plane.
 pub const MAX_WORLD_EXTENT: f64 = 1e6;
 pub const MIN_NEAR: f64 = 1e-6;
-
-/// OpenGL camera axes -> OpenCV camera axes: flip y and z (its own inverse).
-fn gl_to_cv() -> Matrix4<f64> {
-    Matrix4::from_diagonal(&Vector4::new(1.0, -1.0, -1.0, 1.0))
-}
 
 impl CameraSpec {
     /// Validates and converts to the canonical form. `field` names this camera in errors
@@ -172,33 +149,23 @@ impl CameraSpec {
         if (m.row(3) - RowVector4::new(0.0, 0.0, 0.0, 1.0)).lp_norm(1) > 1e-6 {
             return Err(ApiError::invalid(at, "the last row of the pose matrix must be [0, 0, 0, 1]"));
         }
-        check_rotation(&m.fixed_view::<3, 3>(0, 0).into_owned()).map_err(|msg| ApiError::invalid(at.clone(), msg))?;
+        check_rotation(m).map_err(|msg| ApiError::invalid(at.clone(), msg))?;
         if m.fixed_view::<3, 1>(0, 3).amax() > MAX_WORLD_EXTENT {
             return Err(ApiError::invalid(at, format!("the translation must be within {MAX_WORLD_EXTENT:e} units")));
         }
-        // Bring the pose to world-to-camera in its own axes, then change the camera axes.
-        let w2c_axes = match self.pose.kind {
-            PoseKind::WorldToCamera => *m,
-            PoseKind::CameraToWorld => {
-                m.try_inverse().ok_or_else(|| ApiError::invalid(at.clone(), "pose matrix is singular"))?
-            }
-        };
-        Ok(match self.pose.axes {
-            Axes::Opencv => w2c_axes,
-            Axes::Opengl => gl_to_cv() * w2c_axes,
-        })
+        canonical_w2c(m, self.pose.kind, self.pose.axes).ok_or_else(|| ApiError::invalid(at, "pose matrix is singular"))
     }
 }
 
-/// `r` must be a proper rotation (orthonormal, det +1).
-fn check_rotation(r: &Matrix3<f64>) -> Result<(), String> {
-    let worst = (r * r.transpose() - Matrix3::identity()).amax();
+/// The rotation block of pose `m` must be a proper rotation (orthonormal, det +1).
+fn check_rotation(m: &Matrix4<f64>) -> Result<(), String> {
+    let worst = orthonormality_error(m);
     if worst > ROTATION_TOLERANCE {
         return Err(format!(
             "the rotation part of the pose is not orthonormal (max |R·Rᵀ - I| = {worst:.3e} > {ROTATION_TOLERANCE:e})"
         ));
     }
-    if r.determinant() < 0.0 {
+    if m.fixed_view::<3, 3>(0, 0).determinant() < 0.0 {
         return Err("the rotation part of the pose is a reflection (determinant -1)".into());
     }
     Ok(())
@@ -207,7 +174,8 @@ fn check_rotation(r: &Matrix3<f64>) -> Result<(), String> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use nalgebra::{Isometry3, Vector3};
+    use nalgebra::{Isometry3, Vector3, Vector4};
+    use scnerf_capture::camera::gl_to_cv;
 
     /// A rigid transform: rotation about y by `theta`, then translation `t`.
     fn pose(theta: f64, t: [f64; 3]) -> Matrix4<f64> {
