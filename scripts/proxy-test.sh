@@ -35,13 +35,18 @@ fail() {
   exit 1
 }
 
+why_missing="needs root and apt-get"
 if ! command -v nginx > /dev/null && [[ ! -x /usr/sbin/nginx ]]; then
   if [[ $(id -u) == 0 ]] && command -v apt-get > /dev/null; then
     say "installing Debian's nginx"
-    apt-get update -qq > /dev/null || true
-    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends nginx-light > /dev/null 2>&1 \
-      || DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends nginx > /dev/null 2>&1 \
+    apt_log=$(mktemp)
+    apt-get update -qq > "${apt_log}" 2>&1 || true
+    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends nginx-light >> "${apt_log}" 2>&1 \
+      || DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends nginx >> "${apt_log}" 2>&1 \
       || true
+    # apt's own words (a held dpkg lock, an unreachable mirror) say why better than a guess.
+    why_missing="apt-get: $({ grep -E '^(E|W):' "${apt_log}" || true; } | tail -n 2 | tr '\n' ' ')"
+    rm -f "${apt_log}"
   fi
 fi
 NGINX=$(command -v nginx || echo /usr/sbin/nginx)
@@ -50,7 +55,7 @@ if [[ ! -x ${NGINX} ]]; then
     say "SKIPPED: nginx is not installed and cannot be installed here (SCNERF_ALLOW_SKIP=1)"
     exit 0
   fi
-  fail "nginx is not installed and cannot be installed here (needs root and apt-get); SCNERF_ALLOW_SKIP=1 skips"
+  fail "nginx is not installed and cannot be installed here (${why_missing}); SCNERF_ALLOW_SKIP=1 skips"
 fi
 
 scripts/fetch-onnxruntime.sh > /dev/null
