@@ -501,7 +501,7 @@ def export_bundle(model: SCNeRF, out_dir: str | Path, provenance: dict, volume: 
         config=model.cfg,
         graphs=graphs,
         provenance=Provenance.from_json({**export, **write_licences(out, provenance)}),
-        guided=GuidedPolicy(),
+        guided=GuidedPolicy.for_model(model.cfg),
     )
     manifest.save(out)
     return manifest
