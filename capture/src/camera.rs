@@ -23,12 +23,27 @@ use serde::{Deserialize, Serialize};
 pub type Pose = nalgebra::IsometryMatrix3<f64>;
 
 /// Pinhole intrinsics (no skew: the server refuses it).
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema), schema(as = Focal))]
 pub struct Intrinsics {
     pub fx: f64,
     pub fy: f64,
     pub cx: f64,
     pub cy: f64,
+}
+
+impl Intrinsics {
+    /// K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]].
+    pub fn k(&self) -> Matrix3<f64> {
+        Matrix3::new(self.fx, 0.0, self.cx, 0.0, self.fy, self.cy, 0.0, 0.0, 1.0)
+    }
+
+    /// The intrinsics of a matrix of that form; `None` for any other (skewed, projective).
+    pub fn from_k(k: &Matrix3<f64>) -> Option<Intrinsics> {
+        let pinhole = k[(0, 1)] == 0.0 && k[(1, 0)] == 0.0 && k.row(2) == nalgebra::RowVector3::new(0.0, 0.0, 1.0);
+        pinhole.then(|| Intrinsics { fx: k[(0, 0)], fy: k[(1, 1)], cx: k[(0, 2)], cy: k[(1, 2)] })
+    }
 }
 
 #[derive(Debug, Clone, PartialEq)]
@@ -110,8 +125,7 @@ impl Camera {
     }
 
     pub fn k(&self) -> Matrix3<f64> {
-        let i = self.intrinsics;
-        Matrix3::new(i.fx, 0.0, i.cx, 0.0, i.fy, i.cy, 0.0, 0.0, 1.0)
+        self.intrinsics.k()
     }
 }
 
@@ -181,10 +195,8 @@ pub fn canonical_w2c(matrix: &Matrix4<f64>, kind: PoseKind, axes: Axes) -> Optio
 
 /// [`canonical_w2c`] of a matrix that is a rigid transform (by [`pose_from_matrix`]) before and
 /// after: the client's reading of camera files, giving the camera the server would compute.
-pub fn w2c_from_api(matrix: &Matrix4<f64>, camera_to_world: bool, opengl: bool) -> Option<Pose> {
+pub fn w2c_from_api(matrix: &Matrix4<f64>, kind: PoseKind, axes: Axes) -> Option<Pose> {
     pose_from_matrix(matrix)?;
-    let kind = if camera_to_world { PoseKind::CameraToWorld } else { PoseKind::WorldToCamera };
-    let axes = if opengl { Axes::Opengl } else { Axes::Opencv };
     pose_from_matrix(&canonical_w2c(matrix, kind, axes)?)
 }
 
@@ -264,7 +276,7 @@ mod tests {
         let c2w_gl = c.w2c.inverse().to_homogeneous() * gl_to_cv();
         let back = w2c_from_opengl_c2w(&c2w_gl).unwrap();
         assert!((back.to_homogeneous() - c.w2c.to_homogeneous()).amax() < 1e-12);
-        let api = w2c_from_api(&c2w_gl, true, true).unwrap();
+        let api = w2c_from_api(&c2w_gl, PoseKind::CameraToWorld, Axes::Opengl).unwrap();
         assert!((api.to_homogeneous() - c.w2c.to_homogeneous()).amax() < 1e-12);
     }
 
@@ -301,7 +313,7 @@ mod tests {
         let (_, written) = one_camera_in_every_convention();
         for (m, kind, axes) in written {
             let server = canonical_w2c(&m, kind, axes).unwrap();
-            let client = w2c_from_api(&m, kind == PoseKind::CameraToWorld, axes == Axes::Opengl).unwrap();
+            let client = w2c_from_api(&m, kind, axes).unwrap();
             assert_eq!(client.to_homogeneous().fixed_rows::<3>(0), server.fixed_rows::<3>(0), "{kind:?} {axes:?}");
         }
     }
@@ -310,13 +322,25 @@ mod tests {
     fn a_singular_camera_to_world_has_no_canonical_pose() {
         let singular = Matrix4::from_diagonal(&nalgebra::Vector4::new(1.0, 0.0, 1.0, 1.0));
         assert!(canonical_w2c(&singular, PoseKind::CameraToWorld, Axes::Opengl).is_none());
-        assert!(w2c_from_api(&singular, true, false).is_none());
+        assert!(w2c_from_api(&singular, PoseKind::CameraToWorld, Axes::Opencv).is_none());
     }
 
     #[test]
     fn resize_keeps_pixel_centres_at_integers() {
         let c = camera_at([1.0, 0.0, 0.0], [0.0, 0.0, 0.0]).resized(4, 3);
         assert_eq!(c.intrinsics, Intrinsics { fx: 5.0, fy: 5.0, cx: 1.75, cy: 1.25 });
+    }
+
+    #[test]
+    fn intrinsics_are_the_pinhole_matrices() {
+        let i = Intrinsics { fx: 8.0, fy: 9.0, cx: 4.0, cy: 3.5 };
+        assert_eq!(Intrinsics::from_k(&i.k()), Some(i));
+        let mut skewed = i.k();
+        skewed[(0, 1)] = 0.5;
+        assert_eq!(Intrinsics::from_k(&skewed), None);
+        let mut projective = i.k();
+        projective[(2, 0)] = 0.1;
+        assert_eq!(Intrinsics::from_k(&projective), None);
     }
 
     #[test]

@@ -21,6 +21,7 @@ use sha2::{Digest, Sha256};
 use crate::error::{read_bytes, Error, Result};
 use scnerf_capture::camera::Camera;
 use scnerf_capture::readers::{Capture, CapturedView};
+use scnerf_capture::wire::WireCamera;
 
 /// The server's limits (`GET /v1/limits`): what it accepts, read before anything is uploaded.
 #[derive(Debug, Clone, Copy, Deserialize, PartialEq, Eq)]
@@ -140,7 +141,10 @@ impl Client {
 
     /// PUTs the scene under its id (the caller's, else the content's); returns that id.
     fn upload(&self, upload: &Upload) -> Result<String> {
-        let sources: Vec<Value> = upload.sources.iter().map(|(c, _)| json!({ "camera": camera_json(c) })).collect();
+        // A `Value`, whose keys are sorted: the bytes, and so the content's id, stay those of
+        // earlier versions of the client.
+        let sources: Vec<Value> =
+            upload.sources.iter().map(|(c, _)| json!({ "camera": WireCamera::from(c) })).collect();
         let request = json!({
             "sources": sources, "near": upload.near, "far": upload.far, "background": upload.background,
         });
@@ -192,7 +196,7 @@ impl Client {
     /// Renders `target`; `depth` asks for the depth map too.
     pub fn render(&self, scene: &mut Scene, target: &Camera, depth: bool) -> Result<Rendered> {
         let outputs: &[&str] = if depth { &["rgb", "depth"] } else { &["rgb"] };
-        let mut body = json!({ "target": camera_json(target), "outputs": outputs });
+        let mut body = json!({ "target": WireCamera::from(target), "outputs": outputs });
         if let Some(sampling) = &self.sampling {
             body["sampling"] = json!(sampling);
         }
@@ -337,19 +341,6 @@ fn parse_rendered(reply: &Reply, path: &str) -> Result<Rendered> {
         timings_ms: body.timings_ms,
         sources: from_header.or(body.sources),
         sampling: body.sampling.zip(body.samples_per_ray),
-    })
-}
-
-/// A camera in the API's canonical form (world-to-camera, OpenCV axes).
-pub fn camera_json(c: &Camera) -> Value {
-    let m = c.w2c.to_homogeneous();
-    let rows: Vec<[f64; 4]> = (0..4).map(|r| [m[(r, 0)], m[(r, 1)], m[(r, 2)], m[(r, 3)]]).collect();
-    let i = c.intrinsics;
-    json!({
-        "width": c.width,
-        "height": c.height,
-        "intrinsics": {"fx": i.fx, "fy": i.fy, "cx": i.cx, "cy": i.cy},
-        "pose": {"matrix": rows, "kind": "world_to_camera", "axes": "opencv"},
     })
 }
 

@@ -14,6 +14,7 @@ use scnerf_capture::camera::Camera;
 use scnerf_capture::files::Disk;
 use scnerf_capture::image_sets::{self, Pick, Picked};
 use scnerf_capture::readers::{self, Capture, CapturedView, Format, ReadOptions};
+use scnerf_capture::wire::WireCamera;
 
 #[derive(Parser)]
 #[command(name = "scnerf", version, about = "Render posed photo captures through scnerf-serve")]
@@ -286,7 +287,7 @@ fn info(data: &DataArgs, set: &ImageSetArgs, json: bool) -> Result<()> {
         let views: Vec<serde_json::Value> = capture
             .views
             .iter()
-            .map(|v| serde_json::json!({"name": v.name, "image": v.image_path, "camera": crate::api::camera_json(&v.camera)}))
+            .map(|v| serde_json::json!({"name": v.name, "image": v.image_path, "camera": WireCamera::from(&v.camera)}))
             .collect();
         let out = serde_json::json!({
             "format": capture.format.name(), "near": capture.near, "far": capture.far,

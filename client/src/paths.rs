@@ -16,8 +16,10 @@ use std::path::Path;
 use nalgebra::{Matrix3, Point3, UnitQuaternion, Vector3};
 
 use crate::error::{Error, Result};
-use scnerf_capture::camera::{look_at, unit, w2c_from_api, Camera, Intrinsics, Pose};
+use scnerf_capture::camera::{look_at, unit, w2c_from_api, Axes, Camera, Intrinsics, Pose, PoseKind};
 use scnerf_capture::percentile;
+use scnerf_capture::wire::{from_rows, WireCamera};
+use serde::Deserialize;
 
 /// `frames` poses through the captured ones (world-to-camera): frame j sits at parameter
 /// t = j (n - 1) / (frames - 1) along the captured sequence, so with frames = k (n - 1) + 1
@@ -234,7 +236,7 @@ fn nerfstudio_path(data: &serde_json::Value, path: &Path) -> Result<PathFile> {
         let f = f64::from(height) / 2.0 / (fov.to_radians() / 2.0).tan();
         let intrinsics =
             Intrinsics { fx: f, fy: f, cx: f64::from(width) / 2.0 - 0.5, cy: f64::from(height) / 2.0 - 0.5 };
-        let w2c = w2c_from_api(&m, true, true)
+        let w2c = w2c_from_api(&m, PoseKind::CameraToWorld, Axes::Opengl)
             .ok_or_else(|| bad(format!("{at}.camera_to_world is not a rigid transform")))?;
         cameras.push(Camera { width, height, intrinsics, w2c });
     }
@@ -254,65 +256,17 @@ fn nerfstudio_matrix(value: &serde_json::Value) -> Option<nalgebra::Matrix4<f64>
     (flat.len() == 16 && flat.iter().all(|v| v.is_finite())).then(|| nalgebra::Matrix4::from_row_slice(&flat))
 }
 
-#[derive(serde::Deserialize)]
-#[serde(deny_unknown_fields)]
-struct JsonCamera {
-    width: u32,
-    height: u32,
-    intrinsics: Option<JsonIntrinsics>,
-    #[serde(rename = "K")]
-    k: Option<[[f64; 3]; 3]>,
-    pose: JsonPose,
-}
-
-#[derive(serde::Deserialize)]
-#[serde(deny_unknown_fields)]
-struct JsonIntrinsics {
-    fx: f64,
-    fy: f64,
-    cx: f64,
-    cy: f64,
-}
-
-#[derive(serde::Deserialize)]
-#[serde(deny_unknown_fields)]
-struct JsonPose {
-    matrix: [[f64; 4]; 4],
-    kind: PoseKind,
-    axes: Axes,
-}
-
-#[derive(serde::Deserialize, PartialEq)]
-#[serde(rename_all = "snake_case")]
-enum PoseKind {
-    WorldToCamera,
-    CameraToWorld,
-}
-
-#[derive(serde::Deserialize, PartialEq)]
-#[serde(rename_all = "snake_case")]
-enum Axes {
-    Opencv,
-    Opengl,
-}
-
 /// One camera in the API's JSON form, converted to the canonical one.
 pub fn camera_from_json(value: &serde_json::Value, path: &Path, at: &str) -> Result<Camera> {
     let bad = |msg: String| Error::dataset(path, format!("{at}: {msg}"));
-    let cam: JsonCamera = serde_json::from_value(value.clone()).map_err(|e| bad(e.to_string()))?;
-    let intrinsics = match (cam.intrinsics, cam.k) {
-        (Some(i), None) => Intrinsics { fx: i.fx, fy: i.fy, cx: i.cx, cy: i.cy },
-        (None, Some(k)) if k[0][1] == 0.0 && k[1][0] == 0.0 && k[2] == [0.0, 0.0, 1.0] => {
-            Intrinsics { fx: k[0][0], fy: k[1][1], cx: k[0][2], cy: k[1][2] }
-        }
-        (None, Some(_)) => return Err(bad("K must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]".into())),
-        _ => return Err(bad("give either intrinsics or K".into())),
-    };
+    let cam = WireCamera::deserialize(value).map_err(|e| bad(e.to_string()))?;
+    let k = cam.intrinsic_matrix().map_err(|e| bad(e.to_string()))?;
+    let intrinsics =
+        Intrinsics::from_k(&k).ok_or_else(|| bad("K must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]".into()))?;
     if cam.width == 0 || cam.height == 0 || !(intrinsics.fx > 0.0 && intrinsics.fy > 0.0) {
         return Err(bad("width, height, fx and fy must be positive".into()));
     }
-    let m = nalgebra::Matrix4::from_fn(|r, c| cam.pose.matrix[r][c]);
-    let w2c = w2c_from_api(&m, cam.pose.kind == PoseKind::CameraToWorld, cam.pose.axes == Axes::Opengl)
+    let w2c = w2c_from_api(&from_rows(&cam.pose.matrix), cam.pose.kind, cam.pose.axes)
         .ok_or_else(|| bad("pose.matrix is not a rigid transform".into()))?;
     Ok(Camera { width: cam.width, height: cam.height, intrinsics, w2c })
 }
@@ -466,17 +420,11 @@ mod tests {
                                     "camera_path": entries, "fps": 30, "seconds": 4, "keyframes": []});
         let ns_file = dir.path().join("camera_path.json");
         std::fs::write(&ns_file, ns.to_string()).unwrap();
-        let api: Vec<_> = cams
-            .iter()
-            .map(|c| {
-                let m = c.w2c.to_homogeneous();
-                serde_json::json!({"width": 8, "height": 6, "intrinsics": {"fx": 8.0, "fy": 8.0, "cx": 3.5, "cy": 2.5},
-                    "pose": {"matrix": (0..4).map(|r| (0..4).map(|k| m[(r, k)]).collect::<Vec<_>>()).collect::<Vec<_>>(),
-                             "kind": "world_to_camera", "axes": "opencv"}})
-            })
-            .collect();
+        let nerfstudio_centre = Intrinsics { fx: 8.0, fy: 8.0, cx: 3.5, cy: 2.5 };
+        let api: Vec<_> =
+            cams.iter().map(|c| WireCamera::from(&Camera { intrinsics: nerfstudio_centre, ..c.clone() })).collect();
         let api_file = dir.path().join("cameras.json");
-        std::fs::write(&api_file, serde_json::Value::Array(api).to_string()).unwrap();
+        std::fs::write(&api_file, serde_json::to_string(&api).unwrap()).unwrap();
         let (from_ns, from_api) = (from_file(&ns_file).unwrap(), from_file(&api_file).unwrap());
         assert_eq!((from_ns.fps, from_api.fps, from_ns.warnings.len()), (Some(30.0), None, 0));
         assert_eq!(from_ns.cameras.len(), 2);

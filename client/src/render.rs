@@ -8,11 +8,11 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use indicatif::ProgressBar;
-use serde_json::Value;
 
-use crate::api::{camera_json, Client, Rendered, Scene};
+use crate::api::{Client, Rendered, Scene};
 use crate::error::{Error, Result};
 use scnerf_capture::camera::Camera;
+use scnerf_capture::wire::WireCamera;
 
 #[derive(Debug, PartialEq, Eq)]
 pub struct Done {
@@ -86,8 +86,10 @@ fn claim_folder(out: &Path, cameras: &[Camera]) -> Result<()> {
         std::fs::create_dir_all(out.join(sub)).map_err(|e| Error::io(out.join(sub), e))?;
     }
     let file = out.join("cameras.json");
-    let ours = serde_json::to_string_pretty(&Value::Array(cameras.iter().map(camera_json).collect()))
-        .expect("cameras serialize");
+    // Through a `Value`, whose keys are sorted: the file is compared byte for byte with the one
+    // there, which earlier versions of the client wrote so.
+    let cameras: Vec<WireCamera> = cameras.iter().map(WireCamera::from).collect();
+    let ours = serde_json::to_value(cameras).and_then(|v| serde_json::to_string_pretty(&v)).expect("cameras serialize");
     match std::fs::read_to_string(&file) {
         Ok(theirs) if theirs != ours => Err(Error::Usage(format!(
             "{} holds frames of another camera path ({} differs): use another --out, or delete that folder",

@@ -1,21 +1,17 @@
-//! Cameras: conversion of the accepted conventions (OpenCV/OpenGL axes, world-to-camera or
-//! camera-to-world poses, {fx,fy,cx,cy} or a 3x3 K) to the canonical OpenCV world-to-camera form
-//! of docs/bundle.md, with the validation that makes the math well defined. The conventions
-//! themselves (axes, pose kinds, the conversion, the rotation tolerance) are
+//! Cameras: a request's camera (JSON `scnerf_capture::wire::WireCamera`, or protobuf) as a
+//! `CameraSpec`, then converted from the accepted conventions (OpenCV/OpenGL axes,
+//! world-to-camera or camera-to-world poses, {fx,fy,cx,cy} or a 3x3 K) to the canonical OpenCV
+//! world-to-camera form of docs/bundle.md, with the validation that makes the math well defined.
+//! The conventions themselves (axes, pose kinds, the conversion, the rotation tolerance) are
 //! `scnerf_capture::camera`'s, shared with the client.
 
 use nalgebra::{Matrix3, Matrix4, RowVector3, RowVector4, SMatrix};
 use ndarray::Array3;
 use scnerf_capture::camera::{canonical_w2c, orthonormality_error, ROTATION_TOLERANCE};
 pub use scnerf_capture::camera::{Axes, PoseKind};
+use scnerf_capture::wire::{from_rows, WireCamera};
 
 use crate::error::ApiError;
-
-#[derive(Debug, Clone, PartialEq)]
-pub enum Intrinsics {
-    Focal { fx: f64, fy: f64, cx: f64, cy: f64 },
-    Matrix(Matrix3<f64>),
-}
 
 #[derive(Debug, Clone, PartialEq)]
 pub struct Pose {
@@ -24,12 +20,13 @@ pub struct Pose {
     pub axes: Axes,
 }
 
-/// A camera as the client described it.
+/// A camera as the client described it, whatever the wire form.
 #[derive(Debug, Clone, PartialEq)]
 pub struct CameraSpec {
     pub width: u32,
     pub height: u32,
-    pub intrinsics: Intrinsics,
+    /// The intrinsic matrix as given (`{fx, fy, cx, cy}` written as one), not yet checked.
+    pub k: Matrix3<f64>,
     pub pose: Pose,
 }
 
@@ -69,12 +66,6 @@ impl Camera {
     }
 }
 
-/// A square matrix from its rows: matrices are row-major on the wire, as in docs/design.md
-/// (nalgebra's own conversion from nested arrays reads columns).
-pub fn from_rows<const N: usize>(rows: &[[f64; N]; N]) -> SMatrix<f64, N, N> {
-    SMatrix::from_fn(|r, c| rows[r][c])
-}
-
 /// Matrices stacked into a (V, N, N) float32 array, each row-major: the graphs' camera inputs.
 pub fn stack_rows<const N: usize>(matrices: &[SMatrix<f64, N, N>]) -> Array3<f32> {
     Array3::from_shape_fn((matrices.len(), N, N), |(i, r, c)| matrices[i][(r, c)] as f32)
@@ -91,6 +82,15 @@ pub const MAX_WORLD_EXTENT: f64 = 1e6;
 pub const MIN_NEAR: f64 = 1e-6;
 
 impl CameraSpec {
+    /// The camera of a JSON document. `field` names it in errors (e.g. `sources[1].camera`):
+    /// giving both `intrinsics` and `K`, or neither, is malformed.
+    pub fn from_wire(c: &WireCamera, field: &str) -> Result<CameraSpec, ApiError> {
+        let k =
+            c.intrinsic_matrix().map_err(|e| ApiError::malformed(format!("{field}.{}", e.field()), e.to_string()))?;
+        let pose = Pose { matrix: from_rows(&c.pose.matrix), kind: c.pose.kind, axes: c.pose.axes };
+        Ok(CameraSpec { width: c.width, height: c.height, k, pose })
+    }
+
     /// Validates and converts to the canonical form. `field` names this camera in errors
     /// (e.g. `sources[1].camera`).
     pub fn canonicalize(&self, field: &str) -> Result<Camera, ApiError> {
@@ -104,10 +104,7 @@ impl CameraSpec {
 
     fn intrinsic_matrix(&self, field: &str) -> Result<Matrix3<f64>, ApiError> {
         let at = format!("{field}.intrinsics");
-        let k = match self.intrinsics {
-            Intrinsics::Focal { fx, fy, cx, cy } => Matrix3::new(fx, 0.0, cx, 0.0, fy, cy, 0.0, 0.0, 1.0),
-            Intrinsics::Matrix(k) => k,
-        };
+        let k = self.k;
         if !k.iter().all(|v| v.is_finite()) {
             return Err(ApiError::invalid(at, "intrinsics must be finite numbers"));
         }
@@ -174,8 +171,9 @@ fn check_rotation(m: &Matrix4<f64>) -> Result<(), String> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use nalgebra::{Isometry3, Vector3, Vector4};
-    use scnerf_capture::camera::gl_to_cv;
+    use nalgebra::{Isometry3, Point3, Vector3, Vector4};
+    use scnerf_capture::camera::{gl_to_cv, look_at, Intrinsics};
+    use scnerf_capture::wire::{WireIntrinsics, WirePose};
 
     /// A rigid transform: rotation about y by `theta`, then translation `t`.
     fn pose(theta: f64, t: [f64; 3]) -> Matrix4<f64> {
@@ -186,7 +184,7 @@ mod tests {
         CameraSpec {
             width: 64,
             height: 48,
-            intrinsics: Intrinsics::Focal { fx: 50.0, fy: 50.0, cx: 32.0, cy: 24.0 },
+            k: Intrinsics { fx: 50.0, fy: 50.0, cx: 32.0, cy: 24.0 }.k(),
             pose: Pose { matrix, kind, axes },
         }
     }
@@ -219,11 +217,46 @@ mod tests {
     }
 
     #[test]
-    fn k_matrix_equals_focal_form() {
-        let mut s = spec(pose(0.0, [0.0; 3]), PoseKind::WorldToCamera, Axes::Opencv);
-        let a = s.canonicalize("t").unwrap();
-        s.intrinsics = Intrinsics::Matrix(from_rows(&[[50.0, 0.0, 32.0], [0.0, 50.0, 24.0], [0.0, 0.0, 1.0]]));
-        assert_eq!(s.canonicalize("t").unwrap(), a);
+    fn a_canonical_camera_sent_as_json_reads_back_as_itself() {
+        let c = scnerf_capture::camera::Camera {
+            width: 64,
+            height: 48,
+            intrinsics: Intrinsics { fx: 50.5, fy: 51.0, cx: 31.5, cy: 23.5 },
+            w2c: look_at(&Point3::new(0.3, -1.0, 4.0), &Point3::origin(), &Vector3::z()),
+        };
+        let sent: WireCamera = serde_json::from_str(&serde_json::to_string(&WireCamera::from(&c)).unwrap()).unwrap();
+        let cam = CameraSpec::from_wire(&sent, "target").unwrap().canonicalize("target").unwrap();
+        assert_eq!((cam.width, cam.height, cam.k), (64, 48, c.k()));
+        // serde_json reads a number back to within an ulp (its exact parser is a feature left off).
+        assert!((cam.w2c - c.w2c.to_homogeneous()).amax() < 1e-15, "{}", cam.w2c);
+    }
+
+    #[test]
+    fn intrinsics_in_any_form_give_the_same_camera() {
+        let pose = WirePose {
+            matrix: [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 4.0], [0.0, 0.0, 0.0, 1.0]],
+            kind: PoseKind::WorldToCamera,
+            axes: Axes::Opencv,
+        };
+        let rows = [[50.0, 0.0, 32.0], [0.0, 50.0, 24.0], [0.0, 0.0, 1.0]];
+        let focal = WireIntrinsics::Focal(Intrinsics { fx: 50.0, fy: 50.0, cx: 32.0, cy: 24.0 });
+        let wire = |intrinsics, k| WireCamera { width: 64, height: 48, intrinsics, k, pose: pose.clone() };
+        let a = CameraSpec::from_wire(&wire(Some(focal.clone()), None), "t").unwrap();
+        assert_eq!(CameraSpec::from_wire(&wire(Some(WireIntrinsics::Matrix(rows)), None), "t").unwrap(), a);
+        assert_eq!(CameraSpec::from_wire(&wire(None, Some(rows)), "t").unwrap(), a);
+
+        let malformed = |w: WireCamera| match CameraSpec::from_wire(&w, "sources[2].camera").unwrap_err() {
+            ApiError::Malformed { field, message } => (field, message),
+            e => panic!("unexpected {e:?}"),
+        };
+        assert_eq!(
+            malformed(wire(Some(focal), Some(rows))),
+            (Some("sources[2].camera.K".into()), "give either intrinsics or K, not both".into())
+        );
+        assert_eq!(
+            malformed(wire(None, None)),
+            (Some("sources[2].camera.intrinsics".into()), "missing field `intrinsics` (or `K`)".into())
+        );
     }
 
     fn invalid_field(s: &CameraSpec) -> (String, String) {
@@ -258,28 +291,28 @@ mod tests {
         assert!(invalid_field(&s).1.contains("last row"));
 
         let mut s = good.clone();
-        s.intrinsics = Intrinsics::Focal { fx: -1.0, fy: 50.0, cx: 0.0, cy: 0.0 };
+        s.k = Intrinsics { fx: -1.0, fy: 50.0, cx: 0.0, cy: 0.0 }.k();
         assert_eq!(
             invalid_field(&s),
             ("sources[1].camera.intrinsics".into(), "focal lengths fx and fy must be > 0".into())
         );
 
         let mut s = good.clone();
-        s.intrinsics = Intrinsics::Focal { fx: f64::INFINITY, fy: 50.0, cx: 0.0, cy: 0.0 };
+        s.k = Intrinsics { fx: f64::INFINITY, fy: 50.0, cx: 0.0, cy: 0.0 }.k();
         assert!(invalid_field(&s).1.contains("finite"));
 
         let mut s = good.clone();
-        s.intrinsics = Intrinsics::Matrix(from_rows(&[[50.0, 1.0, 32.0], [0.0, 50.0, 24.0], [0.0, 0.0, 1.0]]));
+        s.k = from_rows(&[[50.0, 1.0, 32.0], [0.0, 50.0, 24.0], [0.0, 0.0, 1.0]]);
         assert!(invalid_field(&s).1.contains("skew"));
 
         let mut s = good.clone();
-        s.intrinsics = Intrinsics::Matrix(from_rows(&[[50.0, 0.0, 32.0], [0.0, 50.0, 24.0], [0.0, 1.0, 1.0]]));
+        s.k = from_rows(&[[50.0, 0.0, 32.0], [0.0, 50.0, 24.0], [0.0, 1.0, 1.0]]);
         assert!(invalid_field(&s).1.contains("form"));
 
         // Finite but beyond what float32 rendering can use.
         for (fx, cx) in [(1e-300, 32.0), (1e300, 32.0), (50.0, 1e300), (50.0, -1e9)] {
             let mut s = good.clone();
-            s.intrinsics = Intrinsics::Focal { fx, fy: 50.0, cx, cy: 24.0 };
+            s.k = Intrinsics { fx, fy: 50.0, cx, cy: 24.0 }.k();
             assert_eq!(invalid_field(&s).0, "sources[1].camera.intrinsics", "fx {fx}, cx {cx}");
         }
         let mut s = good.clone();

@@ -8,6 +8,8 @@ use std::time::Duration;
 
 use crate::backend::ort::{OrtOptions, OrtRunner};
 use ndarray::{ArrayD, Axis, Ix2, IxDyn};
+use scnerf_capture::camera::{Axes, Intrinsics, PoseKind};
+use scnerf_capture::wire::{WireCamera, WireIntrinsics, WirePose};
 
 use crate::backend::{BackendError, BackendHandle, ExecutorOptions, GraphRunner, NamedTensors, Tensor};
 use crate::bundle::{validate_manifest, Bundle, GraphKind, Manifest};
@@ -298,16 +300,24 @@ pub fn png(width: u32, height: u32, rgba: [u8; 4]) -> Vec<u8> {
 }
 
 /// A camera in docs/design.md's JSON form: Blender-style camera-to-world, OpenGL axes, on a circle of
-/// radius 4 around the origin at angle `angle`, looking at the origin.
+/// radius 4 around the origin at angle `angle`, looking at the origin. A JSON value, for tests to
+/// edit into what a client might send.
 pub fn camera_json(width: u32, height: u32, angle: f64) -> serde_json::Value {
     let (s, c) = angle.sin_cos();
-    // OpenGL camera looks down its -z: put z_cam = (s, 0, c) pointing away from the origin.
-    serde_json::json!({
-        "width": width, "height": height,
-        "intrinsics": {"fx": width as f64, "fy": width as f64, "cx": width as f64 / 2.0, "cy": height as f64 / 2.0},
-        "pose": {"matrix": [[c, 0.0, s, 4.0 * s], [0.0, 1.0, 0.0, 0.0], [-s, 0.0, c, 4.0 * c], [0.0, 0.0, 0.0, 1.0]],
-                 "kind": "camera_to_world", "axes": "opengl"}
-    })
+    let (w, h) = (f64::from(width), f64::from(height));
+    let camera = WireCamera {
+        width,
+        height,
+        intrinsics: Some(WireIntrinsics::Focal(Intrinsics { fx: w, fy: w, cx: w / 2.0, cy: h / 2.0 })),
+        k: None,
+        // OpenGL camera looks down its -z: put z_cam = (s, 0, c) pointing away from the origin.
+        pose: WirePose {
+            matrix: [[c, 0.0, s, 4.0 * s], [0.0, 1.0, 0.0, 0.0], [-s, 0.0, c, 4.0 * c], [0.0, 0.0, 0.0, 1.0]],
+            kind: PoseKind::CameraToWorld,
+            axes: Axes::Opengl,
+        },
+    };
+    serde_json::to_value(camera).expect("a camera is JSON")
 }
 
 /// A valid request JSON without images: 3 sources of `size`, an 8x6 target.

@@ -23,6 +23,8 @@ use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post, put};
 use axum::{Json, Router};
 use base64::Engine;
+use scnerf_capture::camera::{Axes, PoseKind};
+use scnerf_capture::wire::{WireCamera, WireIntrinsics};
 use serde::Deserialize;
 use serde_json::{json, Value};
 
@@ -106,33 +108,6 @@ fn scene_not_found() -> Response {
     (StatusCode::NOT_FOUND, Json(body)).into_response()
 }
 
-/// The server's JSON camera, strictly (unknown fields are refused as the real parser does).
-#[derive(Deserialize)]
-#[serde(deny_unknown_fields)]
-struct Camera {
-    width: u32,
-    height: u32,
-    intrinsics: Intrinsics,
-    pose: Pose,
-}
-
-#[derive(Deserialize)]
-#[serde(deny_unknown_fields)]
-struct Intrinsics {
-    fx: f64,
-    fy: f64,
-    cx: f64,
-    cy: f64,
-}
-
-#[derive(Deserialize)]
-#[serde(deny_unknown_fields)]
-struct Pose {
-    matrix: [[f64; 4]; 4],
-    kind: String,
-    axes: String,
-}
-
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
 struct SceneRequest {
@@ -145,22 +120,22 @@ struct SceneRequest {
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
 struct Source {
-    camera: Camera,
+    camera: WireCamera,
 }
 
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
 struct RenderRequest {
-    target: Camera,
+    target: WireCamera,
     outputs: Vec<String>,
     sampling: Option<String>,
 }
 
-/// What the client always sends: positive focal lengths, a principal point, canonical poses.
-fn check(c: &Camera) {
-    let i = &c.intrinsics;
-    assert!(i.fx > 0.0 && i.fy > 0.0 && i.cx.is_finite() && i.cy.is_finite());
-    assert_eq!((c.pose.kind.as_str(), c.pose.axes.as_str()), ("world_to_camera", "opencv"));
+/// What the client always sends: `{fx, fy, cx, cy}` with positive focal lengths, canonical poses.
+fn check(c: &WireCamera) {
+    let Some(WireIntrinsics::Focal(i)) = &c.intrinsics else { panic!("the client sends {{fx, fy, cx, cy}}") };
+    assert!(c.k.is_none() && i.fx > 0.0 && i.fy > 0.0 && i.cx.is_finite() && i.cy.is_finite());
+    assert_eq!((c.pose.kind, c.pose.axes), (PoseKind::WorldToCamera, Axes::Opencv));
     assert_eq!(c.pose.matrix[3], [0.0, 0.0, 0.0, 1.0]);
 }
 

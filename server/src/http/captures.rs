@@ -22,6 +22,7 @@ use bytes::Bytes;
 use scnerf_capture::files::{Files, MemoryFiles};
 use scnerf_capture::image_sets::{load_picked, ImageSet, Pick, Picked};
 use scnerf_capture::readers::{self, Capture, ReadOptions};
+use scnerf_capture::wire::WireCamera;
 use serde::{Deserialize, Serialize};
 
 use super::body::multipart_error;
@@ -33,7 +34,7 @@ use super::state::AppState;
 use crate::backend::BackendError;
 use crate::blocking::{self, Cancel};
 use crate::cache::rfc3339;
-use crate::camera::{Axes, Camera, CameraSpec, Intrinsics, Pose, PoseKind};
+use crate::camera::CameraSpec;
 use crate::error::ApiError;
 use crate::pipeline::memory::capture_parse_bytes;
 use crate::pipeline::Timings;
@@ -66,8 +67,7 @@ pub struct CaptureCreated {
     pub expires_at: String,
     /// Every view of the scene (canonical: OpenCV world-to-camera), in the order of the indices
     /// that renders report in `sources` and may pin.
-    #[schema(value_type = Vec<crate::request::wire::JsonCamera>)]
-    pub cameras: Vec<serde_json::Value>,
+    pub cameras: Vec<WireCamera>,
     /// The image file of each camera (its path in the capture).
     pub names: Vec<String>,
     pub near: f64,
@@ -134,12 +134,11 @@ async fn create_within(
         let read = read_capture(files, &options, &limits, cancel)?;
         let names = read.names.clone();
         let valid = read.request.validate(&config, &limits).map_err(|e| name_the_file(e, &names))?;
-        Ok((valid, read.names, read.format, read.image_set, read.warnings))
+        Ok((valid, read.cameras, read.names, read.format, read.image_set, read.warnings))
     })
     .await?;
     drop(parsing);
-    let (valid, names, format, image_set, warnings) = parsed;
-    let cameras = valid.sources.iter().map(|s| camera_json(&s.camera)).collect();
+    let (valid, cameras, names, format, image_set, warnings) = parsed;
     let (near, far) = (valid.near, valid.far);
     let mut timings = Timings::default();
     let stored = store_scene(&state, valid, id, owner, &deadline, &mut timings).await?;
@@ -217,9 +216,11 @@ fn missing_filename(headers: &axum::http::HeaderMap) -> ApiError {
     ApiError::malformed(Some("file".to_string()), message)
 }
 
-/// A capture read from `files`, as a scene request (at most `max_views` views).
+/// A capture read from `files`, as a scene request (at most `max_views` views) of its cameras as
+/// the client would send them.
 struct ReadCapture {
     request: SceneRequest,
+    cameras: Vec<WireCamera>,
     names: Vec<String>,
     format: String,
     image_set: Option<String>,
@@ -255,25 +256,24 @@ fn read_capture(
             kept.len()
         ));
     }
-    let (mut sources, mut names) = (Vec::with_capacity(kept.len()), Vec::with_capacity(kept.len()));
-    for view in kept.into_iter().map(|i| &views[i]) {
+    let (mut sources, mut cameras, mut names) =
+        (Vec::with_capacity(kept.len()), Vec::with_capacity(kept.len()), Vec::with_capacity(kept.len()));
+    for (i, view) in kept.into_iter().map(|v| &views[v]).enumerate() {
         let name = MemoryFiles::normal_path(&view.image_path).unwrap_or_default().to_string_lossy().into_owned();
         let image = files.remove(&view.image_path).ok_or_else(|| {
             ApiError::invalid(name.clone(), format!("{name}: the image of two views (\"{}\" and another)", view.name))
         })?;
-        let (c, i) = (&view.camera, view.camera.intrinsics);
-        let camera = CameraSpec {
-            width: c.width,
-            height: c.height,
-            intrinsics: Intrinsics::Focal { fx: i.fx, fy: i.fy, cx: i.cx, cy: i.cy },
-            pose: Pose { matrix: c.w2c.to_homogeneous(), kind: PoseKind::WorldToCamera, axes: Axes::Opencv },
-        };
-        sources.push(SourceSpec { camera, image: Some(Bytes::from(image)), image_field: name.clone() });
+        // As the client would send it: validated as an upload's camera is, and what the answer reports.
+        let camera = WireCamera::from(&view.camera);
+        let spec = CameraSpec::from_wire(&camera, &format!("sources[{i}].camera"))?;
+        sources.push(SourceSpec { camera: spec, image: Some(Bytes::from(image)), image_field: name.clone() });
+        cameras.push(camera);
         names.push(name);
     }
     let background = Some(background.to_vec());
     Ok(ReadCapture {
         request: SceneRequest { sources, near, far, background },
+        cameras,
         names,
         format: format.name().to_string(),
         image_set,
@@ -361,15 +361,4 @@ fn name_the_file(e: ApiError, names: &[String]) -> ApiError {
         },
         other => other,
     }
-}
-
-/// A canonical camera in the API's JSON form.
-fn camera_json(c: &Camera) -> serde_json::Value {
-    let rows: Vec<[f64; 4]> = (0..4).map(|r| [c.w2c[(r, 0)], c.w2c[(r, 1)], c.w2c[(r, 2)], c.w2c[(r, 3)]]).collect();
-    serde_json::json!({
-        "width": c.width,
-        "height": c.height,
-        "intrinsics": {"fx": c.fx(), "fy": c.fy(), "cx": c.cx(), "cy": c.cy()},
-        "pose": {"matrix": rows, "kind": "world_to_camera", "axes": "opencv"},
-    })
 }

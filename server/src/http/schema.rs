@@ -1,6 +1,7 @@
 //! Schema-only types: what the OpenAPI document says about bodies that no Rust type parses or
 //! writes as a whole (multipart forms, raw bytes). The JSON bodies are described by the types
-//! that parse them (`request::wire`) and write them (`http::respond`).
+//! that parse them (`request::wire`, its camera `scnerf_capture::wire`) and write them
+//! (`http::respond`).
 
 use utoipa::ToSchema;
 

@@ -50,7 +50,7 @@ pub fn generate(camera: &Camera) -> Rays {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::camera::from_rows;
+    use scnerf_capture::wire::from_rows;
 
     #[test]
     fn principal_point_ray_is_the_optical_axis() {

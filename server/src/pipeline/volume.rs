@@ -304,7 +304,7 @@ async fn first_convolution(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::camera::from_rows;
+    use scnerf_capture::wire::from_rows;
 
     #[test]
     fn linspace_hits_both_ends() {

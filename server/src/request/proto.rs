@@ -2,12 +2,13 @@
 
 use bytes::Bytes;
 use prost::Message;
+use scnerf_capture::camera::Intrinsics;
 use scnerf_proto::v1 as pb;
 
 use super::{Limits, OutputKind, RenderRequest, SceneRequest, SourceSpec, TargetRequest};
 use nalgebra::SMatrix;
 
-use crate::camera::{Axes, CameraSpec, Intrinsics, Pose, PoseKind};
+use crate::camera::{Axes, CameraSpec, Pose, PoseKind};
 use crate::error::ApiError;
 
 impl RenderRequest {
@@ -149,9 +150,9 @@ fn outputs_from_proto(outputs: &[String]) -> Result<Option<Vec<OutputKind>>, Api
 
 fn camera_from_proto(c: Option<pb::Camera>, field: &str) -> Result<CameraSpec, ApiError> {
     let c = c.ok_or_else(|| ApiError::malformed(field.to_string(), "missing camera"))?;
-    let intrinsics = match c.intrinsics_kind {
-        Some(pb::camera::IntrinsicsKind::Intrinsics(i)) => Intrinsics::Focal { fx: i.fx, fy: i.fy, cx: i.cx, cy: i.cy },
-        Some(pb::camera::IntrinsicsKind::K(m)) => Intrinsics::Matrix(matrix(&m.values, &format!("{field}.k.values"))?),
+    let k = match c.intrinsics_kind {
+        Some(pb::camera::IntrinsicsKind::Intrinsics(i)) => Intrinsics { fx: i.fx, fy: i.fy, cx: i.cx, cy: i.cy }.k(),
+        Some(pb::camera::IntrinsicsKind::K(m)) => matrix(&m.values, &format!("{field}.k.values"))?,
         None => return Err(ApiError::malformed(format!("{field}.intrinsics"), "missing intrinsics (or k)")),
     };
     let pose = c.pose.ok_or_else(|| ApiError::malformed(format!("{field}.pose"), "missing pose"))?;
@@ -173,7 +174,7 @@ fn camera_from_proto(c: Option<pb::Camera>, field: &str) -> Result<CameraSpec, A
     Ok(CameraSpec {
         width: c.width,
         height: c.height,
-        intrinsics,
+        k,
         pose: Pose { matrix: matrix(&pose.matrix, &format!("{field}.pose.matrix"))?, kind, axes },
     })
 }
