@@ -6,6 +6,8 @@
 mod refusals;
 
 use axum::Json;
+use scnerf_capture::camera::Intrinsics;
+use scnerf_capture::wire::{Matrix3Rows, Matrix4Rows, WireCamera, WireIntrinsics, WirePose};
 use utoipa::openapi::security::{HttpAuthScheme, HttpBuilder, SecurityScheme};
 use utoipa::{Modify, OpenApi};
 
@@ -15,13 +17,13 @@ use super::scenes::SceneCreated;
 use super::schema::{Binary, CaptureMultipart, RenderMultipart, SceneMultipart};
 use super::service::LimitsBody;
 use crate::error::{ErrorBody, ErrorDetail};
-use crate::request::wire::{
-    JsonCamera, JsonFocal, JsonIntrinsicsSchema, JsonPose, JsonRenderRequest, JsonSceneRequest, JsonSource,
-    JsonTargetRequest, Matrix3Rows, Matrix4Rows,
-};
+use crate::request::wire::{JsonRenderRequest, JsonSceneRequest, JsonSource, JsonTargetRequest};
 use crate::request::OutputKind;
 
-pub use refusals::{CaptureRefusals, RenderRefusals, SceneDeleteRefusals, SceneRenderRefusals, SceneUploadRefusals};
+pub use refusals::{
+    CaptureRefusals, ReadinessRefusals, RenderRefusals, SceneDeleteRefusals, SceneRenderRefusals, SceneUploadRefusals,
+    TokenRefusals,
+};
 
 struct BearerAuth;
 
@@ -58,8 +60,8 @@ Errors are always `{\"error\": {\"code\", \"message\", \"field\"}}`. With bearer
         serve,
     ),
     components(schemas(
-        JsonRenderRequest, JsonSceneRequest, JsonTargetRequest, JsonSource, JsonCamera, JsonFocal,
-        JsonIntrinsicsSchema, JsonPose, OutputKind, RenderResponseJson, PngImageJson, FloatImageJson, SceneCreated,
+        JsonRenderRequest, JsonSceneRequest, JsonTargetRequest, JsonSource, WireCamera, Intrinsics,
+        WireIntrinsics, WirePose, OutputKind, RenderResponseJson, PngImageJson, FloatImageJson, SceneCreated,
         CaptureCreated, LimitsBody, ErrorBody, ErrorDetail, RenderMultipart, SceneMultipart, CaptureMultipart, Binary, Matrix3Rows,
         Matrix4Rows,
     )),

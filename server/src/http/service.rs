@@ -8,6 +8,7 @@ use axum::Json;
 use serde::Serialize;
 use serde_json::json;
 
+use super::openapi::{ReadinessRefusals, TokenRefusals};
 use super::state::AppState;
 use crate::error::ApiError;
 use crate::request::Limits;
@@ -25,7 +26,7 @@ pub(super) const READINESS_PATH: &str = "/readyz";
 /// Public for orchestrators, so it names no model: `/v1/model` does, behind the token.
 #[utoipa::path(get, path = "/readyz", tag = "service", operation_id = "readyz", responses(
     (status = 200, description = "Ready"),
-    (status = 503, description = "Warming up or shutting down", body = crate::error::ErrorBody),
+    ReadinessRefusals,
 ))]
 pub async fn readyz(State(state): State<AppState>) -> Result<Json<serde_json::Value>, ApiError> {
     state.check_ready()?;
@@ -47,7 +48,7 @@ pub async fn metrics(State(state): State<AppState>) -> Response {
 /// can be sampled (`sampling`: the modes, the default, guided sampling's policy).
 #[utoipa::path(get, path = "/v1/model", tag = "render", operation_id = "model", responses(
     (status = 200, description = "Model description", body = Object),
-    (status = 401, description = "Missing or wrong bearer token", body = crate::error::ErrorBody),
+    TokenRefusals,
 ), security((), ("bearer" = [])))]
 pub async fn model(State(state): State<AppState>) -> Json<serde_json::Value> {
     let m = state.pipeline.manifest();
@@ -103,7 +104,7 @@ impl From<&Limits> for LimitsBody {
 /// The server's request limits.
 #[utoipa::path(get, path = "/v1/limits", tag = "render", operation_id = "limits", responses(
     (status = 200, description = "What the server accepts", body = LimitsBody),
-    (status = 401, description = "Missing or wrong bearer token", body = crate::error::ErrorBody),
+    TokenRefusals,
 ), security((), ("bearer" = [])))]
 pub async fn limits(State(state): State<AppState>) -> Json<LimitsBody> {
     Json(LimitsBody::from(state.pipeline.limits()))

@@ -18,6 +18,8 @@ pub mod memory;
 pub mod rays;
 pub mod sources;
 pub mod sweep;
+#[cfg(test)]
+mod tests;
 pub mod views;
 pub mod volume;
 
@@ -239,7 +241,7 @@ impl Pipeline {
         timings: &mut Timings,
     ) -> Result<(Views, Option<Scene>), ApiError> {
         let cameras = req.cameras();
-        let (ticket, _decoding) = match cameras.len() == self.bundle.config.views {
+        let (ticket, _decoding) = match self.builds_on_upload(cameras.len()) {
             true => (Some(self.admit_request(deadline, Some(&cameras), true, None)?), None),
             false => {
                 let estimate = self.memory_estimate(Some(&cameras), true, false, None);
@@ -307,10 +309,22 @@ impl Pipeline {
         decodes: bool,
         target: Option<(&Camera, Sampling)>,
     ) -> Result<Ticket, ApiError> {
-        let scene = sources.map_or_else(Work::default, |s| self.scene_work(s));
-        let work = target.map_or(scene, |(t, sampling)| scene.plus(self.view_work(t, sampling)));
+        let work = self.request_work(sources, target);
         let memory = self.memory_estimate(sources, decodes, sources.is_some(), target);
         self.backend.admit(deadline, work, memory).map_err(|e| refusal(e, sources, target.map(|(t, _)| t)))
+    }
+
+    /// The work of a request that builds the scene of `sources` (`None`: a cached scene) and
+    /// renders `target` (`None`: a scene only).
+    fn request_work(&self, sources: Option<&[Camera]>, target: Option<(&Camera, Sampling)>) -> Work {
+        let scene = sources.map_or_else(Work::default, |s| self.scene_work(s));
+        target.map_or(scene, |(t, sampling)| scene.plus(self.view_work(t, sampling)))
+    }
+
+    /// Whether a scene of `views` views gets its volume on upload: only the model's view count
+    /// makes one triple; a larger scene builds the triple each render picks.
+    fn builds_on_upload(&self, views: usize) -> bool {
+        views == self.bundle.config.views
     }
 
     /// The most memory a request over `sources` adds to the process (see [`memory::estimate`]):
@@ -338,7 +352,7 @@ impl Pipeline {
     /// What the scene of `req` will hold in the scene cache (see [`memory::scene_bytes`]).
     pub fn scene_bytes(&self, req: &ValidScene) -> u64 {
         let cameras = req.cameras();
-        let builds = cameras.len() == self.bundle.config.views;
+        let builds = self.builds_on_upload(cameras.len());
         self.padded_source_size(&cameras)
             .map_or(0, |size| memory::scene_bytes(&self.bundle.config, size, cameras.len(), builds))
     }

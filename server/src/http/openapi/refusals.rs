@@ -27,6 +27,9 @@ const UNAVAILABLE: Documented = (
     ApiError::Unavailable { message: String::new(), retry_after_secs: 0 },
     "Warming up, overloaded, the memory budget in use, or the request cannot finish by its deadline (Retry-After)",
 );
+/// Readiness's 503: the probe's expected answer until the warm-up render is done, not a fault.
+const WARMING_UP: Documented =
+    (ApiError::Unavailable { message: String::new(), retry_after_secs: 0 }, "Warming up or shutting down");
 const DEADLINE_EXCEEDED: Documented = (ApiError::DeadlineExceeded { ms: 0 }, "Deadline exceeded");
 const INTERNAL: Documented = (
     ApiError::Internal(String::new()),
@@ -66,6 +69,25 @@ fn responses(documented: &[Documented]) -> BTreeMap<String, RefOr<Response>> {
         .collect();
     debug_assert_eq!(responses.len(), documented.len(), "two errors of one status");
     responses
+}
+
+/// Error responses of the routes behind the bearer token that read no body: `GET /v1/model`
+/// and `GET /v1/limits`.
+pub struct TokenRefusals;
+
+impl IntoResponses for TokenRefusals {
+    fn responses() -> BTreeMap<String, RefOr<Response>> {
+        responses(&[UNAUTHORIZED])
+    }
+}
+
+/// Error responses of `GET /readyz` (public: orchestrators probe it without a token).
+pub struct ReadinessRefusals;
+
+impl IntoResponses for ReadinessRefusals {
+    fn responses() -> BTreeMap<String, RefOr<Response>> {
+        responses(&[WARMING_UP])
+    }
 }
 
 /// Error responses of `POST /v1/render`.
@@ -296,12 +318,35 @@ mod tests {
         assert!(wrong.is_empty(), "the document's errors differ from error.rs's:\n{}", wrong.join("\n"));
     }
 
-    /// What the document says of one family: the error body, and the description given.
+    /// What the document says of a family: the error body, and the description given.
     #[test]
     fn refusals_carry_the_error_body_and_their_routes_description() {
         let doc = document();
-        let not_found = &doc["paths"]["/v1/scenes/{id}"]["delete"]["responses"]["404"];
-        assert_eq!(not_found["content"]["application/json"]["schema"]["$ref"], "#/components/schemas/Error");
-        assert_eq!(not_found["description"], SCENE_NOT_FOUND.1);
+        let cases = [
+            ("/v1/scenes/{id}", "delete", "404", SCENE_NOT_FOUND.1),
+            ("/v1/model", "get", "401", UNAUTHORIZED.1),
+            ("/readyz", "get", "503", WARMING_UP.1),
+        ];
+        for (path, method, status, description) in cases {
+            let response = &doc["paths"][path][method]["responses"][status];
+            assert_eq!(response["content"]["application/json"]["schema"]["$ref"], "#/components/schemas/Error");
+            assert_eq!(response["description"], description, "{method} {path} {status}");
+        }
+    }
+
+    /// `AUTHENTICATED` is auth.rs's rule, not a second one: the token guards exactly the
+    /// operations off `auth::PUBLIC_PATHS`, and each of them declares the bearer scheme.
+    #[test]
+    fn the_operations_behind_the_token_are_those_auth_guards() {
+        let doc = document();
+        for (path, operations) in doc["paths"].as_object().unwrap() {
+            let guarded = !crate::auth::PUBLIC_PATHS.contains(&path.as_str());
+            for op in operations.as_object().unwrap().values() {
+                let id = op["operationId"].as_str().unwrap();
+                assert_eq!(AUTHENTICATED.contains(&id), guarded, "{id}: listed as authenticated");
+                let bearer = op["security"].as_array().is_some_and(|s| s.iter().any(|r| r.get("bearer").is_some()));
+                assert_eq!(bearer, guarded, "{id}: declares the bearer scheme");
+            }
+        }
     }
 }
