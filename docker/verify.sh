@@ -17,7 +17,7 @@
 #      runs the image's HEALTHCHECK command, GETs /v1/model, POSTs examples/tabletop as
 #      multipart and checks the PNG that comes back; starts it again with the bundle mounted as a
 #      volume (-v DIR:/bundle -e SCNERF_BUNDLE=/bundle); stops both with SIGTERM to tini and checks
-#      that the server exits 0; when the load generator (tests crate, `loadgen`) exists, builds the
+#      that the server exits 0; when the load generator (loadtest/, `loadgen`) exists, builds the
 #      `loadgen-prebuilt` image and runs it against the server for 5 s (compose's load test in small);
 #   8. removes its working containers. The base image, buildah's layer cache, the venv and the
 #      debootstrap tree stay in the cache directory, so a second run takes seconds, not minutes.
@@ -39,7 +39,7 @@
 #   SCNERF_VERIFY_BINARY   use this scnerf-server binary (glibc <= 2.36) instead of building one; it is
 #                          copied to target/docker-verify/ and passed as PREBUILT_BINARY
 #   SCNERF_VERIFY_LOADGEN  the same for the load generator (default: built with cargo when
-#                          tests/src/bin/loadgen.rs exists and SCNERF_VERIFY_BINARY is not set)
+#                          loadtest/src/main.rs exists and SCNERF_VERIFY_BINARY is not set)
 #   SCNERF_VERIFY_TARGET_SCALE  size of the rendered example view relative to the 320x256 target of
 #                          examples/tabletop (default 0.25: 80x64; full size takes ~1 min of CPU)
 #   SCNERF_VERIFY_BUNDLE   bundle baked into the image, relative to the repo (default bundles/default,
@@ -306,16 +306,16 @@ build_image() {
     --build-arg "PREBUILT_BINARY=${binary}" -t "${image}" .)
 }
 
-# The load generator (tests crate, binary `loadgen`): SCNERF_VERIFY_LOADGEN=PATH, else built with
+# The load generator (loadtest/, binary `loadgen`): SCNERF_VERIFY_LOADGEN=PATH, else built with
 # cargo when its source exists and the server binary was built here too. Writes the binary's path
 # relative to the repo to ${work}/loadgen-path, empty when there is none (loadgen checks skipped).
 loadgen_binary() {
   if [[ -n ${SCNERF_VERIFY_LOADGEN:-} ]]; then
     install -D -m 0755 "${SCNERF_VERIFY_LOADGEN}" "${repo}/target/docker-verify/loadgen"
     echo target/docker-verify/loadgen >"${work}/loadgen-path"
-  elif [[ -z ${SCNERF_VERIFY_BINARY:-} && -f ${repo}/tests/src/bin/loadgen.rs ]] && command -v cargo >/dev/null; then
+  elif [[ -z ${SCNERF_VERIFY_BINARY:-} && -f ${repo}/loadtest/src/main.rs ]] && command -v cargo >/dev/null; then
     local target_dir=${CARGO_TARGET_DIR:-${repo}/target}
-    (cd "${repo}" && cargo build --release -j "${jobs}" -p scnerf-e2e --bin loadgen)
+    (cd "${repo}" && cargo build --release -j "${jobs}" -p scnerf-loadtest --bin loadgen)
     if [[ $(realpath "${target_dir}") != "$(realpath "${repo}/target")" ]]; then
       install -D -m 0755 "${target_dir}/release/loadgen" "${repo}/target/release/loadgen"
     fi
@@ -332,7 +332,7 @@ build_loadgen_image() {
     -t "${loadgen_image}" .)
 }
 
-# The compose load test in small: the loadgen image's entrypoint (docker/loadgen.sh) against the
+# The compose load test in small: the loadgen image's entrypoint (loadtest/loadgen-entrypoint.sh) against the
 # running server for a few seconds; every answer must be 200.
 run_loadgen() {
   local entrypoint
@@ -549,7 +549,7 @@ export loadgen loadgen_image
 if [[ -n ${loadgen} ]]; then
   step "buildah bud --target loadgen-prebuilt" 600 build_loadgen_image
 else
-  log "no loadgen binary (tests/src/bin/loadgen.rs absent, or SCNERF_VERIFY_BINARY without SCNERF_VERIFY_LOADGEN): load-test checks skipped"
+  log "no loadgen binary (loadtest/src/main.rs absent, or SCNERF_VERIFY_BINARY without SCNERF_VERIFY_LOADGEN): load-test checks skipped"
 fi
 check "image config (USER, HEALTHCHECK, ENTRYPOINT, env)" inspect_image
 
@@ -569,7 +569,7 @@ check "POST /v1/render examples/tabletop (image/png)" render_example image/png '
 timings+=("$(printf '%-44s %5ds' "  (two renders of the example)" "$((SECONDS - t0))")")
 if [[ -n ${loadgen} ]]; then
   t0=${SECONDS}
-  check "loadgen image (docker/loadgen.sh) against the server: 5 s, only 200s" run_loadgen
+  check "loadgen image (loadtest/loadgen-entrypoint.sh) against the server: 5 s, only 200s" run_loadgen
   timings+=("$(printf '%-44s %5ds' "  (load test)" "$((SECONDS - t0))")")
 fi
 check "SIGTERM to tini: server exits 0" stopped_cleanly

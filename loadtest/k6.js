@@ -1,5 +1,5 @@
 // k6 load test of scnerf-server's cached-scene endpoint, for users who have k6
-// (https://k6.io). The bundled Rust load generator (tests/src/bin/loadgen.rs, scripts/loadtest.sh)
+// (https://k6.io). The bundled Rust load generator (loadtest/src/main.rs, loadtest/overload.sh)
 // does the same without k6.
 //
 //   k6 run -e ADDR=127.0.0.1:8080 loadtest/k6.js                 # 2 VUs, 60 s, 64x64 views

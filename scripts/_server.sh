@@ -1,4 +1,4 @@
-# Shared by loadtest.sh, soak.sh and schemathesis.sh (source it): build, start and stop a
+# Shared by loadtest/*.sh, schemathesis.sh and viewer-test.sh (source it): build, start and stop a
 # scnerf-server on a free loopback port.
 #
 #   PROFILE=debug|release   binaries to build and run (default debug: the graphs run in ONNX
@@ -14,7 +14,7 @@ OUT=${OUT:-${repo}/target/loadtest}
 mkdir -p "${OUT}"
 
 build_binaries() {
-  local flags=(-j2 -p scnerf-server -p scnerf-e2e --bins)
+  local flags=(-j2 -p scnerf-server -p scnerf-loadtest --bins)
   [[ ${PROFILE} == release ]] && flags+=(--release)
   (cd "${repo}" && cargo build "${flags[@]}")
   BIN_DIR=${repo}/target/${PROFILE}

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Every test of the project: the lint gate (ruff, clippy, rustfmt), the Rust workspace (unit, HTTP,
 # parity against the committed fixtures, end-to-end), scenes across two replicas behind Debian's
-# nginx (scripts/proxy-test.sh), the hostile clients' short form (scripts/attacks.sh), the
+# nginx (scripts/proxy-test.sh), the hostile clients' short form (loadtest/attacks.sh), the
 # exporter's pytest suite, the benchmark's, the Python client installed into a fresh venv against
 # the real server (scripts/python-client-test.sh), the viewer in headless Chromium
 # (scripts/viewer-test.sh) and the container files' static checks (docker/lint.sh). The scripts
@@ -13,13 +13,13 @@ repo=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 cd "${repo}"
 scripts/fetch-onnxruntime.sh
 scripts/setup-python.sh
-.venv/bin/ruff check exporter bench scripts client-python
-.venv/bin/ruff format --check exporter bench scripts client-python
+.venv/bin/ruff check exporter bench scripts loadtest client-python
+.venv/bin/ruff format --check exporter bench scripts loadtest client-python
 cargo test -j2 --workspace --locked
 cargo clippy --workspace --all-targets --locked -- -D warnings
 cargo fmt --all --check
 scripts/proxy-test.sh
-scripts/attacks.sh
+loadtest/attacks.sh
 .venv/bin/python -m pytest -q -p no:cacheprovider exporter/tests
 .venv/bin/python -m pytest -q -p no:cacheprovider bench/tests
 scripts/python-client-test.sh

@@ -1,9 +1,7 @@
 //! Helpers for the end-to-end tests: a minimal blocking HTTP/1.1 client (no extra dependencies;
-//! the load generator will reuse it), multipart encoding (the one builder of the workspace's
+//! the load generator, `loadtest/`, uses it too), multipart encoding (the one builder of the workspace's
 //! tests: the server's own tests use it too), test cases on disk, locating and starting the
 //! server binary.
-
-pub mod load;
 
 use std::io::{BufRead, BufReader, Read, Write};
 use std::net::{SocketAddr, TcpStream};
@@ -11,7 +9,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use serde_json::Value;
+use serde_json::{json, Value};
 
 /// Repository root (this crate lives in `<repo>/tests`).
 pub fn repo_root() -> PathBuf {
@@ -139,7 +137,7 @@ pub fn multipart(parts: &[(&str, Option<&str>, &str, &[u8])]) -> (String, Vec<u8
 pub fn split_request(request: &Value) -> (Value, Value) {
     let mut scene = request.clone();
     let view = match scene.as_object_mut() {
-        Some(obj) => serde_json::json!({"target": obj.remove("target"), "outputs": obj.remove("outputs")}),
+        Some(obj) => json!({"target": obj.remove("target"), "outputs": obj.remove("outputs")}),
         None => Value::Null,
     };
     (scene, view)
@@ -168,6 +166,41 @@ impl Case {
         parts
             .extend(names.iter().zip(&self.images).map(|(n, img)| (*n, Some("view.png"), "image/png", img.as_slice())));
         multipart(&parts)
+    }
+
+    /// Creates the case's scene on the server; returns its id.
+    pub fn create_scene(&self, addr: SocketAddr, token: &Option<String>) -> Result<String, String> {
+        let (scene, _) = split_request(&self.request);
+        let (ctype, body) = self.multipart(&scene);
+        let auth = auth_header(token);
+        let mut headers = vec![("content-type", ctype.as_str())];
+        if let Some(a) = &auth {
+            headers.push(("authorization", a.as_str()));
+        }
+        let r = http_request(addr, "POST", "/v1/scenes", &headers, &body, Duration::from_secs(600))
+            .map_err(|e| format!("POST /v1/scenes: {e}"))?;
+        if r.status != 201 {
+            return Err(format!("POST /v1/scenes: {} {}", r.status, String::from_utf8_lossy(&r.body)));
+        }
+        let v: Value = serde_json::from_slice(&r.body).map_err(|e| e.to_string())?;
+        v["scene_id"].as_str().map(str::to_string).ok_or_else(|| "no scene_id in the answer".into())
+    }
+
+    /// The case's target camera resized to `size` x `size` (intrinsics scaled so that pixel
+    /// centres stay at integer coordinates), as a scene-render body asking for RGB.
+    pub fn view_body(&self, size: u32) -> Vec<u8> {
+        let mut target = self.request["target"].clone();
+        let (w, h) = (target["width"].as_f64().unwrap_or(1.0), target["height"].as_f64().unwrap_or(1.0));
+        let (sx, sy) = (f64::from(size) / w, f64::from(size) / h);
+        let i = &mut target["intrinsics"];
+        if let (Some(fx), Some(fy), Some(cx), Some(cy)) =
+            (i["fx"].as_f64(), i["fy"].as_f64(), i["cx"].as_f64(), i["cy"].as_f64())
+        {
+            *i = json!({"fx": fx * sx, "fy": fy * sy, "cx": (cx + 0.5) * sx - 0.5, "cy": (cy + 0.5) * sy - 0.5});
+        }
+        target["width"] = json!(size);
+        target["height"] = json!(size);
+        serde_json::to_vec(&json!({"target": target, "outputs": ["rgb"]})).unwrap_or_default()
     }
 }
 
@@ -289,4 +322,18 @@ pub fn psnr(a: &[f32], b: &[f32]) -> f64 {
     assert_eq!(a.len(), b.len());
     let mse = a.iter().zip(b).map(|(x, y)| (f64::from(*x) - f64::from(*y)).powi(2)).sum::<f64>() / a.len() as f64;
     -10.0 * mse.log10()
+}
+
+/// The `authorization` header value for a bearer token.
+pub fn auth_header(token: &Option<String>) -> Option<String> {
+    token.as_ref().map(|t| format!("Bearer {t}"))
+}
+
+/// `VmHWM` (peak resident set) and `VmRSS` of a process, in KiB, from /proc (Linux).
+pub fn memory_kib(pid: u32) -> Option<(u64, u64)> {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    let field = |name: &str| {
+        status.lines().find_map(|l| l.strip_prefix(name)?.trim().strip_suffix("kB")?.trim().parse::<u64>().ok())
+    };
+    Some((field("VmHWM:")?, field("VmRSS:")?))
 }

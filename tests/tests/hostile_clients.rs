@@ -2,7 +2,7 @@
 //! declared lengths over the limit, abandoned uploads, partial headers, idle keep-alive
 //! connections, oversized headers, the connection caps (in all, per address, the probes'
 //! reserve), refused and expired requests answered without their bodies, bodies held against
-//! the memory budget, and a shutdown with idle connections. scripts/attacks.sh runs the probe's
+//! the memory budget, and a shutdown with idle connections. loadtest/attacks.sh runs the probe's
 //! attacks at their own sizes.
 //! Settings go through the environment (`SCNERF_*`), so each test also runs against a build
 //! that predates them (`SCNERF_SERVER_BIN`), where it fails.
@@ -11,8 +11,7 @@ use std::io::{Read, Write};
 use std::net::{SocketAddr, TcpStream};
 use std::time::{Duration, Instant};
 
-use scnerf_e2e::load::memory_kib;
-use scnerf_e2e::{http_request, repo_root, server_binary, ServerProcess};
+use scnerf_e2e::{http_request, memory_kib, repo_root, server_binary, ServerProcess};
 
 fn start(env: &[(&str, &str)]) -> ServerProcess {
     let bundle = repo_root().join("tests/fixtures/parity/bundle");

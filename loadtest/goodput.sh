@@ -5,7 +5,7 @@
 # DURATION s per load after MEASURE_SECS of closed-loop renders (1 worker) that measure the
 # service rate. SERVER_BIN=PATH measures another build of the server (e.g. an older one) with
 # the same load generator. Reports: target/loadtest/goodput-{rate,Lx}.json and a table on stderr.
-#   PROFILE=release BUNDLE=bundles/default bench/goodput.sh
+#   PROFILE=release BUNDLE=bundles/default loadtest/goodput.sh
 set -euo pipefail
 source "$(dirname "${BASH_SOURCE[0]}")/../scripts/_server.sh"
 DURATION=${DURATION:-60}

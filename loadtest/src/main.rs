@@ -12,8 +12,8 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use clap::Parser;
-use scnerf_e2e::load::{memory_kib, run, Mode, Report, Scenario};
-use scnerf_e2e::{http_request, repo_root, Case};
+use scnerf_e2e::{http_request, memory_kib, repo_root, Case};
+use scnerf_loadtest::{run, Mode, Report, Scenario};
 use serde_json::json;
 
 #[derive(Debug, Parser)]

@@ -1,6 +1,7 @@
-//! A bounded load generator for the scene-render endpoint (used by `src/bin/loadgen.rs` and its
-//! smoke test). Plain threads and the blocking HTTP/1.1 client of this crate: nothing new to
-//! compile, and at the request rates a CPU renderer sustains, threads are cheap enough.
+//! A bounded load generator for the scene-render endpoint (used by `src/main.rs`, the `loadgen`
+//! binary, and its smoke test). Plain threads and the blocking HTTP/1.1 client of the end-to-end
+//! tests' crate: nothing new to compile, and at the request rates a CPU renderer sustains,
+//! threads are cheap enough.
 //!
 //! Two modes: closed loop (N workers, each sends its next request when the previous one is
 //! answered: measures the sustainable throughput) and open loop (requests start at a fixed rate
@@ -14,9 +15,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use serde_json::{json, Value};
-
-use crate::{http_request, split_request, Case, HttpResponse};
+use scnerf_e2e::{auth_header, http_request, HttpResponse};
 
 /// What one request of the load sends.
 #[derive(Debug, Clone)]
@@ -47,10 +46,6 @@ pub struct Sample {
     pub started: Duration,
     pub latency: Duration,
     pub status: Option<u16>,
-}
-
-fn auth_header(token: &Option<String>) -> Option<String> {
-    token.as_ref().map(|t| format!("Bearer {t}"))
 }
 
 impl Scenario {
@@ -230,52 +225,6 @@ impl Report {
     /// Statuses outside `allowed` (transport errors count as "error").
     pub fn unexpected(&self, allowed: &[u16]) -> Vec<String> {
         self.statuses.keys().filter(|k| !k.parse::<u16>().is_ok_and(|c| allowed.contains(&c))).cloned().collect()
-    }
-}
-
-/// `VmHWM` (peak resident set) and `VmRSS` of a process, in KiB, from /proc (Linux).
-pub fn memory_kib(pid: u32) -> Option<(u64, u64)> {
-    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
-    let field = |name: &str| {
-        status.lines().find_map(|l| l.strip_prefix(name)?.trim().strip_suffix("kB")?.trim().parse::<u64>().ok())
-    };
-    Some((field("VmHWM:")?, field("VmRSS:")?))
-}
-
-impl Case {
-    /// Creates the case's scene on the server; returns its id.
-    pub fn create_scene(&self, addr: SocketAddr, token: &Option<String>) -> Result<String, String> {
-        let (scene, _) = split_request(&self.request);
-        let (ctype, body) = self.multipart(&scene);
-        let auth = auth_header(token);
-        let mut headers = vec![("content-type", ctype.as_str())];
-        if let Some(a) = &auth {
-            headers.push(("authorization", a.as_str()));
-        }
-        let r = http_request(addr, "POST", "/v1/scenes", &headers, &body, Duration::from_secs(600))
-            .map_err(|e| format!("POST /v1/scenes: {e}"))?;
-        if r.status != 201 {
-            return Err(format!("POST /v1/scenes: {} {}", r.status, String::from_utf8_lossy(&r.body)));
-        }
-        let v: Value = serde_json::from_slice(&r.body).map_err(|e| e.to_string())?;
-        v["scene_id"].as_str().map(str::to_string).ok_or_else(|| "no scene_id in the answer".into())
-    }
-
-    /// The case's target camera resized to `size` x `size` (intrinsics scaled so that pixel
-    /// centres stay at integer coordinates), as a scene-render body asking for RGB.
-    pub fn view_body(&self, size: u32) -> Vec<u8> {
-        let mut target = self.request["target"].clone();
-        let (w, h) = (target["width"].as_f64().unwrap_or(1.0), target["height"].as_f64().unwrap_or(1.0));
-        let (sx, sy) = (f64::from(size) / w, f64::from(size) / h);
-        let i = &mut target["intrinsics"];
-        if let (Some(fx), Some(fy), Some(cx), Some(cy)) =
-            (i["fx"].as_f64(), i["fy"].as_f64(), i["cx"].as_f64(), i["cy"].as_f64())
-        {
-            *i = json!({"fx": fx * sx, "fy": fy * sy, "cx": (cx + 0.5) * sx - 0.5, "cy": (cy + 0.5) * sy - 0.5});
-        }
-        target["width"] = json!(size);
-        target["height"] = json!(size);
-        serde_json::to_vec(&json!({"target": target, "outputs": ["rgb"]})).unwrap_or_default()
     }
 }
 

@@ -6,7 +6,7 @@
 # Reports (JSON) land in target/loadtest/. Environment: see scripts/_server.sh, and
 #   DURATION (60), SIZE (64), CONCURRENCY (2), OVERLOAD (4).
 set -euo pipefail
-source "$(dirname "${BASH_SOURCE[0]}")/_server.sh"
+source "$(dirname "${BASH_SOURCE[0]}")/../scripts/_server.sh"
 DURATION=${DURATION:-60}
 SIZE=${SIZE:-64}
 CONCURRENCY=${CONCURRENCY:-2}

@@ -3,9 +3,9 @@
 answer it must get; renders of a cached scene run beside them, and the server's peak resident set
 (VmHWM) must stay within its memory budget throughout.
 
-    scripts/attacks.sh                      # short form (CI): parity bundle, debug build
+    loadtest/attacks.sh                      # short form (CI): parity bundle, debug build
     SCALE=full PROFILE=release BUNDLE=bundles/default \\
-        SERVER_ARGS="--memory-budget-mb 3000" scripts/attacks.sh   # the probe's sizes
+        SERVER_ARGS="--memory-budget-mb 3000" loadtest/attacks.sh   # the probe's sizes
 
 Attacks (full size; the short form shrinks the sizes and counts):
   captures      4 concurrent captures of 64 flat 1024x1024 PNGs: 201, or 503 / 422 before decoding
@@ -26,9 +26,10 @@ Then `together`: captures, json_zeros, stalled and renders at once (VmHWM within
 
 Prints one JSON line per attack and exits 1 when one does not get its answer.
 
-``--soak-secs N`` soaks instead (scripts/soak-mixed.sh): renders without pause and, in turn, each
-hostile client above and a capture uploaded, rendered and deleted, for N s; the server's RSS must
-stay flat (at most ``--max-growth-pct`` above where it was after the first fifth).
+``--soak-secs N`` soaks instead (loadtest/soak-mixed.sh): renders without pause and, in turn, each
+hostile client above and a capture uploaded, rendered and deleted, for N s; the server's RSS outside
+its scene cache must stay flat (at most ``--max-growth-pct`` above where it was after the first
+fifth).
 """
 
 from __future__ import annotations
@@ -73,12 +74,7 @@ class Server:
         self.peak_mib = 0.0
 
     def hwm_mib(self) -> float:
-        if not self.pid:
-            return 0.0
-        for line in Path(f"/proc/{self.pid}/status").read_text().splitlines():
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) / 1024
-        return 0.0
+        return status_mib(self.pid, "VmHWM") if self.pid else 0.0
 
     def connect(self, ip: str = "127.0.0.1", timeout: float = 30.0) -> socket.socket:
         s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
@@ -99,6 +95,14 @@ class Server:
         except OSError as e:
             return None, str(e), b"", time.perf_counter() - started
         return (*parse(data), time.perf_counter() - started)
+
+    def metric(self, name: str) -> float | None:
+        """A value of ``/metrics`` (``scnerf_`` + name), None when absent or unreachable."""
+        status, _, body, _ = self.request("GET", "/metrics", timeout=10)
+        for line in body.decode("utf-8", "replace").splitlines() if status == 200 else []:
+            if line.startswith(f"scnerf_{name} "):
+                return float(line.split()[1])
+        return None
 
 
 def read_all(s: socket.socket) -> bytes:
@@ -420,18 +424,20 @@ def capture_round(server, args) -> int | None:
     return rendered[0]
 
 
-def rss_mib(pid: int) -> float:
+def status_mib(pid: int, field: str) -> float:
+    """A memory field of /proc/PID/status (VmRSS, VmHWM), in MiB; 0 when absent."""
     for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
+        if line.startswith(f"{field}:"):
             return int(line.split()[1]) / 1024
     return 0.0
 
 
 def soak(server, args, attacks, renders) -> int:
     """Renders without pause; in turn, one hostile client and one capture round; the server's RSS
-    after each turn. Passes when every attack got its answer and the RSS grew by at most
-    ``--max-growth-pct`` from the end of the first fifth (warm-up) to the end, each the median of
-    three samples."""
+    and its scene cache's bytes after each turn. Passes when every attack got its answer and the
+    RSS outside the scene cache (which holds what the clients uploaded, bounded by
+    ``--scene-cache-mb`` and emptied by the TTL) grew by at most ``--max-growth-pct`` from the end
+    of the first fifth (warm-up) to the end, each the median of three samples."""
     names = [n for n in attacks if n not in ("captures", "scenes")]
     loop = threading.Thread(target=renders.run)
     loop.start()
@@ -444,14 +450,18 @@ def soak(server, args, attacks, renders) -> int:
         captures[str(status)] = captures.get(str(status), 0) + 1
         turns += 1
         time.sleep(2)
-        series.append((round(time.perf_counter() - started), round(rss_mib(server.pid), 1)))
+        cached = (server.metric("scene_cache_bytes") or 0) / 2**20
+        series.append(
+            (round(time.perf_counter() - started), round(status_mib(server.pid, "VmRSS"), 1), round(cached, 1))
+        )
     renders.stop.set()
     loop.join()
-    values = [v for _, v in series]
+    values = [rss - cached for _, rss, cached in series]
     warm_at = max(1, len(values) // 5)
     warm = sorted(values[warm_at - 1 : warm_at + 2])[1] if len(values) >= 3 else values[0]
     end = sorted(values[-3:])[len(values[-3:]) // 2]
     growth = 100 * (end - warm) / warm
+    rss = [r for _, r, _ in series]
     ok = not failed and growth <= args.max_growth_pct and all(s in ("200", "None") for s in captures)
     print(
         json.dumps(
@@ -461,7 +471,8 @@ def soak(server, args, attacks, renders) -> int:
                 "failed_attacks": failed,
                 "capture_rounds": captures,
                 "renders": renders.summary(),
-                "rss_mib": {"start": values[0], "after_warmup": warm, "end": end, "max": max(values)},
+                "rss_mib": {"start": rss[0], "end": rss[-1], "max": max(rss)},
+                "outside_cache_mib": {"start": values[0], "after_warmup": warm, "end": end, "max": max(values)},
                 "growth_after_warmup_pct": round(growth, 2),
                 "server_vmhwm_mib": round(server.hwm_mib()),
                 "rss_series": series,

@@ -7,7 +7,7 @@
 # between the end of the first fifth of the run (warm-up: ONNX Runtime's arena, allocator
 # pools) and the end. Reports: target/loadtest/soak-rate.json, soak.json (with the RSS series).
 set -euo pipefail
-source "$(dirname "${BASH_SOURCE[0]}")/_server.sh"
+source "$(dirname "${BASH_SOURCE[0]}")/../scripts/_server.sh"
 SOAK_SECS=${SOAK_SECS:-1800}
 MEASURE_SECS=${MEASURE_SECS:-60}
 SIZES=${SIZES:-32,64,96}
