@@ -22,6 +22,7 @@ from ..rigs import synthetic_rig
 from ..runtime.volume_slabs import slab_volume_error
 from .manifest import FORMAT_VERSION, GraphEntry, GuidedPolicy, Manifest, Provenance, model_id, tensor_specs
 from .ray_groups import attention_cores_in_ray_groups
+from .subpixel_interleave import interleaves_as_depth_to_space
 
 OPSET = 20
 
@@ -402,6 +403,8 @@ def export_graph(module: nn.Module, inputs: dict[str, torch.Tensor], model: SCNe
     _strip_debug_metadata(proto)
     if graph in ("renderer", "renderer_guide"):
         attention_cores_in_ray_groups(proto)
+    if graph in ("volume", "volume_net"):
+        interleaves_as_depth_to_space(proto)
     _rename_dims(proto, signature)
     onnx.checker.check_model(proto, full_check=True)
     onnx.save(proto, path)

@@ -139,7 +139,7 @@ impl FirstConvolution {
 }
 
 /// Rows of a plane that one matrix product convolves: the kernel is packed once per product.
-const ROWS_PER_PRODUCT: usize = 8;
+const ROWS_PER_PRODUCT: usize = 32;
 
 /// Rows of a plane laid end to end for one matrix product, each cut to its cells that hold
 /// anything (a quarter of the cells at paper size lie in the padding where no view reaches:

@@ -229,7 +229,7 @@ fn swept_first_convolution(inputs: &VolumeInputs, conv: &FirstConvolution, pad: 
     let sweep = PlaneSweep::new(inputs.features.view(), inputs.images.view(), inputs.projections.view(), pad);
     let depths = inputs.depth_planes.as_slice().expect("a new array");
     let (hp, wp) = sweep.grid();
-    let mut conv0 = Array5::zeros((1, conv.outputs(), depths.len(), hp, wp));
+    let mut conv0 = written_zeros((1, conv.outputs(), depths.len(), hp, wp));
     let rows_per_thread = hp.div_ceil(threads.max(1)).max(1);
     std::thread::scope(|scope| {
         for (i, rows) in conv0.axis_chunks_iter_mut(Axis(3), rows_per_thread).enumerate() {
@@ -244,6 +244,18 @@ fn swept_first_convolution(inputs: &VolumeInputs, conv: &FirstConvolution, pad: 
         }
     });
     conv0
+}
+
+/// Zeros that are in memory. `Array5::zeros` takes fresh pages from calloc: until written, each
+/// maps the kernel's shared zero page, and the convolution reads before it writes (`+=`), so every
+/// page cost a read fault, then a copy-on-write fault that flushed the page from every CPU's TLB
+/// (a sixth of the volume build at 640x512). Written once here, each page faults once.
+fn written_zeros(shape: (usize, usize, usize, usize, usize)) -> Array5<f32> {
+    let (a, b, c, d, e) = shape;
+    let len = a * b * c * d * e;
+    let mut zeros = Vec::with_capacity(len);
+    zeros.resize(len, 0.0);
+    Array5::from_shape_vec(shape, zeros).expect("as many values as the shape holds")
 }
 
 /// The first convolution's kernel, read from the bundle's `cost_conv.onnx` by its response to
