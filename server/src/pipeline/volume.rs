@@ -249,7 +249,8 @@ fn swept_first_convolution(inputs: &VolumeInputs, conv: &FirstConvolution, pad: 
 /// Zeros that are in memory. `Array5::zeros` takes fresh pages from calloc: until written, each
 /// maps the kernel's shared zero page, and the convolution reads before it writes (`+=`), so every
 /// page cost a read fault, then a copy-on-write fault that flushed the page from every CPU's TLB
-/// (a sixth of the volume build at 640x512). Written once here, each page faults once.
+/// (a tenth of the server's CPU time while it built a 640x512 volume). Written once here, each
+/// page faults once.
 fn written_zeros(shape: (usize, usize, usize, usize, usize)) -> Array5<f32> {
     let (a, b, c, d, e) = shape;
     let len = a * b * c * d * e;
