@@ -9,7 +9,9 @@ time (a third of ``volume_net.onnx``'s time at 640x512). The same permutation in
 2. DepthToSpace (CRD, block 2) of (Co·d·rz, ry·rx, h, w) into (Co·d·rz, 1, 2h, 2w), whose kernel
    interleaves whole rows.
 
-Both only move values: the output is the original Transpose's, bit for bit.
+Both only move values: the output is the original Transpose's, bit for bit. The pass takes every
+Transpose of that 7-D perm to be such an interleave (sizes 2 on axes 1-3), as in G2's graphs;
+each exported graph is checked against PyTorch after it.
 """
 
 from __future__ import annotations
