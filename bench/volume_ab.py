@@ -27,6 +27,7 @@ from scnerf_export.data.scene import resize_view
 from scnerf_export.serving import ServerProcess, png_bytes
 
 from .memory import SHARED, triple_for
+from .runner import machine
 
 
 def scene_request(size: tuple[int, int]) -> dict:
@@ -107,6 +108,8 @@ def main() -> None:
             "threads": args.threads,
             "rounds": args.rounds,
             "when": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+            # The ratio depends on the CPU's vector extensions (docs/results.md, "The volume build").
+            "machine": machine(),
             "rows": rows,
         }
         args.out.write_text(json.dumps(result, indent=1) + "\n")
