@@ -1,5 +1,5 @@
 """`scnerf-export`: convert-mvsnerf, init-scnerf, export, fixtures, eval, example, experiment, train,
-finetune, blend-heads, quantize, reexport, add-guided, split-volume."""
+finetune, blend-heads, quantize, reexport, add-guided, split-volume, volume-tail."""
 
 from __future__ import annotations
 
@@ -180,6 +180,13 @@ def cmd_split_volume(args) -> None:
     print(f"wrote {args.out} ({manifest.model_id}; the volume agrees with {args.bundle} to {diff:.2g})")
 
 
+def cmd_volume_tail(args) -> None:
+    from .export.split_volume import leave_volume_tail_to_server
+
+    difference = leave_volume_tail_to_server(args.bundle)
+    print(f"rewrote {args.bundle}/volume_net.onnx (the volume agrees with the old graph's to {difference:.2g})")
+
+
 VOLUME_OPTION = dict(
     choices=["sweep", "slabs", "whole"],
     default="sweep",
@@ -341,6 +348,12 @@ def parser() -> argparse.ArgumentParser:
     s.add_argument("--out", required=True, type=Path)
     s.add_argument("--volume", choices=["sweep", "slabs"], default="sweep", help="how the new graphs build the volume")
     s.set_defaults(func=cmd_split_volume)
+
+    t = sub.add_parser(
+        "volume-tail", help="rewrite a bundle's volume_net.onnx in place to leave G2's last step to the server"
+    )
+    t.add_argument("--bundle", required=True, type=Path)
+    t.set_defaults(func=cmd_volume_tail)
     return p
 
 

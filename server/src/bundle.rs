@@ -124,6 +124,34 @@ impl VolumeBuild {
     }
 }
 
+/// Who computes G2's last step, `σ(N0(conv0)) + σ(N11(interleave(phases)))` (docs/bundle.md,
+/// `volume_net.onnx`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum VolumeTail {
+    /// The graph: `volume_net.onnx` outputs `volume` (and `volume.onnx` always does).
+    Graph,
+    /// The server, from `volume_net.onnx`'s `phases`, `skip_affine` and `phases_affine`, in one
+    /// pass over the volume (`pipeline::volume_tail`).
+    Server,
+}
+
+impl VolumeTail {
+    const PARTS: [&str; 3] = ["phases", "skip_affine", "phases_affine"];
+
+    /// The tail of a `volume_net.onnx` that declares `outputs`: `volume`, or the three parts.
+    fn of(outputs: &[TensorSpec]) -> Result<VolumeTail, String> {
+        let has = |name: &str| outputs.iter().any(|t| t.name == name);
+        match (has("volume"), Self::PARTS.map(has)) {
+            (true, [false, false, false]) => Ok(VolumeTail::Graph),
+            (false, [true, true, true]) => Ok(VolumeTail::Server),
+            _ => {
+                Err("graphs.volume_net.outputs: \"volume\", or \"phases\", \"skip_affine\" and \"phases_affine\""
+                    .into())
+            }
+        }
+    }
+}
+
 impl fmt::Display for GraphKind {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         f.write_str(self.name())
@@ -195,6 +223,9 @@ pub struct ModelConfig {
     pub head_dim: usize,
     #[serde(default)]
     pub width: usize,
+    /// G2's leaky ReLU slope: the server needs it when it computes G2's last step (`VolumeTail`).
+    #[serde(default)]
+    pub activation_slope: Option<f32>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -238,6 +269,14 @@ impl Bundle {
     /// How the volume is built (validate_manifest checked that the graphs are one of the ways).
     pub fn volume_build(&self) -> VolumeBuild {
         VolumeBuild::of(&self.manifest.graphs).unwrap_or(VolumeBuild::Whole)
+    }
+
+    /// Who computes G2's last step (validate_manifest checked `volume_net`'s outputs).
+    pub fn volume_tail(&self) -> VolumeTail {
+        match self.manifest.graphs.get(GraphKind::VolumeNet.name()) {
+            Some(entry) => VolumeTail::of(&entry.outputs).unwrap_or(VolumeTail::Graph),
+            None => VolumeTail::Graph,
+        }
     }
 
     /// The bundle's graphs in pipeline order.
@@ -299,6 +338,11 @@ pub fn validate_manifest(m: &Manifest) -> Result<ModelConfig, String> {
     for kind in VolumeBuild::of(&m.graphs)?.bundle_graphs() {
         let entry = m.graphs.get(kind.name()).ok_or_else(|| format!("graphs.{kind}: missing"))?;
         check_declared_io(kind, entry, &config)?;
+        if kind == GraphKind::VolumeNet && VolumeTail::of(&entry.outputs)? == VolumeTail::Server {
+            config
+                .activation_slope
+                .ok_or("config.activation_slope: missing (volume_net.onnx leaves G2's last step to the server)")?;
+        }
     }
     validate_guided(m, &config)?;
     let renderer_sha = &m.graphs["renderer"].sha256;
@@ -439,8 +483,17 @@ fn expected_io(kind: GraphKind, c: &ModelConfig) -> (Vec<Expected>, Vec<Expected
             (vec![e("cost", true, cost)], vec![e("conv0", true, conv0)])
         }
         GraphKind::VolumeNet => {
-            let conv0 = vec![fixed(1), fixed(c.volume_channels), fixed(c.depth_planes), named("Hp"), named("Wp")];
-            (vec![e("conv0", true, conv0)], vec![e("volume", true, volume)])
+            let cv = c.volume_channels;
+            let conv0 = vec![fixed(1), fixed(cv), fixed(c.depth_planes), named("Hp"), named("Wp")];
+            let phases = vec![fixed(1), fixed(8 * cv), fixed(c.depth_planes / 2), named("Hp/2"), named("Wp/2")];
+            let affine = vec![fixed(2), fixed(cv)];
+            let outputs = vec![
+                e("volume", false, volume),
+                e("phases", false, phases),
+                e("skip_affine", false, affine.clone()),
+                e("phases_affine", false, affine),
+            ];
+            (vec![e("conv0", true, conv0)], outputs)
         }
         GraphKind::Renderer | GraphKind::RendererGuide | GraphKind::RendererFine => {
             let mut inputs = vec![
@@ -743,6 +796,42 @@ mod tests {
         wrong.graphs.get_mut("cost_conv").unwrap().inputs[0].shape[1] = Dim::Fixed(32);
         let e = validate_manifest(&wrong).unwrap_err();
         assert!(e.contains("\"cost\": shape is [1, 32, \"Dh\", \"Hp\", \"Wp\"], the pipeline expects [1, 41,"), "{e}");
+    }
+
+    /// `volume_net` outputs the volume, or the parts of G2's last step with the slope in the config.
+    #[test]
+    fn volume_net_outputs_the_volume_or_the_parts_of_its_last_step() {
+        let spec = |name: &str, shape: serde_json::Value| -> TensorSpec {
+            serde_json::from_value(serde_json::json!({"name": name, "shape": shape, "dtype": "float32"})).unwrap()
+        };
+        let parts = vec![
+            spec("phases", serde_json::json!([1, 64, 64, "Hp/2", "Wp/2"])),
+            spec("skip_affine", serde_json::json!([2, 8])),
+            spec("phases_affine", serde_json::json!([2, 8])),
+        ];
+        let with_outputs = |outputs: Vec<TensorSpec>, slope: Option<f64>| {
+            let mut m = sweep_manifest();
+            m.graphs.get_mut("volume_net").unwrap().outputs = outputs;
+            if let Some(slope) = slope {
+                m.config.insert("activation_slope".into(), serde_json::json!(slope));
+            }
+            m
+        };
+        let volume = sweep_manifest().graphs["volume_net"].outputs.clone();
+        assert_eq!(VolumeTail::of(&volume), Ok(VolumeTail::Graph));
+        let server = with_outputs(parts.clone(), Some(0.01));
+        assert_eq!(validate_manifest(&server).unwrap().activation_slope, Some(0.01));
+        assert_eq!(VolumeTail::of(&server.graphs["volume_net"].outputs), Ok(VolumeTail::Server));
+        let e = validate_manifest(&with_outputs(parts.clone(), None)).unwrap_err();
+        assert!(e.contains("config.activation_slope: missing"), "{e}");
+        let e = validate_manifest(&with_outputs(parts[..2].to_vec(), Some(0.01))).unwrap_err();
+        assert!(e.contains("graphs.volume_net.outputs: \"volume\", or \"phases\""), "{e}");
+        let e = validate_manifest(&with_outputs([volume, parts.clone()].concat(), Some(0.01))).unwrap_err();
+        assert!(e.contains("graphs.volume_net.outputs: \"volume\", or \"phases\""), "{e}");
+        let mut odd = parts;
+        odd[0].shape[2] = Dim::Fixed(128);
+        let e = validate_manifest(&with_outputs(odd, Some(0.01))).unwrap_err();
+        assert!(e.contains("\"phases\": shape is [1, 64, 128,"), "{e}");
     }
 
     #[test]

@@ -19,10 +19,11 @@ from ..model.cost_volume import build_cost_volume, slab_halo
 from ..model.network import SCNeRF
 from ..model.renderer import nearest_heads
 from ..rigs import synthetic_rig
-from ..runtime.volume_slabs import slab_volume_error
+from ..runtime.volume_slabs import slab_volume_error, volume_from_tail
 from .manifest import FORMAT_VERSION, GraphEntry, GuidedPolicy, Manifest, Provenance, model_id, tensor_specs
 from .ray_groups import attention_cores_in_ray_groups
 from .subpixel_interleave import interleaves_as_depth_to_space
+from .volume_tail import tail_in_server
 
 OPSET = 20
 
@@ -237,7 +238,14 @@ def graph_signatures(model: SCNeRF) -> dict[str, dict[str, list]]:
             "outputs": {"conv0": slab_conv0},
         },
         "cost_conv": {"inputs": {"cost": [1, 3 * v + c, "Dh", "Hp", "Wp"]}, "outputs": {"conv0": slab_conv0}},
-        "volume_net": {"inputs": {"conv0": conv0}, "outputs": {"volume": vol}},
+        "volume_net": {
+            "inputs": {"conv0": conv0},
+            "outputs": {
+                "phases": [1, 8 * cfg.volume_channels, d // 2, "Hp/2", "Wp/2"],
+                "skip_affine": [2, cfg.volume_channels],
+                "phases_affine": [2, cfg.volume_channels],
+            },
+        },
         "renderer": {
             "inputs": {n: renderer_inputs[n] for n in renderer_input_names(model)},
             "outputs": {"rgb": ["R", 3], "depth": ["R"], "opacity": ["R"]},
@@ -362,7 +370,7 @@ def _dynamic_shapes(model: SCNeRF, graph: str) -> dict:
     return {name: {i: spatial[a] for i, a in enumerate(shape) if isinstance(a, str)} for name, shape in shapes.items()}
 
 
-def _rename_dims(proto: onnx.ModelProto, signature: dict) -> None:
+def rename_dims(proto: onnx.ModelProto, signature: dict) -> None:
     """Give dynamic axes the manifest's names (the exporter invents its own)."""
     for values, specs in ((proto.graph.input, signature["inputs"]), (proto.graph.output, signature["outputs"])):
         for value in values:
@@ -382,6 +390,17 @@ def _strip_debug_metadata(proto: onnx.ModelProto) -> None:
 
 
 def export_graph(module: nn.Module, inputs: dict[str, torch.Tensor], model: SCNeRF, graph: str, path: Path) -> None:
+    proto = traced_graph(module, inputs, model, graph)
+    if graph == "volume_net" and tail_in_server(proto) != np.float32(model.cfg.activation_slope):
+        raise GraphMismatch("volume_net.onnx: its leaky ReLU's slope is not the config's activation_slope")
+    rename_dims(proto, graph_signatures(model)[graph])
+    onnx.checker.check_model(proto, full_check=True)
+    onnx.save(proto, path)
+
+
+def traced_graph(module: nn.Module, inputs: dict[str, torch.Tensor], model: SCNeRF, graph: str) -> onnx.ModelProto:
+    """The graph as torch exports it, with the rewrites that keep what it computes and only
+    change how ONNX Runtime runs it."""
     signature = graph_signatures(model)[graph]
     dynamic = tuple(_dynamic_shapes(model, graph).values())
     if isinstance(module, (RendererGraph, GuideGraph, FineGraph)):  # forward(*args): one tuple argument
@@ -394,7 +413,7 @@ def export_graph(module: nn.Module, inputs: dict[str, torch.Tensor], model: SCNe
             dynamo=True,
             opset_version=OPSET,
             input_names=list(inputs),
-            output_names=list(signature["outputs"]),
+            output_names=list(_traced_outputs(graph, signature)),
             dynamic_shapes=dynamic,
             optimize=True,
             verbose=False,
@@ -405,9 +424,13 @@ def export_graph(module: nn.Module, inputs: dict[str, torch.Tensor], model: SCNe
         attention_cores_in_ray_groups(proto)
     if graph in ("volume", "volume_net"):
         interleaves_as_depth_to_space(proto)
-    _rename_dims(proto, signature)
-    onnx.checker.check_model(proto, full_check=True)
-    onnx.save(proto, path)
+    return proto
+
+
+def _traced_outputs(graph: str, signature: dict) -> list[str]:
+    """The outputs of the graph torch writes: ``volume_net``'s module returns the volume, whose last
+    step ``tail_in_server`` then leaves to the server."""
+    return ["volume"] if graph == "volume_net" else list(signature["outputs"])
 
 
 def graph_entry(path: Path, signature: dict[str, dict[str, list]]) -> GraphEntry:
@@ -447,9 +470,14 @@ def mismatch(what: str, error: float, allowed: float) -> GraphMismatch:
 
 def validate_graph(path: Path, module: nn.Module, inputs: dict[str, torch.Tensor], tolerance: float) -> float:
     """Run the written graph in ONNX Runtime on the tracing inputs; return max abs error vs torch,
-    refused beyond ``allowed_error``."""
+    refused beyond ``allowed_error``. ``volume_net``'s volume is the one the server computes from
+    the graph's outputs."""
     session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
-    got = session.run(None, {k: v.numpy() for k, v in inputs.items()})
+    feeds = {k: v.numpy() for k, v in inputs.items()}
+    got = session.run(None, feeds)
+    if isinstance(module, VolumeNetGraph):
+        parts = dict(zip([o.name for o in session.get_outputs()], got))
+        got = [volume_from_tail(feeds["conv0"], parts, module.model.cfg.activation_slope)]
     with torch.no_grad():
         want = module(*inputs.values())
     want = [w.numpy() for w in (want if isinstance(want, (tuple, list)) else (want,))]
@@ -468,7 +496,7 @@ def validate_slab_volume(
     slabs add up to the volume."""
     with torch.no_grad():
         want = model.build_volume(*inputs.values()).numpy()
-    error = slab_volume_error(want, out, build, {k: v.numpy() for k, v in inputs.items()}, model.cfg.pad)
+    error = slab_volume_error(want, out, build, {k: v.numpy() for k, v in inputs.items()}, model.cfg)
     allowed = allowed_error(tolerance, [want])
     if not error <= allowed:
         raise mismatch("the slab graphs' volume", error, allowed)

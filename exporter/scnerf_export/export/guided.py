@@ -39,12 +39,12 @@ def bundle_encoder(bundle: Path, manifest: Manifest):
         for name in manifest.graphs
         if name in ("encoder", "volume", "cost_slab", "cost_conv", "volume_net")
     }
-    pad = manifest.config.pad
+    cfg = manifest.config
 
     def encode(images, projections, depth_planes):
         (features,) = sessions["encoder"].run(None, {"images": images.numpy()})
         feeds = {"features": features, "images": images.numpy(), "projections": projections.numpy()}
-        volume = build_volume(sessions, {**feeds, "depth_planes": depth_planes.numpy()}, pad)
+        volume = build_volume(sessions, {**feeds, "depth_planes": depth_planes.numpy()}, cfg)
         return torch.from_numpy(features), torch.from_numpy(volume)
 
     return encode

@@ -11,6 +11,10 @@ a model with those weights and run side by side with the old ones in ONNX Runtim
 size other than the tracing one and with slabs of several sizes: they are kept only if the volumes
 agree (max abs error <= 1e-4). encoder.onnx and renderer.onnx are copied unchanged, so the model
 id stays.
+
+`scnerf-export volume-tail --bundle DIR` rewrites a bundle's ``volume_net.onnx`` in place so that
+the server computes G2's last step (``export.volume_tail``), as the exporter now writes it; the
+volumes are compared the same way before the graph is replaced.
 """
 
 from __future__ import annotations
@@ -31,8 +35,19 @@ from ..model.network import SCNeRF
 from ..rigs import synthetic_rig
 from ..runtime.volume_slabs import build_volume, slab_volume_error, volume_build
 from . import onnx_graph
-from .bundle import CHECK_BLOCKS, CHECK_RAYS, GRAPHS, VOLUME_GRAPHS, example_inputs, export_graphs
+from .bundle import (
+    CHECK_BLOCKS,
+    CHECK_RAYS,
+    GRAPHS,
+    VOLUME_GRAPHS,
+    example_inputs,
+    export_graphs,
+    graph_entry,
+    graph_signatures,
+    rename_dims,
+)
 from .manifest import Manifest
+from .volume_tail import tail_in_server
 
 AGREEMENT_TOLERANCE = 1e-4
 # Why G2 may not be found in a bundle's volume graphs.
@@ -108,10 +123,10 @@ def volumes_agree(
     """Largest difference between the volume of the bundle ``src`` (``manifest``: its manifest)
     and the one of the new graphs of ``volume`` in ``out`` over slabs of each size in
     ``slab_sizes``, on the volume's ``inputs`` (features, images, projections, depth_planes)."""
-    pad = manifest.config.pad
+    cfg = manifest.config
     graphs = VOLUME_GRAPHS[volume_build(manifest.graphs)]
-    old = build_volume({name: _session(manifest.graph_path(src, name)) for name in graphs}, inputs, pad)
-    return slab_volume_error(old, out, volume, inputs, pad, slab_sizes)
+    old = build_volume({name: _session(manifest.graph_path(src, name)) for name in graphs}, inputs, cfg)
+    return slab_volume_error(old, out, volume, inputs, cfg, slab_sizes)
 
 
 def check_inputs(encoder: Path, cfg: ModelConfig) -> dict[str, np.ndarray]:
@@ -167,3 +182,44 @@ def split_volume_bundle(bundle_dir: str | Path, out_dir: str | Path, volume: str
     }
     manifest.save(out)
     return manifest
+
+
+def leave_volume_tail_to_server(bundle_dir: str | Path) -> float:
+    """Rewrites the bundle's ``volume_net.onnx`` in place without G2's last step (the server's,
+    ``tail_in_server``), updates its manifest entry and provenance; returns the largest difference
+    between the volumes before and after. The model id stays (the renderer is unchanged)."""
+    bundle = Path(bundle_dir)
+    manifest = Manifest.load(bundle)
+    cfg = manifest.config
+    entry = manifest.graphs.get("volume_net")
+    if entry is None:
+        raise SplitVolumeError(f"{bundle}: no volume_net.onnx (scnerf-export split-volume writes one)")
+    if "volume" not in {t.name for t in entry.outputs}:
+        raise SplitVolumeError(f"{bundle}: volume_net.onnx already leaves G2's last step to the server")
+    path = manifest.graph_path(bundle, "volume_net")
+    proto = onnx.load(str(path))
+    if tail_in_server(proto) != np.float32(cfg.activation_slope):
+        raise SplitVolumeError(f"{path}: its leaky ReLU's slope is not the config's activation_slope")
+    signature = graph_signatures(SCNeRF(cfg))["volume_net"]
+    rename_dims(proto, signature)
+    onnx.checker.check_model(proto, full_check=True)
+    rewritten = path.with_name("volume_net.rewritten.onnx")
+    onnx.save(proto, str(rewritten))
+    inputs = check_inputs(manifest.graph_path(bundle, "encoder"), cfg)
+    build = volume_build(manifest.graphs)
+    slab = {name: _session(manifest.graph_path(bundle, name)) for name in VOLUME_GRAPHS[build] if name != "volume_net"}
+    before = build_volume({**slab, "volume_net": _session(path)}, inputs, cfg)
+    after = build_volume({**slab, "volume_net": _session(rewritten)}, inputs, cfg)
+    difference = float(np.abs(after - before).max())
+    if not difference <= AGREEMENT_TOLERANCE:
+        rewritten.unlink()
+        raise SplitVolumeError(f"{bundle}: the rewritten volume_net's volume differs by {difference:.3g}")
+    rewritten.replace(path)
+    manifest.graphs["volume_net"] = graph_entry(path, signature)
+    manifest.provenance.extra["volume_tail"] = {
+        "exporter_version": __version__,
+        "volume_max_abs_difference": difference,
+        "what": "volume_net.onnx written again without G2's last step, which the server computes",
+    }
+    manifest.save(bundle)
+    return difference

@@ -66,7 +66,7 @@ class OnnxBundle:
             "depth_planes": cams.depth_planes(near, far, self.cfg.depth_planes),
         }
         start = time.perf_counter()
-        volume = build_volume(self.sessions, feeds, self.cfg.pad)
+        volume = build_volume(self.sessions, feeds, self.cfg)
         self.timings["volume"] = self.timings.get("volume", 0.0) + time.perf_counter() - start
         return {
             "images": imgs,

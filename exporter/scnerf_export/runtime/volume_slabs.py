@@ -1,6 +1,7 @@
 """The encoding volume in ONNX Runtime, as the server builds it: slab by slab of depth planes, each
 slab's first convolution of G2 concatenated, then ``volume_net.onnx`` (G2 with the whole volume's
-norm statistics). A slab's cost volume comes from the server's plane sweep (``plane_sweep``, then
+norm statistics), whose last step the server computes when the graph returns its parts
+(:func:`volume_from_tail`). A slab's cost volume comes from the server's plane sweep (``plane_sweep``, then
 ``cost_conv.onnx``) or, in a bundle written before the sweep, from ``cost_slab.onnx`` itself; a
 bundle written before the volume was split has one ``volume.onnx`` instead. :func:`build_volume`
 runs whichever the bundle has.
@@ -13,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
+from ..config import ModelConfig
 from ..model.cost_volume import slab_halo
 from .plane_sweep import sweep
 
@@ -49,19 +51,49 @@ def slab_feeds(build: str, inputs: dict[str, np.ndarray], start: int, stop: int,
     return {**inputs, "depth_planes": planes, "plane_inside": inside}
 
 
+def volume_from_tail(conv0: np.ndarray, outputs: dict[str, np.ndarray], slope: float) -> np.ndarray:
+    """G2's last step from what ``volume_net.onnx`` returns in place of the volume, as the server
+    computes it (docs/bundle.md): ``σ(conv0·skip_affine) + σ(interleave(phases)·phases_affine)``,
+    σ the leaky ReLU of ``slope``, each affine map [scale; shift] per channel."""
+    phases = outputs["phases"]
+    c = conv0.shape[1]
+    _, _, d, h, w = phases.shape
+    up = phases.reshape(c, 2, 2, 2, d, h, w).transpose(0, 4, 1, 5, 2, 6, 3).reshape(1, c, 2 * d, 2 * h, 2 * w)
+
+    def activated(x: np.ndarray, affine: np.ndarray) -> np.ndarray:
+        y = x * affine[0].reshape(1, c, 1, 1, 1) + affine[1].reshape(1, c, 1, 1, 1)
+        return np.where(y > 0, y, y * np.float32(slope))
+
+    return activated(conv0, outputs["skip_affine"]) + activated(up, outputs["phases_affine"])
+
+
+def run_volume_net(session: ort.InferenceSession, conv0: np.ndarray, slope: float) -> np.ndarray:
+    """The volume from G2's first convolution: ``volume_net.onnx``'s output, or the volume of the
+    parts it returns."""
+    names = [o.name for o in session.get_outputs()]
+    outputs = dict(zip(names, session.run(None, {"conv0": conv0})))
+    return outputs["volume"] if "volume" in outputs else volume_from_tail(conv0, outputs, slope)
+
+
 def volume_by_slabs(
-    sessions: dict[str, ort.InferenceSession], inputs: dict[str, np.ndarray], step: int, pad: int
+    sessions: dict[str, ort.InferenceSession], inputs: dict[str, np.ndarray], step: int, cfg: ModelConfig
 ) -> np.ndarray:
     """The encoding volume from the volume's ``inputs``, ``step`` planes per slab run."""
     build = volume_build(sessions)
     slab = sessions["cost_conv" if build == "sweep" else "cost_slab"]
     d = inputs["depth_planes"].shape[0]
-    slabs = [slab.run(None, slab_feeds(build, inputs, a, min(a + step, d), pad))[0] for a in range(0, d, step)]
-    return sessions["volume_net"].run(None, {"conv0": np.concatenate(slabs, axis=2)})[0]
+    feeds = (slab_feeds(build, inputs, a, min(a + step, d), cfg.pad) for a in range(0, d, step))
+    conv0 = np.concatenate([slab.run(None, f)[0] for f in feeds], axis=2)
+    return run_volume_net(sessions["volume_net"], conv0, cfg.activation_slope)
 
 
 def slab_volume_error(
-    reference: np.ndarray, bundle_dir: Path, build: str, inputs: dict[str, np.ndarray], pad: int, slab_sizes=(1, 5, 64)
+    reference: np.ndarray,
+    bundle_dir: Path,
+    build: str,
+    inputs: dict[str, np.ndarray],
+    cfg: ModelConfig,
+    slab_sizes=(1, 5, 64),
 ) -> float:
     """Largest difference from ``reference`` of the volume that ``bundle_dir``'s slab graphs of
     ``build`` build from ``inputs``, over slabs of each size in ``slab_sizes``."""
@@ -69,11 +101,14 @@ def slab_volume_error(
         name: ort.InferenceSession(str(bundle_dir / f"{name}.onnx"), providers=["CPUExecutionProvider"])
         for name in ({"sweep": "cost_conv", "slabs": "cost_slab"}[build], "volume_net")
     }
-    return max(float(np.abs(volume_by_slabs(sessions, inputs, step, pad) - reference).max()) for step in slab_sizes)
+    return max(float(np.abs(volume_by_slabs(sessions, inputs, step, cfg) - reference).max()) for step in slab_sizes)
 
 
 def build_volume(
-    sessions: dict[str, ort.InferenceSession], inputs: dict[str, np.ndarray], pad: int, budget: int = SLAB_BUDGET_BYTES
+    sessions: dict[str, ort.InferenceSession],
+    inputs: dict[str, np.ndarray],
+    cfg: ModelConfig,
+    budget: int = SLAB_BUDGET_BYTES,
 ) -> np.ndarray:
     """The encoding volume from the volume's ``inputs``, by the bundle's own graphs (``sessions``
     by graph name), slabs of what ``budget`` allows."""
@@ -81,5 +116,5 @@ def build_volume(
     if build == "whole":
         return sessions["volume"].run(None, inputs)[0]
     _, _, h, w = inputs["features"].shape
-    step = planes_per_slab(build, inputs["depth_planes"].shape[0], (h + 2 * pad) * (w + 2 * pad), budget)
-    return volume_by_slabs(sessions, inputs, step, pad)
+    step = planes_per_slab(build, inputs["depth_planes"].shape[0], (h + 2 * cfg.pad) * (w + 2 * cfg.pad), budget)
+    return volume_by_slabs(sessions, inputs, step, cfg)

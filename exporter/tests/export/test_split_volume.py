@@ -72,7 +72,7 @@ def test_a_split_bundle_renders_what_the_whole_one_renders(tmp_path, build):
     for planes in (1, 4, cfg.depth_planes):
         budget = (planes + 2) * SLAB_BYTES_PER_CELL[build] * cells
         assert planes_per_slab(build, cfg.depth_planes, cells, budget) == planes
-        got = build_volume(split.sessions, inputs, cfg.pad, budget)
+        got = build_volume(split.sessions, inputs, cfg, budget)
         assert np.array_equal(got, want) if build == "slabs" else np.abs(got - want).max() <= 1e-4
 
 

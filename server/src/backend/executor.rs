@@ -5,7 +5,8 @@ use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::time::Instant;
 
 use super::memory::{MemoryBudget, MemoryRefusals};
-use super::queue::{Inputs, Job, Queue, Running};
+use super::queue::{Finish, Inputs, Job, Queue, Running};
+use super::ticket::Outputs;
 use super::{BackendError, GraphRunner, NamedTensors};
 use crate::bundle::GraphKind;
 use crate::sysmem::MemoryProbe;
@@ -150,7 +151,7 @@ fn worker(mut runner: Box<dyn GraphRunner>, shared: Arc<Shared>) {
             q.running = Some(Running { deadline: job.deadline, secs, started });
         }
         let inputs = std::mem::replace(&mut job.inputs, Inputs::Ready(Vec::new()));
-        let result = run_guarded(runner.as_mut(), job.graph, inputs, release);
+        let result = run_guarded(runner.as_mut(), job.graph, inputs, job.finish.take(), release);
         let took = started.elapsed().as_secs_f64();
         if let Some(probe) = probe {
             probe.finish(job.graph.name());
@@ -165,20 +166,21 @@ fn worker(mut runner: Box<dyn GraphRunner>, shared: Arc<Shared>) {
     }
 }
 
-/// A panic inside a runner or while the inputs are made must not take the process (or the
-/// executor thread) down.
+/// A panic inside a runner or while the inputs are made or the outputs finished must not take
+/// the process (or the executor thread) down.
 fn run_guarded(
     runner: &mut dyn GraphRunner,
     graph: GraphKind,
     inputs: Inputs,
+    finish: Option<Finish>,
     release: bool,
 ) -> Result<NamedTensors, BackendError> {
     let run = || {
         let inputs = inputs.make(graph);
-        if release {
-            runner.run_and_release(graph, &inputs)
-        } else {
-            runner.run(graph, &inputs)
+        let outputs = if release { runner.run_and_release(graph, &inputs) } else { runner.run(graph, &inputs) }?;
+        match finish {
+            Some(finish) => finish(inputs, Outputs::new(graph, outputs)),
+            None => Ok(outputs),
         }
     };
     std::panic::catch_unwind(std::panic::AssertUnwindSafe(run)).unwrap_or_else(|panic| {
@@ -288,5 +290,35 @@ mod tests {
         assert_eq!(*made_on.lock().unwrap(), (Some("scnerf-inference".to_string()), 1));
         assert_eq!(*order.lock().unwrap(), vec![0, 1]);
         ticket.run(GraphKind::Renderer, 0.0, tagged(2)).await.unwrap();
+    }
+
+    /// A job's finish turns its outputs into the job's on the executor thread, after the run,
+    /// with the inputs the run read; a panic there is the run's error.
+    #[tokio::test]
+    async fn a_finish_runs_after_the_graph_with_its_inputs_on_the_executor() {
+        let (backend, order, open) = recorder();
+        open.send(()).unwrap();
+        let ticket = backend.admit(far(), NONE, 0).unwrap();
+        let ran = order.clone();
+        let finished = ticket.run_prepared_then(
+            GraphKind::VolumeNet,
+            0.0,
+            || tagged(3),
+            move |inputs, outputs| {
+                assert_eq!(*ran.lock().unwrap(), vec![3], "the graph ran first");
+                assert!(outputs.into_tensors().is_empty());
+                let thread = std::thread::current().name().map(String::from);
+                assert_eq!(thread.as_deref(), Some("scnerf-inference"));
+                Ok(vec![("volume".into(), inputs[0].1.clone())])
+            },
+        );
+        let mut outputs = finished.await.unwrap();
+        let volume = outputs.take::<ndarray::Ix1>("volume", &[Some(1)]).unwrap();
+        assert_eq!(volume.to_vec(), vec![3.0]);
+        let failing = ticket.run_prepared_then(GraphKind::VolumeNet, 0.0, || tagged(4), |_, _| panic!("no volume"));
+        let err = failing.await.unwrap_err();
+        assert!(matches!(&err, BackendError::Run { message, .. } if message == "no volume"), "{err}");
+        ticket.run(GraphKind::Renderer, 0.0, tagged(5)).await.unwrap();
+        assert_eq!(*order.lock().unwrap(), vec![3, 4, 5]);
     }
 }

@@ -9,8 +9,13 @@ use tracing::Span;
 
 use super::memory::MemoryRefusals;
 use super::rates::{Rates, Work};
+use super::ticket::Outputs;
 use super::{BackendError, NamedTensors};
 use crate::bundle::GraphKind;
+
+/// What a job does with its outputs on the executor thread, given the inputs the run read
+/// (`Ticket::run_prepared_then`): its result is the job's.
+pub(super) type Finish = Box<dyn FnOnce(NamedTensors, Outputs) -> Result<NamedTensors, BackendError> + Send>;
 
 /// A job's inputs: given, or made by the executor when the job runs.
 pub(super) enum Inputs {
@@ -37,6 +42,7 @@ pub(super) struct Job {
     pub(super) graph: GraphKind,
     pub(super) units: f64,
     pub(super) inputs: Inputs,
+    pub(super) finish: Option<Finish>,
     pub(super) reply: oneshot::Sender<Result<NamedTensors, BackendError>>,
     pub(super) span: Span,
     pub(super) deadline: Instant,

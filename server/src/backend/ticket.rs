@@ -10,7 +10,7 @@ use tokio::sync::oneshot;
 use tracing::Span;
 
 use super::executor::Shared;
-use super::queue::{Inputs, Job};
+use super::queue::{Finish, Inputs, Job};
 use super::{BackendError, NamedTensors};
 use crate::bundle::GraphKind;
 
@@ -36,7 +36,7 @@ impl Ticket {
         units: f64,
         inputs: NamedTensors,
     ) -> impl Future<Output = Result<Outputs, BackendError>> + Send + 'static {
-        self.run_job(graph, units, Inputs::Ready(inputs), false)
+        self.run_job(graph, units, Inputs::Ready(inputs), None, false)
     }
 
     /// [`Ticket::run`] for the request's last run of `graph` (see `GraphRunner::run_and_release`).
@@ -46,7 +46,7 @@ impl Ticket {
         units: f64,
         inputs: NamedTensors,
     ) -> impl Future<Output = Result<Outputs, BackendError>> + Send + 'static {
-        self.run_job(graph, units, Inputs::Ready(inputs), true)
+        self.run_job(graph, units, Inputs::Ready(inputs), None, true)
     }
 
     /// [`Ticket::run`] with inputs that `prepare` makes on the executor thread when the job's turn
@@ -57,7 +57,20 @@ impl Ticket {
         units: f64,
         prepare: impl FnOnce() -> NamedTensors + Send + 'static,
     ) -> impl Future<Output = Result<Outputs, BackendError>> + Send + 'static {
-        self.run_job(graph, units, Inputs::Prepared(Box::new(prepare)), false)
+        self.run_job(graph, units, Inputs::Prepared(Box::new(prepare)), None, false)
+    }
+
+    /// [`Ticket::run_prepared`] whose outputs `finish` turns into the job's, on the executor
+    /// thread, with the inputs the run read: CPU work right after a graph, on buffers the run no
+    /// longer needs (G2's last step writes the volume into its input's buffer).
+    pub fn run_prepared_then(
+        &self,
+        graph: GraphKind,
+        units: f64,
+        prepare: impl FnOnce() -> NamedTensors + Send + 'static,
+        finish: impl FnOnce(NamedTensors, Outputs) -> Result<NamedTensors, BackendError> + Send + 'static,
+    ) -> impl Future<Output = Result<Outputs, BackendError>> + Send + 'static {
+        self.run_job(graph, units, Inputs::Prepared(Box::new(prepare)), Some(Box::new(finish)), false)
     }
 
     fn run_job(
@@ -65,11 +78,12 @@ impl Ticket {
         graph: GraphKind,
         units: f64,
         inputs: Inputs,
+        finish: Option<Finish>,
         last: bool,
     ) -> impl Future<Output = Result<Outputs, BackendError>> + Send + 'static {
         let (reply, rx) = oneshot::channel();
         let span = Span::current();
-        let job = Job { ticket: self.id, graph, units, inputs, reply, span, deadline: self.deadline, last };
+        let job = Job { ticket: self.id, graph, units, inputs, finish, reply, span, deadline: self.deadline, last };
         let queued = {
             let mut q = self.shared.lock();
             if q.stopped {
@@ -83,7 +97,7 @@ impl Ticket {
         async move {
             queued?;
             let outputs = rx.await.map_err(|_| BackendError::Stopped)??;
-            Ok(Outputs { graph, tensors: outputs })
+            Ok(Outputs::new(graph, outputs))
         }
     }
 }
@@ -102,6 +116,15 @@ pub struct Outputs {
 }
 
 impl Outputs {
+    pub fn new(graph: GraphKind, tensors: NamedTensors) -> Outputs {
+        Outputs { graph, tensors }
+    }
+
+    /// The tensors not taken.
+    pub fn into_tensors(self) -> NamedTensors {
+        self.tensors
+    }
+
     /// Removes the named output and checks its shape (`None` = any size on that axis), which
     /// also fixes its rank `D`.
     pub fn take<D: Dimension>(

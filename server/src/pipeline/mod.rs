@@ -22,6 +22,7 @@ pub mod sweep;
 mod tests;
 pub mod views;
 pub mod volume;
+pub mod volume_tail;
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -162,7 +163,7 @@ impl Pipeline {
         limits: Limits,
     ) -> Pipeline {
         let sampling = if bundle.guided().is_some() { Sampling::Guided } else { Sampling::Full };
-        let volume = Arc::new(VolumeBuilder::new(bundle.volume_build(), slabs));
+        let volume = Arc::new(VolumeBuilder::new(bundle.volume_build(), bundle.volume_tail(), slabs));
         Pipeline { backend, bundle: Arc::new(bundle), chunking, volume, limits, sampling }
     }
 

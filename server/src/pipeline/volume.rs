@@ -12,8 +12,10 @@
 //! has the server compute that first convolution itself, a row of a plane at a time: the plane
 //! sweep (`sweep`) gives the row's cost, the convolution (`first_conv`, its kernel read from
 //! `cost_conv.onnx`) adds the row's terms into place; this runs on the executor thread as the
-//! preparation of the `volume_net` run (`Ticket::run_prepared`). Every way gives the same volume
-//! up to float rounding (the exporter checks each bundle's graphs against PyTorch's).
+//! preparation of the `volume_net` run (`Ticket::run_prepared`). A `volume_net.onnx` may leave
+//! G2's last step to the server (`VolumeTail::Server`, `volume_tail`), which then computes it on
+//! the executor thread right after the run. Every way gives the same volume up to float rounding
+//! (the exporter checks each bundle's graphs against PyTorch's).
 
 use std::ops::Range;
 
@@ -24,8 +26,9 @@ use tokio::sync::OnceCell;
 
 use super::first_conv::{self, FirstConvolution};
 use super::sweep::PlaneSweep;
-use crate::backend::{BackendError, NamedTensors, Ticket, Work};
-use crate::bundle::{GraphKind, ModelConfig, VolumeBuild};
+use super::volume_tail;
+use crate::backend::{BackendError, NamedTensors, Outputs, Ticket, Work};
+use crate::bundle::{GraphKind, ModelConfig, VolumeBuild, VolumeTail};
 use crate::camera::{stack_rows, Camera};
 
 /// Working memory of one cost slab run per cell of its planes (halo included), bytes: 660-730
@@ -149,17 +152,19 @@ impl VolumeInputs {
     }
 }
 
-/// How this server builds volumes: the bundle's way, the slab policy and, for the plane sweep,
-/// the first convolution's kernel, read from `cost_conv.onnx` by the first build.
+/// How this server builds volumes: the bundle's way and who computes G2's last step, the slab
+/// policy and, for the plane sweep, the first convolution's kernel, read from `cost_conv.onnx` by
+/// the first build.
 pub struct VolumeBuilder {
     build: VolumeBuild,
+    tail: VolumeTail,
     policy: SlabPolicy,
     first_conv: OnceCell<FirstConvolution>,
 }
 
 impl VolumeBuilder {
-    pub fn new(build: VolumeBuild, policy: SlabPolicy) -> VolumeBuilder {
-        VolumeBuilder { build, policy, first_conv: OnceCell::new() }
+    pub fn new(build: VolumeBuild, tail: VolumeTail, policy: SlabPolicy) -> VolumeBuilder {
+        VolumeBuilder { build, tail, policy, first_conv: OnceCell::new() }
     }
 
     pub fn build(&self) -> VolumeBuild {
@@ -203,22 +208,39 @@ impl VolumeBuilder {
             }
             VolumeBuild::Slabs => {
                 let conv0 = first_convolution(ticket, config, &self.policy, &inputs).await?;
-                let named = vec![("conv0".to_string(), conv0.into_shared().into_dyn())];
-                ticket.run(GraphKind::VolumeNet, pixels, named).await?
+                self.run_volume_net(ticket, config, pixels, move || conv0).await?
             }
             VolumeBuild::Sweep => {
                 let conv = self.first_conv.get_or_try_init(|| read_first_convolution(ticket, config)).await?.clone();
                 let (pad, threads) = (config.pad, self.policy.threads);
-                ticket
-                    .run_prepared(GraphKind::VolumeNet, pixels, move || {
-                        let conv0 = swept_first_convolution(&inputs, &conv, pad, threads);
-                        vec![("conv0".to_string(), conv0.into_shared().into_dyn())]
-                    })
-                    .await?
+                let sweep = move || swept_first_convolution(&inputs, &conv, pad, threads);
+                self.run_volume_net(ticket, config, pixels, sweep).await?
             }
         };
         let (d, cv, p) = (config.depth_planes, config.volume_channels, config.pad);
         out.take("volume", &[Some(1), Some(cv), Some(d), Some(h + 2 * p), Some(w + 2 * p)])
+    }
+}
+
+impl VolumeBuilder {
+    /// G2 after its first convolution, which `conv0` makes on the executor thread, and its last
+    /// step after the graph when the server computes it.
+    async fn run_volume_net(
+        &self,
+        ticket: &Ticket,
+        config: &ModelConfig,
+        pixels: f64,
+        conv0: impl FnOnce() -> Array5<f32> + Send + 'static,
+    ) -> Result<Outputs, BackendError> {
+        let named = move || vec![("conv0".to_string(), conv0().into_shared().into_dyn())];
+        match (self.tail, config.activation_slope) {
+            (VolumeTail::Server, Some(slope)) => {
+                let threads = self.policy.threads;
+                let finish = move |inputs, outputs| volume_tail::finish(inputs, outputs, slope, threads);
+                ticket.run_prepared_then(GraphKind::VolumeNet, pixels, named, finish).await
+            }
+            _ => ticket.run_prepared(GraphKind::VolumeNet, pixels, named).await,
+        }
     }
 }
 
