@@ -6,8 +6,8 @@ G2 ends with ``V = σ(N0(conv0)) + σ(N11(interleave(P)))``: σ the leaky ReLU, 
 volume's statistics, P the 8·C sub-pixel phases of conv11 (``transposed_conv_as_subpixel``).
 In ONNX Runtime each operator of that sum writes a tensor of the volume's size (150 MB for
 640x512 sources), a fresh mapping that is faulted in page by page: the interleave, the squares
-for the statistics, the norm, the activation and the sum took 0.78 - 0.55 = 0.23 s of the graph's
-run (docs/results.md, "The volume build"). A norm is per channel and the interleave a
+for the statistics, the norm, the activation and the sum took a third of the graph's run
+(docs/results.md, "The volume build"). A norm is per channel and the interleave a
 permutation, so N11's statistics are those of P with the 8 phases of each channel taken together,
 and each norm is ``x·scale + shift`` per channel once they are known.
 

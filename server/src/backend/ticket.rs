@@ -120,11 +120,6 @@ impl Outputs {
         Outputs { graph, tensors }
     }
 
-    /// The tensors not taken.
-    pub fn into_tensors(self) -> NamedTensors {
-        self.tensors
-    }
-
     /// Removes the named output and checks its shape (`None` = any size on that axis), which
     /// also fixes its rank `D`.
     pub fn take<D: Dimension>(
