@@ -390,9 +390,14 @@ def _strip_debug_metadata(proto: onnx.ModelProto) -> None:
 
 
 def export_graph(module: nn.Module, inputs: dict[str, torch.Tensor], model: SCNeRF, graph: str, path: Path) -> None:
-    proto = traced_graph(module, inputs, model, graph)
-    if graph == "volume_net" and tail_in_server(proto) != np.float32(model.cfg.activation_slope):
-        raise GraphMismatch("volume_net.onnx: its leaky ReLU's slope is not the config's activation_slope")
+    write_graph(traced_graph(module, inputs, model, graph), model, graph, path)
+
+
+def write_graph(proto: onnx.ModelProto, model: SCNeRF, graph: str, path: Path) -> None:
+    """Writes ``graph`` as torch exported it (``traced_graph``) in the form a bundle holds:
+    ``volume_net`` without G2's last step, the dynamic axes under the manifest's names, checked."""
+    if graph == "volume_net":
+        tail_in_server(proto, model.cfg.activation_slope)
     rename_dims(proto, graph_signatures(model)[graph])
     onnx.checker.check_model(proto, full_check=True)
     onnx.save(proto, path)

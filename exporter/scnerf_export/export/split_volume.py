@@ -44,10 +44,9 @@ from .bundle import (
     export_graphs,
     graph_entry,
     graph_signatures,
-    rename_dims,
+    write_graph,
 )
 from .manifest import Manifest
-from .volume_tail import tail_in_server
 
 AGREEMENT_TOLERANCE = 1e-4
 # Why G2 may not be found in a bundle's volume graphs.
@@ -197,14 +196,9 @@ def leave_volume_tail_to_server(bundle_dir: str | Path) -> float:
     if "volume" not in {t.name for t in entry.outputs}:
         raise SplitVolumeError(f"{bundle}: volume_net.onnx already leaves G2's last step to the server")
     path = manifest.graph_path(bundle, "volume_net")
-    proto = onnx.load(str(path))
-    if tail_in_server(proto) != np.float32(cfg.activation_slope):
-        raise SplitVolumeError(f"{path}: its leaky ReLU's slope is not the config's activation_slope")
-    signature = graph_signatures(SCNeRF(cfg))["volume_net"]
-    rename_dims(proto, signature)
-    onnx.checker.check_model(proto, full_check=True)
+    model = SCNeRF(cfg)
     rewritten = path.with_name("volume_net.rewritten.onnx")
-    onnx.save(proto, str(rewritten))
+    write_graph(onnx.load(str(path)), model, "volume_net", rewritten)
     inputs = check_inputs(manifest.graph_path(bundle, "encoder"), cfg)
     build = volume_build(manifest.graphs)
     slab = {name: _session(manifest.graph_path(bundle, name)) for name in VOLUME_GRAPHS[build] if name != "volume_net"}
@@ -215,7 +209,7 @@ def leave_volume_tail_to_server(bundle_dir: str | Path) -> float:
         rewritten.unlink()
         raise SplitVolumeError(f"{bundle}: the rewritten volume_net's volume differs by {difference:.3g}")
     rewritten.replace(path)
-    manifest.graphs["volume_net"] = graph_entry(path, signature)
+    manifest.graphs["volume_net"] = graph_entry(path, graph_signatures(model)["volume_net"])
     manifest.provenance.extra["volume_tail"] = {
         "exporter_version": __version__,
         "volume_max_abs_difference": difference,

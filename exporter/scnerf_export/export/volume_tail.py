@@ -20,6 +20,7 @@ The rewritten graph outputs (docs/bundle.md, ``volume_net.onnx``):
 
 from __future__ import annotations
 
+import numpy as np
 import onnx
 from onnx import TensorProto, helper
 
@@ -35,9 +36,11 @@ class TailNotFound(ValueError):
     """The graph does not end as G2 does; one line, fit for a CLI."""
 
 
-def tail_in_server(model: onnx.ModelProto, input_name: str = "conv0", output_name: str = "volume") -> float:
-    """Rewrites ``volume_net``'s end in place (``output_name`` = σ(N0(``input_name``)) +
-    σ(N11(interleave(P)))); returns σ's slope, which the server takes from the config."""
+def tail_in_server(model: onnx.ModelProto, slope: float) -> None:
+    """Rewrites ``volume_net``'s end in place (``volume`` = σ(N0(``conv0``)) +
+    σ(N11(interleave(P)))). The server takes σ's slope from the config: the graph's must be
+    ``slope``."""
+    input_name, output_name = "conv0", "volume"
     graph = model.graph
     nodes = list(graph.node)
     producer, consumer = onnx_graph.producers(nodes), onnx_graph.consumers(nodes)
@@ -51,9 +54,9 @@ def tail_in_server(model: onnx.ModelProto, input_name: str = "conv0", output_nam
     if skip is None or len(branches) != 2:
         raise TailNotFound(f"{output_name} does not add the activated norm of {input_name}")
     up = branches[1 - branches.index(skip)]
-    slopes = {_attribute(activation, "alpha", 0.01) for activation, _ in branches}
-    if len(slopes) != 1:
-        raise TailNotFound(f"the two leaky ReLUs differ in slope: {sorted(slopes)}")
+    slopes = {np.float32(_attribute(activation, "alpha", 0.01)) for activation, _ in branches}
+    if slopes != {np.float32(slope)}:
+        raise TailNotFound(f"the leaky ReLUs' slopes {sorted(map(float, slopes))} are not the config's {slope}")
     interleaved = up[1].input[0]
     phases = _phases_before(nodes, producer, interleaved)
     channels = _channels(graph, skip[1])
@@ -81,7 +84,6 @@ def tail_in_server(model: onnx.ModelProto, input_name: str = "conv0", output_nam
     )
     _keep_only_what_outputs_need(graph)
     onnx_graph.sort_with_outer_scope_reads(graph)
-    return slopes.pop()
 
 
 def _activated_norm(nodes, producer, name: str) -> tuple[onnx.NodeProto, onnx.NodeProto]:

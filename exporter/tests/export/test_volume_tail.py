@@ -51,8 +51,8 @@ def test_the_server_step_gives_the_volume_of_the_graph_it_was_cut_from(g2_ending
     whole = g2_ending_in_the_graph
     cut = onnx.ModelProto()
     cut.CopyFrom(whole)
-    slope = tail_in_server(cut)
-    assert slope == np.float32(small_config("scnerf").activation_slope)
+    slope = small_config("scnerf").activation_slope
+    tail_in_server(cut, slope)
     onnx.checker.check_model(cut, full_check=True)
     assert [o.name for o in cut.graph.output] == [PHASES, SKIP_AFFINE, PHASES_AFFINE]
     depth_to_space = [n for n in cut.graph.node if n.op_type == "DepthToSpace"]
@@ -67,19 +67,24 @@ def test_the_server_step_gives_the_volume_of_the_graph_it_was_cut_from(g2_ending
 
 
 def test_a_graph_that_does_not_end_as_g2_is_refused(g2_ending_in_the_graph):
+    slope = small_config("scnerf").activation_slope
+    other_slope = onnx.ModelProto()
+    other_slope.CopyFrom(g2_ending_in_the_graph)
+    with pytest.raises(TailNotFound, match=r"slopes \[0.0099999\d*\] are not the config's 0.2"):
+        tail_in_server(other_slope, 0.2)
     cut = onnx.ModelProto()
     cut.CopyFrom(g2_ending_in_the_graph)
-    tail_in_server(cut)
+    tail_in_server(cut, slope)
     with pytest.raises(TailNotFound, match="no volume output"):
-        tail_in_server(cut)
+        tail_in_server(cut, slope)
     subtracted = onnx.ModelProto()
     subtracted.CopyFrom(g2_ending_in_the_graph)
     next(n for n in subtracted.graph.node if "volume" in n.output).op_type = "Sub"
     with pytest.raises(TailNotFound, match="volume is not a sum"):
-        tail_in_server(subtracted)
+        tail_in_server(subtracted, slope)
     # Norms written as the chain of operators older exporters wrote are not taken apart.
     with pytest.raises(TailNotFound, match="is not a leaky ReLU of a BatchNormalization"):
-        tail_in_server(onnx.load(str(FIXTURES / "parity-slabs" / "volume_net.onnx")))
+        tail_in_server(onnx.load(str(FIXTURES / "parity-slabs" / "volume_net.onnx")), slope)
 
 
 def bundle_ending_g2_in_the_graph(tmp_path, g2: onnx.ModelProto):

@@ -220,9 +220,7 @@ impl VolumeBuilder {
         let (d, cv, p) = (config.depth_planes, config.volume_channels, config.pad);
         out.take("volume", &[Some(1), Some(cv), Some(d), Some(h + 2 * p), Some(w + 2 * p)])
     }
-}
 
-impl VolumeBuilder {
     /// G2 after its first convolution, which `conv0` makes on the executor thread, and its last
     /// step after the graph when the server computes it.
     async fn run_volume_net(
