@@ -195,7 +195,13 @@ def fine_levels(renderer, scene, near_far, policy, camera, background, full: dic
         levels.append({"rows": rows, "samples": index.shape[1], "variants": shaded})
         return shaded["guide"]
 
-    view = render_guided(policy, camera.width, camera.height, samples, origins, directions, background, guide, fine)
+    def again(_, dirs):
+        # A pixel rendered again at all S samples is what the full render has there.
+        return {k: full[k][rows_of(dirs)] for k in ("rgb", "depth", "opacity", "weights")}
+
+    view = render_guided(
+        policy, camera.width, camera.height, samples, origins, directions, background, guide, fine, again
+    )
     return levels, view
 
 
@@ -231,8 +237,8 @@ def scores(levels: list, full: dict, truth: np.ndarray, background: np.ndarray) 
 
 
 def measure_scene(name: str, size: tuple[int, int], renderer, bundle: OnnxBundle, policy, chunk: int) -> dict:
-    folder, fmt, target = SCENES[name]
-    scene = datasets.load_scene(SHARED / folder, fmt)
+    folder, fmt, scale, target = SCENES[name]
+    scene = datasets.load_scene(SHARED / folder, fmt, scale=scale)
     sources = datasets.nearest_sources(scene, target, source_pool(scene, scene.default_targets))
     views = datasets.get_views(scene, sources)
     target_view = scene.views[target]

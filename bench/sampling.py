@@ -1,13 +1,14 @@
 """`python -m bench.sampling`: full against guided sampling through the server, on real scenes.
 
-Per scene (Blender lego r_28 and DTU scan37 view 32 from ``../shared/data``, each with its 3
-nearest source views, the paper's protocol) the sources are encoded once as a scene; then per
-target size the view is rendered with ``"sampling": "full"`` and ``"guided"`` in turn (``--rounds``
-rounds, the fastest of each kept), and each mode's renderer time (the server's own stage timing),
-network samples per pixel and PSNR against the ground truth are recorded. A size of another
-aspect than the scene's photos is the target camera scaled to the size's width and cropped about
-its centre (square pixels; the ground truth scaled and cropped alike). Writes
-``bench/results/sampling-<date>.json`` and prints the markdown table of docs/results.md.
+Per scene (Blender lego r_28, DTU scan37 view 32 and LLFF horns' first held-out view from
+``../shared/data``, each with its 3 nearest source views, the paper's protocol) the sources are
+encoded once as a scene; then per target size the view is rendered with ``"sampling": "full"``
+and ``"guided"`` in turn (``--rounds`` rounds, the fastest of each kept), and each mode's
+renderer time (the server's own stage timing), network samples per pixel and PSNR against the
+ground truth are recorded. A size of another aspect than the scene's photos is the target camera
+scaled to cover the size and cropped about its centre (square pixels; the ground truth scaled and
+cropped alike). Writes ``bench/results/sampling-<date>.json`` and prints the markdown table of
+docs/results.md.
 
     .venv/bin/python -m bench.sampling --bundle bundles/default --threads 2
 """
@@ -33,26 +34,31 @@ from scnerf_export.serving import ServerProcess, find_server_binary
 from .scene import parse_sizes
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
-SCENES = {"lego": ("nerf_synthetic_lego", "blender", "r_28"), "scan37": ("dtu_scan37", "dtu", "32")}
+# folder, format, the scale its images are read at, target view.
+SCENES = {
+    "lego": ("nerf_synthetic_lego", "blender", 1.0, "r_28"),
+    "scan37": ("dtu_scan37", "dtu", 1.0, "32"),
+    # LLFF's 504x378 set; its first held-out view (LLFF holds out every 8th).
+    "horns": ("llff_horns", "llff", 1 / 8, "DJI_20200223_163016_842"),
+}
 MODES = ("full", "guided")
 
 
 def cropped_target(camera: Camera, image: np.ndarray, width: int, height: int) -> tuple[Camera, np.ndarray]:
-    """The camera and ground truth scaled to ``width`` and cropped (or padded by nothing: the
-    scaled height must cover ``height``) about the centre to ``height``."""
-    scale = width / camera.width
-    scaled_height = round(camera.height * scale)
-    if scaled_height < height:
-        raise ValueError(f"{width}x{height} is taller than the scene's photos")
-    resized = camera.resized(width, scaled_height)
-    top = (scaled_height - height) // 2
+    """The camera and ground truth scaled to cover ``width`` x ``height`` (the larger of the two
+    ratios) and cropped about the centre to it."""
+    scale = max(width / camera.width, height / camera.height)
+    scaled_width, scaled_height = max(width, round(camera.width * scale)), max(height, round(camera.height * scale))
+    resized = camera.resized(scaled_width, scaled_height)
+    left, top = (scaled_width - width) // 2, (scaled_height - height) // 2
     K = resized.K.copy()
+    K[0, 2] -= left
     K[1, 2] -= top
     truth = np.asarray(
-        Image.fromarray((image * 255).round().astype(np.uint8)).resize((width, scaled_height), Image.BOX),
+        Image.fromarray((image * 255).round().astype(np.uint8)).resize((scaled_width, scaled_height), Image.BOX),
         np.float32,
     )
-    return Camera(K, resized.w2c, width, height), truth[top : top + height] / 255.0
+    return Camera(K, resized.w2c, width, height), truth[top : top + height, left : left + width] / 255.0
 
 
 def scene_upload(client, scene: datasets.SceneData, target: str) -> tuple[object, list[str]]:
@@ -110,8 +116,8 @@ def run(args) -> dict:
     with ServerProcess(binary, args.bundle, threads=args.threads, extra=extra) as server:
         results["model_id"] = server.client.model()["model_id"]
         for name in args.scenes:
-            folder, fmt, target = SCENES[name]
-            scene = datasets.load_scene(SHARED / folder, fmt)
+            folder, fmt, scale, target = SCENES[name]
+            scene = datasets.load_scene(SHARED / folder, fmt, scale=scale)
             uploaded, sources = scene_upload(server.client, scene, target)
             view = datasets.get_views(scene, [target])[0]
             rows = {}

@@ -176,7 +176,7 @@ pub struct EvalArgs {
     /// Render targets at 1/N of their size, against box-averaged ground truth.
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..))]
     pub downscale: u32,
-    /// Save the rendered views here.
+    /// Save the rendered views here, each with its absolute error image (NAME.error.png).
     #[arg(long)]
     pub out: Option<PathBuf>,
 }

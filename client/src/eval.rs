@@ -11,7 +11,7 @@ use std::time::Instant;
 use crate::api::{Client, Upload};
 use crate::cli::{say, source_views, EvalArgs};
 use crate::error::{read_bytes, Error, Result};
-use crate::metrics::{psnr, ssim, Image};
+use crate::metrics::{error_png, psnr, ssim, Image};
 use crate::render::write_atomically;
 use scnerf_capture::camera::rank_sources;
 use scnerf_capture::readers::{Capture, CapturedView};
@@ -61,7 +61,9 @@ pub fn run(client: &Client, capture: &Capture, args: &EvalArgs) -> Result<()> {
                 .downscaled(n as usize);
             if let Some(dir) = &args.out {
                 std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
-                write_atomically(&dir.join(format!("{}.png", target.name.replace('/', "_"))), &rendered.rgb_png)?;
+                let name = target.name.replace('/', "_");
+                write_atomically(&dir.join(format!("{name}.png")), &rendered.rgb_png)?;
+                write_atomically(&dir.join(format!("{name}.error.png")), &error_png(&pred, &gt)?)?;
             }
             let row = Row {
                 view: target.name.clone(),

@@ -45,6 +45,20 @@ impl Image {
     }
 }
 
+/// The absolute error of `pred` against `gt`, per pixel and channel, as an 8-bit RGB PNG: where
+/// the model fails, not only by how much on average.
+pub fn error_png(pred: &Image, gt: &Image) -> Result<Vec<u8>> {
+    same_shape(pred, gt)?;
+    let bytes: Vec<u8> =
+        pred.data.iter().zip(&gt.data).map(|(p, g)| ((p - g).abs().min(1.0) * 255.0).round() as u8).collect();
+    let rgb = image::RgbImage::from_raw(pred.width as u32, pred.height as u32, bytes)
+        .ok_or_else(|| Error::Usage("an error image needs 3 channels".into()))?;
+    let mut png = Vec::new();
+    rgb.write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
+        .map_err(|e| Error::Usage(format!("cannot encode the error image: {e}")))?;
+    Ok(png)
+}
+
 fn same_shape(pred: &Image, gt: &Image) -> Result<()> {
     if (pred.width, pred.height, pred.channels) != (gt.width, gt.height, gt.channels) {
         return Err(Error::Usage(format!(

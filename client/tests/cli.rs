@@ -6,6 +6,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 use common::FakeServer;
+use scnerf_client::metrics::Image;
 
 fn fixture(name: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../tests/fixtures/datasets").join(name)
@@ -146,6 +147,37 @@ fn eval_scores_held_out_views_against_the_nearest_sources() {
     );
     assert!(lines[1].trim_start().starts_with("mean"), "{stdout2}");
     assert_eq!(server.uploads(), vec![3]);
+}
+
+#[test]
+fn eval_writes_each_views_render_and_its_absolute_error() {
+    let server = FakeServer::start();
+    let data = fixture("dtu");
+    let out = tempfile::tempdir().unwrap();
+    let dir = out.path().to_str().unwrap();
+    let run = scnerf(&[
+        "eval",
+        data.to_str().unwrap(),
+        "--server",
+        &server.url,
+        "--holdout",
+        "4",
+        "--downscale",
+        "32",
+        "--out",
+        dir,
+    ]);
+    assert!(run.status.success(), "{:?}", text(&run));
+    let read = |path: &Path| Image::decode(&std::fs::read(path).unwrap(), [0.0; 3]).unwrap();
+    let render = read(&out.path().join("0.png"));
+    let error = read(&out.path().join("0.error.png"));
+    let truth = read(&data.join("Rectified/scan1_train/rect_001_3_r5000.png")).downscaled(32);
+    assert_eq!((error.width, error.height), (render.width, render.height));
+    let expected: Vec<f64> =
+        render.data.iter().zip(&truth.data).map(|(r, t)| ((r - t).abs() * 255.0).round()).collect();
+    let got: Vec<f64> = error.data.iter().map(|e| (e * 255.0).round()).collect();
+    assert_eq!(got, expected);
+    assert!(got.iter().any(|&e| e > 0.0), "the fake render differs from the truth somewhere");
 }
 
 #[test]

@@ -16,6 +16,7 @@ use crate::bundle::{validate_manifest, Bundle, GraphKind, Manifest};
 use crate::config::GraphOptLevel;
 use crate::http::{AppState, ServiceOptions};
 use crate::pipeline::chunks::ChunkPolicy;
+use crate::pipeline::guided::GuidedPolicy;
 use crate::pipeline::volume::SlabPolicy;
 use crate::pipeline::Pipeline;
 use crate::request::Limits;
@@ -108,6 +109,13 @@ pub fn guided_manifest(variant: &str) -> Manifest {
 /// A bundle of [`guided_manifest`]'s.
 pub fn guided_bundle(variant: &str) -> Bundle {
     bundle_of(guided_manifest(variant))
+}
+
+/// [`guided_bundle`] with another policy.
+pub fn guided_bundle_with(variant: &str, policy: GuidedPolicy) -> Bundle {
+    let mut manifest = guided_manifest(variant);
+    manifest.guided = Some(policy);
+    bundle_of(manifest)
 }
 
 fn bundle_of(manifest: Manifest) -> Bundle {

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -171,12 +172,21 @@ class GuidedPolicy:
     support_threshold: float = 1e-3
     smooth_tolerance: float = 0.03
     smooth_max_step: int = 2
+    # A K-sample pixel that disagrees with its neighbours by more than this is rendered again at
+    # all S samples, at most ``verify_share`` of a level's, the worst first (None: never).
+    verify_tolerance: float | None = 0.15
+    verify_share: float | None = 0.1
+
+    # Keys a manifest may leave out (bundles written before them): the server reads them as absent.
+    OPTIONAL = ("verify_tolerance", "verify_share")
 
     def __post_init__(self) -> None:
         if self.step < 1 or self.step & (self.step - 1):
             raise ValueError(f"guided.step must be a power of two, got {self.step}")
         if len(self.samples) != self.step.bit_length() - 1:
             raise ValueError(f"guided.samples needs one count per level below step {self.step}")
+        if (self.verify_tolerance is None) != (self.verify_share is None):
+            raise ValueError("guided.verify_tolerance and guided.verify_share come together")
 
     @staticmethod
     def for_model(cfg: ModelConfig) -> GuidedPolicy:
@@ -186,10 +196,15 @@ class GuidedPolicy:
 
     @classmethod
     def from_json(cls, data: Any, where: str = "guided") -> GuidedPolicy:
-        # Every key, and no other: the server's GuidedPolicy has no defaults and denies unknown keys.
-        _require(_object(data, where), [f.name for f in dataclasses.fields(cls)], where)
+        # Every key but the optional ones, and no other: the server denies unknown keys.
+        required = [f.name for f in dataclasses.fields(cls) if f.name not in cls.OPTIONAL]
+        _require(_object(data, where), required, where)
         values, _ = _keys(cls, data, where, open_keys=False)
         samples = _list(values["samples"], f"{where}.samples")
+
+        def optional(key: str) -> float | None:
+            return None if values.get(key) is None else _typed(values[key], (int, float), f"{where}.{key}")
+
         try:
             return cls(
                 step=_typed(values["step"], int, f"{where}.step"),
@@ -197,12 +212,20 @@ class GuidedPolicy:
                 support_threshold=_typed(values["support_threshold"], (int, float), f"{where}.support_threshold"),
                 smooth_tolerance=_typed(values["smooth_tolerance"], (int, float), f"{where}.smooth_tolerance"),
                 smooth_max_step=_typed(values["smooth_max_step"], int, f"{where}.smooth_max_step"),
+                verify_tolerance=optional("verify_tolerance"),
+                verify_share=optional("verify_share"),
             )
         except ValueError as exc:
             raise ManifestError(str(exc)) from None
 
     def to_json(self) -> dict:
-        return {**dataclasses.asdict(self), "samples": list(self.samples)}
+        written = {k: v for k, v in dataclasses.asdict(self).items() if v is not None or k not in self.OPTIONAL}
+        return {**written, "samples": list(self.samples)}
+
+    def most_reruns(self, fine: int) -> int:
+        """The most pixels of a level of ``fine`` K-sample pixels rendered again (the server's
+        ``GuidedPolicy::most_reruns``)."""
+        return 0 if self.verify_share is None else math.floor(self.verify_share * fine)
 
     def levels(self) -> list[tuple[int, int]]:
         """(grid spacing, samples per pixel) of every level after the first, coarse to fine."""

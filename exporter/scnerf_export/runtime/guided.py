@@ -14,9 +14,11 @@ nested grids:
   weights (:func:`select_samples`): the K (the level's ``samples``) uniform samples where the
   neighbours composite most, each standing for the nearby samples where a neighbour saw matter
   (its multiplicity), run through ``renderer_fine.onnx`` with the rectifier heads of the nearest
-  level-0 ray (:func:`nearest_guide`).
+  level-0 ray (:func:`nearest_guide`). Where the policy has ``verify_tolerance``, a level's
+  K-sample pixels whose outputs disagree with their neighbours' (:func:`disagreeing`) are rendered
+  again at all S samples before the next level reads them.
 
-Every pixel is rendered once; a level-0 pixel is rendered exactly as with full sampling.
+A level-0 pixel, and a pixel rendered again, is rendered exactly as with full sampling.
 """
 
 from __future__ import annotations
@@ -34,6 +36,9 @@ from .view import Rendering, renderer_passes
 # What a guide run returns per ray: rgb (R,3), depth (R), opacity (R), weights (R,S), and per
 # rectifier name its heads (R, h*d_k, C).
 GuideRun = Callable[[np.ndarray, np.ndarray], dict[str, np.ndarray]]
+# The full network at all S samples without the heads (pixels rendered again): rgb, depth,
+# opacity, weights (R,S).
+FullRun = Callable[[np.ndarray, np.ndarray], dict[str, np.ndarray]]
 # What a fine run takes: origins, directions, sample_index (R,K), multiplicity (R,K), each ray's
 # guide ray (R) (the guide rays' heads are the caller's); returns rgb, depth, opacity, weights (R,K).
 FineRun = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray], dict[str, np.ndarray]]
@@ -123,6 +128,31 @@ def spread_weights(weights: np.ndarray, multiplicity: np.ndarray, owner: np.ndar
     return np.where(owner >= 0, share[rows, np.maximum(owner, 0)], np.float32(0.0)).astype(np.float32)
 
 
+def disagreement(own: np.ndarray, near: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """How far each pixel's outputs lie outside its neighbours': ``own`` (N,4) and ``near``
+    (N,4,4) composited colour and opacity; the largest distance of the colour outside the
+    neighbours' range in a channel, or of the opacity below their lowest (N), float32."""
+    colours = near[..., :3]
+    high = np.where(valid[..., None], colours, -np.inf).max(axis=1)
+    low = np.where(valid[..., None], colours, np.inf).min(axis=1)
+    colour = np.maximum(np.maximum(low - own[:, :3], own[:, :3] - high).max(axis=1), np.float32(0.0))
+    lowest = np.where(valid, near[..., 3], np.inf).min(axis=1)
+    return np.maximum(colour, lowest - own[:, 3]).astype(np.float32)
+
+
+def disagreeing(policy: GuidedPolicy, gap: np.ndarray) -> np.ndarray:
+    """Which of a level's K-sample pixels (their :func:`disagreement` ``gap``, row by row) are
+    rendered again: those beyond ``verify_tolerance``, the worst first (ties: the earlier), at
+    most ``policy.most_reruns`` of them; a boolean mask."""
+    again = np.zeros(len(gap), bool)
+    if policy.verify_tolerance is None:
+        return again
+    beyond = np.nonzero(gap > np.float32(policy.verify_tolerance))[0]
+    worst = beyond[np.lexsort((beyond, -gap[beyond]))][: policy.most_reruns(len(gap))]
+    again[worst] = True
+    return again
+
+
 def nearest_guide(pixels: np.ndarray, grid_width: int, grid_height: int, step: int) -> np.ndarray:
     """The level-0 ray nearest each pixel (half-way: the later), as a row of the level-0 grid
     (row by row), float32 (the graph's input): its rectifier heads stand for the pixel's."""
@@ -152,8 +182,10 @@ def render_guided(
     background: np.ndarray,
     guide: GuideRun,
     fine: FineRun,
+    full: FullRun | None = None,
 ) -> GuidedView:
-    """Every pixel of a ``width`` x ``height`` view (rays row by row) by the policy."""
+    """Every pixel of a ``width`` x ``height`` view (rays row by row) by the policy; ``full``
+    renders the pixels rendered again (needed when the policy verifies)."""
     n = width * height
     rgb, depth, opacity = np.zeros((n, 3), np.float32), np.zeros(n, np.float32), np.zeros(n, np.float32)
     # The weights over all S samples of the pixels later levels read (every second row and column).
@@ -195,6 +227,15 @@ def render_guided(
         if keeps_guidance:
             guidance[rows] = spread_weights(out["weights"], multiplicity, owner)
         run_samples += len(rows) * count
+        outputs = np.concatenate([rgb + (1.0 - opacity)[:, None] * background, opacity[:, None]], axis=1)
+        again = disagreeing(policy, disagreement(outputs[rows], outputs[near_rows[run]], valid[run]))
+        if again.any():
+            rows = rows[again]
+            out = full(origins[rows], directions[rows])
+            rgb[rows], depth[rows], opacity[rows] = out["rgb"], out["depth"], out["opacity"]
+            if keeps_guidance:
+                guidance[rows] = out["weights"]
+            run_samples += len(rows) * samples
     return GuidedView(rgb, depth, opacity, run_samples, interpolated)
 
 
@@ -216,7 +257,7 @@ def _masked_max(values: np.ndarray, valid: np.ndarray) -> np.ndarray:
 
 
 def guided_rendering(
-    policy: GuidedPolicy, cfg, target: Camera, background, guide: GuideRun, fine: FineRun
+    policy: GuidedPolicy, cfg, target: Camera, background, guide: GuideRun, fine: FineRun, full: FullRun
 ) -> Rendering:
     """A target view by guided sampling, composited on ``background``: what both Python runtimes
     return."""
@@ -224,7 +265,7 @@ def guided_rendering(
         raise ValueError("guided sampling needs depth_norm near_far (not a depth range from the whole image)")
     origins, directions = cams.target_rays(target)
     bg = np.asarray(background, dtype=np.float32)
-    view = render_guided(policy, target.width, target.height, cfg.samples, origins, directions, bg, guide, fine)
+    view = render_guided(policy, target.width, target.height, cfg.samples, origins, directions, bg, guide, fine, full)
     rgb = view.rgb + (1.0 - view.opacity[:, None]) * bg
     shape = (target.height, target.width)
     samples_per_ray = view.network_samples / (target.width * target.height)

@@ -92,6 +92,25 @@ def test_optional_keys_may_be_absent(tmp_path):
     assert "guided" not in manifest.to_json() and "source_kind" not in manifest.to_json()["provenance"]
 
 
+def test_a_guided_policy_without_verification_reads_as_none_and_writes_back_alike(tmp_path):
+    """Bundles written before verification keep rendering as they did: no pixel rendered again."""
+
+    def plain(data):
+        for key in GuidedPolicy.OPTIONAL:
+            data["guided"].pop(key, None)
+
+    manifest = write_changed(tmp_path, plain)
+    assert manifest.guided.verify_tolerance is None and manifest.guided.verify_share is None
+    assert manifest.guided.most_reruns(1000) == 0
+    assert not set(GuidedPolicy.OPTIONAL) & set(manifest.to_json()["guided"])
+
+    def half(data):
+        data["guided"]["verify_tolerance"] = 0.1
+
+    with pytest.raises(ManifestError, match="come together"):
+        write_changed(tmp_path, half)
+
+
 def test_keys_the_server_ignores_are_kept(tmp_path):
     def annotate(data):
         data["comment"] = "made by hand"

@@ -27,6 +27,7 @@ PUBLIC_SHA256 = "84c2a397760d5e717c21faee9c4f8f8f8a1ba22b378b10971c44f4a0b932c12
 LEGO_FLOOR_DB, SCAN37_MASKED_FLOOR_DB = 23.0, 20.0
 SERVER_AGREEMENT_DB = 0.1
 GUIDED_LOSS_DB = 0.3
+SPECKLED_SHARE = 0.003
 
 
 def load_rgb(path):
@@ -69,11 +70,13 @@ def test_default_bundle_renders_the_example_above_its_floor():
 class RealView:
     """A target of a real scene, its sources and how it is scored."""
 
-    def __init__(self, folder: str, fmt: str, target: str, sources: list[str] | None, scale: float):
+    def __init__(
+        self, folder: str, fmt: str, target: str, sources: list[str] | None, scale: float, image_scale: float = 1.0
+    ):
         path = shared_dir() / "data" / folder
         if not path.is_dir():
             pytest.skip(f"{path} not found (../shared is absent on this machine)")
-        self.scene = datasets.load_scene(path, fmt)
+        self.scene = datasets.load_scene(path, fmt, scale=image_scale)
         pool = source_pool(self.scene, [target])
         self.source_names = sources or datasets.nearest_sources(self.scene, target, pool)
         self.sources = datasets.get_views(self.scene, self.source_names)
@@ -84,6 +87,8 @@ class RealView:
     def image_file(path, fmt, name):
         if fmt == "dtu":
             return next((path / "Rectified").glob(f"*/rect_{int(name) + 1:03d}_3_r5000.png"))
+        if fmt == "llff":
+            return path / "images_8" / f"{name}.png"
         return path / "train" / f"{name}.png"
 
     def render_onnx(self) -> np.ndarray:
@@ -101,12 +106,12 @@ class RealView:
             .rgb
         )
 
-    def render_served(self, server: ServerProcess, sampling: str) -> np.ndarray:
+    def render_served(self, server: ServerProcess, sampling: str, target: Camera | None = None) -> np.ndarray:
         s = self.scene
         return server.client.render(
             [f.read_bytes() for f in self.image_files],
             [camera_json(v.camera) for v in self.sources],
-            camera_json(self.target.camera),
+            camera_json(target or self.target.camera),
             s.near,
             s.far,
             s.background,
@@ -156,3 +161,52 @@ def test_the_server_renders_scan37_view32_as_onnx_runtime_does_guided_within_its
     assert abs(served - scan37_onnx_psnr) <= SERVER_AGREEMENT_DB
     # The default sampling's bound: within 0.3 dB of every sample on every ray.
     assert guided >= served - GUIDED_LOSS_DB
+
+
+@pytest.fixture(scope="module")
+def horns_view0():
+    """LLFF horns' first held-out view (LLFF's every 8th) at 252x189 from its 3 nearest others."""
+    return RealView("llff_horns", "llff", "DJI_20200223_163016_842", None, 0.5, image_scale=1 / 8)
+
+
+@pytest.fixture(scope="module")
+def horns_server():
+    binary = find_server_binary()
+    assert binary is not None, "no scnerf-server binary under target/: build it first (scripts/test.sh does)"
+    with ServerProcess(binary, BUNDLE, extra=("--request-timeout-secs", "3600")) as server:
+        yield server
+
+
+@pytest.mark.slow
+def test_guided_leaves_no_speckles_on_a_real_capture(horns_view0, horns_server):
+    """Pixels where guided and full sampling differ by more than 0.25 in a channel: 0.54 % of the
+    view before pixels that disagree with their neighbours were rendered again, 0.24 % after
+    (docs/results.md). The goal is 0.1 %; what is left lies mostly where the target sees past
+    the reference view (the band, not repaired yet)."""
+    full = horns_view0.render_served(horns_server, "full")
+    guided = horns_view0.render_served(horns_server, "guided")
+    speckled = (np.abs(guided - full).max(axis=2) > 0.25).mean()
+    assert speckled <= SPECKLED_SHARE, f"{speckled:.3%} of the pixels differ by more than 0.25"
+
+
+@pytest.mark.slow
+def test_guided_fills_no_block_of_a_smooth_region_with_one_colour(horns_view0, horns_server):
+    """The pillar and the wall behind it at four times the size (1008x756; a 160x96 window):
+    no 8x8 block of the guided view is one colour where the full render's is not."""
+    window = crop(horns_view0.target.camera.scaled(4.0), top=100, left=400, width=160, height=96)
+    full, guided = (horns_view0.render_served(horns_server, mode, window) for mode in ("full", "guided"))
+
+    def spread(image):  # per 8x8 block, the largest range of a channel
+        blocks = image[: 96 // 8 * 8, : 160 // 8 * 8].reshape(12, 8, 20, 8, 3)
+        return (blocks.max(axis=(1, 3)) - blocks.min(axis=(1, 3))).max(axis=-1)
+
+    one_colour = (spread(guided) < 1 / 255) & (spread(full) > 4 / 255)
+    assert not one_colour.any(), f"{one_colour.sum()} blocks of one colour"
+
+
+def crop(camera: Camera, top: int, left: int, width: int, height: int) -> Camera:
+    """The window of ``camera``'s image at (top, left), as a camera of its own."""
+    K = camera.K.copy()
+    K[0, 2] -= left
+    K[1, 2] -= top
+    return Camera(K, camera.w2c, width, height)

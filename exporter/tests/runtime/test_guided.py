@@ -17,6 +17,8 @@ from scnerf_export.model.network import SCNeRF
 from scnerf_export.model.renderer import composite_weights, nearest_heads, uniform_depths
 from scnerf_export.rigs import random_model, rig_cameras, smooth_pattern, synthetic_rig
 from scnerf_export.runtime.guided import (
+    disagreeing,
+    disagreement,
     first_level_pixels,
     level_pixels,
     nearest_guide,
@@ -91,6 +93,28 @@ def test_ties_go_to_the_samples_nearest_the_best():
 def test_the_nearest_guide_ray_rounds_half_way_up():
     pixels = np.array([[4, 2], [3, 12], [0, 23]])
     assert nearest_guide(pixels, 3, 3, 8).tolist() == [3, 2, 2]
+
+
+def test_pixels_that_disagree_with_their_neighbours_are_rendered_again_worst_first():
+    """The server's case (guided.rs): a grey opaque 5 x 5 frame; at spacing 1, (1, 1) missed its
+    neighbours' matter, (1, 3) is brighter than any, (3, 1) a little off, (3, 3) agrees."""
+    outputs = np.tile(np.float32([0.5, 0.5, 0.5, 1.0]), (25, 1))
+    outputs[1 * 5 + 1] = [0.15, 0.15, 0.15, 0.3]  # composited on a black background
+    outputs[1 * 5 + 3, :3] = 0.9
+    outputs[3 * 5 + 1, :3] = 0.55
+    pixels = np.array([[1, 1], [1, 3], [3, 1], [3, 3]])
+    near, valid = neighbours(pixels, 5, 5, 1)
+    gap = disagreement(outputs[pixels[:, 0] * 5 + pixels[:, 1]], outputs[near[..., 0] * 5 + near[..., 1]], valid)
+    np.testing.assert_allclose(gap, [0.7, 0.4, 0.05, 0.0], atol=1e-6)
+
+    def verifying(tolerance, share):
+        return GuidedPolicy(step=4, samples=(4, 4), verify_tolerance=tolerance, verify_share=share)
+
+    assert disagreeing(verifying(0.1, 1.0), gap).tolist() == [True, True, False, False]
+    assert disagreeing(verifying(0.01, 0.25), gap).tolist() == [True, False, False, False]
+    assert disagreeing(verifying(0.01, 0.75), gap).tolist() == [True, True, True, False]
+    plain = GuidedPolicy(step=4, samples=(4, 4), verify_tolerance=None, verify_share=None)
+    assert not disagreeing(plain, gap).any()
 
 
 def test_policy_fits_the_model():

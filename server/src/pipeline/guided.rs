@@ -13,10 +13,13 @@
 //!   mean and the network does not run. Otherwise its samples come from the neighbours' weights
 //!   ([`select_samples`]): the K (the level's `samples`) uniform samples where the neighbours
 //!   composite most, each standing for the nearby samples where a neighbour saw matter, run
-//!   through `renderer_fine.onnx` with the rectifier heads of the nearest level-0 ray.
+//!   through `renderer_fine.onnx` with the rectifier heads of the nearest level-0 ray;
+//! * after each level, its K-sample pixels whose colour or opacity their neighbours disagree
+//!   with by more than `verify_tolerance` ([`disagreeing`]) are rendered again at all S samples
+//!   (`renderer_guide.onnx`), at most `verify_share` of them, before the next level reads them.
 //!
-//! Each pixel is rendered once. The counts and thresholds are the bundle's (`guided` in the
-//! manifest), so the exporter that measured them and the server agree.
+//! A pixel is rendered once, or twice where it disagrees. The counts and thresholds are the
+//! bundle's (`guided` in the manifest), so the exporter that measured them and the server agree.
 
 use std::cmp::Ordering;
 use std::ops::Range;
@@ -76,6 +79,15 @@ pub struct GuidedPolicy {
     pub smooth_tolerance: f32,
     /// Coarsest grid spacing at which pixels may take their neighbours' mean.
     pub smooth_max_step: usize,
+    /// A pixel rendered at K samples whose composited colour lies further than this outside its
+    /// neighbours' range in a channel, or whose opacity lies this far below theirs, is rendered
+    /// again at all S samples ([`disagreeing`]). Absent: no pixel is rendered again.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub verify_tolerance: Option<f32>,
+    /// The largest share of a level's K-sample pixels rendered again, the worst first: bounds a
+    /// view's work when most of its pixels disagree.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub verify_share: Option<f64>,
 }
 
 impl GuidedPolicy {
@@ -94,7 +106,16 @@ impl GuidedPolicy {
         if !finite {
             return Err("guided.support_threshold and guided.smooth_tolerance must be finite and >= 0".into());
         }
-        Ok(())
+        match (self.verify_tolerance, self.verify_share) {
+            (None, None) => Ok(()),
+            (Some(t), Some(share)) if t.is_finite() && t >= 0.0 && (0.0..=1.0).contains(&share) => Ok(()),
+            _ => Err("guided.verify_tolerance (finite, >= 0) and guided.verify_share (0 to 1) come together".into()),
+        }
+    }
+
+    /// The most pixels of a level of `fine` K-sample pixels that are rendered again.
+    pub fn most_reruns(&self, fine: usize) -> usize {
+        self.verify_share.map_or(0, |share| (share * fine as f64).floor() as usize)
     }
 
     /// (grid spacing, samples per pixel) of every level after the first, coarse to fine.
@@ -102,12 +123,19 @@ impl GuidedPolicy {
         self.samples.iter().enumerate().map(|(i, &k)| (self.step >> (i + 1), k))
     }
 
-    /// The guide rays of a `width` x `height` view, and its fine rays' samples at most (when no
-    /// pixel takes its neighbours' mean): for admission, before the view is rendered.
+    /// The level-0 rays of a `width` x `height` view.
+    pub fn guide_rays(&self, width: usize, height: usize) -> usize {
+        grid_len(width, self.step) * grid_len(height, self.step)
+    }
+
+    /// The rays of a `width` x `height` view run at all S samples (the guide rays and, at most,
+    /// the pixels rendered again), and its fine rays' samples at most (when no pixel takes its
+    /// neighbours' mean): for admission, before the view is rendered.
     pub fn most_work(&self, width: usize, height: usize) -> (usize, usize) {
-        let guide_rays = grid_len(width, self.step) * grid_len(height, self.step);
-        let fine = self.levels().map(|(spacing, k)| level_pixels(width, height, spacing).len() * k).sum();
-        (guide_rays, fine)
+        let guide_rays = self.guide_rays(width, height);
+        let levels = self.levels().map(|(spacing, k)| (level_pixels(width, height, spacing).len(), k));
+        let (reruns, fine) = levels.fold((0, 0), |(r, f), (n, k)| (r + self.most_reruns(n), f + n * k));
+        (guide_rays + reruns, fine)
     }
 }
 
@@ -312,6 +340,20 @@ impl Canvas {
         })
     }
 
+    /// How far the pixel's outputs lie outside its neighbours': the largest distance of its
+    /// composited colour outside their range in a channel, or of its opacity below their lowest.
+    pub fn disagreement(&self, p: Pixel, near: &[Pixel], background: [f32; 3]) -> f32 {
+        let own = self.composited(p, background);
+        let colours: Vec<[f32; 3]> = near.iter().map(|&q| self.composited(q, background)).collect();
+        let colour = (0..3).fold(0f32, |gap, c| {
+            let (lo, hi) =
+                colours.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), x| (lo.min(x[c]), hi.max(x[c])));
+            gap.max(lo - own[c]).max(own[c] - hi)
+        });
+        let lowest = near.iter().map(|&q| self.opacity[self.index(q)]).fold(f32::INFINITY, f32::min);
+        colour.max(lowest - self.opacity[self.index(p)])
+    }
+
     /// The pixel takes the mean of its neighbours' outputs.
     pub fn take_mean(&mut self, p: Pixel, near: &[Pixel]) {
         let n = near.len() as f32;
@@ -389,6 +431,27 @@ pub fn plan_level(policy: &GuidedPolicy, frame: &mut Frame, spacing: usize, coun
     FineRays { pixels: run, selections, index, multiplicity, guide }
 }
 
+/// The pixels of a level rendered at K samples (`fine`) whose outputs disagree with their
+/// neighbours' by more than the policy's `verify_tolerance` ([`Canvas::disagreement`]): the
+/// worst, at most [`GuidedPolicy::most_reruns`] of them (ties: the earlier pixel), row by row.
+/// Where their K samples missed matter the neighbours found, or found matter that is not there,
+/// they are rendered again at all S samples.
+pub fn disagreeing(policy: &GuidedPolicy, frame: &Frame, fine: &FineRays, spacing: usize) -> Vec<Pixel> {
+    let Some(tolerance) = policy.verify_tolerance else { return Vec::new() };
+    let (width, height) = (frame.canvas.width, frame.height);
+    let mut worst: Vec<(f32, Pixel)> = fine
+        .pixels
+        .iter()
+        .map(|&p| (frame.canvas.disagreement(p, &neighbours(p, width, height, spacing), frame.background), p))
+        .filter(|&(gap, _)| gap > tolerance)
+        .collect();
+    worst.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
+    worst.truncate(policy.most_reruns(fine.pixels.len()));
+    let mut pixels: Vec<Pixel> = worst.into_iter().map(|(_, p)| p).collect();
+    pixels.sort_unstable();
+    pixels
+}
+
 /// A fine run's outputs (rays `range` of the level) into the canvas, and its rays' weights into
 /// the guidance when later levels read them.
 pub fn put_fine(frame: &mut Frame, fine: &FineRays, range: Range<usize>, spacing: usize, outputs: &FineOutputs) {
@@ -438,14 +501,22 @@ pub async fn render(
     };
     let levels: Vec<(usize, usize)> = policy.levels().collect();
     let first = first_level_pixels(width, height, policy.step);
-    let heads = run_guide(ticket, bundle, chunking, scene, &rays, &first, &mut frame, levels.is_empty()).await?;
+    let mut heads = Heads::new();
+    let all = AllSamples { pixels: &first, heads: Some(&mut heads) };
+    run_all_samples(ticket, bundle, chunking, scene, &rays, all, &mut frame, levels.is_empty()).await?;
     let mut network_samples = first.len() * samples;
+    let verifies = policy.verify_tolerance.is_some();
     for (level, &(spacing, count)) in levels.iter().enumerate() {
         let fine;
         (frame, fine) = plan_level_blocking(policy.clone(), frame, spacing, count).await?;
         let last = level + 1 == levels.len();
         network_samples +=
-            run_fine(ticket, bundle, chunking, scene, &rays, &heads, &fine, &mut frame, spacing, last).await?;
+            run_fine(ticket, bundle, chunking, scene, &rays, &heads, &fine, &mut frame, spacing, last && !verifies)
+                .await?;
+        let again = disagreeing(policy, &frame, &fine, spacing);
+        let all = AllSamples { pixels: &again, heads: None };
+        run_all_samples(ticket, bundle, chunking, scene, &rays, all, &mut frame, last).await?;
+        network_samples += again.len() * samples;
     }
     let Canvas { rgb, depth, opacity, .. } = frame.canvas;
     let samples_per_ray = network_samples as f64 / (width * height) as f64;
@@ -495,28 +566,40 @@ async fn run_fine(
     Ok(n * k)
 }
 
-/// Level 0: the guide rays through the full network; their outputs into the canvas, their
-/// weights into the guidance, their heads kept for the fine rays.
+/// Pixels run through the full network (`renderer_guide.onnx`) at all S samples, and where
+/// their rectifier heads go: level 0's are kept for the fine rays, a pixel rendered again needs
+/// none.
+struct AllSamples<'a> {
+    pixels: &'a [Pixel],
+    heads: Option<&'a mut Heads>,
+}
+
+/// Level 0, or the pixels of a level rendered again: their outputs into the canvas, their weights
+/// into the guidance (for the pixels later levels read), their heads where asked.
 #[allow(clippy::too_many_arguments)]
-async fn run_guide(
+async fn run_all_samples(
     ticket: &Ticket,
     bundle: &Bundle,
     chunking: &ChunkPolicy,
     scene: &Scene,
     all_rays: &Rays,
-    pixels: &[Pixel],
+    AllSamples { pixels, heads }: AllSamples<'_>,
     frame: &mut Frame,
     last: bool,
-) -> Result<Heads, BackendError> {
+) -> Result<(), BackendError> {
+    let n = pixels.len();
+    if n == 0 {
+        return Ok(());
+    }
     let spec = bundle.graph(GraphKind::RendererGuide);
     let rays = &all_rays.select(&pixels.iter().map(|&p| frame.canvas.index(p)).collect::<Vec<_>>());
     let samples = bundle.config.samples;
     let near_far = [scene.near as f32, scene.far as f32];
-    let n = pixels.len();
-    let mut heads: Vec<(String, Array3<f32>)> = spec
+    let keeps_heads = heads.is_some();
+    let mut kept: Vec<(String, Array3<f32>)> = spec
         .outputs
         .iter()
-        .filter(|t| t.name.ends_with("_heads"))
+        .filter(|t| keeps_heads && t.name.ends_with("_heads"))
         .map(|t| {
             (t.name.clone(), Array3::zeros((n, bundle.config.heads * bundle.config.head_dim, bundle.config.width)))
         })
@@ -532,7 +615,7 @@ async fn run_guide(
                 frame.guidance.set(p, weights.row(r));
             }
         }
-        for (name, all) in &mut heads {
+        for (name, all) in &mut kept {
             let (h, c) = (all.shape()[1], all.shape()[2]);
             let got = outputs.take::<Ix3>(name, &[Some(range.len()), Some(h), Some(c)])?;
             all.slice_mut(s![range.clone(), .., ..]).assign(&got);
@@ -540,7 +623,10 @@ async fn run_guide(
         Ok(())
     })
     .await?;
-    Ok(heads.into_iter().map(|(name, a)| (name, a.into_shared().into_dyn())).collect())
+    if let Some(heads) = heads {
+        *heads = kept.into_iter().map(|(name, a)| (name, a.into_shared().into_dyn())).collect();
+    }
+    Ok(())
 }
 
 /// [`plan_level`] off the async runtime (it sorts samples for every pixel of the level).
@@ -639,6 +725,72 @@ mod tests {
         assert_eq!(nearest_guide((0, 23), 3, 3, 8), 2);
     }
 
+    /// A 5 x 5 frame whose every pixel is grey and opaque.
+    fn grey_frame() -> Frame {
+        let mut canvas = Canvas::new(5, 5);
+        canvas.rgb.fill(0.5);
+        canvas.opacity.fill(1.0);
+        Frame { canvas, guidance: Guidance::new(5, 5, 4), height: 5, background: [0.0; 3] }
+    }
+
+    fn verifying(tolerance: f32, share: f64) -> GuidedPolicy {
+        GuidedPolicy {
+            step: 4,
+            samples: vec![4, 4],
+            support_threshold: 1e-3,
+            smooth_tolerance: 0.0,
+            smooth_max_step: 1,
+            verify_tolerance: Some(tolerance),
+            verify_share: Some(share),
+        }
+    }
+
+    fn fine_at(pixels: Vec<Pixel>) -> FineRays {
+        FineRays {
+            pixels,
+            selections: Vec::new(),
+            index: Array2::zeros((0, 0)),
+            multiplicity: Array2::zeros((0, 0)),
+            guide: Array1::zeros(0),
+        }
+    }
+
+    #[test]
+    fn pixels_that_disagree_with_their_neighbours_are_rendered_again_worst_first() {
+        let mut frame = grey_frame();
+        // On the grid of spacing 1: (1, 1) missed its neighbours' matter (dark: the background
+        // shows), (1, 3) is brighter than any neighbour, (3, 1) a little off, (3, 3) agrees.
+        let i = |p| frame.canvas.index(p);
+        let (dark, bright, slight) = (i((1, 1)), i((1, 3)), i((3, 1)));
+        frame.canvas.opacity[dark] = 0.3;
+        frame.canvas.rgb.row_mut(dark).fill(0.15);
+        frame.canvas.rgb.row_mut(bright).fill(0.9);
+        frame.canvas.rgb.row_mut(slight).fill(0.55);
+        let fine = fine_at(vec![(1, 1), (1, 3), (3, 1), (3, 3)]);
+        let near = neighbours((1, 1), 5, 5, 1);
+        assert!((frame.canvas.disagreement((1, 1), &near, [0.0; 3]) - 0.7).abs() < 1e-6);
+        assert_eq!(disagreeing(&verifying(0.1, 1.0), &frame, &fine, 1), vec![(1, 1), (1, 3)]);
+        // The share bounds how many: the worst (the dark pixel, 0.7 off) first.
+        assert_eq!(disagreeing(&verifying(0.01, 0.25), &frame, &fine, 1), vec![(1, 1)]);
+        assert_eq!(disagreeing(&verifying(0.01, 0.75), &frame, &fine, 1), vec![(1, 1), (1, 3), (3, 1)]);
+        // A policy without verification renders no pixel again.
+        let plain = GuidedPolicy { verify_tolerance: None, verify_share: None, ..verifying(0.0, 1.0) };
+        assert!(disagreeing(&plain, &frame, &fine, 1).is_empty());
+    }
+
+    #[test]
+    fn reruns_count_in_the_most_work() {
+        let policy = verifying(0.1, 0.5);
+        let plain = GuidedPolicy { verify_tolerance: None, verify_share: None, ..policy.clone() };
+        let (w, h) = (9, 9);
+        let fine: Vec<usize> = policy.levels().map(|(spacing, _)| level_pixels(w, h, spacing).len()).collect();
+        let reruns: usize = fine.iter().map(|&n| n / 2).sum();
+        assert_eq!(policy.most_work(w, h).0, plain.most_work(w, h).0 + reruns);
+        assert_eq!(policy.most_work(w, h).1, plain.most_work(w, h).1);
+        assert!(GuidedPolicy { verify_share: None, ..policy.clone() }.validate(128).is_err());
+        assert!(GuidedPolicy { verify_share: Some(1.5), ..policy }.validate(128).is_err());
+    }
+
     #[test]
     fn policy_checks() {
         let policy = GuidedPolicy {
@@ -647,6 +799,8 @@ mod tests {
             support_threshold: 1e-3,
             smooth_tolerance: 0.03,
             smooth_max_step: 2,
+            verify_tolerance: None,
+            verify_share: None,
         };
         assert!(policy.validate(128).is_ok());
         assert!(policy.validate(16).unwrap_err().contains("32"));

@@ -395,7 +395,7 @@ impl Pipeline {
         let (Sampling::Guided, Some(policy)) = (sampling, self.bundle.guided()) else { return 0 };
         let c = &self.bundle.config;
         let (width, height) = (target.width as usize, target.height as usize);
-        let (guide_rays, _) = policy.most_work(width, height);
+        let guide_rays = policy.guide_rays(width, height);
         let rectifiers =
             self.bundle.graph(GraphKind::RendererGuide).outputs.iter().filter(|t| t.name.ends_with("_heads")).count();
         let heads = (guide_rays * rectifiers * c.heads * c.head_dim * c.width * 4) as u64;

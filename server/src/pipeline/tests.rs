@@ -15,6 +15,7 @@ use ndarray::{arr1, s};
 
 use super::*;
 use crate::backend::{ExecutorOptions, MemoryBudget};
+use crate::pipeline::guided::GuidedPolicy;
 use crate::request::{OutputSet, ValidSource, ValidTarget};
 use crate::testing::{self, FakeRunner};
 
@@ -327,6 +328,38 @@ async fn a_view_goes_to_the_renderers_of_its_sampling() {
     assert!(guide_runs > 0 && fine_runs > 0);
     assert_eq!((guided.width(), guided.height()), (8, 6));
     assert_eq!(stages(&timings), ["renderer", "assemble", "renderer", "assemble"]);
+}
+
+/// Pixels that disagree with their neighbours are rendered again at all samples, through the
+/// guide renderer: none with verification off, none when none disagrees by more than the
+/// tolerance or the share allows none; some when every disagreement counts (the fake renderers'
+/// pixels fold where a ray's direction crosses the axis, so some pixel lies outside its
+/// neighbours' range).
+#[tokio::test]
+async fn pixels_that_disagree_are_rendered_again_at_all_samples() {
+    let plain = testing::guided_bundle("scnerf").guided().cloned().expect("a guided policy");
+    let samples = |policy: GuidedPolicy| async move {
+        let (p, calls) = pipeline(testing::guided_bundle_with("scnerf", policy));
+        let ticket = ticket(&p);
+        let scene = scene(&p, &ticket).await;
+        let (target, mut timings) = (camera(9, 7), Timings::default());
+        let view = p.render_view(&ticket, &scene, &target, [1.0; 3], Sampling::Guided, Some(10), &mut timings).await;
+        (view.unwrap().sampling.samples_per_ray, runs(&calls, GraphKind::RendererGuide))
+    };
+    let verifying = |tolerance, share| GuidedPolicy {
+        verify_tolerance: Some(tolerance),
+        verify_share: Some(share),
+        smooth_max_step: 0,
+        ..plain.clone()
+    };
+    let unverified = samples(GuidedPolicy { smooth_max_step: 0, ..plain.clone() }).await;
+    assert_eq!(samples(verifying(1e9, 1.0)).await, unverified);
+    assert_eq!(samples(verifying(0.0, 0.0)).await, unverified);
+    let (verified, guide_runs) = samples(verifying(0.0, 1.0)).await;
+    assert!(verified > unverified.0 && guide_runs > unverified.1, "{verified} vs {unverified:?}");
+    // Each pixel rendered again adds all 16 samples to the view's 63 pixels.
+    let again = (verified - unverified.0) * 63.0 / 16.0;
+    assert!((again - again.round()).abs() < 1e-9 && again >= 1.0, "{again}");
 }
 
 /// A full view runs the renderer once per chunk of rays and pass: 48 rays in chunks of 10 are

@@ -20,6 +20,8 @@ from ..scene import (
 )
 from .base import DataParser
 
+LLFF_HOLDOUT = 8
+
 
 def _list_images(d: Path) -> list[Path]:
     return sorted(p for p in d.iterdir() if p.is_file() and p.suffix in IMAGE_EXTENSIONS and not p.name.startswith("."))
@@ -55,21 +57,14 @@ class LlffParser(DataParser):
         poses = arr[:, :15].reshape(-1, 3, 5)
         bounds = arr[:, 15:17]
         scale = check_scale(scale)
-        img_root = root / "images"
-        if not img_root.is_dir():
-            raise FileNotFoundError(f"LLFF images folder not found: {img_root}")
-        full_files = _list_images(img_root)
-        if len(full_files) != len(poses):
-            raise ValueError(f"{pb}: {len(poses)} poses but {len(full_files)} images in {img_root}")
-        files, resize_needed = full_files, scale != 1.0
-        if scale != 1.0:
-            factor = 1.0 / scale
-            if abs(factor - round(factor)) < 1e-6:
-                sub = root / f"images_{int(round(factor))}"
-                if sub.is_dir():
-                    sub_files = _list_images(sub)
-                    if len(sub_files) == len(poses):
-                        files, resize_needed = sub_files, False
+        files, resize_needed = self._downscaled_set(root, scale, len(poses)), False
+        if files is None:
+            img_root = root / "images"
+            if not img_root.is_dir():
+                raise FileNotFoundError(f"LLFF images folder not found: {img_root}")
+            files, resize_needed = _list_images(img_root), scale != 1.0
+            if len(files) != len(poses):
+                raise ValueError(f"{pb}: {len(poses)} poses but {len(files)} images in {img_root}")
         bg = resolve_background(background, (0.0, 0.0, 0.0))
         views: dict[str, View] = {}
         for i, f in enumerate(files):
@@ -87,9 +82,21 @@ class LlffParser(DataParser):
             c2w = np.eye(4)
             c2w[:3, :3] = np.stack([r[:, 1], r[:, 0], -r[:, 2]], axis=1)
             c2w[:3, 3] = poses[i, :, 3]
-            name = full_files[i].stem
+            name = files[i].stem
             views[name] = View(name, image.astype(np.float32), Camera(K, invert_rigid(c2w), w, h))
         n = float(bounds[:, 0].min()) if near is None else near
         fa = float(bounds[:, 1].max()) if far is None else far
         n, fa = check_near_far(n, fa, str(pb))
-        return SceneData(views, n, fa, bg, None, None)
+        # LLFF's protocol: every 8th view is held out (its targets, never a source).
+        return SceneData(views, n, fa, bg, None, list(views)[::LLFF_HOLDOUT])
+
+    @staticmethod
+    def _downscaled_set(root: Path, scale: float, count: int) -> list[Path] | None:
+        """images_N for scale 1/N when it holds one image per pose (LLFF ships such sets, and
+        some captures ship only them), else None (images/ is read and resized)."""
+        factor = 1.0 / scale
+        if scale == 1.0 or abs(factor - round(factor)) > 1e-6:
+            return None
+        sub = root / f"images_{int(round(factor))}"
+        files = _list_images(sub) if sub.is_dir() else []
+        return files if len(files) == count else None
