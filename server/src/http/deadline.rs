@@ -71,6 +71,13 @@ impl Deadline {
     }
 }
 
+/// Digits alone without a leading zero, as the API document's integer is written: `u64`'s parser
+/// would also take `+5000` and `05000`, which a client cannot have meant as a plain number.
+fn plain_number(value: &[u8]) -> Option<u64> {
+    let digits = !value.is_empty() && value.iter().all(u8::is_ascii_digit) && (value[0] != b'0' || value.len() == 1);
+    std::str::from_utf8(value).ok().filter(|_| digits)?.parse().ok()
+}
+
 /// The request's time budget: the configured timeout, or less when the client asks for less.
 /// The header sent twice is refused rather than one of its values picked.
 fn budget(headers: &HeaderMap, default: Duration) -> Result<Duration, ApiError> {
@@ -80,11 +87,8 @@ fn budget(headers: &HeaderMap, default: Duration) -> Result<Duration, ApiError> 
     if values.next().is_some() {
         return Err(malformed("sent more than once"));
     }
-    let ms = value
-        .to_str()
-        .ok()
-        .and_then(|v| v.trim().parse::<u64>().ok())
+    let ms = plain_number(value.as_bytes())
         .filter(|&ms| ms > 0)
-        .ok_or_else(|| malformed("expected a whole number of milliseconds > 0"))?;
+        .ok_or_else(|| malformed("expected a whole number of milliseconds > 0, in plain digits"))?;
     Ok(default.min(Duration::from_millis(ms)))
 }
