@@ -190,6 +190,13 @@ pub struct Config {
     #[arg(long, env = "SCNERF_SCENE_CACHE_MB", default_value_t = CacheConfig::default().max_bytes >> 20)]
     pub scene_cache_mb: usize,
 
+    /// Each token's share of the scene cache, in MiB. A token over its share makes room from
+    /// its own scenes first, and never evicts another token's scenes while that token holds no
+    /// more than its share. Default: an equal share (--scene-cache-mb divided by the number of
+    /// tokens); without auth every client shares the one cache.
+    #[arg(long, env = "SCNERF_SCENE_CACHE_MB_PER_TOKEN")]
+    pub scene_cache_mb_per_token: Option<usize>,
+
     /// A cached scene expires this many seconds after its last use.
     #[arg(long, env = "SCNERF_SCENE_TTL_SECS", default_value_t = CacheConfig::default().ttl.as_secs())]
     pub scene_ttl_secs: u64,
@@ -350,6 +357,7 @@ impl Config {
             cache: CacheConfig {
                 max_bytes: self.scene_cache_mb.saturating_mul(1024 * 1024),
                 ttl: Duration::from_secs(self.scene_ttl_secs),
+                per_owner_bytes: self.scene_cache_mb_per_token.map(|mb| mb.saturating_mul(1024 * 1024)),
             },
             max_concurrent_requests: self.max_concurrent_requests,
             max_requests_per_client: self.max_requests_per_client,

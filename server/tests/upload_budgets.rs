@@ -99,7 +99,7 @@ async fn a_scene_upload_is_admitted_the_same_way_and_refused_first_when_the_cach
     let (cached, _) = app(2048, Limits::default(), CacheConfig { max_bytes: 512 << 20, ..Default::default() });
     let got = send(cached, multipart_to("/v1/scenes", &parts, &[])).await;
     assert_error(&got, 422, "invalid_request", Some("sources"));
-    assert!(message(&got).contains("the scene cache holds at most"), "{}", message(&got));
+    assert!(message(&got).contains("a client may hold at most"), "{}", message(&got));
 }
 
 #[tokio::test]
