@@ -373,6 +373,7 @@ def attack_methods(server, args):
     """Any token is a method: each distinct one must not become a metric series of its own."""
     pad = "X" * size(args, "method_bytes")
     server.request("WARMUP", "/healthz")  # the series of unknown methods, once
+    request_series(server)  # and that of /metrics, counted once a scrape is answered
     before = request_series(server)
     statuses = set()
     for i in range(size(args, "methods")):
