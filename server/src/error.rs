@@ -168,6 +168,12 @@ impl From<BackendError> for ApiError {
             BackendError::WouldMissDeadline { ahead_secs, .. } => {
                 ApiError::Unavailable { message: e.to_string(), retry_after_secs: ahead_secs.ceil().max(1.0) as u64 }
             }
+            // Come back when the work ahead is within the wait (a client's deadline header
+            // makes the wait as long as it allows).
+            BackendError::QueueWaitTooLong { ahead_secs, max_secs } => ApiError::TooManyRequests {
+                message: format!("server busy: {e}"),
+                retry_after_secs: (ahead_secs - max_secs).ceil().max(1.0) as u64,
+            },
             BackendError::MemoryBusy { ahead_secs, .. } => ApiError::Unavailable {
                 message: format!("server busy: {e}"),
                 retry_after_secs: ahead_secs.ceil().max(1.0) as u64,

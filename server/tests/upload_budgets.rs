@@ -21,8 +21,10 @@ use serde_json::{json, Value};
 /// part of the budget as another request would).
 fn app(budget_mib: u64, limits: Limits, cache: CacheConfig) -> (Router, BackendHandle) {
     let b = bundle("scnerf", "near_far");
-    let executor =
-        ExecutorOptions { capacity: 8, memory: MemoryBudget { total: budget_mib << 20, reserved: 0 }, probe: None };
+    let executor = ExecutorOptions {
+        memory: MemoryBudget { total: budget_mib << 20, reserved: 0 },
+        ..ExecutorOptions::with_capacity(8)
+    };
     let options = ServiceOptions { request_timeout: Duration::from_secs(60), cache, ..Default::default() };
     let state = state_with_executor(b.clone(), FakeRunner::new(&b), limits, options, executor);
     (router(state.clone()), state.pipeline().executor().clone())
