@@ -54,11 +54,6 @@ impl Header {
         let (width, height) = if swaps { (height, width) } else { (width, height) };
         Header { format, width, height, orientation }
     }
-
-    /// Pixels of the image.
-    pub fn pixels(&self) -> u64 {
-        u64::from(self.width) * u64::from(self.height)
-    }
 }
 
 /// The header of the image `reader` starts with.
