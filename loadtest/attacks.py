@@ -22,6 +22,10 @@ Attacks (full size; the short form shrinks the sizes and counts):
   spray         260 connections from 10 addresses sending 2 MiB once: each answered by the stall
                 limit (+2 s); another client's POST meanwhile is not refused for want of slots
                 after that
+  methods       20,000 requests with distinct 15 KB method names: /metrics gains no series
+  image_bombs   8 concurrent scenes of 3 PNGs whose colour profile and zTXt chunk each inflate to
+                1 GiB (1 MB sent): 201, or 429 / 503 for load, within the budget (the header
+                reader skips them)
 Then `together`: captures, json_zeros, stalled and renders at once (VmHWM within the budget).
 
 Prints one JSON line per attack and exits 1 when one does not get its answer.
@@ -36,12 +40,14 @@ from __future__ import annotations
 
 import argparse
 import base64
+import functools
 import io
 import json
 import socket
 import sys
 import threading
 import time
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -64,6 +70,10 @@ SIZES = {
     "stalled": (8, 3),
     "stalled_mib": (240, 90),
     "spray": (260, 40),
+    "methods": (20000, 1000),
+    "method_bytes": (15000, 100),
+    "bombs": (8, 4),
+    "bomb_mib": (1024, 256),
 }
 
 
@@ -352,6 +362,71 @@ def attack_spray(server, args, stall_secs):
     )
 
 
+def request_series(server) -> int | None:
+    """How many ``scnerf_http_requests_total`` series ``/metrics`` holds (None: no answer)."""
+    status, _, body, _ = server.request("GET", "/metrics", timeout=60)
+    if status != 200:
+        return None
+    return sum(line.startswith(b"scnerf_http_requests_total{") for line in body.splitlines())
+
+
+def attack_methods(server, args):
+    """Any token is a method: each distinct one must not become a metric series of its own."""
+    pad = "X" * size(args, "method_bytes")
+    server.request("WARMUP", "/healthz")  # the series of unknown methods, once
+    request_series(server)  # and that of /metrics, counted once a scrape is answered
+    before = request_series(server)
+    statuses = set()
+    for i in range(size(args, "methods")):
+        statuses.add(server.request(f"M{i:06}{pad}", "/healthz")[0])
+    after = request_series(server)
+    return result(
+        "methods", before is not None and after == before, series=[before, after], statuses=sorted(statuses, key=str)
+    )
+
+
+def png_with_chunks(png: bytes, chunks) -> bytes:
+    """``png`` with ``chunks`` (type, data) between its header (IHDR) and its image data."""
+    out = png[:33]
+    for kind, data in chunks:
+        out += len(data).to_bytes(4, "big") + kind + data + zlib.crc32(kind + data).to_bytes(4, "big")
+    return out + png[33:]
+
+
+@functools.cache
+def zlib_zeros(mib: int) -> bytes:
+    z = zlib.compressobj(9)
+    block = bytes(1 << 20)
+    return b"".join(z.compress(block) for _ in range(mib)) + z.flush()
+
+
+def attack_image_bombs(server, args):
+    """Scenes of the parity sources, each carrying a colour profile and a zTXt chunk that inflate
+    to ``bomb_mib``: read without inflating them."""
+    zeros = zlib_zeros(size(args, "bomb_mib"))
+    chunks = [(b"iCCP", b"bomb\0\0" + zeros), (b"zTXt", b"Comment\0\0" + zeros)]
+    request = json.loads((CASE / "request.json").read_text())
+    scene = {k: v for k, v in request.items() if k not in ("target", "outputs")}
+    parts = [("request", None, json.dumps(scene).encode())]
+    for i in range(3):
+        parts.append((f"source_{i}", f"s{i}.png", png_with_chunks((CASE / f"source_{i}.png").read_bytes(), chunks)))
+    body, ctype = multipart(parts)
+
+    def one():
+        # A deadline of the client's lets the scenes queue (and decode) together.
+        headers = {"content-type": ctype, "x-scnerf-deadline-ms": "600000"}
+        return server.request("POST", "/v1/scenes", body, headers)
+
+    answers = parallel([one] * size(args, "bombs"))
+    statuses = [a[0] for a in answers]
+    return result(
+        "image_bombs",
+        201 in statuses and all(s in (201, 429, 503) for s in statuses),
+        statuses=statuses,
+        seconds=[round(a[3], 2) for a in answers],
+    )
+
+
 def parallel(calls: list) -> list:
     out = [None] * len(calls)
 
@@ -403,7 +478,7 @@ class Renders:
 
 def capture_round(server, args) -> int | None:
     """A capture uploaded, one view of it rendered, the scene deleted: the render's status (None
-    when the upload itself was refused for load)."""
+    when the upload or the render was refused for load: 503, or 429 for the render's wait)."""
     status, _, body, _ = upload(server, blender_capture(8, 128))
     if status == 503:
         return None
@@ -421,7 +496,7 @@ def capture_round(server, args) -> int | None:
         "POST", f"{path}/render", json.dumps({"target": camera}).encode(), {"content-type": "application/json"}
     )
     server.request("DELETE", path)
-    return rendered[0]
+    return None if rendered[0] == 429 else rendered[0]
 
 
 def status_mib(pid: int, field: str) -> float:
@@ -509,6 +584,8 @@ def main(argv=None) -> int:
         "deadline": lambda: attack_deadline(server, args),
         "stalled": lambda: attack_stalled(server, args),
         "spray": lambda: attack_spray(server, args, args.stall_secs),
+        "methods": lambda: attack_methods(server, args),
+        "image_bombs": lambda: attack_image_bombs(server, args),
     }
     if args.soak_secs:
         return soak(server, args, attacks, renders)

@@ -7,6 +7,7 @@ use std::collections::BTreeMap;
 use std::path::{Component, Path, PathBuf};
 
 use crate::error::{Error, Result};
+use crate::images::{self, ImageError};
 
 /// Read access to a tree of files.
 pub trait Files {
@@ -16,13 +17,10 @@ pub trait Files {
     /// The entries (files and folders) directly in `dir`, as paths under it, in no set order.
     fn list(&self, dir: &Path) -> Result<Vec<PathBuf>>;
 
-    /// (width, height) from an image's header.
+    /// (width, height) from an image's header, as displayed (`images::read_header`).
     fn image_size(&self, path: &Path) -> Result<(u32, u32)> {
         let bytes = self.read(path)?;
-        let reader = image::ImageReader::new(std::io::Cursor::new(bytes.as_ref()))
-            .with_guessed_format()
-            .map_err(|e| Error::io(path, e))?;
-        reader.into_dimensions().map_err(|e| header_error(path, e))
+        image_size(path, std::io::Cursor::new(bytes.as_ref()))
     }
 
     fn read_text(&self, path: &Path) -> Result<String> {
@@ -31,10 +29,11 @@ pub trait Files {
     }
 }
 
-fn header_error(path: &Path, e: image::ImageError) -> Error {
-    match e {
-        image::ImageError::IoError(io) => Error::io(path, io),
-        other => Error::dataset(path, format!("cannot read the image header: {other}")),
+fn image_size(path: &Path, reader: impl std::io::BufRead + std::io::Seek) -> Result<(u32, u32)> {
+    match images::read_header(reader) {
+        Ok(header) => Ok((header.width, header.height)),
+        Err(ImageError::Io(e)) => Err(Error::io(path, e)),
+        Err(other) => Err(Error::dataset(path, format!("cannot read the image header: {other}"))),
     }
 }
 
@@ -62,7 +61,8 @@ impl Files for Disk {
 
     /// Only the header is read, not the whole image.
     fn image_size(&self, path: &Path) -> Result<(u32, u32)> {
-        image::image_dimensions(path).map_err(|e| header_error(path, e))
+        let file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+        image_size(path, std::io::BufReader::new(file))
     }
 }
 

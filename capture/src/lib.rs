@@ -1,13 +1,14 @@
 //! What the `scnerf` client and `scnerf-server` share about captures of posed photos: the
 //! canonical camera conventions and MVSNeRF's source-ranking rule ([`camera`]), the API's JSON
 //! camera ([`wire`]), the dataset readers ([`readers`]) over a folder on disk or an in-memory set
-//! of files ([`files`]), which image set of a capture to read ([`image_sets`]), and the policy
-//! that thins a capture to a view budget ([`thin_evenly`]).
+//! of files ([`files`]), which image set of a capture to read ([`image_sets`]), how its photos
+//! are read ([`images`]), and the policy that thins a capture to a view budget ([`thin_evenly`]).
 
 pub mod camera;
 mod error;
 pub mod files;
 pub mod image_sets;
+pub mod images;
 pub mod readers;
 pub mod wire;
 

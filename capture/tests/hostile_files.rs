@@ -145,3 +145,17 @@ fn folders_in_memory_are_told_apart_from_their_neighbours() {
     listed.sort();
     assert_eq!(listed, [Path::new("a/b")]);
 }
+
+/// An infinite depth, or one whose far end overflows, is refused naming the camera file that
+/// holds it (not, later, the capture's folder).
+#[test]
+fn dtu_depths_that_are_not_finite_name_their_camera_file() {
+    let cam = std::fs::read_to_string(fixtures().join("dtu/Cameras/train/00000000_cam.txt")).unwrap();
+    for depths in ["inf 2.5", "425.0 inf", "425.0 1e308", "NaN 2.5"] {
+        let bad = cam.replace("425.0 2.5", depths);
+        assert_ne!(bad, cam);
+        let files = fixture_with("dtu", &[("Cameras/train/00000000_cam.txt", bad.into_bytes())]);
+        let err = readers::load_from(&files, Path::new(""), None, ReadOptions::default()).unwrap_err();
+        assert_eq!(err.path(), Some(Path::new("Cameras/train/00000000_cam.txt")), "{depths}: {err}");
+    }
+}

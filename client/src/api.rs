@@ -20,6 +20,7 @@ use sha2::{Digest, Sha256};
 
 use crate::error::{read_bytes, Error, Result};
 use scnerf_capture::camera::Camera;
+use scnerf_capture::images;
 use scnerf_capture::readers::{Capture, CapturedView};
 use scnerf_capture::wire::WireCamera;
 
@@ -396,15 +397,12 @@ fn multipart(parts: &[Part]) -> (String, Vec<u8>) {
 /// resized to fit the server's source limit (JPEG stays JPEG, at quality 95; anything else PNG).
 fn image_bytes(path: &Path, camera: &Camera) -> Result<Vec<u8>> {
     let bytes = read_bytes(path)?;
-    let size = image::ImageReader::new(std::io::Cursor::new(&bytes))
-        .with_guessed_format()
-        .ok()
-        .and_then(|r| r.into_dimensions().ok());
+    let size = images::read_header(std::io::Cursor::new(&bytes)).ok().map(|h| (h.width, h.height));
     if size.is_none_or(|s| s == (camera.width, camera.height)) {
         return Ok(bytes);
     }
-    let bad = |e: image::ImageError| Error::dataset(path, format!("cannot resize the image: {e}"));
-    let resized = image::load_from_memory(&bytes).map_err(bad)?.resize_exact(
+    let bad = |e: &dyn std::fmt::Display| Error::dataset(path, format!("cannot resize the image: {e}"));
+    let resized = images::decode(&bytes).map_err(|e| bad(&e))?.resize_exact(
         camera.width,
         camera.height,
         image::imageops::FilterType::Triangle,
@@ -412,9 +410,9 @@ fn image_bytes(path: &Path, camera: &Camera) -> Result<Vec<u8>> {
     let mut out = std::io::Cursor::new(Vec::new());
     if image_type(path) == "image/jpeg" {
         let encoder = image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, 95);
-        resized.to_rgb8().write_with_encoder(encoder).map_err(bad)?;
+        resized.to_rgb8().write_with_encoder(encoder).map_err(|e| bad(&e))?;
     } else {
-        resized.write_to(&mut out, image::ImageFormat::Png).map_err(bad)?;
+        resized.write_to(&mut out, image::ImageFormat::Png).map_err(|e| bad(&e))?;
     }
     Ok(out.into_inner())
 }

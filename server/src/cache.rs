@@ -2,10 +2,18 @@
 //! scene, the encoder features and encoding volume of each triple of views a render used, so
 //! that further views from the same triple cost only the renderer.
 //!
-//! One byte budget for both. When room is needed, expired scenes go first, then the least
-//! recently used *volume* of any scene (a few seconds of CPU to build again from the cached
-//! views), and only then the least recently used *scene* with its volumes (its client must
-//! upload it again). A scene also expires after an idle time-to-live (every render extends it).
+//! One byte budget for both, shared fairly among owners (tokens): each owner has a share of it
+//! (`CacheConfig::per_owner_bytes`, by default an equal share among the configured tokens; the
+//! whole cache without auth, where every client is the one anonymous owner). When room is
+//! needed, expired scenes go first; then, among the entries that may go, the least recently used
+//! *volume* (a few seconds of CPU to build again from the cached views) before the least recently
+//! used *scene* with its volumes (its client must upload it again). Which entries may go, in turn:
+//! 1. the owner's own, when it would hold more than its share;
+//! 2. those of owners holding more than their share, while they do;
+//! 3. the owner's own (when shares add up to more than the cache).
+//!
+//! So an owner never pushes another below its share: one token uploading scene after scene
+//! evicts its own. A scene also expires after an idle time-to-live (every render extends it).
 //! Entries are `Arc`s: evicting what a request is rendering frees it when that request ends.
 //!
 //! Ids are the client's (`PUT /v1/scenes/{id}`) or random (`POST`), and are namespaced by owner:
@@ -81,11 +89,21 @@ pub struct NewScene {
 pub struct CacheConfig {
     pub max_bytes: usize,
     pub ttl: Duration,
+    /// Each owner's share of `max_bytes`; `None`: an equal share among the owners the server
+    /// knows (`SceneCache::new`).
+    pub per_owner_bytes: Option<usize>,
 }
 
 impl Default for CacheConfig {
     fn default() -> Self {
-        CacheConfig { max_bytes: 2 << 30, ttl: Duration::from_secs(600) }
+        CacheConfig { max_bytes: 2 << 30, ttl: Duration::from_secs(600), per_owner_bytes: None }
+    }
+}
+
+impl CacheConfig {
+    /// Each owner's share among `owners` (the configured tokens; 0 without auth: one pool).
+    fn share(&self, owners: usize) -> usize {
+        self.per_owner_bytes.unwrap_or(self.max_bytes / owners.max(1)).min(self.max_bytes)
     }
 }
 
@@ -108,11 +126,16 @@ pub struct CacheStats {
     pub volume_evictions: u64,
 }
 
+/// Why a scene is not cached.
 #[derive(Debug, thiserror::Error, PartialEq, Eq)]
-#[error("the scene needs {needed} bytes but the scene cache holds at most {max} bytes")]
-pub struct SceneTooLarge {
-    pub needed: usize,
-    pub max: usize,
+pub enum NoRoom {
+    /// Larger than its owner's share: it never fits.
+    #[error("the scene needs {needed} bytes but a client may hold at most {max} bytes of cached scenes")]
+    TooLarge { needed: usize, max: usize },
+    /// It fits the owner's share, but the other owners hold no more than theirs (possible only
+    /// when the shares add up to more than the cache): room comes as their scenes expire.
+    #[error("the scene cache is full: the other clients hold their shares of it")]
+    Full,
 }
 
 #[derive(Debug, Clone, PartialEq, Eq, Hash)]
@@ -134,6 +157,7 @@ struct SceneEntry {
 
 struct VolumeEntry {
     volume: Arc<Scene>,
+    owner: Owner,
     bytes: usize,
     tick: u64,
 }
@@ -145,6 +169,8 @@ struct Inner {
     /// tick -> key, oldest first.
     scene_lru: BTreeMap<u64, SceneKey>,
     volume_lru: BTreeMap<u64, VolumeKey>,
+    /// Bytes held per owner (scenes and their volumes).
+    held: HashMap<Owner, usize>,
     next_tick: u64,
     next_serial: u64,
     stats: CacheStats,
@@ -152,6 +178,8 @@ struct Inner {
 
 pub struct SceneCache {
     config: CacheConfig,
+    /// Each owner's share of `config.max_bytes`.
+    share: usize,
     inner: Mutex<Inner>,
 }
 
@@ -170,8 +198,9 @@ pub struct Stored {
 }
 
 impl SceneCache {
-    pub fn new(config: CacheConfig) -> SceneCache {
-        SceneCache { config, inner: Mutex::new(Inner::default()) }
+    /// `owners`: how many tokens the server accepts (0 without auth), for the default share.
+    pub fn new(config: CacheConfig, owners: usize) -> SceneCache {
+        SceneCache { config, share: config.share(owners), inner: Mutex::new(Inner::default()) }
     }
 
     pub fn config(&self) -> CacheConfig {
@@ -183,24 +212,18 @@ impl SceneCache {
         self.inner.lock().unwrap_or_else(|p| p.into_inner())
     }
 
-    /// Refuses a scene of `bytes` that the whole cache could not hold (before it is decoded).
-    pub fn check_fits(&self, bytes: u64) -> Result<(), SceneTooLarge> {
+    /// Refuses a scene of `bytes` that its owner's share could not hold (before it is decoded).
+    pub fn check_fits(&self, bytes: u64) -> Result<(), NoRoom> {
         let needed = usize::try_from(bytes).unwrap_or(usize::MAX);
-        match needed > self.config.max_bytes {
-            true => Err(SceneTooLarge { needed, max: self.config.max_bytes }),
+        match needed > self.share {
+            true => Err(NoRoom::TooLarge { needed, max: self.share }),
             false => Ok(()),
         }
     }
 
     /// Stores a scene under `id` (replacing `owner`'s scene of that id) or a fresh random id,
     /// making room as the module doc says.
-    pub fn insert(
-        &self,
-        id: Option<String>,
-        owner: Owner,
-        new: NewScene,
-        now: Instant,
-    ) -> Result<Stored, SceneTooLarge> {
+    pub fn insert(&self, id: Option<String>, owner: Owner, new: NewScene, now: Instant) -> Result<Stored, NoRoom> {
         let key = SceneKey { owner, id: id.unwrap_or_else(random_id) };
         let mut inner = self.lock();
         let serial = inner.next_serial;
@@ -213,17 +236,19 @@ impl SceneCache {
             serial,
         };
         let bytes = scene.bytes();
-        if bytes > self.config.max_bytes {
-            return Err(SceneTooLarge { needed: bytes, max: self.config.max_bytes });
+        if bytes > self.share {
+            return Err(NoRoom::TooLarge { needed: bytes, max: self.share });
         }
         inner.purge_expired(now);
         let replaced = inner.remove_scene(&key);
-        while inner.stats.bytes + bytes > self.config.max_bytes && inner.evict(None) {}
+        if !inner.make_room(&key.owner, bytes, None, self.share, self.config.max_bytes) {
+            return Err(NoRoom::Full);
+        }
         let expires = now + self.config.ttl;
         let tick = inner.tick();
         inner.scene_lru.insert(tick, key.clone());
         inner.scenes.insert(key.clone(), SceneEntry { scene: Arc::new(scene), bytes, expires, tick });
-        inner.stats.bytes += bytes;
+        inner.charge(&key.owner, bytes as isize);
         inner.stats.entries = inner.scenes.len();
         Ok(Stored { id: key.id, expires_at: wall_clock(expires, now), replaced })
     }
@@ -282,14 +307,17 @@ impl SceneCache {
         };
         let key = (scene.serial, sources);
         let bytes = volume.bytes();
-        if scene.is_fixed(&key.1) || inner.volumes.contains_key(&key) || scene_bytes + bytes > self.config.max_bytes {
+        if scene.is_fixed(&key.1) || inner.volumes.contains_key(&key) || scene_bytes + bytes > self.share {
             return;
         }
-        while inner.stats.bytes + bytes > self.config.max_bytes && inner.evict(Some(&scene.key)) {}
+        let owner = scene.key.owner;
+        if !inner.make_room(&owner, bytes, Some(&scene.key), self.share, self.config.max_bytes) {
+            return;
+        }
         let tick = inner.tick();
         inner.volume_lru.insert(tick, key.clone());
-        inner.volumes.insert(key, VolumeEntry { volume, bytes, tick });
-        inner.stats.bytes += bytes;
+        inner.volumes.insert(key, VolumeEntry { volume, owner, bytes, tick });
+        inner.charge(&owner, bytes as isize);
         inner.stats.volume_bytes += bytes;
         inner.stats.volumes = inner.volumes.len();
     }
@@ -322,10 +350,24 @@ impl Inner {
         Some(entry.volume.clone())
     }
 
+    /// Adds `bytes` (negative: frees them) to what `owner` holds and to the total.
+    fn charge(&mut self, owner: &Owner, bytes: isize) {
+        let held = self.held.entry(*owner).or_default();
+        *held = held.saturating_add_signed(bytes);
+        if *held == 0 {
+            self.held.remove(owner);
+        }
+        self.stats.bytes = self.stats.bytes.saturating_add_signed(bytes);
+    }
+
+    fn held_by(&self, owner: &Owner) -> usize {
+        self.held.get(owner).copied().unwrap_or(0)
+    }
+
     fn remove_volume(&mut self, key: &VolumeKey) {
         if let Some(entry) = self.volumes.remove(key) {
             self.volume_lru.remove(&entry.tick);
-            self.stats.bytes -= entry.bytes;
+            self.charge(&entry.owner, -(entry.bytes as isize));
             self.stats.volume_bytes -= entry.bytes;
             self.stats.volumes = self.volumes.len();
         }
@@ -335,7 +377,7 @@ impl Inner {
     fn remove_scene(&mut self, key: &SceneKey) -> bool {
         let Some(entry) = self.scenes.remove(key) else { return false };
         self.scene_lru.remove(&entry.tick);
-        self.stats.bytes -= entry.bytes;
+        self.charge(&key.owner, -(entry.bytes as isize));
         self.stats.entries = self.scenes.len();
         let serial = entry.scene.serial;
         let own: Vec<VolumeKey> = self.volumes.keys().filter(|k| k.0 == serial).cloned().collect();
@@ -345,15 +387,34 @@ impl Inner {
         true
     }
 
-    /// Evicts the least recently used volume, else the least recently used scene but `keep`;
-    /// false when there is nothing to evict.
-    fn evict(&mut self, keep: Option<&SceneKey>) -> bool {
-        if let Some(key) = self.volume_lru.values().next().cloned() {
+    /// Evicts until `owner`'s `bytes` more fit in `max`, from whom the module doc says, never
+    /// `keep`; false when they cannot fit so.
+    fn make_room(&mut self, owner: &Owner, bytes: usize, keep: Option<&SceneKey>, share: usize, max: usize) -> bool {
+        while self.stats.bytes + bytes > max {
+            let over_share = self.held_by(owner) + bytes > share;
+            let others_over: Vec<Owner> =
+                self.held.iter().filter(|(o, held)| *o != owner && **held > share).map(|(o, _)| *o).collect();
+            let evicted = (over_share && self.evict(&[*owner], keep))
+                || self.evict(&others_over, keep)
+                || self.evict(&[*owner], keep);
+            if !evicted {
+                return false;
+            }
+        }
+        true
+    }
+
+    /// Evicts the least recently used volume of `owners`, else their least recently used scene
+    /// but `keep`; false when they have nothing to evict.
+    fn evict(&mut self, owners: &[Owner], keep: Option<&SceneKey>) -> bool {
+        let volume = self.volume_lru.values().find(|k| owners.contains(&self.volumes[*k].owner)).cloned();
+        if let Some(key) = volume {
             self.remove_volume(&key);
             self.stats.volume_evictions += 1;
             return true;
         }
-        let Some(key) = self.scene_lru.values().find(|k| Some(*k) != keep).cloned() else { return false };
+        let scene = self.scene_lru.values().find(|k| owners.contains(&k.owner) && Some(*k) != keep).cloned();
+        let Some(key) = scene else { return false };
         self.remove_scene(&key);
         self.stats.evictions += 1;
         true
@@ -417,7 +478,7 @@ mod tests {
     }
 
     fn cache(max_bytes: usize, ttl_secs: u64) -> SceneCache {
-        SceneCache::new(CacheConfig { max_bytes, ttl: Duration::from_secs(ttl_secs) })
+        SceneCache::new(CacheConfig { max_bytes, ttl: Duration::from_secs(ttl_secs), per_owner_bytes: None }, 0)
     }
 
     fn put(c: &SceneCache, new: NewScene, now: Instant) -> String {
@@ -458,7 +519,7 @@ mod tests {
     fn refuses_a_scene_larger_than_the_cache() {
         let c = cache(100, 60);
         let err = c.insert(None, None, three_views(1000), Instant::now()).unwrap_err();
-        assert_eq!(err, SceneTooLarge { needed: 4016, max: 100 });
+        assert_eq!(err, NoRoom::TooLarge { needed: 4016, max: 100 });
         assert_eq!(c.stats().entries, 0);
     }
 
@@ -580,6 +641,73 @@ mod tests {
         c.insert_volume(&scene_a, vec![0, 1, 2], Arc::new(volume(100)));
         assert!(c.get(&b, &None, now).is_none() && c.get(&a, &None, now).is_some());
         assert_eq!(c.stats().evictions, 1);
+    }
+
+    fn shared_cache(scenes: usize, per_owner_scenes: Option<usize>, owners: usize) -> SceneCache {
+        let config = CacheConfig {
+            max_bytes: scenes * SCENE,
+            ttl: Duration::from_secs(60),
+            per_owner_bytes: per_owner_scenes.map(|n| n * SCENE),
+        };
+        SceneCache::new(config, owners)
+    }
+
+    /// Bytes of `three_views(1000)`.
+    const SCENE: usize = 4016;
+
+    fn put_as(c: &SceneCache, owner: Owner, now: Instant) -> Result<String, NoRoom> {
+        c.insert(None, owner, three_views(1000), now).map(|s| s.id)
+    }
+
+    /// The probe's sequence: B caches three scenes and renders them; A then uploads scene after
+    /// scene. A evicts its own, and B keeps all of its scenes (within its share).
+    #[test]
+    fn one_owner_cannot_evict_another_within_its_share() {
+        let (a, b) = (Some([1u8; 32]), Some([2u8; 32]));
+        let c = shared_cache(8, None, 2); // an equal share: 4 scenes each
+        let now = Instant::now();
+        let bs: Vec<String> = (0..3).map(|_| put_as(&c, b, now).unwrap()).collect();
+        assert!(bs.iter().all(|id| c.get(id, &b, now).is_some()));
+        let as_: Vec<String> = (0..20).map(|_| put_as(&c, a, now).unwrap()).collect();
+        assert!(bs.iter().all(|id| c.get(id, &b, now).is_some()), "B's scenes stay");
+        // A has its share and the room B leaves: its five latest scenes.
+        let kept: Vec<bool> = as_.iter().map(|id| c.get(id, &a, now).is_some()).collect();
+        assert_eq!(kept, [vec![false; 15], vec![true; 5]].concat());
+        assert_eq!((c.stats().bytes, c.stats().evictions), (8 * SCENE, 15));
+    }
+
+    /// An owner holding more than its share (the cache had room) gives back its excess, least
+    /// recently used first, down to its share and no further.
+    #[test]
+    fn an_owner_over_its_share_gives_back_the_excess() {
+        let (a, b) = (Some([1u8; 32]), Some([2u8; 32]));
+        let c = shared_cache(8, None, 2);
+        let now = Instant::now();
+        let bs: Vec<String> = (0..8).map(|_| put_as(&c, b, now).unwrap()).collect();
+        let _ = c.get(&bs[0], &b, now); // B's first is now its most recently used
+        for _ in 0..6 {
+            put_as(&c, a, now).unwrap();
+        }
+        let kept: Vec<bool> = bs.iter().map(|id| c.get(id, &b, now).is_some()).collect();
+        assert_eq!(kept, [true, false, false, false, false, true, true, true], "B keeps 4: its share");
+    }
+
+    /// Shares configured to add up to more than the cache: a scene that fits its owner's share
+    /// but would push another owner below its own is refused, not cached at that owner's cost.
+    #[test]
+    fn shares_larger_than_the_cache_refuse_rather_than_evict_others() {
+        let (a, b, d) = (Some([1u8; 32]), Some([2u8; 32]), Some([4u8; 32]));
+        let c = shared_cache(8, Some(6), 3);
+        let now = Instant::now();
+        let bs: Vec<String> = (0..6).map(|_| put_as(&c, b, now).unwrap()).collect();
+        let ds: Vec<String> = (0..2).map(|_| put_as(&c, d, now).unwrap()).collect();
+        assert_eq!(put_as(&c, a, now), Err(NoRoom::Full));
+        // D, within its share, makes room from its own scenes.
+        let d3 = put_as(&c, d, now).unwrap();
+        assert!(c.get(&ds[0], &d, now).is_none() && c.get(&d3, &d, now).is_some());
+        assert!(bs.iter().all(|id| c.get(id, &b, now).is_some()));
+        // A scene larger than a share is refused before anything else.
+        assert_eq!(c.check_fits(7 * SCENE as u64), Err(NoRoom::TooLarge { needed: 7 * SCENE, max: 6 * SCENE }));
     }
 
     #[test]

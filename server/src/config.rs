@@ -190,6 +190,13 @@ pub struct Config {
     #[arg(long, env = "SCNERF_SCENE_CACHE_MB", default_value_t = CacheConfig::default().max_bytes >> 20)]
     pub scene_cache_mb: usize,
 
+    /// Each token's share of the scene cache, in MiB. A token over its share makes room from
+    /// its own scenes first, and never evicts another token's scenes while that token holds no
+    /// more than its share. Default: an equal share (--scene-cache-mb divided by the number of
+    /// tokens); without auth every client shares the one cache.
+    #[arg(long, env = "SCNERF_SCENE_CACHE_MB_PER_TOKEN")]
+    pub scene_cache_mb_per_token: Option<usize>,
+
     /// A cached scene expires this many seconds after its last use.
     #[arg(long, env = "SCNERF_SCENE_TTL_SECS", default_value_t = CacheConfig::default().ttl.as_secs())]
     pub scene_ttl_secs: u64,
@@ -199,6 +206,16 @@ pub struct Config {
     /// the `x-scnerf-deadline-ms` header.
     #[arg(long, env = "SCNERF_REQUEST_TIMEOUT_SECS", default_value_t = ServiceOptions::default().request_timeout.as_secs())]
     pub request_timeout_secs: u64,
+
+    /// The longest a request without `x-scnerf-deadline-ms` may expect to wait for the inference
+    /// executor, or its own expected service time when that is longer: with more work admitted
+    /// ahead of it, it is refused at once with 429 + Retry-After (a request with the header may
+    /// wait as long as its deadline allows). Without it such a request has the whole
+    /// --request-timeout-secs, and an overloaded server queues it for minutes. 1 s keeps work
+    /// waiting for the executor (goodput holds) while an admitted view waits at most about a
+    /// second, or one render of its own (docs/results.md, "Overload").
+    #[arg(long, env = "SCNERF_MAX_QUEUE_WAIT_SECS", default_value_t = 1.0, value_parser = non_negative_secs)]
+    pub max_queue_wait_secs: f64,
 
     /// Requests admitted to the inference executor at once (rendering, or waiting for their turn
     /// in the round-robin over requests); beyond it new requests get 503 + Retry-After.
@@ -308,6 +325,14 @@ pub struct Config {
     pub skip_warmup: bool,
 }
 
+/// Seconds: a finite number >= 0.
+fn non_negative_secs(s: &str) -> Result<f64, String> {
+    s.parse::<f64>()
+        .ok()
+        .filter(|v| v.is_finite() && *v >= 0.0)
+        .ok_or_else(|| format!("\"{s}\" is not a number of seconds >= 0"))
+}
+
 impl Config {
     pub fn bundle_dir(&self) -> PathBuf {
         self.bundle.clone().unwrap_or_else(default_bundle_dir)
@@ -350,6 +375,7 @@ impl Config {
             cache: CacheConfig {
                 max_bytes: self.scene_cache_mb.saturating_mul(1024 * 1024),
                 ttl: Duration::from_secs(self.scene_ttl_secs),
+                per_owner_bytes: self.scene_cache_mb_per_token.map(|mb| mb.saturating_mul(1024 * 1024)),
             },
             max_concurrent_requests: self.max_concurrent_requests,
             max_requests_per_client: self.max_requests_per_client,
@@ -388,6 +414,7 @@ impl Config {
             capacity: self.queue_capacity,
             memory: MemoryBudget { total: self.memory_budget().0, reserved: 0 },
             probe: self.memory_probe.then(Arc::default),
+            max_queue_wait: Some(Duration::from_secs_f64(self.max_queue_wait_secs)),
         }
     }
 

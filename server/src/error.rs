@@ -6,7 +6,7 @@ use axum::response::{IntoResponse, Response};
 use serde::Serialize;
 
 use crate::backend::BackendError;
-use crate::cache::SceneTooLarge;
+use crate::cache::NoRoom;
 
 #[derive(Debug, thiserror::Error)]
 pub enum ApiError {
@@ -168,6 +168,12 @@ impl From<BackendError> for ApiError {
             BackendError::WouldMissDeadline { ahead_secs, .. } => {
                 ApiError::Unavailable { message: e.to_string(), retry_after_secs: ahead_secs.ceil().max(1.0) as u64 }
             }
+            // Come back when the work ahead is within the wait (a client's deadline header
+            // makes the wait as long as it allows).
+            BackendError::QueueWaitTooLong { ahead_secs, max_secs } => ApiError::TooManyRequests {
+                message: format!("server busy: {e}"),
+                retry_after_secs: (ahead_secs - max_secs).ceil().max(1.0) as u64,
+            },
             BackendError::MemoryBusy { ahead_secs, .. } => ApiError::Unavailable {
                 message: format!("server busy: {e}"),
                 retry_after_secs: ahead_secs.ceil().max(1.0) as u64,
@@ -183,9 +189,13 @@ impl From<BackendError> for ApiError {
 }
 
 /// A scene too large for the whole cache is a property of its sources.
-impl From<SceneTooLarge> for ApiError {
-    fn from(e: SceneTooLarge) -> Self {
-        ApiError::invalid("sources", e.to_string())
+impl From<NoRoom> for ApiError {
+    fn from(e: NoRoom) -> Self {
+        match e {
+            NoRoom::TooLarge { .. } => ApiError::invalid("sources", e.to_string()),
+            // Room comes back as other clients' scenes expire (their idle TTL).
+            NoRoom::Full => ApiError::Unavailable { message: e.to_string(), retry_after_secs: 60 },
+        }
     }
 }
 

@@ -2,65 +2,44 @@
 
 use std::io::Cursor;
 
-use image::{DynamicImage, ImageFormat, ImageReader};
+use image::{DynamicImage, ImageFormat};
 use ndarray::{s, Array3, ArrayView1};
+use scnerf_capture::images::{self, ImageError};
 
 use crate::error::ApiError;
 
-/// Reads only the header: format and size. Lets us refuse oversized images (decompression
-/// bombs) before allocating anything.
+/// Reads only the header: format and size as displayed (`scnerf_capture::images`: bounded
+/// memory whatever the file holds). Lets us refuse oversized images (decompression bombs) before
+/// allocating anything.
 pub fn probe(bytes: &[u8], field: &str) -> Result<(ImageFormat, u32, u32), ApiError> {
-    if bytes.is_empty() {
-        return Err(ApiError::malformed(field.to_string(), "the image is empty"));
-    }
-    let reader = ImageReader::new(Cursor::new(bytes))
-        .with_guessed_format()
-        .map_err(|e| ApiError::malformed(field.to_string(), format!("cannot read image: {e}")))?;
-    let format = match reader.format() {
-        Some(f @ (ImageFormat::Png | ImageFormat::Jpeg)) => f,
-        Some(other) => {
-            return Err(ApiError::UnsupportedMediaType {
-                field: Some(field.to_string()),
-                message: format!("image format {other:?} is not supported (PNG or JPEG)"),
-            })
-        }
-        None => {
-            return Err(ApiError::UnsupportedMediaType {
-                field: Some(field.to_string()),
-                message: "unrecognised image data (PNG or JPEG expected)".into(),
-            })
-        }
-    };
-    let (w, h) = reader
-        .into_dimensions()
-        .map_err(|e| ApiError::malformed(field.to_string(), format!("cannot read image header: {e}")))?;
-    Ok((format, w, h))
+    let header = images::read_header(Cursor::new(bytes)).map_err(|e| image_error(e, field))?;
+    Ok((header.format, header.width, header.height))
 }
 
-/// Decodes a PNG/JPEG source view to RGB in [0, 1], (H, W, 3); alpha is composited on
-/// `background` (`rgb·a + background·(1 − a)`), as the network never sees transparency.
+fn image_error(e: ImageError, field: &str) -> ApiError {
+    match e {
+        ImageError::Unsupported(message) => ApiError::UnsupportedMediaType { field: Some(field.to_string()), message },
+        other => ApiError::malformed(field.to_string(), format!("cannot read image: {other}")),
+    }
+}
+
+/// Decodes a PNG/JPEG source view to RGB in [0, 1], (H, W, 3), oriented as its EXIF says;
+/// alpha is composited on `background` (`rgb·a + background·(1 − a)`), as the network never sees
+/// transparency.
 pub fn decode_source(
     bytes: &[u8],
     field: &str,
     background: [f32; 3],
     max_pixels: u64,
 ) -> Result<Array3<f32>, ApiError> {
-    let (format, w, h) = probe(bytes, field)?;
+    let (_, w, h) = probe(bytes, field)?;
     if u64::from(w) * u64::from(h) > max_pixels {
         return Err(ApiError::invalid(
             field.to_string(),
             format!("image of {w}x{h} exceeds the limit of {max_pixels} pixels"),
         ));
     }
-    let mut reader = ImageReader::with_format(Cursor::new(bytes), format);
-    let mut limits = image::Limits::default();
-    limits.max_image_width = Some(w);
-    limits.max_image_height = Some(h);
-    // Worst case RGBA 16-bit plus the float copy.
-    limits.max_alloc = Some(u64::from(w) * u64::from(h) * 32 + (1 << 20));
-    reader.limits(limits);
-    let image =
-        reader.decode().map_err(|e| ApiError::malformed(field.to_string(), format!("cannot decode image: {e}")))?;
+    let image = images::decode(bytes).map_err(|e| image_error(e, field))?;
     Ok(to_rgb_on_background(image, background))
 }
 

@@ -28,8 +28,17 @@ pub const CONTENT_TYPE: &str = "application/openmetrics-text; version=1.0.0; cha
 struct RequestLabels {
     /// The route template (`/v1/scenes/{id}/render`), never the raw path: bounded cardinality.
     route: String,
-    method: String,
+    /// One of [`METHODS`] or `other`: a client may send any token as a method.
+    method: &'static str,
     status: u16,
+}
+
+/// The methods counted by name (RFC 9110's and PATCH); any other is counted as `other`.
+const METHODS: [&str; 9] = ["GET", "HEAD", "POST", "PUT", "DELETE", "CONNECT", "OPTIONS", "TRACE", "PATCH"];
+
+/// A method as a label value from a fixed set.
+fn method_label(method: &str) -> &'static str {
+    METHODS.into_iter().find(|m| *m == method).unwrap_or("other")
 }
 
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
@@ -97,7 +106,7 @@ impl Metrics {
     }
 
     pub fn observe_request(&self, route: &str, method: &str, status: u16, elapsed: Duration) {
-        let labels = RequestLabels { route: route.to_string(), method: method.to_string(), status };
+        let labels = RequestLabels { route: route.to_string(), method: method_label(method), status };
         self.requests.get_or_create(&labels).inc();
         self.request_seconds.get_or_create(&RouteLabels { route: route.to_string() }).observe(elapsed.as_secs_f64());
     }

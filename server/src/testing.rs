@@ -355,6 +355,19 @@ pub fn png_header(width: u32, height: u32) -> Vec<u8> {
     out
 }
 
+/// `png` with `chunks` (type, data) between its header and its image data, where metadata goes:
+/// colour-profile and text bombs, chunk floods.
+pub fn png_with_chunks<'a>(png: &[u8], chunks: impl IntoIterator<Item = (&'a [u8; 4], &'a [u8])>) -> Vec<u8> {
+    // The signature (8 bytes) and the IHDR chunk (25) come first.
+    let (head, rest) = png.split_at(33);
+    let mut out = head.to_vec();
+    for (kind, data) in chunks {
+        png_chunk(&mut out, kind, data);
+    }
+    out.extend_from_slice(rest);
+    out
+}
+
 fn png_chunk(out: &mut Vec<u8>, kind: &[u8; 4], data: &[u8]) {
     out.extend_from_slice(&(data.len() as u32).to_be_bytes());
     let start = out.len();

@@ -223,7 +223,10 @@ async fn the_cache_bound_holds_with_many_triples() {
     let max = (scene + 2.0 * volume) as usize;
     let app = App::new(
         Limits::default(),
-        ServiceOptions { cache: CacheConfig { max_bytes: max, ttl: Duration::from_secs(60) }, ..Default::default() },
+        ServiceOptions {
+            cache: CacheConfig { max_bytes: max, ttl: Duration::from_secs(60), per_owner_bytes: None },
+            ..Default::default()
+        },
     );
     let id = create(&app, &ANGLES).await;
     for i in 0..6u32 {
@@ -471,6 +474,10 @@ async fn captures_read_the_largest_image_set_within_the_limit() {
     let got = post_capture(&plain, &files, "?downscale=8").await;
     assert_error(&got, 422, "invalid_request", Some("downscale"));
     assert!(json_of(&got)["error"]["message"].as_str().unwrap().contains("no images_8 folder"), "{got:?}");
+    // The API document's minimum (1) holds: there is no images_0.
+    let got = post_capture(&plain, &files, "?downscale=0").await;
+    assert_error(&got, 400, "malformed_request", Some("query"));
+    assert!(json_of(&got)["error"]["message"].as_str().unwrap().contains("downscale"), "{got:?}");
     // only the set the client chose was sent: that one is read
     let half_only: Vec<_> = files.iter().filter(|(n, _)| !n.starts_with("images/")).cloned().collect();
     assert_eq!(json_of(&post_capture(&plain, &half_only, "").await)["image_set"], "images_2");

@@ -37,7 +37,7 @@ fn app(total: u64, delay: Duration) -> (axum::Router, Calls) {
     let mut runner = FakeRunner::new(&b);
     runner.delay = delay;
     let calls = runner.calls.clone();
-    let executor = ExecutorOptions { capacity: 8, memory: MemoryBudget { total, reserved: 0 }, probe: None };
+    let executor = ExecutorOptions { memory: MemoryBudget { total, reserved: 0 }, ..ExecutorOptions::with_capacity(8) };
     let limits = Limits { max_source_pixels: 4096 * 4096, ..Limits::default() };
     let options = ServiceOptions { request_timeout: Duration::from_secs(60), ..Default::default() };
     (router(state_with_executor(b, runner, limits, options, executor)), calls)

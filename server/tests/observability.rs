@@ -177,3 +177,32 @@ fn first_difference(a: &Value, b: &Value, at: &str) -> Option<String> {
         _ => (a != b).then(|| if at.is_empty() { "/".to_string() } else { at.to_string() }),
     }
 }
+
+/// The `scnerf_http_requests_total` series in a scrape.
+fn request_series(metrics: &str) -> usize {
+    metrics.lines().filter(|l| l.starts_with("scnerf_http_requests_total{")).count()
+}
+
+/// Any token is a valid method name in HTTP; each one must not become a series of its own, with
+/// or without a valid token (401 and 405 alike).
+#[tokio::test]
+async fn unknown_methods_add_no_series() {
+    let app = two_token_app();
+    scrape(&app).await; // a scrape is counted once it is answered: its series, before counting
+    for path in ["/healthz", "/v1/render"] {
+        let req = Request::builder().method("BREW").uri(path).body(Body::empty()).unwrap();
+        send(app.clone(), req).await;
+    }
+    let before = request_series(&scrape(&app).await);
+    for i in 0..1000 {
+        for path in ["/healthz", "/v1/render"] {
+            let req = Request::builder().method(format!("M{i:06}X").as_str()).uri(path).body(Body::empty()).unwrap();
+            let got = send(app.clone(), req).await;
+            assert!([401, 405].contains(&got.0.as_u16()), "{path}: {}", got.0);
+        }
+    }
+    let m = scrape(&app).await;
+    assert_eq!(request_series(&m), before, "{m}");
+    let other = r#"route="/healthz",method="other",status="405""#;
+    assert_eq!(sample(&m, "scnerf_http_requests_total", other), Some(1001.0), "{m}");
+}

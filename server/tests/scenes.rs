@@ -200,8 +200,11 @@ async fn bad_and_unknown_scene_ids() {
 #[tokio::test]
 async fn least_recently_used_scene_is_evicted_by_bytes() {
     // Room for two scenes, not three.
-    let app =
-        app_with_cache(CacheConfig { max_bytes: 2 * SCENE_BYTES + SCENE_BYTES / 2, ttl: Duration::from_secs(60) });
+    let app = app_with_cache(CacheConfig {
+        max_bytes: 2 * SCENE_BYTES + SCENE_BYTES / 2,
+        ttl: Duration::from_secs(60),
+        per_owner_bytes: None,
+    });
     let a = create(&app, 32).await;
     let b = create(&app, 32).await;
     assert_eq!(send(app.clone(), render_req(&a, &target_json(32), None)).await.0, 200); // a: recent
@@ -219,14 +222,16 @@ async fn least_recently_used_scene_is_evicted_by_bytes() {
 
 #[tokio::test]
 async fn a_scene_larger_than_the_cache_is_refused() {
-    let app = app_with_cache(CacheConfig { max_bytes: SCENE_BYTES - 1, ttl: Duration::from_secs(60) });
+    let app =
+        app_with_cache(CacheConfig { max_bytes: SCENE_BYTES - 1, ttl: Duration::from_secs(60), per_owner_bytes: None });
     let got = send(app, multipart_with("/v1/scenes", &scene_json(32), 32, &[])).await;
     assert_error(&got, 422, "invalid_request", Some("sources"));
 }
 
 #[tokio::test]
 async fn idle_scenes_expire_and_renders_extend_their_life() {
-    let app = app_with_cache(CacheConfig { max_bytes: 1 << 30, ttl: Duration::from_millis(600) });
+    let app =
+        app_with_cache(CacheConfig { max_bytes: 1 << 30, ttl: Duration::from_millis(600), per_owner_bytes: None });
     let kept = create(&app, 32).await;
     let idle = create(&app, 32).await;
     for _ in 0..3 {
@@ -242,4 +247,53 @@ async fn idle_scenes_expire_and_renders_extend_their_life() {
     );
     tokio::time::sleep(Duration::from_millis(700)).await;
     assert_error(&send(app, render_req(&kept, &target_json(32), None)).await, 404, "scene_not_found", Some("scene_id"));
+}
+
+async fn create_as(app: &Router, token: &str) -> String {
+    let got =
+        send(app.clone(), multipart_with("/v1/scenes", &scene_json(32), 32, &[("authorization", &bearer(token))]))
+            .await;
+    assert_eq!(got.0, 201, "{}", String::from_utf8_lossy(&got.2));
+    json_of(&got)["scene_id"].as_str().unwrap().to_string()
+}
+
+async fn render_as(app: &Router, id: &str, token: &str) -> u16 {
+    let req = json_to(&format!("/v1/scenes/{id}/render"), &target_json(32), &[("authorization", &bearer(token))]);
+    send(app.clone(), req).await.0.as_u16()
+}
+
+/// The probe's sequence over HTTP: with two tokens and room for six scenes (an equal share of
+/// three each), token B caches three scenes and renders them; token A then uploads five. B's
+/// scenes all still render: A made room from its own.
+#[tokio::test]
+async fn one_token_cannot_empty_another_token_s_scenes() {
+    let b = bundle("scnerf", "near_far");
+    let runner = FakeRunner::new(&b);
+    let cache = CacheConfig { max_bytes: 6 * SCENE_BYTES + SCENE_BYTES / 2, ..Default::default() };
+    let auth = scnerf_server::auth::Auth::from_tokens(&[ALICE, BOB]);
+    let app = router(state_with_options(
+        b,
+        runner,
+        Limits::default(),
+        ServiceOptions { cache, auth, ..Default::default() },
+        8,
+    ));
+    let mut bobs = Vec::new();
+    for _ in 0..3 {
+        let id = create_as(&app, BOB).await;
+        assert_eq!(render_as(&app, &id, BOB).await, 200);
+        bobs.push(id);
+    }
+    let mut alices = Vec::new();
+    for _ in 0..5 {
+        alices.push(create_as(&app, ALICE).await);
+    }
+    for id in &bobs {
+        assert_eq!(render_as(&app, id, BOB).await, 200, "Bob's scenes stay");
+    }
+    let mut kept = Vec::new();
+    for id in &alices {
+        kept.push(render_as(&app, id, ALICE).await);
+    }
+    assert_eq!(kept, [404, 404, 200, 200, 200], "Alice keeps her share: her three latest");
 }

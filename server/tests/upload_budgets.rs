@@ -21,8 +21,10 @@ use serde_json::{json, Value};
 /// part of the budget as another request would).
 fn app(budget_mib: u64, limits: Limits, cache: CacheConfig) -> (Router, BackendHandle) {
     let b = bundle("scnerf", "near_far");
-    let executor =
-        ExecutorOptions { capacity: 8, memory: MemoryBudget { total: budget_mib << 20, reserved: 0 }, probe: None };
+    let executor = ExecutorOptions {
+        memory: MemoryBudget { total: budget_mib << 20, reserved: 0 },
+        ..ExecutorOptions::with_capacity(8)
+    };
     let options = ServiceOptions { request_timeout: Duration::from_secs(60), cache, ..Default::default() };
     let state = state_with_executor(b.clone(), FakeRunner::new(&b), limits, options, executor);
     (router(state.clone()), state.pipeline().executor().clone())
@@ -99,7 +101,7 @@ async fn a_scene_upload_is_admitted_the_same_way_and_refused_first_when_the_cach
     let (cached, _) = app(2048, Limits::default(), CacheConfig { max_bytes: 512 << 20, ..Default::default() });
     let got = send(cached, multipart_to("/v1/scenes", &parts, &[])).await;
     assert_error(&got, 422, "invalid_request", Some("sources"));
-    assert!(message(&got).contains("the scene cache holds at most"), "{}", message(&got));
+    assert!(message(&got).contains("a client may hold at most"), "{}", message(&got));
 }
 
 #[tokio::test]

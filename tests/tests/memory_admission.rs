@@ -56,7 +56,8 @@ async fn eight_concurrent_renders_within_a_memory_budget() {
     let sizes = RequestSizes::render(&bundle.config, padded_size(w, h, 32), (tw * th) as u64);
     let one = estimate(&bundle.config, &plan, &sizes);
     let budget = one * 5 / 2;
-    let executor = ExecutorOptions { capacity: 32, memory: MemoryBudget { total: budget, reserved: 0 }, probe: None };
+    let executor =
+        ExecutorOptions { memory: MemoryBudget { total: budget, reserved: 0 }, ..ExecutorOptions::with_capacity(32) };
     let pipeline = ort_pipeline_with(&fixtures.join("bundle"), Limits::default(), executor);
     let options = ServiceOptions { request_timeout: std::time::Duration::from_secs(600), ..Default::default() };
     let app = router(ready_state(pipeline, options));

@@ -170,7 +170,10 @@ fn parse_cam(fs: &dyn Files, path: &Path) -> Result<DtuCamera> {
         return Err(Error::dataset(path, "intrinsic must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0"));
     }
     let (depth_min, depth_interval) = (rest[9], rest[10]);
-    if !(depth_min > 0.0 && depth_interval > 0.0) {
+    // The far depth finite as well (so both numbers are): an infinite one would be refused later,
+    // away from the file that holds it.
+    let far = depth_min + depth_interval * NUM_DEPTHS;
+    if !(depth_min > 0.0 && depth_interval > 0.0 && far.is_finite()) {
         return Err(Error::dataset(path, format!("invalid depth range {depth_min} {depth_interval}")));
     }
     let mut w2c = Matrix4::from_row_slice(&ext);

@@ -1,5 +1,7 @@
 //! Admission by time: a request is admitted only if its work, turned into seconds at the
-//! measured rates, finishes by its deadline without making an admitted request miss its own.
+//! measured rates, finishes by its deadline without making an admitted request miss its own,
+//! and, when its client chose no deadline, if the work ahead of it is within the server's
+//! longest queue wait.
 
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
@@ -10,6 +12,24 @@ use super::rates::{Rates, Work};
 use super::ticket::Ticket;
 use super::BackendError;
 
+/// When a request is due, and whether its client chose that (`x-scnerf-deadline-ms`). Without
+/// one a request has the server's long default deadline, and it is admitted only while its
+/// expected wait stays within the longest queue wait (`ExecutorOptions::max_queue_wait`), or
+/// its own expected service time when that is longer: a client is told at once to come back
+/// (429 + Retry-After) rather than queued for minutes.
+#[derive(Debug, Clone, Copy)]
+pub struct Due {
+    pub at: Instant,
+    pub chosen: bool,
+}
+
+/// A deadline as such, chosen by the client.
+impl From<Instant> for Due {
+    fn from(at: Instant) -> Due {
+        Due { at, chosen: true }
+    }
+}
+
 impl Queue {
     /// `Some(seconds of work ahead)` when a request due at `deadline` with `work` would miss
     /// its deadline, or make an admitted request miss one that it would meet now.
@@ -18,16 +38,8 @@ impl Queue {
         // kept, one slow run could refuse every request, and no run would come to correct it.)
         let alone = self.requests.is_empty() && self.running.is_none();
         let cost = work.secs_with(&self.rates, !alone);
-        let mut queue: Vec<(Instant, f64)> =
-            self.requests.values().map(|r| (r.deadline, r.remaining.secs(&self.rates))).collect();
-        queue.sort_by_key(|&(due, _)| due);
-        // A run of a request due later cannot be interrupted: the rest of it comes first. (A run
-        // of a request due sooner is in that request's remaining work.)
-        let blocking = self
-            .running
-            .filter(|r| r.deadline > deadline)
-            .map_or(0.0, |r| (r.secs - now.saturating_duration_since(r.started).as_secs_f64()).max(0.0));
-        let ahead = queue.iter().take_while(|(due, _)| *due <= deadline).fold(blocking, |sum, (_, secs)| sum + secs);
+        let queue = self.by_deadline();
+        let ahead = self.ahead(now, deadline);
         let misses = |finish: f64, due: Instant| {
             let finish = Duration::try_from_secs_f64(finish).unwrap_or(Duration::MAX);
             now.checked_add(finish).is_none_or(|at| at > due)
@@ -44,6 +56,25 @@ impl Queue {
         }
         None
     }
+
+    /// The admitted requests' deadlines and seconds of remaining work, earliest due first.
+    fn by_deadline(&self) -> Vec<(Instant, f64)> {
+        let mut queue: Vec<(Instant, f64)> =
+            self.requests.values().map(|r| (r.deadline, r.remaining.secs(&self.rates))).collect();
+        queue.sort_by_key(|&(due, _)| due);
+        queue
+    }
+
+    /// Seconds of admitted work that run before a request due at `deadline`: that of the
+    /// requests due no later and, as a graph run cannot be interrupted, the rest of the run in
+    /// progress of one due later. (A run of a request due sooner is in its remaining work.)
+    fn ahead(&self, now: Instant, deadline: Instant) -> f64 {
+        let blocking = self
+            .running
+            .filter(|r| r.deadline > deadline)
+            .map_or(0.0, |r| (r.secs - now.saturating_duration_since(r.started).as_secs_f64()).max(0.0));
+        self.by_deadline().iter().take_while(|(due, _)| *due <= deadline).fold(blocking, |sum, (_, secs)| sum + secs)
+    }
 }
 
 impl BackendHandle {
@@ -51,9 +82,11 @@ impl BackendHandle {
     /// adds at most `memory` bytes to the process: `TooLarge` when `memory` exceeds the whole
     /// budget, `QueueFull` when `capacity` requests are already admitted, `MemoryBusy` when the
     /// admitted requests' estimates leave less than `memory`, `WouldMissDeadline` when the
-    /// estimate says it cannot finish in time (see the `backend` module doc). The request
-    /// leaves when the ticket is dropped.
-    pub fn admit(&self, deadline: Instant, work: Work, memory: u64) -> Result<Ticket, BackendError> {
+    /// estimate says it cannot finish in time (see the `backend` module doc), `QueueWaitTooLong`
+    /// when its client chose no deadline and the work ahead of it exceeds both the longest queue
+    /// wait and its own work. The request leaves when the ticket is dropped.
+    pub fn admit(&self, due: impl Into<Due>, work: Work, memory: u64) -> Result<Ticket, BackendError> {
+        let Due { at: deadline, chosen } = due.into();
         let budget = self.shared.memory().for_requests();
         let mut q = self.shared.lock();
         if q.stopped {
@@ -65,8 +98,18 @@ impl BackendHandle {
         if q.requests.len() >= self.shared.capacity {
             return Err(BackendError::QueueFull);
         }
-        if let Some(ahead_secs) = q.would_miss(Instant::now(), deadline, work) {
+        let now = Instant::now();
+        if let Some(ahead_secs) = q.would_miss(now, deadline, work) {
             return Err(BackendError::WouldMissDeadline { work_secs: work.secs(&q.rates), ahead_secs });
+        }
+        if let Some(max) = self.shared.max_queue_wait.filter(|_| !chosen) {
+            // A request may always wait as long as it will itself take: on a slow machine, or
+            // for a large view, two requests may be in progress at once, whatever the bound.
+            let max_secs = max.as_secs_f64().max(work.secs(&q.rates));
+            let ahead_secs = q.ahead(now, deadline);
+            if ahead_secs > max_secs {
+                return Err(BackendError::QueueWaitTooLong { ahead_secs, max_secs });
+            }
         }
         q.hold(budget, 0, memory)?;
         q.next_ticket += 1;
@@ -116,6 +159,37 @@ mod tests {
         }
         assert!(backend.admit(far(), rays(200.0), 0).is_ok());
         drop((a, b));
+    }
+
+    /// A request whose client chose no deadline is admitted only while the work ahead of it is
+    /// within the longest queue wait; one whose client chose a deadline, as long as it allows.
+    #[tokio::test]
+    async fn without_a_chosen_deadline_the_queue_wait_is_bounded() {
+        use crate::backend::executor::ExecutorOptions;
+        use crate::backend::testkit::Recorder;
+        let options =
+            ExecutorOptions { max_queue_wait: Some(Duration::from_millis(300)), ..ExecutorOptions::with_capacity(8) };
+        let backend =
+            BackendHandle::spawn(Box::new(Recorder { order: Default::default(), gate: None }), options).unwrap();
+        plan_with(&backend, GraphKind::Renderer, 1e-3);
+        let rays = |n: f64| Work::of(GraphKind::Renderer, n);
+        let unchosen = || Due { at: far(), chosen: false };
+        let first = backend.admit(far(), rays(500.0), 0).unwrap();
+        match backend.admit(unchosen(), rays(100.0), 0) {
+            Err(e @ BackendError::QueueWaitTooLong { ahead_secs, max_secs }) => {
+                assert!((0.45..0.55).contains(&ahead_secs) && max_secs == 0.3, "{ahead_secs} {max_secs}");
+                let api = crate::error::ApiError::from(e);
+                assert_eq!(api.status(), 429);
+                assert!(matches!(api, crate::error::ApiError::TooManyRequests { retry_after_secs: 1, .. }));
+            }
+            other => panic!("{:?}", other.err()),
+        }
+        let chosen = backend.admit(far(), rays(100.0), 0).expect("a deadline of the client's: within it");
+        // A request may wait as long as it will itself take: 0.6 s ahead, 0.7 s of its own.
+        let large = backend.admit(unchosen(), rays(700.0), 0).expect("a wait shorter than its own work");
+        drop((first, large));
+        let admitted = backend.admit(unchosen(), rays(100.0), 0).expect("100 ms ahead: within the wait");
+        drop((chosen, admitted));
     }
 
     #[tokio::test]

@@ -13,6 +13,11 @@ pub enum BackendError {
          of work admitted ahead of it"
     )]
     WouldMissDeadline { work_secs: f64, ahead_secs: f64 },
+    #[error(
+        "about {ahead_secs:.1} s of work is admitted ahead of the request, more than the {max_secs:.1} s a request \
+         without a deadline may wait (--max-queue-wait-secs, or its own work when longer)"
+    )]
+    QueueWaitTooLong { ahead_secs: f64, max_secs: f64 },
     #[error("the request's deadline passed before its graph runs finished")]
     DeadlineExceeded,
     #[error("not enough memory: the requests in progress hold {in_use_mib} of {budget_mib} MiB")]

@@ -2,7 +2,7 @@
 //! they share with it.
 
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use super::memory::{MemoryBudget, MemoryRefusals};
 use super::queue::{Finish, Inputs, Job, Queue, Running};
@@ -19,12 +19,15 @@ pub struct ExecutorOptions {
     pub memory: MemoryBudget,
     /// Measures each graph run's memory (`--memory-probe`).
     pub probe: Option<Arc<MemoryProbe>>,
+    /// The longest a request whose client chose no deadline may expect to wait for the executor
+    /// (`--max-queue-wait-secs`; `None`: as long as its deadline allows).
+    pub max_queue_wait: Option<Duration>,
 }
 
 impl ExecutorOptions {
     /// `capacity` requests at once, no memory bound, no probe.
     pub fn with_capacity(capacity: usize) -> ExecutorOptions {
-        ExecutorOptions { capacity, memory: MemoryBudget::UNLIMITED, probe: None }
+        ExecutorOptions { capacity, memory: MemoryBudget::UNLIMITED, probe: None, max_queue_wait: None }
     }
 }
 
@@ -34,6 +37,7 @@ pub(super) struct Shared {
     pub(super) capacity: usize,
     pub(super) memory: Mutex<MemoryBudget>,
     pub(super) probe: Option<Arc<MemoryProbe>>,
+    pub(super) max_queue_wait: Option<Duration>,
 }
 
 impl Shared {
@@ -88,6 +92,7 @@ impl BackendHandle {
             capacity: options.capacity.max(1),
             memory: Mutex::new(options.memory),
             probe: options.probe,
+            max_queue_wait: options.max_queue_wait,
         });
         let worker_shared = shared.clone();
         std::thread::Builder::new().name("scnerf-inference".into()).spawn(move || worker(runner, worker_shared))?;

@@ -56,6 +56,7 @@ mod runner;
 mod testkit;
 mod ticket;
 
+pub use admission::Due;
 pub use error::BackendError;
 pub use executor::{BackendHandle, ExecutorOptions, QueueStats};
 pub use memory::{MemoryBudget, MemoryLease, MemoryRefusals};

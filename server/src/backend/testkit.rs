@@ -52,7 +52,7 @@ pub fn recorder() -> (BackendHandle, Arc<Mutex<Vec<u32>>>, mpsc::Sender<()>) {
 pub fn budgeted(total: u64, reserved: u64) -> (BackendHandle, mpsc::Sender<()>) {
     let (open, gate) = mpsc::channel();
     let recorder = Recorder { order: Arc::default(), gate: Some(gate) };
-    let options = ExecutorOptions { capacity: 8, memory: MemoryBudget { total, reserved }, probe: None };
+    let options = ExecutorOptions { memory: MemoryBudget { total, reserved }, ..ExecutorOptions::with_capacity(8) };
     (BackendHandle::spawn(Box::new(recorder), options).unwrap(), open)
 }
 

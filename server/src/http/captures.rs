@@ -55,8 +55,8 @@ pub struct CaptureOptions {
     ignore_distortion: bool,
     /// Read the image set `images_N` (LLFF, nerfstudio, COLMAP); without it, the largest set
     /// sent whose images fit `max_source_pixels` (GET /v1/limits).
-    #[param(minimum = 1)]
-    downscale: Option<u32>,
+    #[param(value_type = Option<u32>, minimum = 1)]
+    downscale: Option<std::num::NonZeroU32>,
 }
 
 /// `201 Created` body of `POST /v1/captures`: the scene, and what the capture was read as.
@@ -240,7 +240,7 @@ fn read_capture(
         downscale: None,
     };
     let rule = match options.downscale {
-        Some(factor) => Pick::Downscale(factor),
+        Some(factor) => Pick::Downscale(factor.get()),
         None => Pick::Fit { max_pixels: limits.max_source_pixels },
     };
     let read = load_picked(&Interruptible { files: &files, cancel }, Path::new(""), None, opts, rule);

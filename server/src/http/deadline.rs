@@ -13,16 +13,18 @@ use utoipa::openapi::schema::{KnownFormat, ObjectBuilder, SchemaFormat, Type};
 use utoipa::openapi::Required;
 
 use super::state::AppState;
+use crate::backend::Due;
 use crate::error::ApiError;
 
 /// Header with which a client shortens its request's deadline (milliseconds).
 pub const DEADLINE_HEADER: &str = "x-scnerf-deadline-ms";
 
-/// When a request started and how long it may take.
+/// When a request started, how long it may take, and whether its client chose that.
 #[derive(Debug, Clone, Copy)]
 pub struct Deadline {
     started: Instant,
     budget: Duration,
+    chosen: bool,
 }
 
 impl FromRequestParts<AppState> for Deadline {
@@ -31,8 +33,9 @@ impl FromRequestParts<AppState> for Deadline {
     async fn from_request_parts(parts: &mut Parts, state: &AppState) -> Result<Deadline, ApiError> {
         let started = Instant::now();
         state.check_ready()?;
-        let budget = budget(&parts.headers, state.request_timeout)?;
-        Ok(Deadline { started, budget })
+        let chosen = client_budget(&parts.headers)?;
+        let budget = chosen.map_or(state.request_timeout, |b| b.min(state.request_timeout));
+        Ok(Deadline { started, budget, chosen: chosen.is_some() })
     }
 }
 
@@ -56,8 +59,9 @@ impl Deadline {
         self.started
     }
 
-    pub fn at(&self) -> Instant {
-        self.started + self.budget
+    /// When the request is due, for admission to the executor.
+    pub fn due(&self) -> Due {
+        Due { at: self.started + self.budget, chosen: self.chosen }
     }
 
     /// Runs a request's handling within its budget. On timeout the work is dropped, and with it
@@ -71,20 +75,24 @@ impl Deadline {
     }
 }
 
-/// The request's time budget: the configured timeout, or less when the client asks for less.
-/// The header sent twice is refused rather than one of its values picked.
-fn budget(headers: &HeaderMap, default: Duration) -> Result<Duration, ApiError> {
+/// Digits alone without a leading zero, as the API document's integer is written: `u64`'s parser
+/// would also take `+5000` and `05000`, which a client cannot have meant as a plain number.
+fn plain_number(value: &[u8]) -> Option<u64> {
+    let digits = !value.is_empty() && value.iter().all(u8::is_ascii_digit) && (value[0] != b'0' || value.len() == 1);
+    std::str::from_utf8(value).ok().filter(|_| digits)?.parse().ok()
+}
+
+/// The time budget the client asks for, if it does (the configured timeout bounds it). The
+/// header sent twice is refused rather than one of its values picked.
+fn client_budget(headers: &HeaderMap) -> Result<Option<Duration>, ApiError> {
     let malformed = |message| ApiError::malformed(Some(DEADLINE_HEADER.to_string()), message);
     let mut values = headers.get_all(DEADLINE_HEADER).iter();
-    let Some(value) = values.next() else { return Ok(default) };
+    let Some(value) = values.next() else { return Ok(None) };
     if values.next().is_some() {
         return Err(malformed("sent more than once"));
     }
-    let ms = value
-        .to_str()
-        .ok()
-        .and_then(|v| v.trim().parse::<u64>().ok())
+    let ms = plain_number(value.as_bytes())
         .filter(|&ms| ms > 0)
-        .ok_or_else(|| malformed("expected a whole number of milliseconds > 0"))?;
-    Ok(default.min(Duration::from_millis(ms)))
+        .ok_or_else(|| malformed("expected a whole number of milliseconds > 0, in plain digits"))?;
+    Ok(Some(Duration::from_millis(ms)))
 }

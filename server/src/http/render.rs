@@ -43,7 +43,7 @@ async fn render_within(state: AppState, deadline: Deadline, req: Request) -> Res
     let valid = parsed.validate(pipeline.config(), pipeline.limits())?;
     let out_format = response_format(&headers, valid.view.outputs)?;
     let mut timings = Timings::default();
-    let view = pipeline.render(&valid, deadline.at(), &mut timings).await?;
+    let view = pipeline.render(&valid, deadline.due(), &mut timings).await?;
     let rendered = Rendered { view, sources: (0..valid.scene.sources.len()).collect() };
     finish(&state, rendered, valid.view.outputs, out_format, timings, deadline.started()).await
 }

@@ -109,7 +109,7 @@ pub(super) async fn store_scene(
 ) -> Result<Stored, ApiError> {
     // A scene larger than the whole cache is refused before its images are decoded.
     state.scenes.check_fits(state.pipeline.scene_bytes(&valid))?;
-    let (views, volume) = state.pipeline.encode_scene(&valid, deadline.at(), timings).await?;
+    let (views, volume) = state.pipeline.encode_scene(&valid, deadline.due(), timings).await?;
     let new = NewScene { views, volume, background: valid.background };
     let stored = state.scenes.insert(id, owner, new, Instant::now())?;
     timings.add("total", deadline.started().elapsed());
@@ -259,7 +259,7 @@ async fn render_within(state: AppState, deadline: Deadline, id: String, req: Req
             &valid.target,
             valid.sampling,
             scene.background,
-            deadline.at(),
+            deadline.due(),
             &mut timings,
         )
         .await?;

@@ -57,7 +57,7 @@ impl Default for ServiceOptions {
 impl AppState {
     /// Not ready until `set_ready` (after the warm-up render).
     pub fn new(pipeline: Pipeline, options: ServiceOptions) -> AppState {
-        let scenes = Arc::new(SceneCache::new(options.cache));
+        let scenes = Arc::new(SceneCache::new(options.cache, options.auth.token_count()));
         let metrics = Arc::new(Metrics::new(pipeline.executor().clone(), scenes.clone()));
         AppState {
             pipeline,

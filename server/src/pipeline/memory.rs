@@ -32,6 +32,10 @@ pub const ENCODER_BYTES_PER_PIXEL: u64 = 192;
 /// composited RGB.
 pub const DECODE_BYTES_PER_PIXEL: u64 = 80;
 
+/// Reading one image's header, or decoding it, beside its pixels: the decoder's buffers and the
+/// metadata it keeps, whatever the file holds (`scnerf_capture::images`).
+const IMAGE_HEADER_BYTES: u64 = scnerf_capture::images::HEADER_BYTES as u64;
+
 /// `volume.onnx`'s working memory per cell of the volume (D·Hp·Wp): the warped features of every
 /// plane, the 41-channel cost volume and G2's activations at once. Measured 674-699.
 pub const WHOLE_VOLUME_BYTES_PER_CELL: u64 = 800;
@@ -133,7 +137,7 @@ pub fn parts(config: &ModelConfig, plan: &MemoryPlan, sizes: &RequestSizes) -> E
     let image_pixels = w as u64 * h as u64;
     if sizes.decoded_views > 0 {
         e.held += sizes.decoded_views as u64 * image_pixels * 3 * 4;
-        e.stage = image_pixels * DECODE_BYTES_PER_PIXEL;
+        e.stage = image_pixels * DECODE_BYTES_PER_PIXEL + IMAGE_HEADER_BYTES;
     }
     if sizes.builds_volume {
         let plane = plane_cells(config, w, h) as u64;
@@ -189,11 +193,13 @@ pub fn scene_bytes(config: &ModelConfig, (w, h): (usize, usize), views: usize, b
 /// Reading a capture's text and metadata files (`metadata_bytes` of them): the text's copy and
 /// what the readers build from it, per byte of it (measured on hostile files, docs/results.md),
 /// and bounds that do not grow with the files: a JSON file's values (`MAX_JSON_VALUES` of ~64
-/// bytes in `serde_json::Value`) and the depths ranked for a COLMAP model's near/far.
+/// bytes in `serde_json::Value`), the depths ranked for a COLMAP model's near/far, and the image
+/// header being read (one at a time).
 pub fn capture_parse_bytes(metadata_bytes: u64) -> u64 {
     const PER_BYTE: u64 = 8;
-    let fixed =
-        scnerf_capture::readers::MAX_JSON_VALUES as u64 * 64 + scnerf_capture::readers::colmap::MAX_DEPTHS as u64 * 8;
+    let fixed = scnerf_capture::readers::MAX_JSON_VALUES as u64 * 64
+        + scnerf_capture::readers::colmap::MAX_DEPTHS as u64 * 8
+        + IMAGE_HEADER_BYTES;
     PER_REQUEST_BYTES + metadata_bytes * PER_BYTE + fixed
 }
 

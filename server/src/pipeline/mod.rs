@@ -30,7 +30,7 @@ use std::time::{Duration, Instant};
 use ndarray::{ArcArray3, ArcArray4, ArcArray5, Array1, Array2, Array3, Array4};
 use views::Views;
 
-use crate::backend::{BackendError, BackendHandle, Ticket, Work};
+use crate::backend::{BackendError, BackendHandle, Due, Ticket, Work};
 use crate::bundle::{Bundle, DepthNorm, GraphKind, Manifest, ModelConfig};
 use crate::camera::{stack_rows, Camera};
 use crate::error::ApiError;
@@ -220,30 +220,30 @@ impl Pipeline {
         &self.backend
     }
 
-    /// The whole request, admitted until `deadline`: decode, encoder, volume, renderer, assembly.
+    /// The whole request, admitted until `due`: decode, encoder, volume, renderer, assembly.
     /// A cached scene goes through exactly the same `render_view`, so its views are
     /// bit-identical to these.
-    pub async fn render(&self, req: &ValidRequest, deadline: Instant, timings: &mut Timings) -> Result<View, ApiError> {
+    pub async fn render(&self, req: &ValidRequest, due: Due, timings: &mut Timings) -> Result<View, ApiError> {
         let sampling = self.sampling_of(req.view.sampling)?;
         let target = Some((&req.view.target, sampling));
-        let ticket = self.admit_request(deadline, Some(&req.scene.cameras()), true, target)?;
+        let ticket = self.admit_request(due, Some(&req.scene.cameras()), true, target)?;
         let scene = self.prepare_scene(&ticket, &req.scene, timings).await?;
         Ok(self.render_view(&ticket, &scene, &req.view.target, req.scene.background, sampling, None, timings).await?)
     }
 
     /// The scene of `POST /v1/scenes`: its views decoded; a scene of exactly the model's view
-    /// count also gets its encoder features and volume now (admitted until `deadline`), as scenes
+    /// count also gets its encoder features and volume now (admitted until `due`), as scenes
     /// always did. A larger one (a capture) builds the volume of each triple a render needs; its
     /// decoding holds its memory estimate against the budget (a lease: no graph runs).
     pub async fn encode_scene(
         &self,
         req: &ValidScene,
-        deadline: Instant,
+        due: Due,
         timings: &mut Timings,
     ) -> Result<(Views, Option<Scene>), ApiError> {
         let cameras = req.cameras();
         let (ticket, _decoding) = match self.builds_on_upload(cameras.len()) {
-            true => (Some(self.admit_request(deadline, Some(&cameras), true, None)?), None),
+            true => (Some(self.admit_request(due, Some(&cameras), true, None)?), None),
             false => {
                 let estimate = self.memory_estimate(Some(&cameras), true, false, None);
                 (None, Some(self.backend.lease(estimate).map_err(|e| refusal(e, Some(&cameras), None))?))
@@ -260,7 +260,7 @@ impl Pipeline {
         Ok((views, scene))
     }
 
-    /// A view of a scene rendered from `sources`, admitted until `deadline`: the renderer alone
+    /// A view of a scene rendered from `sources`, admitted until `due`: the renderer alone
     /// when their scene is `cached`, else the encoder and volume net first; a scene built here is
     /// returned for the cache.
     #[allow(clippy::too_many_arguments)]
@@ -272,14 +272,14 @@ impl Pipeline {
         target: &Camera,
         sampling: Option<Sampling>,
         background: [f32; 3],
-        deadline: Instant,
+        due: Due,
         timings: &mut Timings,
     ) -> Result<(View, Option<Arc<Scene>>), ApiError> {
         let cameras = views.cameras_of(sources);
         let sampling = self.sampling_of(sampling)?;
         // A cached triple costs the renderer alone; otherwise its scene is built here too.
         let ticket =
-            self.admit_request(deadline, cached.is_none().then_some(&cameras[..]), false, Some((target, sampling)))?;
+            self.admit_request(due, cached.is_none().then_some(&cameras[..]), false, Some((target, sampling)))?;
         let (scene, built) = match cached {
             Some(scene) => (scene, None),
             None => {
@@ -294,10 +294,10 @@ impl Pipeline {
     }
 
     /// Admits a request with `work` and at most `memory` bytes to the inference executor until
-    /// `deadline` (503 when it is full, short of memory, or the request could not finish in time;
+    /// `due` (503 when it is full, short of memory, or the request could not finish in time;
     /// 422 when it needs more memory than the executor ever has).
-    pub fn admit(&self, deadline: Instant, work: Work, memory: u64) -> Result<Ticket, ApiError> {
-        Ok(self.backend.admit(deadline, work, memory)?)
+    pub fn admit(&self, due: impl Into<Due>, work: Work, memory: u64) -> Result<Ticket, ApiError> {
+        Ok(self.backend.admit(due, work, memory)?)
     }
 
     /// Admits a request that builds the volume of `sources` (`None`: a cached scene), decoding
@@ -305,14 +305,14 @@ impl Pipeline {
     /// is decoded. Too large for the memory budget: 422 naming the sizes.
     fn admit_request(
         &self,
-        deadline: Instant,
+        due: Due,
         sources: Option<&[Camera]>,
         decodes: bool,
         target: Option<(&Camera, Sampling)>,
     ) -> Result<Ticket, ApiError> {
         let work = self.request_work(sources, target);
         let memory = self.memory_estimate(sources, decodes, sources.is_some(), target);
-        self.backend.admit(deadline, work, memory).map_err(|e| refusal(e, sources, target.map(|(t, _)| t)))
+        self.backend.admit(due, work, memory).map_err(|e| refusal(e, sources, target.map(|(t, _)| t)))
     }
 
     /// The work of a request that builds the scene of `sources` (`None`: a cached scene) and

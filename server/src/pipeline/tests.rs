@@ -55,8 +55,8 @@ fn camera(width: u32, height: u32) -> Camera {
     Camera { width, height, ..testing::camera() }
 }
 
-fn deadline() -> Instant {
-    Instant::now() + Duration::from_secs(60)
+fn deadline() -> Due {
+    (Instant::now() + Duration::from_secs(60)).into()
 }
 
 fn ticket(p: &Pipeline) -> Ticket {
