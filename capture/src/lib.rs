@@ -5,10 +5,12 @@
 //! that thins a capture to a view budget ([`thin_evenly`]).
 
 pub mod camera;
+pub mod depth_range;
 mod error;
 pub mod files;
 pub mod image_sets;
 pub mod readers;
+pub mod undistort;
 pub mod wire;
 
 pub use error::{Error, Result};
