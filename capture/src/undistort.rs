@@ -27,15 +27,18 @@ pub struct Distortion {
 }
 
 /// Which pinhole camera a distorted view is resampled to (OpenCV's `getOptimalNewCameraMatrix`
-/// with alpha 1 or 0).
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+/// with alpha 0 or 1); `largest_rectangle`, `all_pixels` in the server's query.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
 pub enum Fit {
+    /// The largest rectangle of valid pixels: nothing is filled, the edges are cropped. The
+    /// default: the filled corners of `AllPixels` cost far more than the cropped edges (the
+    /// network renders the filled colour well beyond them; docs/client.md, "Lens distortion").
+    #[default]
+    LargestRectangle,
     /// Every pixel of the photo stays in the image; the corners that no pixel reaches are
     /// filled with the capture's background.
-    #[default]
     AllPixels,
-    /// The largest rectangle of valid pixels: nothing is filled, the edges are cropped.
-    LargestRectangle,
 }
 
 /// A view whose photo is distorted: the photo's camera and the pinhole camera of the same size

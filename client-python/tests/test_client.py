@@ -168,7 +168,7 @@ def test_a_phone_capture_is_undistorted_and_fitted_by_the_server(client, tmp_pat
     assert (scene.cameras[0]["width"], scene.cameras[0]["height"]) == (41, 73)
     assert "6 images of 54x96 exceed the server's limit of 3072 pixels per source view" in scene.warnings[0]
     fx = scene.cameras[0]["intrinsics"]["fx"]
-    assert fx < 0.9 * 96 * 41 / 54, "barrel distortion: the pinhole camera that keeps every pixel sees wider"
+    assert fx < 0.9 * 96 * 41 / 54, "barrel distortion squeezed a wider view into the photo than its focal length says"
     assert 0 < scene.near < scene.far
     view = client.render_scene(scene, scene.cameras[0])
     assert view.rgb.shape == (73, 41, 3)

@@ -70,16 +70,16 @@ struct DataArgs {
     /// Use photos with lens distortion as they are, as pinhole, instead of undistorting them.
     #[arg(long)]
     ignore_distortion: bool,
-    /// The pinhole camera distorted photos are undistorted to: all-pixels keeps every pixel
-    /// (corners no pixel reaches take the background), largest-rectangle crops to valid pixels.
-    #[arg(long, value_enum, default_value_t = UndistortTo::AllPixels)]
+    /// The pinhole camera distorted photos are undistorted to: largest-rectangle crops to valid
+    /// pixels, all-pixels keeps every pixel (corners no pixel reaches take the background).
+    #[arg(long, value_enum, default_value_t = UndistortTo::LargestRectangle)]
     undistort_to: UndistortTo,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
 enum UndistortTo {
-    AllPixels,
     LargestRectangle,
+    AllPixels,
 }
 
 #[derive(Args)]

@@ -55,24 +55,16 @@ pub struct CaptureOptions {
     /// Use photos with lens distortion as they are, as pinhole, instead of undistorting them.
     #[serde(default)]
     ignore_distortion: bool,
-    /// The pinhole camera distorted photos are undistorted to: `all_pixels` (default) keeps
-    /// every pixel (corners no pixel reaches take the background), `largest_rectangle` crops to
-    /// valid pixels.
+    /// The pinhole camera distorted photos are undistorted to: `largest_rectangle` (default)
+    /// crops to valid pixels, `all_pixels` keeps every pixel (corners no pixel reaches take the
+    /// background).
     #[serde(default)]
-    #[param(value_type = Option<String>, pattern = "^(all_pixels|largest_rectangle)$")]
-    undistort_to: UndistortTo,
+    #[param(value_type = Option<String>, pattern = "^(largest_rectangle|all_pixels)$")]
+    undistort_to: Fit,
     /// Read the image set `images_N` (LLFF, nerfstudio, COLMAP); without it, the largest set
     /// sent whose images fit `max_source_pixels` (GET /v1/limits).
     #[param(minimum = 1)]
     downscale: Option<u32>,
-}
-
-#[derive(Debug, Default, Clone, Copy, Deserialize)]
-#[serde(rename_all = "snake_case")]
-enum UndistortTo {
-    #[default]
-    AllPixels,
-    LargestRectangle,
 }
 
 /// `201 Created` body of `POST /v1/captures`: the scene, and what the capture was read as.
@@ -250,16 +242,12 @@ fn read_capture(
     parsing: &mut MemoryLease,
     cancel: &Cancel,
 ) -> Result<ReadCapture, ApiError> {
-    let undistort = match options.undistort_to {
-        UndistortTo::AllPixels => Fit::AllPixels,
-        UndistortTo::LargestRectangle => Fit::LargestRectangle,
-    };
     let opts = ReadOptions {
         near: options.near,
         far: options.far,
         ignore_distortion: options.ignore_distortion,
         downscale: None,
-        undistort,
+        undistort: options.undistort_to,
     };
     let rule = match options.downscale {
         Some(factor) => Pick::Downscale(factor),
