@@ -7,7 +7,10 @@ repository; the capture is written where you say.
 Each photo is what a camera with that lens, at the scene's pose, would have taken: the central
 portrait crop of the scene's view, scaled to --size, distorted by the lens (for every photo pixel,
 the undistorted ray by OpenCV's model, inverted by fixed-point steps, then the scene's image
-sampled bilinearly there).
+sampled bilinearly there). The scene's field of view is narrower than a phone's (DTU's focal
+length is 2.8 times its image height; a phone's main camera about 0.8 times the long side), so the
+lens's coefficients are scaled to move pixels as far as the phone lens moves them on a phone's
+field of view: k1 s^2, k2 s^4, p s, with s the ratio of the two focal lengths.
 
     scnerf info ../shared/data/dtu_scan37 --json > /tmp/scan37.json
     python scripts/make-phone-capture.py /tmp/scan37.json /tmp/phone --layout instant-ngp
@@ -23,12 +26,22 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+#: A phone's main camera: focal length / the photo's long side.
+PHONE_FOCAL = 0.8
+
 LENSES = {
-    # k1, k2, p1, p2: a phone's mild pincushion, as COLMAP and instant-ngp write it
+    # k1, k2, p1, p2 on a phone's field of view: mild pincushion, as COLMAP and instant-ngp write it
     "instant-ngp": (0.05, 0.01, 0.0005, -0.0003),
     "colmap-simple-radial": (0.058, 0.0, 0.0, 0.0),
     "colmap-opencv": (0.05, 0.01, 0.0005, -0.0003),
 }
+
+
+def on_this_view(lens, focal, long_side):
+    """The phone lens's coefficients for a camera of `focal` (pixels), moving pixels as far."""
+    k1, k2, p1, p2 = lens
+    s = focal / (PHONE_FOCAL * long_side)
+    return k1 * s**2, k2 * s**4, p1 * s, p2 * s
 
 
 def distort(x, y, lens):
@@ -64,18 +77,19 @@ def bilinear(image, u, v):
 
 
 def phone_photo(image, k, size, lens):
-    """The portrait photo of `size` a camera with `lens` takes of the view `image` (intrinsics `k`):
-    and that photo's intrinsics (pixel centres at integers)."""
+    """The portrait photo of `size` a camera with the phone lens `lens` takes of the view `image`
+    (intrinsics `k`), that photo's intrinsics (pixel centres at integers) and its lens's coefficients."""
     h, w, _ = image.shape
     crop = h * size[0] / size[1]  # the portrait crop's width
     x0 = (w - crop) / 2
     s = size[1] / h
     fx, fy = k["fx"] * s, k["fy"] * s
     cx, cy = (k["cx"] - x0 + 0.5) * s - 0.5, (k["cy"] + 0.5) * s - 0.5
+    lens = on_this_view(lens, fx, max(size))
     v, u = np.mgrid[0 : size[1], 0 : size[0]].astype(float)
     x, y = undistort((u - cx) / fx, (v - cy) / fy, lens)
     photo = bilinear(image.astype(float), k["fx"] * x + k["cx"], k["fy"] * y + k["cy"])
-    return np.clip(np.round(photo), 0, 255).astype(np.uint8), (fx, fy, cx, cy)
+    return np.clip(np.round(photo), 0, 255).astype(np.uint8), (fx, fy, cx, cy), lens
 
 
 def opengl_c2w(w2c):
@@ -100,13 +114,12 @@ def main():
     parser.add_argument("--size", default="1080x1920", help="portrait WxH of the photos")
     args = parser.parse_args()
     size = tuple(int(n) for n in args.size.split("x"))
-    lens = LENSES[args.layout]
     info = json.loads(args.info.read_text())
     (args.out / "images").mkdir(parents=True, exist_ok=False)
     frames, images_txt, intrinsics = [], [], None
     for i, view in enumerate(info["views"]):
         image = np.asarray(Image.open(view["image"]).convert("RGB"))
-        photo, intrinsics = phone_photo(image, view["camera"]["intrinsics"], size, lens)
+        photo, intrinsics, lens = phone_photo(image, view["camera"]["intrinsics"], size, LENSES[args.layout])
         name = f"{i:04}.jpg"
         Image.fromarray(photo).save(args.out / "images" / name, quality=95)
         w2c = np.asarray(view["camera"]["pose"]["matrix"], float)
