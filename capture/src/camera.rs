@@ -213,6 +213,39 @@ pub fn unit(v: Vector3<f64>) -> Option<Vector3<f64>> {
     Unit::try_new(v, 1e-12).map(Unit::into_inner)
 }
 
+/// Where the optical axes of a set of cameras meet: the point nearest to every axis (least
+/// squares), and how far the axes spread.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Convergence {
+    pub point: Point3<f64>,
+    /// The smallest over the largest eigenvalue of the least-squares system: about the mean
+    /// squared angle between the axes (0 when they are parallel).
+    pub spread: f64,
+}
+
+/// The point the cameras look at, and the spread of their axes; `None` when the axes are
+/// (nearly) parallel, spreading by less than about 6 degrees (`spread` <= 0.01), or when most
+/// cameras have the point behind them.
+pub fn convergence<'a>(cameras: impl IntoIterator<Item = &'a Camera>) -> Option<Convergence> {
+    let cameras: Vec<&Camera> = cameras.into_iter().collect();
+    let mut a = Matrix3::zeros();
+    let mut b = Vector3::zeros();
+    for c in &cameras {
+        let d = c.forward();
+        let p = Matrix3::identity() - d * d.transpose();
+        a += p;
+        b += p * c.center().coords;
+    }
+    let eigen = a.symmetric_eigen();
+    let spread = eigen.eigenvalues.min() / eigen.eigenvalues.max();
+    if spread.is_nan() || spread <= 0.01 {
+        return None;
+    }
+    let point = Point3::from(a.lu().solve(&b)?);
+    let in_front = cameras.iter().filter(|c| (point - c.center()).dot(&c.forward()) > 0.0).count();
+    (in_front * 2 > cameras.len()).then_some(Convergence { point, spread })
+}
+
 /// Where a camera is and which way it looks: all that source ranking needs.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Viewpoint {

@@ -25,6 +25,14 @@ class Camera:
     kind: PoseKind = "world_to_camera"
     axes: Axes = "opencv"
 
+    def __repr__(self) -> str:
+        m = np.asarray(self.pose, float)
+        centre = m[:3, 3] if self.kind == "camera_to_world" else -m[:3, :3].T @ m[:3, 3]
+        return (
+            f"Camera({self.width}x{self.height}, f {self.fx:g},{self.fy:g}, c {self.cx:g},{self.cy:g}, "
+            f"centre ({centre[0]:.3g}, {centre[1]:.3g}, {centre[2]:.3g}), {self.kind} {self.axes})"
+        )
+
     def to_json(self) -> dict[str, Any]:
         """The API's JSON camera."""
         return {

@@ -59,7 +59,7 @@ def collect(folder: str | Path, max_source_pixels: int, downscale: int | None = 
     if not folder.is_dir():
         raise CaptureError(f"{folder}: no such capture folder")
     sets = image_sets(folder)
-    notes: list[str] = []
+    resized: list[tuple[tuple[int, int], tuple[int, int]]] = []
     chosen: int | None = None
     if downscale is not None:
         if max(downscale, 1) not in sets and (sets or downscale > 1):
@@ -82,30 +82,40 @@ def collect(folder: str | Path, max_source_pixels: int, downscale: int | None = 
             continue
         data = path.read_bytes()
         if IMAGE_FILE.search(path.name):
-            data = fit(data, max_source_pixels, rel.as_posix(), notes)
+            data, before, after = fit(data, max_source_pixels)
+            if before != after:
+                resized.append((before, after))
         files.append((rel.as_posix(), data))
     if not files:
         raise CaptureError(
             f"{folder}: no capture files (images plus transforms.json, poses_bounds.npy or COLMAP files)"
         )
-    return CaptureFiles(files, sets[chosen].name if chosen in sets else None, notes[:1])
+    return CaptureFiles(files, sets[chosen].name if chosen in sets else None, fit_note(resized, max_source_pixels))
 
 
-def fit(data: bytes, max_pixels: int, name: str, notes: list[str]) -> bytes:
-    """An image within ``max_pixels``: as it is, or resized (aspect kept) in its own format."""
+def fit(data: bytes, max_pixels: int) -> tuple[bytes, tuple[int, int], tuple[int, int]]:
+    """An image within ``max_pixels``: as it is, or resized (aspect kept, sizes rounded down as
+    ``scnerf_capture::upload::fit_to_limit`` does) in its own format; with its size before and after."""
     with Image.open(io.BytesIO(data)) as im:
         w, h = im.size
         if w * h <= max_pixels:
-            return data
+            return data, (w, h), (w, h)
         scale = (max_pixels / (w * h)) ** 0.5
         size = (max(1, int(w * scale)), max(1, int(h * scale)))
-        notes.append(
-            f"images of {w}x{h} ({name}, ...) exceed the server's limit of {max_pixels} pixels per source view: "
-            f"resized to {size[0]}x{size[1]} before uploading"
-        )
         out = io.BytesIO()
         jpeg = im.format == "JPEG"
         im.convert("RGB" if jpeg else im.mode).resize(size, Image.Resampling.BILINEAR).save(
             out, format="JPEG" if jpeg else "PNG", **({"quality": 95} if jpeg else {})
         )
-        return out.getvalue()
+        return out.getvalue(), (w, h), size
+
+
+def fit_note(resized: list[tuple[tuple[int, int], tuple[int, int]]], max_pixels: int) -> list[str]:
+    """The one line the ``scnerf`` client and the server say about images resized to fit."""
+    if not resized:
+        return []
+    (w, h), (rw, rh) = resized[0]
+    return [
+        f"{len(resized)} images of {w}x{h} exceed the server's limit of {max_pixels} pixels per source view: "
+        f"resizing them to {rw}x{rh}"
+    ]

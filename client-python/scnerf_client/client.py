@@ -54,6 +54,12 @@ class Rendering:
     sampling: str | None = None
     samples_per_ray: float | None = None
 
+    def __repr__(self) -> str:
+        image = next(a for a in (self.rgb, self.depth, self.opacity, np.zeros((0, 0))) if a is not None)
+        outputs = "+".join(n for n in ("rgb", "depth", "opacity") if getattr(self, n) is not None) or "nothing"
+        sampled = f", {self.sampling} {self.samples_per_ray:.1f} samples/ray" if self.sampling else ""
+        return f"Rendering({image.shape[1]}x{image.shape[0]} {outputs}, sources {self.sources}{sampled})"
+
 
 @dataclass
 class Scene:
@@ -71,6 +77,16 @@ class Scene:
     image_set: str | None = None
     warnings: list[str] = field(default_factory=list)
     upload: Callable[[], str] | None = field(default=None, repr=False)
+
+    def __repr__(self) -> str:
+        sizes = sorted({(c["width"], c["height"]) for c in self.cameras})
+        size = ", ".join(f"{w}x{h}" for w, h in sizes) or "no views"
+        what = ", ".join(str(p) for p in (self.format, self.image_set) if p)
+        warned = f", {len(self.warnings)} warnings" if self.warnings else ""
+        return (
+            f"Scene({self.id!r}, {what + ', ' if what else ''}{len(self.cameras)} views at {size}, "
+            f"near {self.near:g} far {self.far:g}{warned})"
+        )
 
 
 class Client:

@@ -3,6 +3,8 @@ re-upload, captures as distributed (image sets chosen by the server's limit), ty
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from PIL import Image
@@ -130,8 +132,54 @@ def test_capture_without_a_set_that_fits_is_resized_here(client, tmp_path):
     llff_as_distributed(tmp_path, full=(128, 96), factors=())
     scene = client.upload_capture(tmp_path)
     assert scene.image_set == "images" and (scene.cameras[0]["width"], scene.cameras[0]["height"]) == (64, 48)
-    assert "exceed the server's limit of 3072 pixels per source view: resized to 64x48" in scene.warnings[0]
+    assert "exceed the server's limit of 3072 pixels per source view: resizing them to 64x48" in scene.warnings[0]
     (tmp_path / "poses_bounds.npy").unlink()  # images without cameras: refused, saying why
     with pytest.raises(InvalidRequest) as refused:
         client.upload_capture(tmp_path)
     assert refused.value.status == 422 and "cannot tell the dataset format" in refused.value.message
+
+
+def phone_capture(folder, size=(54, 96), count=6) -> None:
+    """instant-ngp's layout as a phone capture leaves it: the camera with lens distortion at the top
+    level of transforms.json, no depth range, portrait JPEGs; views on a ring around the origin."""
+    (folder / "images").mkdir()
+    w, h = size
+    frames = []
+    for i in range(count):
+        a = 0.3 * i
+        eye = np.array([5 * np.cos(a), 5 * np.sin(a), 1.0])
+        back = eye / np.linalg.norm(eye)  # OpenGL: z points backwards, away from the origin
+        right = np.cross([0.0, 0.0, 1.0], back)
+        right /= np.linalg.norm(right)
+        c2w = np.eye(4)
+        c2w[:3, :3] = np.stack([right, np.cross(back, right), back], 1)
+        c2w[:3, 3] = eye
+        Image.fromarray(photo(i, w, h)).save(folder / "images" / f"{i:04}.jpg")
+        frames.append({"file_path": f"images/{i:04}.jpg", "transform_matrix": c2w.tolist()})
+    transforms = {"fl_x": 0.9 * h, "fl_y": 0.9 * h, "cx": w / 2, "cy": h / 2, "w": w, "h": h, "k1": -0.06,
+                  "k2": 0.01, "p1": 0.0005, "p2": -0.0003, "aabb_scale": 16, "frames": frames}  # fmt: skip
+    (folder / "transforms.json").write_text(json.dumps(transforms))
+
+
+def test_a_phone_capture_is_undistorted_and_fitted_by_the_server(client, tmp_path):
+    phone_capture(tmp_path)
+    scene = client.upload_capture(tmp_path)
+    # the images (5184 pixels) are over the limit (3072): resized here, undistorted by the server
+    assert (scene.cameras[0]["width"], scene.cameras[0]["height"]) == (41, 73)
+    assert "6 images of 54x96 exceed the server's limit of 3072 pixels per source view" in scene.warnings[0]
+    fx = scene.cameras[0]["intrinsics"]["fx"]
+    assert fx < 0.9 * 96 * 41 / 54, "barrel distortion squeezed a wider view into the photo than its focal length says"
+    assert 0 < scene.near < scene.far
+    view = client.render_scene(scene, scene.cameras[0])
+    assert view.rgb.shape == (73, 41, 3)
+
+
+def test_reprs_are_one_line(client, tmp_path):
+    llff_as_distributed(tmp_path)
+    scene = client.upload_capture(tmp_path)
+    text = repr(scene)
+    assert "\n" not in text and len(text) < 200, text
+    assert text == f"Scene({scene.id!r}, llff, images_4, 5 views at 64x48, near 2 far 6)"
+    view = client.render_scene(scene, scene.cameras[0])
+    assert repr(view).startswith(f"Rendering(64x48 rgb+depth+opacity, sources {view.sources}")
+    assert repr(camera(0.5, 0.0)) == "Camera(32x24, f 32,32, c 15.5,11.5, centre (0.5, 0, 0), camera_to_world opencv)"

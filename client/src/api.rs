@@ -20,8 +20,8 @@ use sha2::{Digest, Sha256};
 
 use crate::error::{read_bytes, Error, Result};
 use scnerf_capture::camera::Camera;
-use scnerf_capture::images;
 use scnerf_capture::readers::{Capture, CapturedView};
+use scnerf_capture::upload::image_bytes;
 use scnerf_capture::wire::WireCamera;
 
 /// The server's limits (`GET /v1/limits`): what it accepts, read before anything is uploaded.
@@ -45,7 +45,7 @@ pub const HINT_REUPLOAD: &str = "reupload";
 pub struct Upload {
     /// The scene id to PUT under; `None`: derived from the content ([`content_id`]).
     pub scene_id: Option<String>,
-    pub sources: Vec<(Camera, PathBuf)>,
+    pub sources: Vec<CapturedView>,
     pub near: f64,
     pub far: f64,
     pub background: [f64; 3],
@@ -56,7 +56,7 @@ impl Upload {
     pub fn new(capture: &Capture, views: &[&CapturedView]) -> Upload {
         Upload {
             scene_id: None,
-            sources: views.iter().map(|v| (v.camera.clone(), v.image_path.clone())).collect(),
+            sources: views.iter().map(|&v| v.clone()).collect(),
             near: capture.near,
             far: capture.far,
             background: capture.background,
@@ -145,17 +145,15 @@ impl Client {
         // A `Value`, whose keys are sorted: the bytes, and so the content's id, stay those of
         // earlier versions of the client.
         let sources: Vec<Value> =
-            upload.sources.iter().map(|(c, _)| json!({ "camera": WireCamera::from(c) })).collect();
+            upload.sources.iter().map(|v| json!({ "camera": WireCamera::from(&v.camera) })).collect();
         let request = json!({
             "sources": sources, "near": upload.near, "far": upload.far, "background": upload.background,
         });
         let mut parts = vec![Part { name: "request".into(), file: None, bytes: request.to_string().into_bytes() }];
-        for (i, (camera, path)) in upload.sources.iter().enumerate() {
-            parts.push(Part {
-                name: format!("source_{i}"),
-                file: Some(path.clone()),
-                bytes: image_bytes(path, camera)?,
-            });
+        for (i, view) in upload.sources.iter().enumerate() {
+            let photo = read_bytes(&view.image_path)?;
+            let bytes = image_bytes(view, &photo, upload.background)?.into_owned();
+            parts.push(Part { name: format!("source_{i}"), file: Some(view.image_path.clone()), bytes });
         }
         let id = upload.scene_id.clone().unwrap_or_else(|| content_id(&parts));
         let path = format!("/v1/scenes/{id}");
@@ -391,30 +389,6 @@ fn multipart(parts: &[Part]) -> (String, Vec<u8>) {
     }
     body.extend_from_slice(format!("--{boundary}--\r\n").as_bytes());
     (format!("multipart/form-data; boundary={boundary}"), body)
-}
-
-/// The bytes of a view's image as they are; resampled to its camera's size when the camera was
-/// resized to fit the server's source limit (JPEG stays JPEG, at quality 95; anything else PNG).
-fn image_bytes(path: &Path, camera: &Camera) -> Result<Vec<u8>> {
-    let bytes = read_bytes(path)?;
-    let size = images::read_header(std::io::Cursor::new(&bytes)).ok().map(|h| (h.width, h.height));
-    if size.is_none_or(|s| s == (camera.width, camera.height)) {
-        return Ok(bytes);
-    }
-    let bad = |e: &dyn std::fmt::Display| Error::dataset(path, format!("cannot resize the image: {e}"));
-    let resized = images::decode(&bytes).map_err(|e| bad(&e))?.resize_exact(
-        camera.width,
-        camera.height,
-        image::imageops::FilterType::Triangle,
-    );
-    let mut out = std::io::Cursor::new(Vec::new());
-    if image_type(path) == "image/jpeg" {
-        let encoder = image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, 95);
-        resized.to_rgb8().write_with_encoder(encoder).map_err(|e| bad(&e))?;
-    } else {
-        resized.write_to(&mut out, image::ImageFormat::Png).map_err(|e| bad(&e))?;
-    }
-    Ok(out.into_inner())
 }
 
 fn image_type(path: &Path) -> &'static str {

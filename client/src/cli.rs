@@ -14,6 +14,8 @@ use scnerf_capture::camera::Camera;
 use scnerf_capture::files::Disk;
 use scnerf_capture::image_sets::{self, Pick, Picked};
 use scnerf_capture::readers::{self, Capture, CapturedView, Format, ReadOptions};
+use scnerf_capture::undistort::Fit;
+use scnerf_capture::upload::fit_to_limit;
 use scnerf_capture::wire::WireCamera;
 
 #[derive(Parser)]
@@ -65,9 +67,19 @@ struct DataArgs {
     /// Far depth, overriding the dataset's.
     #[arg(long)]
     far: Option<f64>,
-    /// Use cameras with lens distortion as pinhole instead of refusing them.
+    /// Use photos with lens distortion as they are, as pinhole, instead of undistorting them.
     #[arg(long)]
     ignore_distortion: bool,
+    /// The pinhole camera distorted photos are undistorted to: largest-rectangle crops to valid
+    /// pixels, all-pixels keeps every pixel (corners no pixel reaches take the background).
+    #[arg(long, value_enum, default_value_t = UndistortTo::LargestRectangle)]
+    undistort_to: UndistortTo,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum UndistortTo {
+    LargestRectangle,
+    AllPixels,
 }
 
 #[derive(Args)]
@@ -205,10 +217,14 @@ pub fn run(cli: Cli) -> Result<()> {
         Command::Render(args) => render(client, &args),
         Command::View(args) => view(&client, &args),
         Command::Eval(args) => {
-            // the ground truth is the image read: no resizing here, the server refuses a set too large
+            // targets are scored at the size of the image read; the sources are fitted to the limit
             let max_pixels = client.limits()?.max_source_pixels;
             let (capture, _) = load(&args.data, Pick::Fit { max_pixels }, Some(max_pixels))?;
-            eval::run(&client, &capture, &args)
+            let mut sources = capture.clone();
+            if let Some(note) = fit_to_limit(&mut sources, max_pixels) {
+                eprintln!("note: {note}");
+            }
+            eval::run(&client, &capture, &sources, &args)
         }
     }
 }
@@ -224,8 +240,17 @@ fn load(data: &DataArgs, rule: Pick, limit: Option<u64>) -> Result<(Capture, Opt
         FormatArg::Llff => Some(Format::Llff),
         FormatArg::Dtu => Some(Format::Dtu),
     };
-    let opts =
-        ReadOptions { near: data.near, far: data.far, ignore_distortion: data.ignore_distortion, downscale: None };
+    let undistort = match data.undistort_to {
+        UndistortTo::AllPixels => Fit::AllPixels,
+        UndistortTo::LargestRectangle => Fit::LargestRectangle,
+    };
+    let opts = ReadOptions {
+        near: data.near,
+        far: data.far,
+        ignore_distortion: data.ignore_distortion,
+        downscale: None,
+        undistort,
+    };
     let (capture, picked) = image_sets::load_picked(&Disk, &data.data, format, opts, rule)?;
     for w in &capture.warnings {
         eprintln!("warning: {w}");
@@ -255,31 +280,6 @@ fn load_for_server(client: &Client, data: &DataArgs, set: &ImageSetArgs) -> Resu
     Ok(capture)
 }
 
-/// Shrinks every view of more than `max_pixels` pixels to fit (aspect kept, cameras scaled with
-/// pixel centres at integers); the images are resampled when uploaded. What was done, if anything.
-fn fit_to_limit(capture: &mut Capture, max_pixels: u64) -> Option<String> {
-    let pixels = |c: &Camera| u64::from(c.width) * u64::from(c.height);
-    let over: Vec<usize> =
-        (0..capture.views.len()).filter(|&i| pixels(&capture.views[i].camera) > max_pixels).collect();
-    let first = capture.views[*over.first()?].camera.clone();
-    for &i in &over {
-        let camera = &mut capture.views[i].camera;
-        let scale = (max_pixels as f64 / pixels(camera) as f64).sqrt();
-        let (w, h) = ((f64::from(camera.width) * scale) as u32, (f64::from(camera.height) * scale) as u32);
-        *camera = camera.resized(w.max(1), h.max(1));
-    }
-    let resized = &capture.views[over[0]].camera;
-    Some(format!(
-        "{} images of {}x{} exceed the server's limit of {max_pixels} pixels per source view: resizing them to \
-         {}x{} before uploading",
-        over.len(),
-        first.width,
-        first.height,
-        resized.width,
-        resized.height
-    ))
-}
-
 fn info(data: &DataArgs, set: &ImageSetArgs, json: bool) -> Result<()> {
     let rule = set.downscale.map_or(Pick::Fit { max_pixels: u64::MAX }, Pick::Downscale);
     let (capture, picked) = load(data, rule, None)?;
@@ -291,19 +291,25 @@ fn info(data: &DataArgs, set: &ImageSetArgs, json: bool) -> Result<()> {
             .collect();
         let out = serde_json::json!({
             "format": capture.format.name(), "near": capture.near, "far": capture.far,
+            "depth_range_source": capture.depth_source.describe(),
             "background": capture.background, "views": views,
         });
         say!("{}", serde_json::to_string_pretty(&out).expect("serializable"));
         return Ok(());
     }
     say!(
-        "{}: {} views, near {} far {}, background {:?}",
+        "{}: {} views, near {} far {} ({}), background {:?}",
         capture.format.name(),
         capture.views.len(),
         capture.near,
         capture.far,
+        capture.depth_source.describe(),
         capture.background
     );
+    let undistorted = capture.views.iter().filter(|v| v.lens.is_some()).count();
+    if undistorted > 0 {
+        say!("undistorted: {undistorted} views, to pinhole cameras of the same size (--undistort-to)");
+    }
     if let Some(p) = picked {
         say!("image set: {}", p.describe());
     }

@@ -15,6 +15,7 @@ use crate::metrics::{error_png, psnr, ssim, Image};
 use crate::render::write_atomically;
 use scnerf_capture::camera::rank_sources;
 use scnerf_capture::readers::{Capture, CapturedView};
+use scnerf_capture::upload::image_bytes;
 
 struct Row {
     view: String,
@@ -24,7 +25,9 @@ struct Row {
     seconds: f64,
 }
 
-pub fn run(client: &Client, capture: &Capture, args: &EvalArgs) -> Result<()> {
+/// Scores the targets of `capture` at its sizes, rendered from sources uploaded as the same
+/// views of `fitted` (`capture` fitted to the server's source limit).
+pub fn run(client: &Client, capture: &Capture, fitted: &Capture, args: &EvalArgs) -> Result<()> {
     let targets = targets(capture, args)?;
     let pool: Vec<&CapturedView> = capture.views.iter().filter(|v| !targets.iter().any(|t| t.name == v.name)).collect();
     let n = args.downscale;
@@ -46,7 +49,8 @@ pub fn run(client: &Client, capture: &Capture, args: &EvalArgs) -> Result<()> {
     }
     let mut rows = Vec::new();
     for (sources, group) in &groups {
-        let mut scene = client.create_scene(Upload::new(capture, sources))?;
+        let uploaded = sources.iter().map(|v| fitted.view(&v.name)).collect::<scnerf_capture::Result<Vec<_>>>()?;
+        let mut scene = client.create_scene(Upload::new(fitted, &uploaded))?;
         for target in group {
             let (w, h) = (target.camera.width, target.camera.height);
             let started = Instant::now();
@@ -56,7 +60,8 @@ pub fn run(client: &Client, capture: &Capture, args: &EvalArgs) -> Result<()> {
                 context: format!("the image of {}", target.name),
                 message: e.to_string(),
             })?;
-            let gt = Image::decode(&read_bytes(&target.image_path)?, capture.background)
+            let photo = read_bytes(&target.image_path)?;
+            let gt = Image::decode(&image_bytes(target, &photo, capture.background)?, capture.background)
                 .map_err(|e| Error::dataset(&target.image_path, format!("cannot decode: {e}")))?
                 .downscaled(n as usize);
             if let Some(dir) = &args.out {

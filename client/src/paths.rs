@@ -16,7 +16,7 @@ use std::path::Path;
 use nalgebra::{Matrix3, Point3, UnitQuaternion, Vector3};
 
 use crate::error::{Error, Result};
-use scnerf_capture::camera::{look_at, unit, w2c_from_api, Axes, Camera, Intrinsics, Pose, PoseKind};
+use scnerf_capture::camera::{convergence, look_at, unit, w2c_from_api, Axes, Camera, Intrinsics, Pose, PoseKind};
 use scnerf_capture::percentile;
 use scnerf_capture::wire::{from_rows, WireCamera};
 use serde::Deserialize;
@@ -81,33 +81,11 @@ fn vertical(cameras: &[Camera]) -> Result<Vector3<f64>> {
     Ok(if normal.dot(&up) < 0.0 { -normal } else { normal })
 }
 
-/// The point nearest to every optical axis (least squares): what an object capture looks at.
+/// The point an object capture looks at ([`convergence`]).
 fn look_at_point(cameras: &[Camera]) -> Result<Point3<f64>> {
-    let mut a = Matrix3::zeros();
-    let mut b = Vector3::zeros();
-    for c in cameras {
-        let d = c.forward();
-        let p = Matrix3::identity() - d * d.transpose();
-        a += p;
-        b += p * c.center().coords;
-    }
-    let eigen = a.symmetric_eigen();
-    let (lo, hi) = (eigen.eigenvalues.min(), eigen.eigenvalues.max());
-    let not_object = || {
+    convergence(cameras).map(|c| c.point).ok_or_else(|| {
         Error::Usage("the cameras do not look at a common point (a forward-facing capture?): use --path spiral".into())
-    };
-    // lo / hi is about the mean squared angle between the axes: below 0.01, they converge by less
-    // than about 6 degrees and the point is ill-defined
-    if lo.is_nan() || lo <= 0.01 * hi {
-        return Err(not_object());
-    }
-    let point = Point3::from(a.lu().solve(&b).ok_or_else(not_object)?);
-    // most cameras must have it in front of them
-    let in_front = cameras.iter().filter(|c| (point - c.center()).dot(&c.forward()) > 0.0).count();
-    if in_front * 2 <= cameras.len() {
-        return Err(not_object());
-    }
-    Ok(point)
+    })
 }
 
 /// A horizontal circle of `frames` poses (seamless: the last frame is one step before the first)

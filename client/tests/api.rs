@@ -10,7 +10,7 @@ use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use common::FakeServer;
-use scnerf_capture::readers::{self, ReadOptions};
+use scnerf_capture::readers::{self, CapturedView, ReadOptions};
 use scnerf_client::api::{Client, Upload};
 
 fn fixture_upload() -> (Upload, scnerf_capture::camera::Camera) {
@@ -137,12 +137,12 @@ fn errors_are_plain_words() {
     let big = tempfile::tempdir().unwrap();
     let (mut upload, _) = fixture_upload();
     let noise: Vec<u8> = (0..4u32 << 20).map(|i| (i.wrapping_mul(2654435761) >> 24) as u8).collect();
-    let camera = upload.sources[0].0.clone();
+    let first = upload.sources[0].clone();
     upload.sources = (0..9)
         .map(|i| {
-            let path = big.path().join(format!("{i}.png"));
-            std::fs::write(&path, &noise).unwrap();
-            (camera.clone(), path)
+            let image_path = big.path().join(format!("{i}.png"));
+            std::fs::write(&image_path, &noise).unwrap();
+            CapturedView { image_path, ..first.clone() }
         })
         .collect();
     let err = client.create_scene(upload).unwrap_err().to_string();

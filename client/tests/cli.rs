@@ -296,15 +296,43 @@ fn nerfstudio_sets_and_resizing_when_none_fits() {
     let (_, stderr) = render_spiral(&server, data.path(), &["--downscale", "2"]);
     assert!(stderr.contains("image set: images_2 (64x48)"), "{stderr}");
     let note = "note: 5 images of 64x48 exceed the server's limit of 1000 pixels per source view: resizing them to \
-                36x27 before uploading";
+                36x27";
     assert!(stderr.contains(note), "{stderr}");
     server.state.max_source_pixels.store(100, std::sync::atomic::Ordering::SeqCst);
     let (_, stderr) = render_spiral(&server, data.path(), &[]);
-    let note =
-        "note: 5 images of 16x12 exceed the server's limit of 100 pixels per source view: resizing them to 11x8 \
-                before uploading";
+    let note = "note: 5 images of 16x12 exceed the server's limit of 100 pixels per source view: resizing them to 11x8";
     assert!(stderr.contains(note), "{stderr}");
     assert!(!stderr.contains("image set:"), "{stderr}");
     // the fake checks that every image is of its camera's size
     assert_eq!(first_image_sizes(&server), [(32, 24), (36, 27), (11, 8)]);
+}
+
+/// A phone capture as its tools leave it (instant-ngp layout, lens distortion, no depth range,
+/// portrait photos over the server's source limit): info, render and eval run without flags;
+/// eval fits its sources to the limit as render does, said in the same line, and scores the
+/// targets at their own size against their undistorted photos.
+#[test]
+fn a_phone_capture_needs_no_flags_and_eval_fits_sources_as_render_does() {
+    let data = tempfile::tempdir().unwrap();
+    common::captures::phone(data.path(), (54, 96), 9);
+    let path = data.path().to_str().unwrap();
+    let (stdout, stderr) = text(&scnerf(&["info", path]));
+    assert!(stdout.starts_with("nerfstudio: 9 views, near "), "{stdout}\n{stderr}");
+    assert!(stdout.contains("(from the poses (0.4 x the nearest"), "{stdout}");
+    assert!(stdout.contains("undistorted: 9 views, to pinhole cameras of the same size"), "{stdout}");
+
+    let server = FakeServer::start();
+    server.state.max_source_pixels.store(3000, std::sync::atomic::Ordering::SeqCst);
+    let note = "note: 9 images of 54x96 exceed the server's limit of 3000 pixels per source view: resizing them to \
+                41x73";
+    let (_, stderr) = render_spiral(&server, data.path(), &[]);
+    assert!(stderr.contains(note), "{stderr}");
+
+    let out = scnerf(&["eval", path, "--server", &server.url, "--holdout", "4", "--downscale", "2"]);
+    let (stdout, stderr) = text(&out);
+    assert!(out.status.success(), "{stdout}\n{stderr}");
+    assert!(stderr.contains(note), "{stderr}");
+    assert_eq!(stdout.lines().filter(|l| l.contains("PSNR")).count(), 4, "3 targets and the mean: {stdout}");
+    // every scene the fake took (it checks each image is its camera's size) is of fitted sources
+    assert!(first_image_sizes(&server).iter().all(|&size| size == (41, 73)), "{:?}", first_image_sizes(&server));
 }

@@ -384,22 +384,19 @@ async fn bad_captures_get_4xx_naming_the_file() {
     let got = post_capture(&app, &two, "").await;
     assert_eq!(got.0, 422, "{}", String::from_utf8_lossy(&got.2));
     assert!(json_of(&got)["error"]["message"].as_str().unwrap().contains("a capture needs at least 3"));
-    // A distorted camera, and the same with ignore_distortion.
+    // Distortion the lens model cannot invert over the image, and the same used as pinhole.
     let mut distorted = files_of(&datasets().join("nerfstudio"));
     let transforms = distorted.iter_mut().find(|(n, _)| n == "transforms.json").unwrap();
     let mut data: Value = serde_json::from_slice(&transforms.1).unwrap();
-    data["k1"] = json!(-0.1);
+    data["k1"] = json!(-40.0);
     transforms.1 = serde_json::to_vec(&data).unwrap();
     let got = post_capture(&app, &distorted, "").await;
     assert_error(&got, 422, "invalid_request", Some("transforms.json"));
-    assert!(json_of(&got)["error"]["message"].as_str().unwrap().contains("lens distortion"));
+    assert!(json_of(&got)["error"]["message"].as_str().unwrap().contains("cannot be inverted"), "{got:?}");
     assert_eq!(post_capture(&app, &distorted, "?ignore_distortion=true").await.0, 201);
-    assert_error(
-        &post_capture(&app, &distorted, "?ignore_distortion=maybe").await,
-        400,
-        "malformed_request",
-        Some("query"),
-    );
+    for bad in ["?ignore_distortion=maybe", "?undistort_to=sideways"] {
+        assert_error(&post_capture(&app, &distorted, bad).await, 400, "malformed_request", Some("query"));
+    }
     // An image whose size differs from the others: the scene refuses it, naming the file.
     let mut mixed = files_of(&datasets().join("blender"));
     mixed.iter_mut().find(|(n, _)| n == "train/r_1.png").unwrap().1 = png(16, 12, [0, 0, 0, 255]);
@@ -482,13 +479,11 @@ async fn captures_read_the_largest_image_set_within_the_limit() {
     let half_only: Vec<_> = files.iter().filter(|(n, _)| !n.starts_with("images/")).cloned().collect();
     assert_eq!(json_of(&post_capture(&plain, &half_only, "").await)["image_set"], "images_2");
 
+    // no set fits: the smallest is resized to fit, as the `scnerf` client does, said in a warning
     let tiny = App::new(Limits { max_source_pixels: 11, ..Limits::default() }, ServiceOptions::default());
-    let got = post_capture(&tiny, &files, "").await;
-    assert_error(&got, 422, "invalid_request", Some("images_2"));
-    let message = json_of(&got)["error"]["message"].as_str().unwrap().to_string();
-    assert!(
-        message.contains("no image set of the capture fits the limit of 11 pixels")
-            && message.contains("images (8x6), images_2 (4x3)"),
-        "{message}"
-    );
+    let got = json_of(&post_capture(&tiny, &files, "").await);
+    assert_eq!((got["image_set"].as_str(), got["cameras"][0]["width"].as_u64()), (Some("images_2"), Some(3)));
+    assert_eq!(got["cameras"][0]["height"].as_u64(), Some(2));
+    let note = "4 images of 4x3 exceed the server's limit of 11 pixels per source view: resizing them to 3x2";
+    assert!(got["warnings"].to_string().contains(note), "{got}");
 }

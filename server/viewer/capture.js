@@ -113,15 +113,18 @@ export async function captureForm(entries, limits) {
     const others = new Set([...sets].filter(([f]) => f !== imageSet).flatMap(([, list]) => list));
     kept = kept.filter((e) => !others.has(e));
   }
-  const notes = [];
+  let note = '';
   if (!fits) {
+    const resized = [];
     kept = await Promise.all(
       kept.map(async (e) => {
-        const resized = IMAGE_FILE.test(e.path) ? await shrunk(e.file, maxPixels) : null;
-        if (resized && !notes.length) notes.push(`images of ${resized.from.join('×')} exceed the server's limit of ${maxPixels} pixels per source view: resized to ${resized.to.join('×')} before uploading`);
-        return resized ? { file: resized.file, path: e.path } : e;
+        const r = IMAGE_FILE.test(e.path) ? await shrunk(e.file, maxPixels) : null;
+        if (r) resized.push(r);
+        return r ? { file: r.file, path: e.path } : e;
       }),
     );
+    // the line the scnerf client and the server say (scnerf_capture::upload::fit_to_limit)
+    if (resized.length) note = `${resized.length} images of ${resized[0].from.join('x')} exceed the server's limit of ${maxPixels} pixels per source view: resizing them to ${resized[0].to.join('x')}`;
   }
   const form = () => {
     const f = new FormData();
@@ -130,5 +133,5 @@ export async function captureForm(entries, limits) {
   };
   const bytes = kept.reduce((sum, { file }) => sum + file.size, 0);
   const setName = imageSet === null ? null : imageSet === 1 ? 'images' : `images_${imageSet}`;
-  return { form, count: kept.length, bytes, name: root.replace(/\/$/, ''), imageSet: setName, note: notes[0] ?? '' };
+  return { form, count: kept.length, bytes, name: root.replace(/\/$/, ''), imageSet: setName, note };
 }

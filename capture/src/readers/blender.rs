@@ -10,8 +10,8 @@
 use std::path::{Path, PathBuf};
 
 use super::{
-    depth_range, json_f64, json_matrix4, read_json, resolve_image, skipped_warning, Capture, CapturedView, Format,
-    ReadOptions,
+    depth_range, json_f64, json_matrix4, read_json, resolve_image, skipped_warning, Capture, CapturedView, DepthSource,
+    Format, ReadOptions,
 };
 use crate::camera::{w2c_from_opengl_c2w, Camera, Intrinsics, Pose};
 use crate::error::{Error, Result};
@@ -51,12 +51,14 @@ pub fn load(fs: &dyn Files, path: &Path, opts: ReadOptions) -> Result<Capture> {
             name,
             image_path: e.image,
             camera: Camera { width: w, height: h, intrinsics, w2c: e.w2c },
+            lens: None,
         });
     }
     let file_names: Vec<String> = files.iter().map(|f| f.display().to_string()).collect();
     let warnings = skipped_warning(&file_names.join(", "), skipped, listed).into_iter().collect();
-    let (near, far) = depth_range(opts, (Some(NEAR_FAR.0), Some(NEAR_FAR.1)), path)?;
-    Ok(Capture { format: Format::Blender, views, near, far, background: [1.0; 3], warnings })
+    let (near, far, depth_source) =
+        depth_range(opts, (Some(NEAR_FAR.0), Some(NEAR_FAR.1), DepthSource::Dataset), &views, path)?;
+    Ok(Capture { depth_source, format: Format::Blender, views, near, far, background: [1.0; 3], warnings })
 }
 
 /// transforms_{train,val,test}.json in that order, else transforms.json, else the file given.

@@ -19,13 +19,14 @@ use std::path::{Path, PathBuf};
 use nalgebra::{Point3, Quaternion, Translation3, UnitQuaternion};
 
 use super::{
-    check_distortion, depth_range, natural_cmp, without_extension, Capture, CapturedView, Format, ReadOptions,
+    depth_range, lens_of, natural_cmp, without_extension, Capture, CapturedView, DepthSource, Format, ReadOptions,
 };
 use crate::camera::{Camera, Intrinsics, Pose};
 use crate::error::{Error, Result};
 use crate::files::Files;
 use crate::image_sets::folder_name;
 use crate::percentile;
+use crate::undistort::Distortion;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Encoding {
@@ -81,13 +82,12 @@ pub fn load(fs: &dyn Files, path: &Path, opts: ReadOptions) -> Result<Capture> {
     let mut warnings = Vec::new();
     let mut intrinsics = HashMap::new();
     for (id, cam) in &cameras {
-        let intr = pinhole(cam, *id, opts, &cameras_file, &mut warnings)?;
-        intrinsics.insert(*id, intr);
+        intrinsics.insert(*id, pinhole(cam, *id, &cameras_file)?);
     }
     images.sort_by(|a, b| natural_cmp(&a.name, &b.name));
     let mut views = Vec::new();
     for img in &images {
-        let (cam, declared) = intrinsics.get(&img.camera_id).ok_or_else(|| {
+        let (cam, declared, distortion) = intrinsics.get(&img.camera_id).ok_or_else(|| {
             Error::dataset(&images_file, format!("image {} uses unknown camera {}", img.name, img.camera_id))
         })?;
         let image_path = image_dir.join(&img.name);
@@ -96,8 +96,10 @@ pub fn load(fs: &dyn Files, path: &Path, opts: ReadOptions) -> Result<Capture> {
         }
         let declared = Camera { width: declared.0, height: declared.1, intrinsics: *cam, w2c: img.w2c };
         let (w, h) = fs.image_size(&image_path)?;
-        let camera = if (w, h) == (declared.width, declared.height) { declared } else { declared.resized(w, h) };
-        views.push(CapturedView { name: without_extension(&img.name), image_path, camera });
+        let photo = if (w, h) == (declared.width, declared.height) { declared } else { declared.resized(w, h) };
+        let what = format!("camera {} ({})", img.camera_id, cameras_model(&cameras, img.camera_id));
+        let (camera, lens) = lens_of(opts, photo, *distortion, &what, &cameras_file, &mut warnings)?;
+        views.push(CapturedView { name: without_extension(&img.name), image_path, camera, lens });
     }
     let missing = images.len() - views.len();
     if missing > 0 {
@@ -126,41 +128,57 @@ pub fn load(fs: &dyn Files, path: &Path, opts: ReadOptions) -> Result<Capture> {
     } else {
         None
     };
-    let (near, far) = depth_range(opts, (from_points.map(|p| p.0), from_points.map(|p| p.1)), &dir)?;
-    Ok(Capture { format: Format::Colmap, views, near, far, background: [0.0; 3], warnings })
+    let from_data = (from_points.map(|p| p.0), from_points.map(|p| p.1), DepthSource::Points);
+    let (near, far, depth_source) = depth_range(opts, from_data, &views, &dir)?;
+    Ok(Capture { format: Format::Colmap, views, near, far, depth_source, background: [0.0; 3], warnings })
 }
 
-/// Pinhole intrinsics (shifted to integer pixel centres) and the declared size of a camera.
-fn pinhole(
-    cam: &CameraModel,
-    id: i64,
-    opts: ReadOptions,
-    file: &Path,
-    warnings: &mut Vec<String>,
-) -> Result<(Intrinsics, (u32, u32))> {
-    let p = &cam.params;
-    let (fx, fy, cx, cy, distortion): (f64, f64, f64, f64, &[f64]) = match cam.model.as_str() {
-        "SIMPLE_PINHOLE" | "SIMPLE_RADIAL" | "RADIAL" => (p[0], p[0], p[1], p[2], &p[3..]),
-        "PINHOLE" | "OPENCV" | "FULL_OPENCV" => (p[0], p[1], p[2], p[3], &p[4..]),
-        other => {
-            return Err(Error::dataset(
-                file,
-                format!(
-                    "camera {id} uses the {other} model, which cannot be used as a pinhole: undistort the \
-                     images first (`colmap image_undistorter` writes PINHOLE cameras)"
-                ),
-            ))
-        }
-    };
-    let nonzero: Vec<(&str, f64)> = distortion.iter().filter(|d| **d != 0.0).map(|d| ("distortion", *d)).collect();
-    check_distortion(opts, &nonzero, &format!("camera {id} ({})", cam.model), file, warnings)?;
+fn cameras_model(cameras: &[(i64, CameraModel)], id: i64) -> &str {
+    cameras.iter().find(|(i, _)| *i == id).map_or("", |(_, c)| c.model.as_str())
+}
+
+/// Intrinsics (shifted to integer pixel centres), declared size and lens distortion of a camera.
+fn pinhole(cam: &CameraModel, id: i64, file: &Path) -> Result<(Intrinsics, (u32, u32), Distortion)> {
+    let ([fx, fy, cx, cy], distortion) = lens_model(&cam.model, &cam.params).ok_or_else(|| {
+        Error::dataset(
+            file,
+            format!(
+                "camera {id} uses the {} model, which cannot be undistorted here: undistort the images first \
+                 (`colmap image_undistorter` writes PINHOLE cameras)",
+                cam.model
+            ),
+        )
+    })?;
     let size = (u32::try_from(cam.width).ok(), u32::try_from(cam.height).ok());
     match size {
         (Some(w), Some(h)) if fx > 0.0 && fy > 0.0 && w > 0 && h > 0 => {
-            Ok((Intrinsics { fx, fy, cx: cx - 0.5, cy: cy - 0.5 }, (w, h)))
+            Ok((Intrinsics { fx, fy, cx: cx - 0.5, cy: cy - 0.5 }, (w, h), distortion))
         }
         _ => Err(Error::dataset(file, format!("camera {id}: non-positive focal length or image size"))),
     }
+}
+
+/// fx, fy, cx, cy (COLMAP's pixel centres) and the distortion of a COLMAP camera model's
+/// parameters (colmap/src/colmap/sensor/models.h); `None` for FOV and THIN_PRISM_FISHEYE, which
+/// OpenCV's models do not cover. `params` has the model's count ([`check_params`]).
+pub fn lens_model(model: &str, p: &[f64]) -> Option<([f64; 4], Distortion)> {
+    let perspective = |k: [f64; 6], tangential: [f64; 2]| Distortion { fisheye: false, k, p: tangential };
+    let fisheye = |k: [f64; 6]| Distortion { fisheye: true, k, p: [0.0; 2] };
+    let simple = || [p[0], p[0], p[1], p[2]];
+    let full = || [p[0], p[1], p[2], p[3]];
+    Some(match model {
+        "SIMPLE_PINHOLE" => (simple(), Distortion::NONE),
+        "PINHOLE" => (full(), Distortion::NONE),
+        "SIMPLE_RADIAL" => (simple(), perspective([p[3], 0.0, 0.0, 0.0, 0.0, 0.0], [0.0; 2])),
+        "RADIAL" => (simple(), perspective([p[3], p[4], 0.0, 0.0, 0.0, 0.0], [0.0; 2])),
+        "OPENCV" => (full(), perspective([p[4], p[5], 0.0, 0.0, 0.0, 0.0], [p[6], p[7]])),
+        // k1 k2 p1 p2 k3 k4 k5 k6
+        "FULL_OPENCV" => (full(), perspective([p[4], p[5], p[8], p[9], p[10], p[11]], [p[6], p[7]])),
+        "OPENCV_FISHEYE" => (full(), fisheye([p[4], p[5], p[6], p[7], 0.0, 0.0])),
+        "SIMPLE_RADIAL_FISHEYE" => (simple(), fisheye([p[3], 0.0, 0.0, 0.0, 0.0, 0.0])),
+        "RADIAL_FISHEYE" => (simple(), fisheye([p[3], p[4], 0.0, 0.0, 0.0, 0.0])),
+        _ => return None,
+    })
 }
 
 /// Number of parameters of each COLMAP camera model (colmap/src/colmap/sensor/models.h), by

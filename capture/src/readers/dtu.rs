@@ -12,7 +12,7 @@ use std::path::{Path, PathBuf};
 
 use nalgebra::Matrix4;
 
-use super::{depth_range, Capture, CapturedView, Format, ReadOptions};
+use super::{depth_range, Capture, CapturedView, DepthSource, Format, ReadOptions};
 use crate::camera::{pose_from_matrix, Camera, Intrinsics};
 use crate::error::{Error, Result};
 use crate::files::Files;
@@ -45,7 +45,7 @@ pub fn load(fs: &dyn Files, path: &Path, opts: ReadOptions) -> Result<Capture> {
             return Err(Error::dataset(&image_path, "expected a 640x512 image (MVSNeRF's DTU)"));
         }
         let camera = Camera { width: SIZE.0, height: SIZE.1, intrinsics: cam.intrinsics, w2c: cam.w2c };
-        views.push(CapturedView { name: id.to_string(), image_path, camera });
+        views.push(CapturedView { name: id.to_string(), image_path, camera, lens: None });
     }
     if views.is_empty() {
         return Err(Error::dataset(path, "no DTU view has both a camera and an image"));
@@ -56,8 +56,8 @@ pub fn load(fs: &dyn Files, path: &Path, opts: ReadOptions) -> Result<Capture> {
         .collect();
     let near = nears.iter().copied().fold(f64::INFINITY, f64::min);
     let far = fars.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-    let (near, far) = depth_range(opts, (Some(near), Some(far)), path)?;
-    Ok(Capture { format: Format::Dtu, views, near, far, background: [0.0; 3], warnings })
+    let (near, far, depth_source) = depth_range(opts, (Some(near), Some(far), DepthSource::Dataset), &views, path)?;
+    Ok(Capture { depth_source, format: Format::Dtu, views, near, far, background: [0.0; 3], warnings })
 }
 
 /// `NNNNNNNN_cam.txt` files with their view numbers, sorted by file name.

@@ -13,7 +13,7 @@ use std::path::{Path, PathBuf};
 
 use nalgebra::{Matrix4, Vector3};
 
-use super::{depth_range, has_image_extension, Capture, CapturedView, Format, ReadOptions};
+use super::{depth_range, has_image_extension, Capture, CapturedView, DepthSource, Format, ReadOptions};
 use crate::camera::{w2c_from_c2w, Camera, Intrinsics};
 use crate::error::{Error, Result};
 use crate::files::Files;
@@ -49,12 +49,17 @@ pub fn load(fs: &dyn Files, path: &Path, opts: ReadOptions) -> Result<Capture> {
         let f = focal * f64::from(w) / w0;
         let intrinsics = Intrinsics { fx: f, fy: f, cx: f64::from(w) / 2.0, cy: f64::from(h) / 2.0 };
         let name = image.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
-        views.push(CapturedView { name, image_path: image, camera: Camera { width: w, height: h, intrinsics, w2c } });
+        views.push(CapturedView {
+            name,
+            image_path: image,
+            camera: Camera { width: w, height: h, intrinsics, w2c },
+            lens: None,
+        });
     }
     let near = rows.iter().map(|r| r[15]).fold(f64::INFINITY, f64::min);
     let far = rows.iter().map(|r| r[16]).fold(f64::NEG_INFINITY, f64::max);
-    let (near, far) = depth_range(opts, (Some(near), Some(far)), &npy)?;
-    Ok(Capture { format: Format::Llff, views, near, far, background: [0.0; 3], warnings: Vec::new() })
+    let (near, far, depth_source) = depth_range(opts, (Some(near), Some(far), DepthSource::Dataset), &views, &npy)?;
+    Ok(Capture { depth_source, format: Format::Llff, views, near, far, background: [0.0; 3], warnings: Vec::new() })
 }
 
 /// The N rows of 17 finite numbers (float64 or float32, either byte or memory order).

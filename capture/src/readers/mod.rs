@@ -18,15 +18,21 @@ use std::cmp::Ordering;
 use std::path::{Path, PathBuf};
 
 use crate::camera::Camera;
+pub use crate::depth_range::DepthSource;
 use crate::error::{Error, Result};
 use crate::files::{Disk, Files};
+use crate::undistort::{pinhole_for, Distortion, Fit, Lens};
 
 #[derive(Debug, Clone)]
 pub struct CapturedView {
     /// Unique within the capture, as the Python loader names it ("r_6", "25", "frame_00001").
     pub name: String,
     pub image_path: PathBuf,
+    /// The camera of the image as it is sent: the photo's, or with [`Self::lens`] the pinhole
+    /// camera the photo is undistorted to; scaled when the image is resized to fit.
     pub camera: Camera,
+    /// The photo's distortion, when it is undistorted before it is sent ([`crate::upload`]).
+    pub lens: Option<Lens>,
 }
 
 #[derive(Debug, Clone)]
@@ -35,6 +41,8 @@ pub struct Capture {
     pub views: Vec<CapturedView>,
     pub near: f64,
     pub far: f64,
+    /// Where `near` and `far` come from.
+    pub depth_source: DepthSource,
     /// What transparent pixels are composited on (white for Blender, black otherwise).
     pub background: [f64; 3],
     /// Things the user should know (skipped frames, ignored fields), printed by the CLI.
@@ -62,6 +70,8 @@ pub struct ReadOptions {
     /// Read the downscaled image set `images_N` instead of `images/` (LLFF, nerfstudio, COLMAP;
     /// [`crate::image_sets`]); the cameras are scaled to its images.
     pub downscale: Option<u32>,
+    /// Which pinhole camera distorted photos are undistorted to.
+    pub undistort: Fit,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -301,19 +311,38 @@ mod json_check {
     }
 }
 
-/// `near`/`far`, each from the command line if given, else from the dataset; checked as the
-/// Python loaders do (`data/scene.py::check_near_far`).
-fn depth_range(opts: ReadOptions, from_data: (Option<f64>, Option<f64>), source: &Path) -> Result<(f64, f64)> {
-    let (Some(near), Some(far)) = (opts.near.or(from_data.0), opts.far.or(from_data.1)) else {
-        return Err(Error::dataset(
-            source,
-            "no near/far in the dataset (COLMAP: from points3D; nerfstudio: near/far keys); pass --near and --far",
-        ));
+/// `near`/`far`: each from the command line if given, else from the dataset, else both from the
+/// views' poses ([`crate::depth_range::from_poses`]); checked as the Python loaders do
+/// (`data/scene.py::check_near_far`). `from_data` is the dataset's, with where it comes from.
+fn depth_range(
+    opts: ReadOptions,
+    from_data: (Option<f64>, Option<f64>, DepthSource),
+    views: &[CapturedView],
+    source: &Path,
+) -> Result<(f64, f64, DepthSource)> {
+    let (data_near, data_far, data_source) = from_data;
+    let (near, far, from) = match (opts.near.or(data_near), opts.far.or(data_far)) {
+        (Some(near), Some(far)) => {
+            let from = if opts.near.is_some() && opts.far.is_some() { DepthSource::Flags } else { data_source };
+            (near, far, from)
+        }
+        (near, far) => {
+            let cameras: Vec<&Camera> = views.iter().map(|v| &v.camera).collect();
+            let (pose_near, pose_far) = crate::depth_range::from_poses(&cameras).ok_or_else(|| {
+                Error::dataset(
+                    source,
+                    "no near/far in the dataset (COLMAP: from points3D; nerfstudio: near/far keys), and the \
+                     poses do not give one (the cameras look at no common point in front of them): pass --near \
+                     and --far",
+                )
+            })?;
+            (near.unwrap_or(pose_near), far.unwrap_or(pose_far), DepthSource::Poses)
+        }
     };
     if !(near.is_finite() && far.is_finite() && 0.0 <= near && near < far) {
         return Err(Error::dataset(source, format!("invalid near/far {near}/{far}: need 0 <= near < far")));
     }
-    Ok((near, far))
+    Ok((near, far, from))
 }
 
 /// The image a transforms.json `file_path` refers to: the path itself, else with one of the image
@@ -329,35 +358,40 @@ fn resolve_image(fs: &dyn Files, base: &Path, file_path: &str) -> Option<PathBuf
     IMAGE_EXTENSIONS.iter().map(|ext| PathBuf::from(format!("{}.{ext}", p.display()))).find(|q| fs.is_file(q))
 }
 
-/// Distortion coefficients that are not zero: an error, or with `--ignore-distortion` a warning
-/// (the Python loaders always warn).
-fn check_distortion(
+/// A view's camera and lens from its photo's camera (at the photo's size) and the lens's
+/// distortion: no distortion, the camera as it is; with `--ignore-distortion`, the same with a
+/// warning (what the Python loaders do); else the pinhole camera of [`ReadOptions::undistort`]
+/// that the photo is undistorted to when sent. `what` names the camera in messages.
+fn lens_of(
     opts: ReadOptions,
-    nonzero: &[(&str, f64)],
+    photo: Camera,
+    distortion: Distortion,
     what: &str,
     file: &Path,
     warnings: &mut Vec<String>,
-) -> Result<()> {
-    if nonzero.is_empty() {
-        return Ok(());
+) -> Result<(Camera, Option<Lens>)> {
+    if distortion.is_zero() {
+        return Ok((photo, None));
     }
-    let list: Vec<String> = nonzero.iter().map(|(k, v)| format!("{k}={v}")).collect();
-    if !opts.ignore_distortion {
-        return Err(Error::dataset(
+    if opts.ignore_distortion {
+        let warning = format!("{}: lens distortion ignored (images used as pinhole)", file.display());
+        if !warnings.contains(&warning) {
+            warnings.push(warning);
+        }
+        return Ok((photo, None));
+    }
+    let (width, height) = (photo.width, photo.height);
+    let pinhole = pinhole_for(&photo.intrinsics, &distortion, width, height, opts.undistort).ok_or_else(|| {
+        Error::dataset(
             file,
             format!(
-                "{what} has lens distortion ({}), which the model cannot use: undistort the images first \
-                 (COLMAP: `colmap image_undistorter` writes PINHOLE cameras), or pass --ignore-distortion \
-                 to use them as pinhole",
-                list.join(", ")
+                "{what}: its lens distortion ({distortion}) cannot be inverted over the whole image: check the \
+                 coefficients, or pass --ignore-distortion to use the images as pinhole"
             ),
-        ));
-    }
-    let warning = format!("{}: lens distortion ignored (images used as pinhole)", file.display());
-    if !warnings.contains(&warning) {
-        warnings.push(warning);
-    }
-    Ok(())
+        )
+    })?;
+    let lens = Lens { distortion, distorted: photo.intrinsics, pinhole, width, height };
+    Ok((Camera { intrinsics: pinhole, ..photo }, Some(lens)))
 }
 
 /// One warning for all frames whose image is missing, instead of one per frame.

@@ -16,16 +16,16 @@ use serde_json::Value;
 
 use super::blender::{all_unique, frame_file_path, frames_of};
 use super::{
-    base_name, check_distortion, depth_range, json_f64, json_matrix4, resolve_image, skipped_warning,
-    without_extension, Capture, CapturedView, Format, ReadOptions,
+    base_name, depth_range, json_f64, json_matrix4, lens_of, resolve_image, skipped_warning, without_extension,
+    Capture, CapturedView, DepthSource, Format, ReadOptions,
 };
 use crate::camera::{w2c_from_opengl_c2w, Camera, Intrinsics};
 use crate::error::{Error, Result};
 use crate::files::Files;
 use crate::image_sets::folder_name;
+use crate::undistort::Distortion;
 
-const DISTORTION: [&str; 6] = ["k1", "k2", "k3", "k4", "p1", "p2"];
-const MODELS: [&str; 3] = ["OPENCV", "PINHOLE", "SIMPLE_PINHOLE"];
+const MODELS: [&str; 4] = ["OPENCV", "OPENCV_FISHEYE", "PINHOLE", "SIMPLE_PINHOLE"];
 
 pub fn load(fs: &dyn Files, path: &Path, opts: ReadOptions) -> Result<Capture> {
     let file = if fs.is_dir(path) { path.join("transforms.json") } else { path.to_path_buf() };
@@ -35,7 +35,10 @@ pub fn load(fs: &dyn Files, path: &Path, opts: ReadOptions) -> Result<Capture> {
     let (data, frames) = frames_of(fs, &file)?;
     let model = data.get("camera_model").and_then(Value::as_str).unwrap_or("OPENCV").to_uppercase();
     if !MODELS.contains(&model.as_str()) {
-        return Err(Error::dataset(&file, format!("camera_model {model} is not supported (pinhole/OpenCV only)")));
+        return Err(Error::dataset(
+            &file,
+            format!("camera_model {model} is not supported (one of {})", MODELS.join(", ")),
+        ));
     }
     let base = file.parent().unwrap_or(Path::new("."));
     let mut warnings = Vec::new();
@@ -58,25 +61,29 @@ pub fn load(fs: &dyn Files, path: &Path, opts: ReadOptions) -> Result<Capture> {
         if fx <= 0.0 || fy <= 0.0 || w <= 0.0 || h <= 0.0 || w > f64::from(u32::MAX) || h > f64::from(u32::MAX) {
             return Err(Error::dataset(&file, format!("frames[{i}] has a non-positive focal length or size")));
         }
-        let nonzero: Vec<(&str, f64)> = DISTORTION
-            .iter()
-            .filter_map(|&k| frame.get(k).or_else(|| data.get(k)).and_then(Value::as_f64).map(|v| (k, v)))
-            .filter(|(_, v)| *v != 0.0)
-            .collect();
-        check_distortion(opts, &nonzero, &format!("frames[{i}]"), &file, &mut warnings)?;
+        let coefficient = |key: &str| -> Result<f64> {
+            if frame.get(key).is_some() || data.get(key).is_some() {
+                param(key)
+            } else {
+                Ok(0.0)
+            }
+        };
+        let distortion = distortion(&model, coefficient, &file, i)?;
         let matrix = json_matrix4(&frame["transform_matrix"], &file, &format!("frames[{i}].transform_matrix"))?;
         let w2c = w2c_from_opengl_c2w(&matrix).ok_or_else(|| {
             Error::dataset(&file, format!("frames[{i}].transform_matrix is not a rigid camera-to-world transform"))
         })?;
-        let declared = Camera {
+        let photo = Camera {
             width: w as u32,
             height: h as u32,
             intrinsics: Intrinsics { fx, fy, cx: cx - 0.5, cy: cy - 0.5 },
             w2c,
         };
         let (aw, ah) = fs.image_size(&image)?;
-        let camera = if (aw, ah) == (declared.width, declared.height) { declared } else { declared.resized(aw, ah) };
-        entries.push((without_extension(file_path), CapturedView { name: String::new(), image_path: image, camera }));
+        let photo = if (aw, ah) == (photo.width, photo.height) { photo } else { photo.resized(aw, ah) };
+        let (camera, lens) = lens_of(opts, photo, distortion, &format!("frames[{i}]"), &file, &mut warnings)?;
+        let view = CapturedView { name: String::new(), image_path: image, camera, lens };
+        entries.push((without_extension(file_path), view));
     }
     if entries.is_empty() {
         return Err(Error::dataset(&file, "none of the listed frames has an image file"));
@@ -89,8 +96,32 @@ pub fn load(fs: &dyn Files, path: &Path, opts: ReadOptions) -> Result<Capture> {
         .map(|((rel, view), stem)| CapturedView { name: if unique { stem } else { rel }, ..view })
         .collect::<Vec<_>>();
     warnings.extend(skipped_warning(&file.display().to_string(), frames.len() - views.len(), frames.len()));
-    let (near, far) = depth_range(opts, near_far(&data, &file)?, &file)?;
-    Ok(Capture { format: Format::Nerfstudio, views, near, far, background: [0.0; 3], warnings })
+    let (near, far) = near_far(&data, &file)?;
+    let (near, far, depth_source) = depth_range(opts, (near, far, DepthSource::Dataset), &views, &file)?;
+    Ok(Capture { format: Format::Nerfstudio, views, near, far, depth_source, background: [0.0; 3], warnings })
+}
+
+/// A frame's distortion from its coefficients (per frame or at the top level, zero when absent)
+/// by `camera_model`: OPENCV's k1, k2, k3, p1, p2 are OpenCV's; OPENCV_FISHEYE's k1..k4 are
+/// OpenCV's fisheye ones. nerfstudio's k4 of OPENCV (a term in r⁸, not OpenCV's rational k4) and
+/// p1, p2 of a fisheye are refused rather than dropped.
+fn distortion(model: &str, coefficient: impl Fn(&str) -> Result<f64>, file: &Path, i: usize) -> Result<Distortion> {
+    let [k1, k2, k3, k4, p1, p2] = ["k1", "k2", "k3", "k4", "p1", "p2"].map(&coefficient);
+    let (k1, k2, k3, k4, p1, p2) = (k1?, k2?, k3?, k4?, p1?, p2?);
+    let refuse = |key: &str, why: &str| Error::dataset(file, format!("frames[{i}].{key} is not zero: {why}"));
+    if model == "OPENCV_FISHEYE" {
+        if p1 != 0.0 || p2 != 0.0 {
+            return Err(refuse(if p1 != 0.0 { "p1" } else { "p2" }, "OPENCV_FISHEYE has no tangential distortion"));
+        }
+        return Ok(Distortion { fisheye: true, k: [k1, k2, k3, k4, 0.0, 0.0], p: [0.0; 2] });
+    }
+    if k4 != 0.0 {
+        return Err(refuse(
+            "k4",
+            "nerfstudio's k4 of OPENCV (a term in r^8) is not supported; undistort the images first",
+        ));
+    }
+    Ok(Distortion { fisheye: false, k: [k1, k2, k3, 0.0, 0.0, 0.0], p: [p1, p2] })
 }
 
 /// The image of a frame: its `file_path`, or with `--downscale N` nerfstudio's downscaled copy,

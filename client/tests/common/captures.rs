@@ -77,3 +77,27 @@ fn npy_f64(values: &[f64], rows: usize, cols: usize) -> Vec<u8> {
     out.extend(values.iter().flat_map(|v| v.to_le_bytes()));
     out
 }
+
+/// A phone capture as instant-ngp's `colmap2nerf` leaves it: one `transforms.json` with the
+/// camera at the top level (fl_x, fl_y, cx, cy, w, h, k1, k2, p1, p2, aabb_scale), no depth
+/// range, portrait JPEGs of `size` in `images/`, `count` views on a ring around the origin.
+pub fn phone(dir: &Path, size: (u32, u32), count: usize) {
+    use nalgebra::{Point3, Vector3};
+    use scnerf_capture::camera::{gl_to_cv, look_at};
+    std::fs::create_dir_all(dir.join("images")).unwrap();
+    let (w, h) = (f64::from(size.0), f64::from(size.1));
+    let frames: Vec<_> = (0..count)
+        .map(|i| {
+            let name = format!("images/{i:04}.jpg");
+            photo(i, size.0, size.1).save(dir.join(&name)).unwrap();
+            let a = i as f64 * 0.3;
+            let eye = Point3::new(5.0 * a.cos(), 5.0 * a.sin(), 1.0);
+            let c2w = look_at(&eye, &Point3::origin(), &Vector3::z()).inverse().to_homogeneous() * gl_to_cv();
+            let rows: Vec<Vec<f64>> = (0..4).map(|r| (0..4).map(|c| c2w[(r, c)]).collect()).collect();
+            json!({"file_path": name, "transform_matrix": rows})
+        })
+        .collect();
+    let transforms = json!({"fl_x": 0.9 * h, "fl_y": 0.9 * h, "cx": w / 2.0, "cy": h / 2.0, "w": size.0, "h": size.1,
+        "k1": -0.06, "k2": 0.01, "p1": 0.0005, "p2": -0.0003, "aabb_scale": 16, "frames": frames});
+    std::fs::write(dir.join("transforms.json"), transforms.to_string()).unwrap();
+}

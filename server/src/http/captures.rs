@@ -21,7 +21,9 @@ use axum::response::Response;
 use bytes::Bytes;
 use scnerf_capture::files::{Files, MemoryFiles};
 use scnerf_capture::image_sets::{load_picked, ImageSet, Pick, Picked};
-use scnerf_capture::readers::{self, Capture, ReadOptions};
+use scnerf_capture::readers::{self, Capture, CapturedView, ReadOptions};
+use scnerf_capture::undistort::Fit;
+use scnerf_capture::upload::{fit_to_limit, image_bytes, resample_bytes};
 use scnerf_capture::wire::WireCamera;
 use serde::{Deserialize, Serialize};
 
@@ -31,7 +33,7 @@ use super::negotiate::{request_format, RequestFormat};
 use super::openapi::CaptureRefusals;
 use super::scenes::{owner_of, proxy_scene_id, scene_response, store_scene, SceneIdHeader};
 use super::state::AppState;
-use crate::backend::BackendError;
+use crate::backend::{BackendError, MemoryLease};
 use crate::blocking::{self, Cancel};
 use crate::cache::rfc3339;
 use crate::camera::CameraSpec;
@@ -45,14 +47,20 @@ use crate::request::{Limits, SceneRequest, SourceSpec};
 #[serde(deny_unknown_fields)]
 #[into_params(parameter_in = Query)]
 pub struct CaptureOptions {
-    /// Near depth, overriding the capture's (needed for COLMAP models without points3D and
-    /// nerfstudio files without near/far; the readers' messages call it `--near`).
+    /// Near depth, overriding the capture's (its files', COLMAP's points' or else its poses'; the
+    /// readers' messages call it `--near`).
     near: Option<f64>,
     /// Far depth, overriding the capture's.
     far: Option<f64>,
-    /// Use cameras with lens distortion as pinhole instead of refusing them.
+    /// Use photos with lens distortion as they are, as pinhole, instead of undistorting them.
     #[serde(default)]
     ignore_distortion: bool,
+    /// The pinhole camera distorted photos are undistorted to: `largest_rectangle` (default)
+    /// crops to valid pixels, `all_pixels` keeps every pixel (corners no pixel reaches take the
+    /// background).
+    #[serde(default)]
+    #[param(value_type = Option<String>, pattern = "^(largest_rectangle|all_pixels)$")]
+    undistort_to: Fit,
     /// Read the image set `images_N` (LLFF, nerfstudio, COLMAP); without it, the largest set
     /// sent whose images fit `max_source_pixels` (GET /v1/limits).
     #[param(value_type = Option<u32>, minimum = 1)]
@@ -123,21 +131,21 @@ async fn create_within(
     }
     let owner = owner_of(&req);
     let (files, metadata_bytes) = read_files(req, state.pipeline.limits()).await?;
-    let parsing = state.pipeline.executor().lease(capture_parse_bytes(metadata_bytes as u64)).map_err(|e| match e {
-        BackendError::TooLarge { .. } => {
-            ApiError::invalid("file", format!("parsing {metadata_bytes} bytes of capture files needs {e}"))
-        }
-        other => other.into(),
-    })?;
+    let mut parsing =
+        state.pipeline.executor().lease(capture_parse_bytes(metadata_bytes as u64)).map_err(|e| match e {
+            BackendError::TooLarge { .. } => {
+                ApiError::invalid("file", format!("parsing {metadata_bytes} bytes of capture files needs {e}"))
+            }
+            other => other.into(),
+        })?;
     let (config, limits) = (state.pipeline.config().clone(), state.pipeline.limits().clone());
     let parsed = blocking::run(move |cancel| {
-        let read = read_capture(files, &options, &limits, cancel)?;
+        let read = read_capture(files, &options, &limits, &mut parsing, cancel)?;
         let names = read.names.clone();
         let valid = read.request.validate(&config, &limits).map_err(|e| name_the_file(e, &names))?;
         Ok((valid, read.cameras, read.names, read.format, read.image_set, read.warnings))
     })
     .await?;
-    drop(parsing);
     let (valid, cameras, names, format, image_set, warnings) = parsed;
     let (near, far) = (valid.near, valid.far);
     let mut timings = Timings::default();
@@ -231,6 +239,7 @@ fn read_capture(
     mut files: MemoryFiles,
     options: &CaptureOptions,
     limits: &Limits,
+    parsing: &mut MemoryLease,
     cancel: &Cancel,
 ) -> Result<ReadCapture, ApiError> {
     let opts = ReadOptions {
@@ -238,6 +247,7 @@ fn read_capture(
         far: options.far,
         ignore_distortion: options.ignore_distortion,
         downscale: None,
+        undistort: options.undistort_to,
     };
     let rule = match options.downscale {
         Some(factor) => Pick::Downscale(factor.get()),
@@ -245,9 +255,11 @@ fn read_capture(
     };
     let read = load_picked(&Interruptible { files: &files, cancel }, Path::new(""), None, opts, rule);
     cancel.check()?;
-    let (capture, picked) = read.map_err(capture_error)?;
-    let Capture { format, views, near, far, background, mut warnings } = capture;
-    let image_set = picked.map(|p| picked_set(p, limits.max_source_pixels, &mut warnings)).transpose()?;
+    let (mut capture, picked) = read.map_err(capture_error)?;
+    let fitted = fit_to_limit(&mut capture, limits.max_source_pixels);
+    let Capture { format, views, near, far, background, mut warnings, .. } = capture;
+    let image_set = picked.map(|p| picked_set(p, &mut warnings));
+    warnings.extend(fitted);
     let kept = scnerf_capture::thin_evenly(views.len(), limits.max_scene_views);
     if kept.len() < views.len() {
         warnings.push(format!(
@@ -260,13 +272,15 @@ fn read_capture(
         (Vec::with_capacity(kept.len()), Vec::with_capacity(kept.len()), Vec::with_capacity(kept.len()));
     for (i, view) in kept.into_iter().map(|v| &views[v]).enumerate() {
         let name = MemoryFiles::normal_path(&view.image_path).unwrap_or_default().to_string_lossy().into_owned();
-        let image = files.remove(&view.image_path).ok_or_else(|| {
+        let photo = files.remove(&view.image_path).ok_or_else(|| {
             ApiError::invalid(name.clone(), format!("{name}: the image of two views (\"{}\" and another)", view.name))
         })?;
+        cancel.check()?;
+        let image = image_as_sent(view, photo, background, parsing)?;
         // As the client would send it: validated as an upload's camera is, and what the answer reports.
         let camera = WireCamera::from(&view.camera);
         let spec = CameraSpec::from_wire(&camera, &format!("sources[{i}].camera"))?;
-        sources.push(SourceSpec { camera: spec, image: Some(Bytes::from(image)), image_field: name.clone() });
+        sources.push(SourceSpec { camera: spec, image: Some(image), image_field: name.clone() });
         cameras.push(camera);
         names.push(name);
     }
@@ -281,26 +295,34 @@ fn read_capture(
     })
 }
 
-/// The folder of the image set read; the sets sent but not read are named in a warning. No set
-/// within the pixel limit: 422 naming the sets, before any image is decoded.
-fn picked_set(picked: Picked, max_pixels: u64, warnings: &mut Vec<String>) -> Result<String, ApiError> {
-    let folder = picked.set.folder.to_string_lossy().into_owned();
-    if !picked.fits {
-        return Err(ApiError::invalid(
-            folder,
-            format!(
-                "no image set of the capture fits the limit of {max_pixels} pixels per source view ({}): send a \
-                 smaller set (images_N) or resize the images",
-                picked.sets.iter().map(ImageSet::describe).collect::<Vec<_>>().join(", ")
-            ),
-        ));
-    }
+/// The folder of the image set read; the sets sent but not read are named in a warning.
+fn picked_set(picked: Picked, warnings: &mut Vec<String>) -> String {
     let unused: Vec<String> =
         picked.sets.iter().filter(|s| s.factor != picked.set.factor).map(ImageSet::describe).collect();
     if !unused.is_empty() {
         warnings.push(format!("read the image set {}; not read: {}", picked.set.describe(), unused.join(", ")));
     }
-    Ok(folder)
+    picked.set.folder.to_string_lossy().into_owned()
+}
+
+/// The image of `view` as its camera sees it ([`scnerf_capture::upload::image_bytes`]: the photo
+/// undistorted and fitted to the source limit as the `scnerf` client does). The lease that held
+/// the parsing (done by now) is grown to the most that any one photo's resampling takes.
+fn image_as_sent(
+    view: &CapturedView,
+    photo: Vec<u8>,
+    background: [f64; 3],
+    lease: &mut MemoryLease,
+) -> Result<Bytes, ApiError> {
+    let need = resample_bytes(view, &photo);
+    if need == 0 {
+        return Ok(Bytes::from(photo));
+    }
+    if need > lease.bytes() {
+        lease.grow(need - lease.bytes())?;
+    }
+    let image = image_bytes(view, &photo, background).map_err(capture_error)?;
+    Ok(Bytes::from(image.into_owned()))
 }
 
 /// `files`, failing every access once the request is gone: the readers then stop at their next
