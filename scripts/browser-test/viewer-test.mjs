@@ -217,8 +217,7 @@ try {
   //    renderer runs, so it cannot finish between its first run and the drag, however fast the
   //    machine (a guided view at the finest size often did). The same still, left to finish,
   //    counts the runs a whole one takes.
-  await page.selectOption('#finest', '1');
-  await waitFor('the chain up to the full size', async () => (await phase()) === 'idle');
+  await chooseFinest(1);
   const [fullWidth] = size(1);
   const stillAtFull = async (from) => {
     await page.click('#full-still');
@@ -244,8 +243,7 @@ try {
   check(later <= atAbort + 1, `no renderer runs for ${inFlight.id} after the abort but the one running (${atAbort} -> ${later})`);
   check(later < rendererRuns(whole.id), `${inFlight.id} ran ${later} of a still's ${rendererRuns(whole.id)} runs: the server dropped the rest`);
   check(!serverLines(inFlight.id).some((l) => l.fields.message === 'rendered'), `the server never finished ${inFlight.id}`);
-  await page.selectOption('#finest', String(0.5));
-  await waitFor('the chain after the drags', async () => (await phase()) === 'idle');
+  await chooseFinest(0.5);
   const after = await pixels();
   check(meanDifference(before, after) > 2, `the canvas changed (mean difference ${meanDifference(before, after).toFixed(1)} of 255)`);
   await shot('05-after-drag.png');
@@ -364,6 +362,17 @@ try {
   process.exitCode = 1;
 } finally {
   await browser.close();
+}
+
+/** Chooses the finest size, which renders the view again up to it: returns once that chain has
+ *  asked for the finest size and been drawn (the page shows 'idle' before the chain starts, so
+ *  waiting for 'idle' alone would race it). */
+async function chooseFinest(fraction) {
+  const from = renders.length;
+  await page.selectOption('#finest', String(fraction));
+  const [width] = size(fraction);
+  await waitFor(`a render at the finest size ${width}`, () => renders.slice(from).some((r) => r.width === width));
+  await waitFor('the chain up to the finest size', async () => (await phase()) === 'idle');
 }
 
 /** The request the page sends after `act` (the last one, once the gesture's events settled). */
