@@ -38,8 +38,9 @@ class LlffParser(DataParser):
         OpenCV axes are [right, down, forward] = [col1, col0, -col2]. The world is kept in LLFF's
         units (no NeRF bd_factor rescale: it changes depth units, not the rendered images).
         near = min of the per-view near bounds, far = max of the far bounds.
-        With scale s != 1, images_{1/s} (e.g. images_4 for s = 0.25) is used when it exists, else
-        images/ is resized. Focal = f_hwf * W_used / W_hwf, principal point = (W_used/2, H_used/2).
+        With scale s != 1, images_{1/s} (e.g. images_4 for s = 0.25) is used when it exists (a
+        capture may ship only it), else images/ is resized. Every 8th view is a default target
+        (LLFF's held-out views). Focal = f_hwf * W_used / W_hwf, principal point = (W_used/2, H_used/2).
         """
         root = Path(path)
         pb = root / "poses_bounds.npy"
