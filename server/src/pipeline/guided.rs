@@ -503,16 +503,18 @@ pub async fn render(
     let first = first_level_pixels(width, height, policy.step);
     let mut heads = Heads::new();
     let all = AllSamples { pixels: &first, heads: Some(&mut heads) };
-    run_all_samples(ticket, bundle, chunking, scene, &rays, all, &mut frame, levels.is_empty()).await?;
+    // Each renderer's last run of the request may release its arena, where its session keeps
+    // one (`Ticket::run_last`): the guide renderer's is level 0's unless pixels may be rendered
+    // again, then the last level's pixels rendered again (none: its arena stays held).
+    let guide_runs_again = policy.verify_tolerance.is_some() && !levels.is_empty();
+    run_all_samples(ticket, bundle, chunking, scene, &rays, all, &mut frame, !guide_runs_again).await?;
     let mut network_samples = first.len() * samples;
-    let verifies = policy.verify_tolerance.is_some();
     for (level, &(spacing, count)) in levels.iter().enumerate() {
         let fine;
         (frame, fine) = plan_level_blocking(policy.clone(), frame, spacing, count).await?;
         let last = level + 1 == levels.len();
         network_samples +=
-            run_fine(ticket, bundle, chunking, scene, &rays, &heads, &fine, &mut frame, spacing, last && !verifies)
-                .await?;
+            run_fine(ticket, bundle, chunking, scene, &rays, &heads, &fine, &mut frame, spacing, last).await?;
         let again = disagreeing(policy, &frame, &fine, spacing);
         let all = AllSamples { pixels: &again, heads: None };
         run_all_samples(ticket, bundle, chunking, scene, &rays, all, &mut frame, last).await?;
