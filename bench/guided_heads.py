@@ -173,9 +173,12 @@ def fine_levels(renderer, scene, near_far, policy, camera, background, full: dic
     def rows_of(dirs: np.ndarray) -> np.ndarray:
         return np.array([row_of[d.tobytes()] for d in dirs])
 
+    def full_at(rows: np.ndarray) -> dict:
+        return {k: full[k][rows] for k in ("rgb", "depth", "opacity", "weights")}
+
     def guide(_, dirs):
         level0.append(rows_of(dirs))
-        return {k: full[k][level0[0]] for k in ("rgb", "depth", "opacity", "weights")}
+        return full_at(level0[0])
 
     def fine(_, dirs, index, multiplicity, guide_rows):
         rows = rows_of(dirs)
@@ -197,7 +200,7 @@ def fine_levels(renderer, scene, near_far, policy, camera, background, full: dic
 
     def again(_, dirs):
         # A pixel rendered again at all S samples is what the full render has there.
-        return {k: full[k][rows_of(dirs)] for k in ("rgb", "depth", "opacity", "weights")}
+        return full_at(rows_of(dirs))
 
     view = render_guided(
         policy, camera.width, camera.height, samples, origins, directions, background, guide, fine, again

@@ -52,9 +52,10 @@ fn to_resample(view: &CapturedView, bytes: &[u8]) -> Option<(u32, u32)> {
     (view.lens.is_some() || size != (view.camera.width, view.camera.height)).then_some(size)
 }
 
-/// Most bytes the decoder may allocate for a photo of `width` x `height`: 16-bit RGBA.
+/// Most bytes decoding a photo of `width` x `height` takes ([`images::decode`]): 16-bit RGBA,
+/// and the decoder's buffers beside the pixels.
 fn decode_bytes(width: u32, height: u32) -> u64 {
-    u64::from(width) * u64::from(height) * 8 + (1 << 20)
+    u64::from(width) * u64::from(height) * 8 + images::HEADER_BYTES as u64
 }
 
 /// The memory [`image_bytes`] takes for `view`'s photo at most (the decoded photo, an 8-bit

@@ -182,10 +182,10 @@ def render_guided(
     background: np.ndarray,
     guide: GuideRun,
     fine: FineRun,
-    full: FullRun | None = None,
+    full: FullRun,
 ) -> GuidedView:
     """Every pixel of a ``width`` x ``height`` view (rays row by row) by the policy; ``full``
-    renders the pixels rendered again (needed when the policy verifies)."""
+    renders the pixels rendered again."""
     n = width * height
     rgb, depth, opacity = np.zeros((n, 3), np.float32), np.zeros(n, np.float32), np.zeros(n, np.float32)
     # The weights over all S samples of the pixels later levels read (every second row and column).
