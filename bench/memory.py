@@ -210,7 +210,7 @@ def table(rows: list[dict]) -> str:
 
 def update_fixture(path: Path, rows: list[dict]) -> None:
     """Merges the served rows into the server's fixture of measured peaks
-    (tests/fixtures/memory/measured.json, read by pipeline::memory's tests): per bundle (by model
+    (tests/fixtures/memory/measured.json, read by pipeline::estimate's tests): per bundle (by model
     id and the way it builds its volume) its config, per source size, view count and target (0x0:
     a scene's upload) the peak above the process at rest."""
     fixture = json.loads(path.read_text()) if path.exists() else {"bundles": {}, "rows": []}

@@ -13,6 +13,7 @@ repo=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 cd "${repo}"
 scripts/fetch-onnxruntime.sh
 scripts/setup-python.sh
+python3 scripts/check-modules.py
 .venv/bin/ruff check exporter bench scripts loadtest client-python
 .venv/bin/ruff format --check exporter bench scripts loadtest client-python
 cargo test -j2 --workspace --locked

@@ -10,7 +10,10 @@
 //! the scenes of `tests/depth_range.rs`: lego (2 to 6; depths 4.03), DTU scan37 (2.125 to 4.525;
 //! depths 3.04) and LLFF horns (11.2 to 169; depths 26.3 to 29.0).
 
+use std::path::Path;
+
 use crate::camera::{convergence, Camera};
+use crate::error::{Error, Result};
 
 /// Where `near` and `far` come from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -57,4 +60,37 @@ pub fn from_poses(cameras: &[&Camera]) -> Option<(f64, f64)> {
     let farthest = depths.iter().copied().fold(0.0, f64::max);
     let far_margin = if meet.spread > OBJECT_SPREAD { OBJECT_FAR_MARGIN } else { FORWARD_FAR_MARGIN };
     (!depths.is_empty()).then_some((NEAR_MARGIN * nearest, far_margin * farthest))
+}
+
+/// `near`/`far`: each from the command line (`flags`) if given, else from the dataset, else both from the
+/// views' poses ([`from_poses`]); checked as the Python loaders do
+/// (`data/scene.py::check_near_far`). `from_data` is the dataset's, with where it comes from.
+pub fn resolve(
+    flags: (Option<f64>, Option<f64>),
+    from_data: (Option<f64>, Option<f64>, DepthSource),
+    cameras: &[&Camera],
+    source: &Path,
+) -> Result<(f64, f64, DepthSource)> {
+    let (data_near, data_far, data_source) = from_data;
+    let (near, far, from) = match (flags.0.or(data_near), flags.1.or(data_far)) {
+        (Some(near), Some(far)) => {
+            let from = if flags.0.is_some() && flags.1.is_some() { DepthSource::Flags } else { data_source };
+            (near, far, from)
+        }
+        (near, far) => {
+            let (pose_near, pose_far) = from_poses(cameras).ok_or_else(|| {
+                Error::dataset(
+                    source,
+                    "no near/far in the dataset (COLMAP: from points3D; nerfstudio: near/far keys), and the \
+                     poses do not give one (the cameras look at no common point in front of them): pass --near \
+                     and --far",
+                )
+            })?;
+            (near.unwrap_or(pose_near), far.unwrap_or(pose_far), DepthSource::Poses)
+        }
+    };
+    if !(near.is_finite() && far.is_finite() && 0.0 <= near && near < far) {
+        return Err(Error::dataset(source, format!("invalid near/far {near}/{far}: need 0 <= near < far")));
+    }
+    Ok((near, far, from))
 }

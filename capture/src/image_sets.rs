@@ -11,6 +11,7 @@ use std::path::{Path, PathBuf};
 
 use crate::error::{Error, Result};
 use crate::files::Files;
+pub use crate::readers::folder_name;
 use crate::readers::{self, has_image_extension, Capture, Format, ReadOptions};
 
 /// One image set: `images/` (factor 1) or `images_N/`, with the size of its first image.
@@ -31,15 +32,6 @@ impl ImageSet {
     pub fn describe(&self) -> String {
         let name = self.folder.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
         format!("{name} ({}x{})", self.width, self.height)
-    }
-}
-
-/// The folder of the set `factor` under a capture's root: `images` for 1, `images_N` otherwise.
-pub fn folder_name(factor: u32) -> String {
-    if factor <= 1 {
-        "images".to_string()
-    } else {
-        format!("images_{factor}")
     }
 }
 

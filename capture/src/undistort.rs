@@ -12,9 +12,12 @@
 //!   OPENCV_FISHEYE): OpenCV's `cv::fisheye`, θ = atan r, θ' = θ (1 + k1 θ² + k2 θ⁴ + k3 θ⁶ +
 //!   k4 θ⁸), (x', y') = (θ' / r) (x, y).
 
+use std::path::Path;
+
 use image::{Rgba, RgbaImage};
 
-use crate::camera::Intrinsics;
+use crate::camera::{Camera, Intrinsics};
+use crate::error::{Error, Result};
 
 /// A lens's distortion: the coefficients of one of the two models (unused ones zero).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -254,6 +257,43 @@ fn bilinear(photo: &RgbaImage, x: f64, y: f64) -> Option<Rgba<u8>> {
         *o = (top * (1.0 - ty) + bottom * ty).round() as u8;
     }
     Some(Rgba(out))
+}
+
+/// A view's camera and lens from its photo's camera (at the photo's size) and the lens's
+/// distortion: no distortion, the camera as it is; with `ignore` (`--ignore-distortion`), the same with a
+/// warning (what the Python loaders do); else the pinhole camera `fit` gives
+/// that the photo is undistorted to when sent. `what` names the camera in messages.
+pub fn lens_of(
+    photo: Camera,
+    distortion: Distortion,
+    ignore: bool,
+    fit: Fit,
+    what: &str,
+    file: &Path,
+    warnings: &mut Vec<String>,
+) -> Result<(Camera, Option<Lens>)> {
+    if distortion.is_zero() {
+        return Ok((photo, None));
+    }
+    if ignore {
+        let warning = format!("{}: lens distortion ignored (images used as pinhole)", file.display());
+        if !warnings.contains(&warning) {
+            warnings.push(warning);
+        }
+        return Ok((photo, None));
+    }
+    let (width, height) = (photo.width, photo.height);
+    let pinhole = pinhole_for(&photo.intrinsics, &distortion, width, height, fit).ok_or_else(|| {
+        Error::dataset(
+            file,
+            format!(
+                "{what}: its lens distortion ({distortion}) cannot be inverted over the whole image: check the \
+                 coefficients, or pass --ignore-distortion to use the images as pinhole"
+            ),
+        )
+    })?;
+    let lens = Lens { distortion, distorted: photo.intrinsics, pinhole, width, height };
+    Ok((Camera { intrinsics: pinhole, ..photo }, Some(lens)))
 }
 
 #[cfg(test)]

@@ -1,12 +1,12 @@
 //! The `scnerf` command line: `info`, `render`, `view`, `eval`.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::time::Instant;
 
-use clap::{Args, Parser, Subcommand, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 
-use crate::api::{Client, Upload};
+use crate::api::Client;
+use crate::args::{Cli, Command, DataArgs, FormatArg, ImageSetArgs, RenderArgs, UndistortTo, ViewArgs};
 use crate::error::{Error, Result};
 use crate::render::{frame_digits, render_frames, server_summary, write_atomically, write_npy};
 use crate::{eval, paths, video};
@@ -17,198 +17,6 @@ use scnerf_capture::readers::{self, Capture, CapturedView, Format, ReadOptions};
 use scnerf_capture::undistort::Fit;
 use scnerf_capture::upload::fit_to_limit;
 use scnerf_capture::wire::WireCamera;
-
-#[derive(Parser)]
-#[command(name = "scnerf", version, about = "Render posed photo captures through scnerf-serve")]
-pub struct Cli {
-    /// The scnerf-server to use.
-    #[arg(long, global = true, env = "SCNERF_SERVER", default_value = "http://127.0.0.1:8080")]
-    server: String,
-    /// Bearer token, for a server started with --auth-token.
-    #[arg(long, global = true, env = "SCNERF_TOKEN", hide_env_values = true)]
-    token: Option<String>,
-    /// How views are sampled: guided (coarse to fine, fast) or full (the paper's samples on every
-    /// ray). Default: the server's (GET /v1/model).
-    #[arg(long, global = true, env = "SCNERF_SAMPLING", value_parser = ["full", "guided"])]
-    sampling: Option<String>,
-    #[command(subcommand)]
-    command: Command,
-}
-
-#[derive(Subcommand)]
-enum Command {
-    /// Print what the reader makes of a dataset: format, views, cameras, near/far.
-    Info {
-        #[command(flatten)]
-        data: DataArgs,
-        #[command(flatten)]
-        set: ImageSetArgs,
-        /// Every camera in the API's JSON form.
-        #[arg(long)]
-        json: bool,
-    },
-    /// Render a camera path through the capture to PNG frames, depth maps and a video.
-    Render(RenderArgs),
-    /// Render one view.
-    View(ViewArgs),
-    /// Render held-out captured views from the others and score them (PSNR, SSIM).
-    Eval(EvalArgs),
-}
-
-#[derive(Args)]
-struct DataArgs {
-    /// Dataset folder (COLMAP, nerfstudio, Blender, LLFF or DTU), or a transforms JSON file.
-    data: PathBuf,
-    #[arg(long, value_enum, default_value_t = FormatArg::Auto)]
-    format: FormatArg,
-    /// Near depth, overriding the dataset's.
-    #[arg(long)]
-    near: Option<f64>,
-    /// Far depth, overriding the dataset's.
-    #[arg(long)]
-    far: Option<f64>,
-    /// Use photos with lens distortion as they are, as pinhole, instead of undistorting them.
-    #[arg(long)]
-    ignore_distortion: bool,
-    /// The pinhole camera distorted photos are undistorted to: largest-rectangle crops to valid
-    /// pixels, all-pixels keeps every pixel (corners no pixel reaches take the background).
-    #[arg(long, value_enum, default_value_t = UndistortTo::LargestRectangle)]
-    undistort_to: UndistortTo,
-}
-
-#[derive(Clone, Copy, ValueEnum)]
-enum UndistortTo {
-    LargestRectangle,
-    AllPixels,
-}
-
-#[derive(Args)]
-struct ImageSetArgs {
-    /// Read the image set images_N (LLFF, nerfstudio, COLMAP: downscaled copies beside images/);
-    /// default: the largest set within the server's source limit.
-    #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
-    downscale: Option<u32>,
-}
-
-#[derive(Clone, Copy, ValueEnum)]
-enum FormatArg {
-    Auto,
-    Colmap,
-    Nerfstudio,
-    Blender,
-    Llff,
-    Dtu,
-}
-
-#[derive(Args)]
-struct UploadArgs {
-    /// Most views to upload (the server's scene limit): a larger capture is thinned evenly.
-    #[arg(long, default_value_t = 64)]
-    max_views: usize,
-    /// Scene id to upload under (1-64 of A-Z a-z 0-9 . _ -; default: derived from the views'
-    /// cameras, depth range, background and image bytes, so the same upload has the same id).
-    #[arg(long)]
-    scene_id: Option<String>,
-}
-
-impl UploadArgs {
-    /// `views` of `capture` as one scene, under `--scene-id` if given.
-    fn upload(&self, capture: &Capture, views: &[&CapturedView]) -> Upload {
-        Upload { scene_id: self.scene_id.clone(), ..Upload::new(capture, views) }
-    }
-}
-
-#[derive(Args)]
-struct RenderArgs {
-    #[command(flatten)]
-    data: DataArgs,
-    #[command(flatten)]
-    set: ImageSetArgs,
-    #[command(flatten)]
-    upload: UploadArgs,
-    /// interpolate, orbit, spiral, or a camera file: nerfstudio's camera_path.json or a JSON
-    /// array of cameras (API form).
-    #[arg(long)]
-    path: String,
-    /// Number of frames (ignored for a camera file).
-    #[arg(long, default_value_t = 48)]
-    frames: usize,
-    /// Frame size WxH (default: the first view's).
-    #[arg(long, value_parser = parse_size)]
-    size: Option<(u32, u32)>,
-    /// Output folder; frames already in it are not rendered again.
-    #[arg(long, default_value = "render")]
-    out: PathBuf,
-    /// Frames per second of the video (default: a nerfstudio camera path's, else 24).
-    #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
-    fps: Option<u32>,
-    /// Skip the depth maps.
-    #[arg(long)]
-    no_depth: bool,
-    /// Skip the video.
-    #[arg(long)]
-    no_video: bool,
-}
-
-#[derive(Args)]
-struct ViewArgs {
-    #[command(flatten)]
-    data: DataArgs,
-    #[command(flatten)]
-    set: ImageSetArgs,
-    #[command(flatten)]
-    upload: UploadArgs,
-    /// A view name of the capture, or a JSON file with one camera (API form).
-    #[arg(long)]
-    pose: String,
-    /// Output size WxH (default: the camera's).
-    #[arg(long, value_parser = parse_size)]
-    size: Option<(u32, u32)>,
-    /// Render from these three views (reference first) instead of letting the server choose.
-    #[arg(long, value_delimiter = ',')]
-    sources: Option<Vec<String>>,
-    /// Output PNG; the depth map goes next to it as <name>.depth.npy.
-    #[arg(long, default_value = "view.png")]
-    out: PathBuf,
-}
-
-#[derive(Args)]
-pub struct EvalArgs {
-    #[command(flatten)]
-    data: DataArgs,
-    /// Hold out every K-th view (0, K, 2K, ...; LLFF's convention).
-    #[arg(long, required_unless_present = "targets", conflicts_with = "targets")]
-    pub holdout: Option<usize>,
-    /// Hold out these views.
-    #[arg(long, value_delimiter = ',')]
-    pub targets: Option<Vec<String>>,
-    /// The same three sources for every target (default: per target, the 3 nearest others).
-    #[arg(long, value_delimiter = ',')]
-    pub sources: Option<Vec<String>>,
-    /// Render targets at 1/N of their size, against box-averaged ground truth.
-    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..))]
-    pub downscale: u32,
-    /// Save the rendered views here, each with its absolute error image (NAME.error.png).
-    #[arg(long)]
-    pub out: Option<PathBuf>,
-}
-
-fn parse_size(s: &str) -> std::result::Result<(u32, u32), String> {
-    let (w, h) = s.split_once(['x', 'X']).ok_or_else(|| format!("expected WxH, got {s:?}"))?;
-    match (w.parse::<u32>(), h.parse::<u32>()) {
-        (Ok(w), Ok(h)) if w > 0 && h > 0 => Ok((w, h)),
-        _ => Err(format!("expected WxH with positive whole numbers, got {s:?}")),
-    }
-}
-
-/// `println!` that stops quietly when stdout is closed (`scnerf info DATA | head`).
-macro_rules! say {
-    ($($arg:tt)*) => {{
-        use std::io::Write;
-        let _ = writeln!(std::io::stdout(), $($arg)*);
-    }};
-}
-pub(crate) use say;
 
 pub fn run(cli: Cli) -> Result<()> {
     let client = Client::new(&cli.server, cli.token).with_sampling(cli.sampling);
@@ -333,14 +141,6 @@ fn info(data: &DataArgs, set: &ImageSetArgs, json: bool) -> Result<()> {
     Ok(())
 }
 
-/// The views `--sources` names: exactly three, the first the reference.
-pub(crate) fn source_views<'a>(capture: &'a Capture, names: &[String]) -> Result<Vec<&'a CapturedView>> {
-    if names.len() != 3 {
-        return Err(Error::Usage(format!("--sources needs 3 view names, got {}", names.len())));
-    }
-    Ok(names.iter().map(|n| capture.view(n)).collect::<scnerf_capture::Result<_>>()?)
-}
-
 /// The capture's views to upload, thinned with a warning to `--max-views` or the server's
 /// limit (`max_scene_views` of `GET /v1/limits`), whichever is smaller.
 fn scene_views<'a>(client: &Client, capture: &'a Capture, max: usize) -> Result<Vec<&'a CapturedView>> {
@@ -456,7 +256,7 @@ fn view(client: &Client, args: &ViewArgs) -> Result<()> {
         None => camera,
     };
     let views = match &args.sources {
-        Some(names) => source_views(&capture, names)?,
+        Some(names) => eval::source_views(&capture, names)?,
         None => scene_views(client, &capture, args.upload.max_views)?,
     };
     let mut scene = client.create_scene(args.upload.upload(&capture, &views))?;
@@ -471,15 +271,4 @@ fn view(client: &Client, args: &ViewArgs) -> Result<()> {
     say!("wrote {} ({}x{}) and {}", args.out.display(), rendered.width, rendered.height, depth.display());
     say!("{}{}", server_summary(&rendered), names.map(|n| format!(" ({})", n.join(","))).unwrap_or_default());
     Ok(())
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn sizes_parse_as_width_x_height() {
-        assert_eq!(parse_size("200x100"), Ok((200, 100)));
-        assert!(parse_size("0x100").is_err() && parse_size("200").is_err());
-    }
 }

@@ -9,7 +9,7 @@
 use std::time::Instant;
 
 use crate::api::{Client, Upload};
-use crate::cli::{say, source_views, EvalArgs};
+use crate::args::EvalArgs;
 use crate::error::{read_bytes, Error, Result};
 use crate::metrics::{error_png, psnr, ssim, Image};
 use crate::render::write_atomically;
@@ -91,6 +91,14 @@ pub fn run(client: &Client, capture: &Capture, fitted: &Capture, args: &EvalArgs
     };
     say!("{}", format_row(&mean));
     Ok(())
+}
+
+/// The views `--sources` names: exactly three, the first the reference.
+pub(crate) fn source_views<'a>(capture: &'a Capture, names: &[String]) -> Result<Vec<&'a CapturedView>> {
+    if names.len() != 3 {
+        return Err(Error::Usage(format!("--sources needs 3 view names, got {}", names.len())));
+    }
+    Ok(names.iter().map(|n| capture.view(n)).collect::<scnerf_capture::Result<_>>()?)
 }
 
 fn names(views: &[&CapturedView]) -> Vec<String> {

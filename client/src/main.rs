@@ -3,7 +3,7 @@ use std::process::ExitCode;
 use clap::Parser;
 
 fn main() -> ExitCode {
-    match scnerf_client::cli::run(scnerf_client::cli::Cli::parse()) {
+    match scnerf_client::cli::run(scnerf_client::args::Cli::parse()) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             eprintln!("error: {e}");

@@ -6,7 +6,7 @@ use axum::response::{IntoResponse, Response};
 use serde::Serialize;
 
 use crate::backend::BackendError;
-use crate::cache::NoRoom;
+use crate::cache::shares::NoRoom;
 
 #[derive(Debug, thiserror::Error)]
 pub enum ApiError {

@@ -17,8 +17,8 @@ use prometheus_client::registry::{Registry, Unit};
 
 use crate::backend::BackendHandle;
 use crate::cache::SceneCache;
-use crate::pipeline::guided::SamplingReport;
-use crate::pipeline::Timings;
+use crate::pipeline::scene::SamplingReport;
+use crate::pipeline::scene::Timings;
 use crate::sysmem;
 
 /// Content type of the exposition format written by `Metrics::render`.

@@ -11,11 +11,12 @@ use tokio::net::TcpListener;
 use crate::backend::ort::OrtRunner;
 use crate::backend::{BackendHandle, MemoryBudget};
 use crate::bundle::Bundle;
-use crate::camera::Camera;
+use crate::camera::CanonicalCamera;
 use crate::config::Config;
 use crate::http::serve::{ensure_file_limit, serve};
 use crate::http::{router, AppState};
-use crate::pipeline::{Pipeline, Timings};
+use crate::pipeline::scene::Timings;
+use crate::pipeline::Pipeline;
 use crate::sysmem;
 
 pub async fn run(config: Config) -> Result<(), String> {
@@ -181,13 +182,13 @@ pub async fn warm_up(pipeline: &Pipeline) -> Result<Duration, String> {
 }
 
 /// Cameras on a small arc 4 units from the origin, looking at it (OpenCV, world-to-camera).
-fn warmup_cameras(views: usize, size: u32) -> Vec<Camera> {
+fn warmup_cameras(views: usize, size: u32) -> Vec<CanonicalCamera> {
     let (f, c) = (f64::from(size), f64::from(size) / 2.0);
     (0..views)
         .map(|i| {
             // Rotation about y by -0.1·i; the origin lies 4 units ahead on the optical axis.
             let w2c = Isometry3::new(Vector3::new(0.0, 0.0, 4.0), Vector3::y() * (-0.1 * i as f64));
-            Camera {
+            CanonicalCamera {
                 width: size,
                 height: size,
                 k: Matrix3::new(f, 0.0, c, 0.0, f, c, 0.0, 0.0, 1.0),

@@ -11,12 +11,12 @@ use ndarray::{ArrayD, Axis, Ix2, IxDyn};
 use scnerf_capture::camera::{Axes, Intrinsics, PoseKind};
 use scnerf_capture::wire::{WireCamera, WireIntrinsics, WirePose};
 
+use crate::backend::device::GraphOptLevel;
 use crate::backend::{BackendError, BackendHandle, ExecutorOptions, GraphRunner, NamedTensors, Tensor};
+use crate::bundle::GuidedPolicy;
 use crate::bundle::{validate_manifest, Bundle, GraphKind, Manifest};
-use crate::config::GraphOptLevel;
 use crate::http::{AppState, ServiceOptions};
 use crate::pipeline::chunks::ChunkPolicy;
-use crate::pipeline::guided::GuidedPolicy;
 use crate::pipeline::volume::SlabPolicy;
 use crate::pipeline::Pipeline;
 use crate::request::Limits;
@@ -288,8 +288,8 @@ pub fn fake_state() -> AppState {
 }
 
 /// A canonical camera: 8x6, at the origin looking along +z.
-pub fn camera() -> crate::camera::Camera {
-    crate::camera::Camera {
+pub fn camera() -> crate::camera::CanonicalCamera {
+    crate::camera::CanonicalCamera {
         width: 8,
         height: 6,
         k: nalgebra::Matrix3::new(8.0, 0.0, 4.0, 0.0, 8.0, 3.0, 0.0, 0.0, 1.0),

@@ -549,7 +549,7 @@ async fn camera_errors() {
 
 #[tokio::test]
 async fn size_errors() {
-    // Camera says 32x32, images are 40x40.
+    // CanonicalCamera says 32x32, images are 40x40.
     let json = serde_json::to_vec(&request_json(32)).unwrap();
     let imgs = images(40);
     let got = send(

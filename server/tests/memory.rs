@@ -13,7 +13,7 @@ use scnerf_server::backend::{ExecutorOptions, MemoryBudget};
 use scnerf_server::bundle::{GraphKind, VolumeBuild};
 use scnerf_server::http::{router, ServiceOptions};
 use scnerf_server::pipeline::chunks::ChunkPolicy;
-use scnerf_server::pipeline::memory::{estimate, MemoryPlan, RequestSizes};
+use scnerf_server::pipeline::estimate::{estimate, MemoryPlan, RequestSizes};
 use scnerf_server::pipeline::volume::SlabPolicy;
 use scnerf_server::request::Limits;
 use scnerf_server::testing::{bundle, camera_json, png_header, request_json, state_with_executor, FakeRunner};

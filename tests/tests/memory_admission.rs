@@ -14,7 +14,7 @@ use scnerf_e2e::Case;
 use scnerf_server::backend::{ExecutorOptions, MemoryBudget};
 use scnerf_server::http::{router, ServiceOptions};
 use scnerf_server::pipeline::chunks::ChunkPolicy;
-use scnerf_server::pipeline::memory::{estimate, MemoryPlan, RequestSizes};
+use scnerf_server::pipeline::estimate::{estimate, MemoryPlan, RequestSizes};
 use scnerf_server::pipeline::sources::padded_size;
 use scnerf_server::pipeline::volume::SlabPolicy;
 use scnerf_server::request::Limits;

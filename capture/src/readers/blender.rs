@@ -10,10 +10,11 @@
 use std::path::{Path, PathBuf};
 
 use super::{
-    depth_range, json_f64, json_matrix4, read_json, resolve_image, skipped_warning, Capture, CapturedView, DepthSource,
+    cameras_of, json_f64, json_matrix4, read_json, resolve_image, skipped_warning, Capture, CapturedView, DepthSource,
     Format, ReadOptions,
 };
 use crate::camera::{w2c_from_opengl_c2w, Camera, Intrinsics, Pose};
+use crate::depth_range;
 use crate::error::{Error, Result};
 use crate::files::Files;
 
@@ -56,8 +57,12 @@ pub fn load(fs: &dyn Files, path: &Path, opts: ReadOptions) -> Result<Capture> {
     }
     let file_names: Vec<String> = files.iter().map(|f| f.display().to_string()).collect();
     let warnings = skipped_warning(&file_names.join(", "), skipped, listed).into_iter().collect();
-    let (near, far, depth_source) =
-        depth_range(opts, (Some(NEAR_FAR.0), Some(NEAR_FAR.1), DepthSource::Dataset), &views, path)?;
+    let (near, far, depth_source) = depth_range::resolve(
+        (opts.near, opts.far),
+        (Some(NEAR_FAR.0), Some(NEAR_FAR.1), DepthSource::Dataset),
+        &cameras_of(&views),
+        path,
+    )?;
     Ok(Capture { depth_source, format: Format::Blender, views, near, far, background: [1.0; 3], warnings })
 }
 

@@ -19,13 +19,14 @@ use std::path::{Path, PathBuf};
 use nalgebra::{Point3, Quaternion, Translation3, UnitQuaternion};
 
 use super::{
-    depth_range, lens_of, natural_cmp, without_extension, Capture, CapturedView, DepthSource, Format, ReadOptions,
+    cameras_of, folder_name, natural_cmp, without_extension, Capture, CapturedView, DepthSource, Format, ReadOptions,
 };
 use crate::camera::{Camera, Intrinsics, Pose};
+use crate::depth_range;
 use crate::error::{Error, Result};
 use crate::files::Files;
-use crate::image_sets::folder_name;
 use crate::percentile;
+use crate::undistort::lens_of;
 use crate::undistort::Distortion;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -98,7 +99,8 @@ pub fn load(fs: &dyn Files, path: &Path, opts: ReadOptions) -> Result<Capture> {
         let (w, h) = fs.image_size(&image_path)?;
         let photo = if (w, h) == (declared.width, declared.height) { declared } else { declared.resized(w, h) };
         let what = format!("camera {} ({})", img.camera_id, cameras_model(&cameras, img.camera_id));
-        let (camera, lens) = lens_of(opts, photo, *distortion, &what, &cameras_file, &mut warnings)?;
+        let (camera, lens) =
+            lens_of(photo, *distortion, opts.ignore_distortion, opts.undistort, &what, &cameras_file, &mut warnings)?;
         views.push(CapturedView { name: without_extension(&img.name), image_path, camera, lens });
     }
     let missing = images.len() - views.len();
@@ -129,7 +131,7 @@ pub fn load(fs: &dyn Files, path: &Path, opts: ReadOptions) -> Result<Capture> {
         None
     };
     let from_data = (from_points.map(|p| p.0), from_points.map(|p| p.1), DepthSource::Points);
-    let (near, far, depth_source) = depth_range(opts, from_data, &views, &dir)?;
+    let (near, far, depth_source) = depth_range::resolve((opts.near, opts.far), from_data, &cameras_of(&views), &dir)?;
     Ok(Capture { format: Format::Colmap, views, near, far, depth_source, background: [0.0; 3], warnings })
 }
 

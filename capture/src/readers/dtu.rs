@@ -12,8 +12,9 @@ use std::path::{Path, PathBuf};
 
 use nalgebra::Matrix4;
 
-use super::{depth_range, Capture, CapturedView, DepthSource, Format, ReadOptions};
+use super::{cameras_of, Capture, CapturedView, DepthSource, Format, ReadOptions};
 use crate::camera::{pose_from_matrix, Camera, Intrinsics};
+use crate::depth_range;
 use crate::error::{Error, Result};
 use crate::files::Files;
 
@@ -56,7 +57,12 @@ pub fn load(fs: &dyn Files, path: &Path, opts: ReadOptions) -> Result<Capture> {
         .collect();
     let near = nears.iter().copied().fold(f64::INFINITY, f64::min);
     let far = fars.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-    let (near, far, depth_source) = depth_range(opts, (Some(near), Some(far), DepthSource::Dataset), &views, path)?;
+    let (near, far, depth_source) = depth_range::resolve(
+        (opts.near, opts.far),
+        (Some(near), Some(far), DepthSource::Dataset),
+        &cameras_of(&views),
+        path,
+    )?;
     Ok(Capture { depth_source, format: Format::Dtu, views, near, far, background: [0.0; 3], warnings })
 }
 

@@ -13,11 +13,11 @@ use std::path::{Path, PathBuf};
 
 use nalgebra::{Matrix4, Vector3};
 
-use super::{depth_range, has_image_extension, Capture, CapturedView, DepthSource, Format, ReadOptions};
+use super::{cameras_of, folder_name, has_image_extension, Capture, CapturedView, DepthSource, Format, ReadOptions};
 use crate::camera::{w2c_from_c2w, Camera, Intrinsics};
+use crate::depth_range;
 use crate::error::{Error, Result};
 use crate::files::Files;
-use crate::image_sets::folder_name;
 
 pub fn load(fs: &dyn Files, path: &Path, opts: ReadOptions) -> Result<Capture> {
     let npy = path.join("poses_bounds.npy");
@@ -58,7 +58,12 @@ pub fn load(fs: &dyn Files, path: &Path, opts: ReadOptions) -> Result<Capture> {
     }
     let near = rows.iter().map(|r| r[15]).fold(f64::INFINITY, f64::min);
     let far = rows.iter().map(|r| r[16]).fold(f64::NEG_INFINITY, f64::max);
-    let (near, far, depth_source) = depth_range(opts, (Some(near), Some(far), DepthSource::Dataset), &views, &npy)?;
+    let (near, far, depth_source) = depth_range::resolve(
+        (opts.near, opts.far),
+        (Some(near), Some(far), DepthSource::Dataset),
+        &cameras_of(&views),
+        &npy,
+    )?;
     Ok(Capture { depth_source, format: Format::Llff, views, near, far, background: [0.0; 3], warnings: Vec::new() })
 }
 

@@ -16,13 +16,14 @@ use serde_json::Value;
 
 use super::blender::{all_unique, frame_file_path, frames_of};
 use super::{
-    base_name, depth_range, json_f64, json_matrix4, lens_of, resolve_image, skipped_warning, without_extension,
+    base_name, cameras_of, folder_name, json_f64, json_matrix4, resolve_image, skipped_warning, without_extension,
     Capture, CapturedView, DepthSource, Format, ReadOptions,
 };
 use crate::camera::{w2c_from_opengl_c2w, Camera, Intrinsics};
+use crate::depth_range;
 use crate::error::{Error, Result};
 use crate::files::Files;
-use crate::image_sets::folder_name;
+use crate::undistort::lens_of;
 use crate::undistort::Distortion;
 
 const MODELS: [&str; 4] = ["OPENCV", "OPENCV_FISHEYE", "PINHOLE", "SIMPLE_PINHOLE"];
@@ -81,7 +82,15 @@ pub fn load(fs: &dyn Files, path: &Path, opts: ReadOptions) -> Result<Capture> {
         };
         let (aw, ah) = fs.image_size(&image)?;
         let photo = if (aw, ah) == (photo.width, photo.height) { photo } else { photo.resized(aw, ah) };
-        let (camera, lens) = lens_of(opts, photo, distortion, &format!("frames[{i}]"), &file, &mut warnings)?;
+        let (camera, lens) = lens_of(
+            photo,
+            distortion,
+            opts.ignore_distortion,
+            opts.undistort,
+            &format!("frames[{i}]"),
+            &file,
+            &mut warnings,
+        )?;
         let view = CapturedView { name: String::new(), image_path: image, camera, lens };
         entries.push((without_extension(file_path), view));
     }
@@ -97,7 +106,8 @@ pub fn load(fs: &dyn Files, path: &Path, opts: ReadOptions) -> Result<Capture> {
         .collect::<Vec<_>>();
     warnings.extend(skipped_warning(&file.display().to_string(), frames.len() - views.len(), frames.len()));
     let (near, far) = near_far(&data, &file)?;
-    let (near, far, depth_source) = depth_range(opts, (near, far, DepthSource::Dataset), &views, &file)?;
+    let (near, far, depth_source) =
+        depth_range::resolve((opts.near, opts.far), (near, far, DepthSource::Dataset), &cameras_of(&views), &file)?;
     Ok(Capture { format: Format::Nerfstudio, views, near, far, depth_source, background: [0.0; 3], warnings })
 }
 

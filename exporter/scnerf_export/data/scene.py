@@ -18,7 +18,14 @@ from PIL import Image
 
 from ..cameras import Camera, scaled_size
 
-IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
+# Extensions of the images the parsers use, in any case (IMG_0001.JPG, a.Png): the Rust readers'
+# rule too (capture/src/readers/names.rs), held together by tests/fixtures/rules/image_files.json.
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg")
+
+
+def is_image(path: Path) -> bool:
+    """Whether ``path`` names an image the parsers use, by its extension in any case."""
+    return path.suffix.lower() in IMAGE_EXTENSIONS
 
 
 @dataclass

@@ -1,12 +1,13 @@
 //! The executor: one thread that runs every graph, the handle requests reach it by, and what
 //! they share with it.
 
-use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
 
-use super::memory::{MemoryBudget, MemoryRefusals};
-use super::queue::{Finish, Inputs, Job, Queue, Running};
-use super::ticket::Outputs;
+use super::budget::{MemoryBudget, MemoryRefusals};
+use super::queue::{Finish, Inputs, Job, Running};
+use super::runner::Outputs;
+use super::shared::Shared;
 use super::{BackendError, GraphRunner, NamedTensors};
 use crate::bundle::GraphKind;
 use crate::sysmem::MemoryProbe;
@@ -28,27 +29,6 @@ impl ExecutorOptions {
     /// `capacity` requests at once, no memory bound, no probe.
     pub fn with_capacity(capacity: usize) -> ExecutorOptions {
         ExecutorOptions { capacity, memory: MemoryBudget::UNLIMITED, probe: None, max_queue_wait: None }
-    }
-}
-
-pub(super) struct Shared {
-    pub(super) queue: Mutex<Queue>,
-    pub(super) wake: Condvar,
-    pub(super) capacity: usize,
-    pub(super) memory: Mutex<MemoryBudget>,
-    pub(super) probe: Option<Arc<MemoryProbe>>,
-    pub(super) max_queue_wait: Option<Duration>,
-}
-
-impl Shared {
-    /// A poisoned lock only means a thread panicked while holding it; the queue stays consistent
-    /// (every update is a single push/pop), so keep serving.
-    pub(super) fn lock(&self) -> MutexGuard<'_, Queue> {
-        self.queue.lock().unwrap_or_else(|p| p.into_inner())
-    }
-
-    pub(super) fn memory(&self) -> MemoryBudget {
-        *self.memory.lock().unwrap_or_else(|p| p.into_inner())
     }
 }
 

@@ -29,7 +29,7 @@
 //! handler future and its `Ticket` were dropped) or past its deadline are dropped unrun.
 //!
 //! Admission by memory. Each request comes with an estimate of the most memory it adds to the
-//! process (`pipeline::memory`), and the executor admits requests while the estimates of the
+//! process (`pipeline::estimate`), and the executor admits requests while the estimates of the
 //! admitted ones add up to at most its memory budget (`MemoryBudget`): beyond it the request is
 //! refused at once (`MemoryBusy`, 503 + Retry-After: the seconds until enough admitted work has
 //! finished), and a request whose estimate alone exceeds the budget is refused for good
@@ -45,21 +45,25 @@
 //! executor drives), `ort.rs` (ONNX Runtime's), `error.rs` (`BackendError`).
 
 mod admission;
+mod budget;
+pub mod device;
 mod error;
 mod executor;
-mod memory;
+mod lease;
 pub mod ort;
 mod queue;
 mod rates;
 mod runner;
+mod shared;
 #[cfg(test)]
 mod testkit;
 mod ticket;
 
 pub use admission::Due;
+pub use budget::{MemoryBudget, MemoryRefusals};
 pub use error::BackendError;
 pub use executor::{BackendHandle, ExecutorOptions, QueueStats};
-pub use memory::{MemoryBudget, MemoryLease, MemoryRefusals};
+pub use lease::MemoryLease;
 pub use rates::Work;
-pub use runner::{GraphRunner, NamedTensors, Tensor};
-pub use ticket::{Outputs, Ticket};
+pub use runner::{GraphRunner, NamedTensors, Outputs, Tensor};
+pub use ticket::Ticket;

@@ -9,9 +9,9 @@ use ort::session::builder::{GraphOptimizationLevel, SessionBuilder};
 use ort::session::{RunOptions, Session};
 use ort::value::{TensorElementType, TensorRef, ValueType};
 
+use super::device::{Device, GraphOptLevel};
 use super::{BackendError, GraphRunner, NamedTensors};
 use crate::bundle::{check_signature, ActualTensor, Bundle, GraphKind};
-use crate::config::{Device, GraphOptLevel};
 
 pub const ORT_VERSION: &str = "1.31.1";
 const LIB_NAMES: [&str; 2] = ["libonnxruntime.so.1.31.1", "libonnxruntime.so"];

@@ -7,9 +7,9 @@ use std::time::Instant;
 use tokio::sync::oneshot;
 use tracing::Span;
 
-use super::memory::MemoryRefusals;
+use super::budget::MemoryRefusals;
 use super::rates::{Rates, Work};
-use super::ticket::Outputs;
+use super::runner::Outputs;
 use super::{BackendError, NamedTensors};
 use crate::bundle::GraphKind;
 
@@ -123,6 +123,51 @@ impl Queue {
             self.queued_jobs -= request.jobs.len();
             self.memory_in_use -= request.memory;
         }
+    }
+}
+
+/// Admission by memory.
+impl Queue {
+    /// Seconds of admitted work, in the order the executor runs it (earliest deadline first),
+    /// until requests holding `needed` bytes of estimates have finished.
+    fn secs_until_freed(&self, needed: u64) -> f64 {
+        let mut queue: Vec<(Instant, f64, u64)> =
+            self.requests.values().map(|r| (r.deadline, r.remaining.secs(&self.rates), r.memory)).collect();
+        queue.sort_by_key(|&(due, _, _)| due);
+        let (mut secs, mut freed) = (0.0, 0u64);
+        for (_, took, memory) in queue {
+            if freed >= needed {
+                break;
+            }
+            secs += took;
+            freed += memory;
+        }
+        secs
+    }
+
+    /// The refusal of `needed` bytes, more than the budget for requests ever has.
+    pub(super) fn too_large(&mut self, needed: u64, budget: u64) -> BackendError {
+        self.refusals.too_large += 1;
+        BackendError::TooLarge { needed_mib: needed.div_ceil(1 << 20), budget_mib: budget >> 20 }
+    }
+
+    /// Holds `more` bytes of the budget for requests (`budget`) for something that holds
+    /// `held` already: `TooLarge` when `held + more` exceeds it, `MemoryBusy` when what is held
+    /// now leaves too little.
+    pub(super) fn hold(&mut self, budget: u64, held: u64, more: u64) -> Result<(), BackendError> {
+        if held.saturating_add(more) > budget {
+            return Err(self.too_large(held.saturating_add(more), budget));
+        }
+        if self.memory_in_use + more > budget {
+            self.refusals.busy += 1;
+            return Err(BackendError::MemoryBusy {
+                in_use_mib: self.memory_in_use >> 20,
+                budget_mib: budget >> 20,
+                ahead_secs: self.secs_until_freed(self.memory_in_use + more - budget),
+            });
+        }
+        self.memory_in_use += more;
+        Ok(())
     }
 }
 

@@ -1,6 +1,6 @@
 //! What the executor runs: a graph, given named tensors, through a [`GraphRunner`].
 
-use ndarray::ArcArrayD;
+use ndarray::{ArcArray, ArcArrayD, Dimension};
 
 use super::BackendError;
 use crate::bundle::GraphKind;
@@ -23,5 +23,46 @@ pub trait GraphRunner: Send + 'static {
     /// the arena warm.
     fn run_and_release(&mut self, graph: GraphKind, inputs: &NamedTensors) -> Result<NamedTensors, BackendError> {
         self.run(graph, inputs)
+    }
+}
+
+/// The outputs of one graph run, looked up by name.
+#[derive(Debug)]
+pub struct Outputs {
+    graph: GraphKind,
+    tensors: NamedTensors,
+}
+
+impl Outputs {
+    pub fn new(graph: GraphKind, tensors: NamedTensors) -> Outputs {
+        Outputs { graph, tensors }
+    }
+
+    /// Removes the named output and checks its shape (`None` = any size on that axis), which
+    /// also fixes its rank `D`.
+    pub fn take<D: Dimension>(
+        &mut self,
+        name: &str,
+        shape: &[Option<usize>],
+    ) -> Result<ArcArray<f32, D>, BackendError> {
+        let graph = self.graph;
+        let idx = self
+            .tensors
+            .iter()
+            .position(|(n, _)| n == name)
+            .ok_or_else(|| BackendError::BadOutput { graph, message: format!("no output \"{name}\"") })?;
+        let (_, tensor) = self.tensors.swap_remove(idx);
+        let ok =
+            tensor.ndim() == shape.len() && tensor.shape().iter().zip(shape).all(|(a, b)| b.is_none_or(|b| *a == b));
+        if !ok {
+            return Err(BackendError::BadOutput {
+                graph,
+                message: format!("\"{name}\" has shape {:?}, expected {shape:?}", tensor.shape()),
+            });
+        }
+        // Cannot fail once the rank matched (`shape` has D's rank).
+        tensor
+            .into_dimensionality::<D>()
+            .map_err(|e| BackendError::BadOutput { graph, message: format!("\"{name}\": {e}") })
     }
 }

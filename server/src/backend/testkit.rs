@@ -3,8 +3,8 @@
 use std::sync::{mpsc, Arc, Mutex};
 use std::time::{Duration, Instant};
 
+use super::budget::MemoryBudget;
 use super::executor::{BackendHandle, ExecutorOptions};
-use super::memory::MemoryBudget;
 use super::rates::{Rate, Rates, Work};
 use super::{BackendError, GraphRunner, NamedTensors};
 use crate::bundle::GraphKind;

@@ -8,7 +8,7 @@
 //! Memory: the files are the body (held against the memory budget as it arrives, see
 //! `middleware::limit_in_flight`); the files other than images, which the readers parse, are
 //! capped (`--max-capture-metadata-bytes`), and what parsing them takes is held against the
-//! budget before it starts (`memory::capture_parse_bytes`); the views are then decoded as any
+//! budget before it starts (`estimate::capture_parse_bytes`); the views are then decoded as any
 //! scene's are, admitted by their estimate. Parsing stops when the request is gone.
 
 use std::borrow::Cow;
@@ -30,16 +30,16 @@ use serde::{Deserialize, Serialize};
 use super::body::multipart_error;
 use super::deadline::Deadline;
 use super::negotiate::{request_format, RequestFormat};
-use super::openapi::CaptureRefusals;
+use super::openapi::refusals::CaptureRefusals;
+use super::respond::rfc3339;
 use super::scenes::{owner_of, proxy_scene_id, scene_response, store_scene, SceneIdHeader};
 use super::state::AppState;
 use crate::backend::{BackendError, MemoryLease};
 use crate::blocking::{self, Cancel};
-use crate::cache::rfc3339;
-use crate::camera::CameraSpec;
 use crate::error::ApiError;
-use crate::pipeline::memory::capture_parse_bytes;
-use crate::pipeline::Timings;
+use crate::pipeline::estimate::capture_parse_bytes;
+use crate::pipeline::scene::Timings;
+use crate::request::cameras::CameraSpec;
 use crate::request::{Limits, SceneRequest, SourceSpec};
 
 /// What the readers take from the command line in the client, as query parameters.

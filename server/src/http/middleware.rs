@@ -1,8 +1,7 @@
 //! Cross-cutting layers: request ids, tracing spans, the log line of each response, panics,
 //! metrics and the in-flight limit.
 
-use std::net::{IpAddr, SocketAddr};
-use std::sync::Arc;
+use std::net::SocketAddr;
 use std::time::{Duration, Instant};
 
 use axum::body::HttpBody;
@@ -10,12 +9,10 @@ use axum::extract::{ConnectInfo, MatchedPath, Request, State};
 use axum::http::{header, HeaderValue, Method, StatusCode};
 use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
-use tokio::sync::{OwnedSemaphorePermit, Semaphore};
 use tower_http::classify::ServerErrorsFailureClass;
 use tracing::Level;
 
 use super::body::{body_limit, refuse_declared_length, BodyUse};
-use super::serve::{AddressGuard, PerAddress};
 use super::service::READINESS_PATH;
 use super::state::AppState;
 use crate::error::ApiError;
@@ -143,42 +140,6 @@ fn close_unless(read: bool, mut response: Response) -> Response {
         response.headers_mut().insert(header::CONNECTION, HeaderValue::from_static("close"));
     }
     response
-}
-
-/// Slots for requests being handled: `total` in all, `per_client` (0: any) per peer address.
-pub struct Slots {
-    total: Arc<Semaphore>,
-    clients: PerAddress,
-}
-
-/// A taken slot, given back when dropped.
-pub struct Slot {
-    _total: OwnedSemaphorePermit,
-    _client: Option<AddressGuard>,
-}
-
-impl Slots {
-    pub fn new(total: usize, per_client: usize) -> Slots {
-        Slots { total: Arc::new(Semaphore::new(total.max(1))), clients: PerAddress::new(per_client) }
-    }
-
-    /// `client`: the peer address (`None` in-process, where there is no peer to tell apart).
-    /// The client's own cap is checked first, so that the client holding many slots is the one
-    /// told (429), not the others (503).
-    pub fn acquire(&self, client: Option<IpAddr>) -> Result<Slot, ApiError> {
-        let client = match client {
-            Some(ip) => self.clients.enter(ip).ok_or_else(|| ApiError::TooManyRequests {
-                message: format!("this client already has {} requests in flight", self.clients.cap()),
-                retry_after_secs: 1,
-            })?,
-            None => None,
-        };
-        let total = self.total.clone().try_acquire_owned().map_err(|_| ApiError::Unavailable {
-            message: "server busy: too many requests in flight".into(),
-            retry_after_secs: 1,
-        })?;
-        Ok(Slot { _total: total, _client: client })
-    }
 }
 
 #[cfg(test)]

@@ -15,6 +15,7 @@ mod scenes;
 mod schema;
 pub mod serve;
 mod service;
+mod slots;
 mod state;
 pub mod viewer;
 

@@ -3,7 +3,7 @@
 //! several operations take are documented by the types that read them (`Deadline`,
 //! `scenes::SceneIdInPath`, `scenes::SceneIdHeader`), the error responses in `refusals`.
 
-mod refusals;
+pub mod refusals;
 
 use axum::Json;
 use scnerf_capture::camera::Intrinsics;
@@ -19,11 +19,6 @@ use super::service::LimitsBody;
 use crate::error::{ErrorBody, ErrorDetail};
 use crate::request::wire::{JsonRenderRequest, JsonSceneRequest, JsonSource, JsonTargetRequest};
 use crate::request::OutputKind;
-
-pub use refusals::{
-    CaptureRefusals, ReadinessRefusals, RenderRefusals, SceneDeleteRefusals, SceneRenderRefusals, SceneUploadRefusals,
-    TokenRefusals,
-};
 
 struct BearerAuth;
 

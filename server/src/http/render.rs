@@ -6,11 +6,11 @@ use axum::response::Response;
 use super::body::read_render_request;
 use super::deadline::Deadline;
 use super::negotiate::{request_format, response_format};
-use super::openapi::RenderRefusals;
+use super::openapi::refusals::RenderRefusals;
 use super::respond::{finish, Rendered};
 use super::state::AppState;
 use crate::error::ApiError;
-use crate::pipeline::Timings;
+use crate::pipeline::scene::Timings;
 
 /// Renders a target view from source views (one request: decode, encoder, volume, renderer).
 #[utoipa::path(

@@ -16,9 +16,11 @@ use super::negotiate::ResponseFormat;
 use super::state::AppState;
 use crate::error::ApiError;
 use crate::image_io;
-use crate::pipeline::guided::{Sampling, SamplingReport};
-use crate::pipeline::{assemble, Timings, View};
+use crate::pipeline::assemble;
+use crate::pipeline::scene::SamplingReport;
+use crate::pipeline::scene::{Timings, View};
 use crate::request::OutputSet;
+use crate::request::Sampling;
 
 /// Header naming the views a render used: `i,j,k`, indices into the scene's views, the volume's
 /// reference first.
@@ -210,5 +212,22 @@ fn proto_body(out: &Encoded, timings: &Timings, model_id: &str) -> scnerf_proto:
         sources: out.sources.clone(),
         sampling: out.sampling.mode.name().to_string(),
         samples_per_ray: out.sampling.samples_per_ray,
+    }
+}
+/// RFC 3339 UTC with milliseconds, e.g. `2026-01-01T12:00:00.000Z`.
+pub fn rfc3339(t: std::time::SystemTime) -> String {
+    humantime::format_rfc3339_millis(t).to_string()
+}
+
+#[cfg(test)]
+mod tests {
+    use std::time::{Duration, SystemTime};
+
+    use super::rfc3339;
+
+    #[test]
+    fn formats_rfc3339() {
+        let t = SystemTime::UNIX_EPOCH + Duration::from_millis(1_767_225_600_123);
+        assert_eq!(rfc3339(t), "2026-01-01T00:00:00.123Z");
     }
 }

@@ -16,13 +16,14 @@ use utoipa::openapi::Required;
 use super::body::{read_scene_request, read_target_request};
 use super::deadline::Deadline;
 use super::negotiate::{request_format, response_format};
-use super::openapi::{SceneDeleteRefusals, SceneRenderRefusals, SceneUploadRefusals};
+use super::openapi::refusals::{SceneDeleteRefusals, SceneRenderRefusals, SceneUploadRefusals};
+use super::respond::rfc3339;
 use super::respond::{finish, set_common_headers, Rendered};
 use super::state::AppState;
-use crate::cache::{is_valid_id, rfc3339, NewScene, Owner, Stored, ID_PATTERN};
+use crate::cache::{is_valid_id, NewScene, Owner, Stored, ID_PATTERN};
 use crate::error::ApiError;
+use crate::pipeline::scene::Timings;
 use crate::pipeline::views::choose;
-use crate::pipeline::Timings;
 use crate::request::ValidScene;
 
 /// Header with which a routing proxy names a scene that `POST /v1/scenes` or `POST /v1/captures`

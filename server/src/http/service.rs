@@ -8,7 +8,7 @@ use axum::Json;
 use serde::Serialize;
 use serde_json::json;
 
-use super::openapi::{ReadinessRefusals, TokenRefusals};
+use super::openapi::refusals::{ReadinessRefusals, TokenRefusals};
 use super::state::AppState;
 use crate::error::ApiError;
 use crate::request::Limits;

@@ -5,7 +5,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use super::body::UploadPolicy;
-use super::middleware::Slots;
+use super::slots::Slots;
 use crate::auth::Auth;
 use crate::cache::{CacheConfig, SceneCache};
 use crate::error::ApiError;

@@ -11,7 +11,7 @@ use futures_util::{stream, StreamExt, TryStreamExt};
 use ndarray::{arr1, s, ArcArray1, ArcArray2, Array1, Array2, Ix1, Ix2};
 
 use super::rays::Rays;
-use super::Scene;
+use super::scene::Scene;
 use crate::backend::{BackendError, NamedTensors, Outputs, Tensor, Ticket};
 use crate::bundle::{GraphKind, TensorSpec};
 

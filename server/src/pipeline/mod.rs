@@ -9,13 +9,15 @@
 //! `render_view` (target only) are separate so that a scene cache can keep a `Scene` and render
 //! further views with the renderer alone.
 
+mod admit;
 pub mod assemble;
 pub mod chunks;
 pub mod encoder;
+pub mod estimate;
 pub mod first_conv;
 pub mod guided;
-pub mod memory;
 pub mod rays;
+pub mod scene;
 pub mod sources;
 pub mod sweep;
 #[cfg(test)]
@@ -25,88 +27,21 @@ pub mod volume;
 pub mod volume_tail;
 
 use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
-use ndarray::{ArcArray3, ArcArray4, ArcArray5, Array1, Array2, Array3, Array4};
+use admit::refusal;
+use ndarray::{ArcArray4, Array1, Array4};
 use views::Views;
 
-use crate::backend::{BackendError, BackendHandle, Due, Ticket, Work};
+use crate::backend::{BackendError, BackendHandle, Due, Ticket};
 use crate::bundle::{Bundle, DepthNorm, GraphKind, Manifest, ModelConfig};
-use crate::camera::{stack_rows, Camera};
+use crate::camera::{stack_rows, CanonicalCamera};
 use crate::error::ApiError;
-use crate::request::{Limits, ValidRequest, ValidScene};
+use crate::request::{Limits, Sampling, ValidRequest, ValidScene};
 use crate::sysmem::MemoryProbe;
 use chunks::{ChunkPolicy, RawView};
-use guided::{Guidance, Sampling, SamplingReport};
+use scene::{SamplingReport, Scene, Timings, View};
 use volume::{SlabPolicy, VolumeBuilder};
-
-/// Wall time per stage, in the order the stages ran.
-#[derive(Debug, Clone, Default)]
-pub struct Timings(pub Vec<(&'static str, Duration)>);
-
-impl Timings {
-    pub fn add(&mut self, stage: &'static str, d: Duration) {
-        self.0.push((stage, d));
-    }
-
-    /// Times one async stage.
-    pub async fn time<T, F: std::future::Future<Output = T>>(&mut self, stage: &'static str, f: F) -> T {
-        let start = Instant::now();
-        let out = f.await;
-        self.add(stage, start.elapsed());
-        out
-    }
-
-    pub fn millis(&self) -> Vec<(&'static str, f64)> {
-        self.0.iter().map(|(s, d)| (*s, d.as_secs_f64() * 1e3)).collect()
-    }
-}
-
-/// Everything the renderer needs about the sources it renders from (the model's view count:
-/// three); reusable for any number of target views. The arrays are shared: every renderer run
-/// of every view reads them without a copy.
-#[derive(Debug, Clone)]
-pub struct Scene {
-    /// (V, 3, H, W) padded source images in [0, 1].
-    pub images: ArcArray4<f32>,
-    /// (V, C, H/4, W/4) encoder output.
-    pub features: ArcArray4<f32>,
-    /// (1, Cv, D, H/4 + 2·pad, W/4 + 2·pad) encoding volume.
-    pub volume: ArcArray5<f32>,
-    /// (V, 3, 3) full-resolution K per view.
-    pub intrinsics: ArcArray3<f32>,
-    /// (V, 4, 4) OpenCV world-to-camera per view.
-    pub extrinsics: ArcArray3<f32>,
-    pub near: f64,
-    pub far: f64,
-}
-
-impl Scene {
-    /// Approximate memory held by the scene (for cache accounting).
-    pub fn bytes(&self) -> usize {
-        4 * (self.images.len() + self.features.len() + self.volume.len())
-    }
-}
-
-/// A rendered view: composited RGB (H, W, 3) in [0, 1], depth and opacity (H, W), and how its
-/// rays were sampled.
-#[derive(Debug, Clone)]
-pub struct View {
-    pub rgb: Array3<f32>,
-    pub depth: Array2<f32>,
-    pub opacity: Array2<f32>,
-    pub sampling: SamplingReport,
-}
-
-impl View {
-    pub fn width(&self) -> u32 {
-        self.depth.ncols() as u32
-    }
-
-    pub fn height(&self) -> u32 {
-        self.depth.nrows() as u32
-    }
-}
 
 /// The pipeline's shared, read-only context: the executor, the bundle, the chunking policy and
 /// the request limits.
@@ -269,7 +204,7 @@ impl Pipeline {
         views: &Views,
         sources: &[usize],
         cached: Option<Arc<Scene>>,
-        target: &Camera,
+        target: &CanonicalCamera,
         sampling: Option<Sampling>,
         background: [f32; 3],
         due: Due,
@@ -291,115 +226,6 @@ impl Pipeline {
         };
         let view = self.render_view(&ticket, &scene, target, background, sampling, None, timings).await?;
         Ok((view, built))
-    }
-
-    /// Admits a request with `work` and at most `memory` bytes to the inference executor until
-    /// `due` (503 when it is full, short of memory, or the request could not finish in time;
-    /// 422 when it needs more memory than the executor ever has).
-    pub fn admit(&self, due: impl Into<Due>, work: Work, memory: u64) -> Result<Ticket, ApiError> {
-        Ok(self.backend.admit(due, work, memory)?)
-    }
-
-    /// Admits a request that builds the volume of `sources` (`None`: a cached scene), decoding
-    /// them first when `decodes`, and renders `target` (`None`: a scene only), before anything
-    /// is decoded. Too large for the memory budget: 422 naming the sizes.
-    fn admit_request(
-        &self,
-        due: Due,
-        sources: Option<&[Camera]>,
-        decodes: bool,
-        target: Option<(&Camera, Sampling)>,
-    ) -> Result<Ticket, ApiError> {
-        let work = self.request_work(sources, target);
-        let memory = self.memory_estimate(sources, decodes, sources.is_some(), target);
-        self.backend.admit(due, work, memory).map_err(|e| refusal(e, sources, target.map(|(t, _)| t)))
-    }
-
-    /// The work of a request that builds the scene of `sources` (`None`: a cached scene) and
-    /// renders `target` (`None`: a scene only).
-    fn request_work(&self, sources: Option<&[Camera]>, target: Option<(&Camera, Sampling)>) -> Work {
-        let scene = sources.map_or_else(Work::default, |s| self.scene_work(s));
-        target.map_or(scene, |(t, sampling)| scene.plus(self.view_work(t, sampling)))
-    }
-
-    /// Whether a scene of `views` views gets its volume on upload: only the model's view count
-    /// makes one triple; a larger scene builds the triple each render picks.
-    fn builds_on_upload(&self, views: usize) -> bool {
-        views == self.bundle.config.views
-    }
-
-    /// The most memory a request over `sources` adds to the process (see [`memory::estimate`]):
-    /// it decodes them when `decodes`, builds a volume from the model's view count of them when
-    /// `builds`, renders `target` with its sampling.
-    fn memory_estimate(
-        &self,
-        sources: Option<&[Camera]>,
-        decodes: bool,
-        builds: bool,
-        target: Option<(&Camera, Sampling)>,
-    ) -> u64 {
-        let sizes = memory::RequestSizes {
-            sources: sources.and_then(|s| self.padded_source_size(s)),
-            decoded_views: sources.filter(|_| decodes).map_or(0, <[Camera]>::len),
-            builds_volume: builds,
-            target_pixels: target.map_or(0, |(t, _)| u64::from(t.width) * u64::from(t.height)),
-            sampling_bytes: target.map_or(0, |(t, sampling)| self.sampling_bytes(t, sampling)),
-        };
-        let plan =
-            memory::MemoryPlan { build: self.volume.build(), slabs: *self.volume.policy(), chunking: self.chunking };
-        memory::estimate(&self.bundle.config, &plan, &sizes)
-    }
-
-    /// What the scene of `req` will hold in the scene cache (see [`memory::scene_bytes`]).
-    pub fn scene_bytes(&self, req: &ValidScene) -> u64 {
-        let cameras = req.cameras();
-        let builds = self.builds_on_upload(cameras.len());
-        self.padded_source_size(&cameras)
-            .map_or(0, |size| memory::scene_bytes(&self.bundle.config, size, cameras.len(), builds))
-    }
-
-    /// The work of building a scene from `sources` (the encoder and the volume net over the
-    /// padded images).
-    pub fn scene_work(&self, sources: &[Camera]) -> Work {
-        let config = &self.bundle.config;
-        let Some((w, h)) = self.padded_source_size(sources) else { return Work::default() };
-        let pixels = (sources.len() * w * h) as f64;
-        let cells = volume::plane_cells(config, w, h);
-        let volume = self.volume.work(config, pixels, cells);
-        Work::of(GraphKind::Encoder, pixels).plus(volume)
-    }
-
-    /// The padded size of the sources (all of the first's size: validation checked it).
-    fn padded_source_size(&self, sources: &[Camera]) -> Option<(usize, usize)> {
-        let c = sources.first()?;
-        Some(sources::padded_size(c.width as usize, c.height as usize, self.bundle.config.image_multiple))
-    }
-
-    /// The work of rendering `target`: its rays, once per renderer pass; by guided sampling its
-    /// guide rays and at most its fine rays' samples.
-    pub fn view_work(&self, target: &Camera, sampling: Sampling) -> Work {
-        let (width, height) = (target.width as usize, target.height as usize);
-        match (sampling, self.bundle.guided()) {
-            (Sampling::Guided, Some(policy)) => {
-                let (guide_rays, fine_samples) = policy.most_work(width, height);
-                Work::of(GraphKind::RendererGuide, guide_rays as f64)
-                    .plus(Work::of(GraphKind::RendererFine, fine_samples as f64))
-            }
-            _ => Work::of(GraphKind::Renderer, DepthRange::of(&self.bundle).passes() * (width * height) as f64),
-        }
-    }
-
-    /// What guided sampling holds for a view beside the full renderer's: the weights later levels
-    /// read and the guide rays' rectifier heads.
-    fn sampling_bytes(&self, target: &Camera, sampling: Sampling) -> u64 {
-        let (Sampling::Guided, Some(policy)) = (sampling, self.bundle.guided()) else { return 0 };
-        let c = &self.bundle.config;
-        let (width, height) = (target.width as usize, target.height as usize);
-        let guide_rays = policy.guide_rays(width, height);
-        let rectifiers =
-            self.bundle.graph(GraphKind::RendererGuide).outputs.iter().filter(|t| t.name.ends_with("_heads")).count();
-        let heads = (guide_rays * rectifiers * c.heads * c.head_dim * c.width * 4) as u64;
-        Guidance::bytes(width, height, c.samples) + heads
     }
 
     /// Decodes the source images off the async runtime and stacks them padded.
@@ -428,7 +254,7 @@ impl Pipeline {
     pub async fn build_scene(
         &self,
         ticket: &Ticket,
-        cameras: &[Camera],
+        cameras: &[CanonicalCamera],
         images: ArcArray4<f32>,
         near: f64,
         far: f64,
@@ -458,7 +284,7 @@ impl Pipeline {
         &self,
         ticket: &Ticket,
         scene: &Scene,
-        target: &Camera,
+        target: &CanonicalCamera,
         background: [f32; 3],
         sampling: Sampling,
         chunk: Option<usize>,
@@ -484,7 +310,7 @@ impl Pipeline {
         &self,
         ticket: &Ticket,
         scene: &Scene,
-        target: &Camera,
+        target: &CanonicalCamera,
         chunk: Option<usize>,
     ) -> Result<(RawView, SamplingReport), BackendError> {
         let rays = rays::generate(target);
@@ -502,31 +328,6 @@ impl Pipeline {
     }
 }
 
-/// An admission's refusal; the 422 of a request whose memory estimate exceeds the whole budget
-/// names the sizes.
-fn refusal(e: BackendError, sources: Option<&[Camera]>, target: Option<&Camera>) -> ApiError {
-    match e {
-        BackendError::TooLarge { .. } => too_large(sources, target, &e),
-        other => other.into(),
-    }
-}
-
-/// The 422 of a request whose memory estimate exceeds the whole budget: it names the sizes.
-fn too_large(sources: Option<&[Camera]>, target: Option<&Camera>, e: &BackendError) -> ApiError {
-    let size = |c: &Camera| format!("{}x{}", c.width, c.height);
-    match (sources.and_then(|s| Some((s.len(), s.first()?))), target) {
-        (Some((n, first)), Some(t)) => ApiError::invalid(
-            "sources",
-            format!("{n} source views of {} with a {} target need {e}", size(first), size(t)),
-        ),
-        (Some((n, first)), None) => {
-            ApiError::invalid("sources", format!("{n} source views of {} need {e}", size(first)))
-        }
-        (None, Some(t)) => ApiError::invalid("target.width", format!("a {} target needs {e}", size(t))),
-        (None, None) => e.clone().into(),
-    }
-}
-
 fn min_max(values: &Array1<f32>) -> Option<[f32; 2]> {
     let mut it = values.iter().copied().filter(|v| v.is_finite());
     let first = it.next()?;
@@ -534,7 +335,7 @@ fn min_max(values: &Array1<f32>) -> Option<[f32; 2]> {
 }
 
 /// The rays' outputs as images: rays are ordered row by row.
-fn assemble_view(target: &Camera, raw: RawView, background: [f32; 3], sampling: SamplingReport) -> View {
+fn assemble_view(target: &CanonicalCamera, raw: RawView, background: [f32; 3], sampling: SamplingReport) -> View {
     let (h, w) = (target.height as usize, target.width as usize);
     let image = |a: Array1<f32>| a.into_shape_with_order((h, w)).expect("one ray per pixel");
     let rgb = assemble::composite(&raw, background).into_shape_with_order((h, w, 3)).expect("one ray per pixel");

@@ -5,7 +5,7 @@
 
 use ndarray::{ArcArray2, Array1, Array3, Axis};
 
-use crate::camera::Camera;
+use crate::camera::CanonicalCamera;
 
 #[derive(Debug, Clone, PartialEq)]
 pub struct Rays {
@@ -34,7 +34,7 @@ impl Rays {
 }
 
 /// Computed in f64 and rounded once to f32.
-pub fn generate(camera: &Camera) -> Rays {
+pub fn generate(camera: &CanonicalCamera) -> Rays {
     let c2w = camera.c2w();
     let (w, h) = (camera.width as usize, camera.height as usize);
     let x = Array1::from_shape_fn(w, |u| (u as f64 - camera.cx()) / camera.fx());
@@ -54,8 +54,8 @@ mod tests {
 
     #[test]
     fn principal_point_ray_is_the_optical_axis() {
-        // Camera at world (0, 0, -2) looking down +z (identity rotation, OpenCV).
-        let cam = Camera {
+        // CanonicalCamera at world (0, 0, -2) looking down +z (identity rotation, OpenCV).
+        let cam = CanonicalCamera {
             width: 5,
             height: 3,
             k: from_rows(&[[10.0, 0.0, 2.0], [0.0, 20.0, 1.0], [0.0, 0.0, 1.0]]),

@@ -16,7 +16,7 @@ pub fn padded_size(width: usize, height: usize, multiple: usize) -> (usize, usiz
 
 /// Decodes the sources' images (PNG/JPEG, transparency composited on `background`) into one
 /// stack padded to `multiple`, one image at a time: what a request holds is the stack and the
-/// image being decoded (`memory::decode_bytes`). Stops between images when the request is gone.
+/// image being decoded (`estimate::decode_bytes`). Stops between images when the request is gone.
 pub async fn decode(
     sources: &[ValidSource],
     background: [f32; 3],

@@ -11,11 +11,11 @@ use std::time::{Duration, Instant};
 
 use axum::http::StatusCode;
 use bytes::Bytes;
-use ndarray::{arr1, s};
+use ndarray::{arr1, s, Array2};
 
 use super::*;
-use crate::backend::{ExecutorOptions, MemoryBudget};
-use crate::pipeline::guided::GuidedPolicy;
+use crate::backend::{ExecutorOptions, MemoryBudget, Work};
+use crate::bundle::GuidedPolicy;
 use crate::request::{OutputSet, ValidSource, ValidTarget};
 use crate::testing::{self, FakeRunner};
 
@@ -51,8 +51,8 @@ fn units(work: Work, graph: GraphKind) -> f64 {
 }
 
 /// `testing::camera` (looking along +z) at another size.
-fn camera(width: u32, height: u32) -> Camera {
-    Camera { width, height, ..testing::camera() }
+fn camera(width: u32, height: u32) -> CanonicalCamera {
+    CanonicalCamera { width, height, ..testing::camera() }
 }
 
 fn deadline() -> Due {
@@ -81,7 +81,7 @@ fn valid_scene(n: usize) -> ValidScene {
     ValidScene { sources: (0..n).map(source).collect(), near: NEAR, far: FAR, background: [1.0; 3] }
 }
 
-fn valid_request(target: Camera) -> ValidRequest {
+fn valid_request(target: CanonicalCamera) -> ValidRequest {
     let view = ValidTarget { target, outputs: OutputSet::RGB, sources: None, sampling: None };
     ValidRequest { scene: valid_scene(3), view }
 }

@@ -15,7 +15,7 @@
 use ndarray::{ArcArray4, Axis};
 use scnerf_capture::camera::{rank_sources, Viewpoint};
 
-use crate::camera::Camera;
+use crate::camera::CanonicalCamera;
 use crate::error::ApiError;
 
 /// Every view of a scene: images decoded and padded, cameras canonical.
@@ -23,7 +23,7 @@ use crate::error::ApiError;
 pub struct Views {
     /// (N, 3, H, W) padded source images in [0, 1].
     pub images: ArcArray4<f32>,
-    pub cameras: Vec<Camera>,
+    pub cameras: Vec<CanonicalCamera>,
     pub near: f64,
     pub far: f64,
 }
@@ -42,7 +42,7 @@ impl Views {
         4 * self.images.len()
     }
 
-    pub fn cameras_of(&self, sources: &[usize]) -> Vec<Camera> {
+    pub fn cameras_of(&self, sources: &[usize]) -> Vec<CanonicalCamera> {
         sources.iter().map(|&i| self.cameras[i].clone()).collect()
     }
 
@@ -61,8 +61,8 @@ impl Views {
 /// naming the field: `sources` / `sources[i]` for a bad pin, `target.pose.matrix` when too few
 /// views face the target's way.
 pub fn choose(
-    cameras: &[Camera],
-    target: &Camera,
+    cameras: &[CanonicalCamera],
+    target: &CanonicalCamera,
     pinned: Option<&[u32]>,
     per_volume: usize,
 ) -> Result<Vec<usize>, ApiError> {
@@ -72,7 +72,7 @@ pub fn choose(
     if cameras.len() == per_volume {
         return Ok((0..per_volume).collect());
     }
-    let candidates: Vec<Viewpoint> = cameras.iter().map(Camera::viewpoint).collect();
+    let candidates: Vec<Viewpoint> = cameras.iter().map(CanonicalCamera::viewpoint).collect();
     let ranked = rank_sources(&target.viewpoint(), &candidates);
     if ranked.len() < per_volume {
         return Err(ApiError::invalid(
@@ -116,17 +116,17 @@ mod tests {
     use nalgebra::{Matrix3, Matrix4, Point3, Vector3, Vector4};
 
     /// A camera at `eye` looking at `at` (OpenCV axes, world up +z).
-    fn looking(eye: [f64; 3], at: [f64; 3]) -> Camera {
+    fn looking(eye: [f64; 3], at: [f64; 3]) -> CanonicalCamera {
         let iso = nalgebra::Isometry3::look_at_rh(&Point3::from(eye), &Point3::from(at), &Vector3::z());
         // look_at_rh looks down its -z, with y up: flip y and z for OpenCV's axes.
         let flip = Matrix4::from_diagonal(&Vector4::new(1.0, -1.0, -1.0, 1.0));
         let k = Matrix3::new(8.0, 0.0, 4.0, 0.0, 8.0, 3.0, 0.0, 0.0, 1.0);
-        Camera { width: 8, height: 6, k, w2c: flip * iso.to_homogeneous() }
+        CanonicalCamera { width: 8, height: 6, k, w2c: flip * iso.to_homogeneous() }
     }
 
     /// `n` views on a circle of radius 4 around the origin (view 0 on +x), looking at it. (The
     /// rule's own cases, ties and exactly 90 degrees, are tested exactly in scnerf-capture.)
-    fn ring(n: u32) -> Vec<Camera> {
+    fn ring(n: u32) -> Vec<CanonicalCamera> {
         (0..n)
             .map(|k| {
                 let a = std::f64::consts::TAU * f64::from(k) / f64::from(n);

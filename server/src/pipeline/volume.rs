@@ -29,7 +29,7 @@ use super::sweep::PlaneSweep;
 use super::volume_tail;
 use crate::backend::{BackendError, NamedTensors, Outputs, Ticket, Work};
 use crate::bundle::{GraphKind, ModelConfig, VolumeBuild, VolumeTail};
-use crate::camera::{stack_rows, Camera};
+use crate::camera::{stack_rows, CanonicalCamera};
 
 /// Working memory of one cost slab run per cell of its planes (halo included), bytes: 660-730
 /// with ONNX Runtime 1.31 on the CPU at paper size (41 cost channels, three views), measured as
@@ -76,12 +76,12 @@ pub fn plane_cells(config: &ModelConfig, width: usize, height: usize) -> usize {
 }
 
 /// `diag(1/4, 1/4, 1, 1) · [[K, 0], [0, 1]] · w2c` per view: projection onto the feature grid.
-pub fn feature_projection(camera: &Camera) -> Matrix4<f64> {
+pub fn feature_projection(camera: &CanonicalCamera) -> Matrix4<f64> {
     Matrix4::from_diagonal(&Vector4::new(0.25, 0.25, 1.0, 1.0)) * camera.k.to_homogeneous() * camera.w2c
 }
 
 /// (V, 4, 4) feature-grid projections.
-pub fn projections(cameras: &[Camera]) -> Array3<f32> {
+pub fn projections(cameras: &[CanonicalCamera]) -> Array3<f32> {
     stack_rows(&cameras.iter().map(feature_projection).collect::<Vec<_>>())
 }
 
@@ -119,7 +119,7 @@ impl VolumeInputs {
         config: &ModelConfig,
         features: &ArcArray4<f32>,
         images: &ArcArray4<f32>,
-        cameras: &[Camera],
+        cameras: &[CanonicalCamera],
         near: f64,
         far: f64,
     ) -> VolumeInputs {
@@ -365,7 +365,7 @@ mod tests {
 
     #[test]
     fn projection_scales_intrinsics() {
-        let cam = Camera {
+        let cam = CanonicalCamera {
             width: 8,
             height: 8,
             k: from_rows(&[[100.0, 0.0, 40.0], [0.0, 80.0, 20.0], [0.0, 0.0, 1.0]]),

@@ -2,10 +2,41 @@
 //! `TargetRequest`) and then validated (`ValidRequest`, `ValidScene`, `ValidTarget`).
 
 use bytes::Bytes;
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 
-use crate::camera::{Camera, CameraSpec};
-use crate::pipeline::guided::Sampling;
+use super::cameras::CameraSpec;
+use crate::camera::CanonicalCamera;
+
+/// How a view's rays are sampled.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, utoipa::ToSchema, clap::ValueEnum)]
+#[serde(rename_all = "snake_case")]
+pub enum Sampling {
+    /// The paper's S uniform samples on every ray.
+    Full,
+    /// Coarse to fine: the network near the surface only (`pipeline::guided`).
+    Guided,
+}
+
+impl Sampling {
+    pub const ALL: [Sampling; 2] = [Sampling::Full, Sampling::Guided];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Sampling::Full => "full",
+            Sampling::Guided => "guided",
+        }
+    }
+
+    pub fn parse(s: &str) -> Option<Sampling> {
+        Sampling::ALL.into_iter().find(|m| m.name() == s)
+    }
+}
+
+impl std::fmt::Display for Sampling {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, utoipa::ToSchema)]
 #[serde(rename_all = "snake_case")]
@@ -96,7 +127,7 @@ impl HasSources for RenderRequest {
 /// A validated source view: its canonical camera and its image (present, not yet decoded).
 #[derive(Debug, Clone)]
 pub struct ValidSource {
-    pub camera: Camera,
+    pub camera: CanonicalCamera,
     pub image: Bytes,
     /// How the client named the image: errors found when decoding it name this field.
     pub image_field: String,
@@ -112,7 +143,7 @@ pub struct ValidScene {
 }
 
 impl ValidScene {
-    pub fn cameras(&self) -> Vec<Camera> {
+    pub fn cameras(&self) -> Vec<CanonicalCamera> {
         self.sources.iter().map(|s| s.camera.clone()).collect()
     }
 }
@@ -120,7 +151,7 @@ impl ValidScene {
 /// A validated target view.
 #[derive(Debug, Clone)]
 pub struct ValidTarget {
-    pub target: Camera,
+    pub target: CanonicalCamera,
     pub outputs: OutputSet,
     /// Pinned views, not yet checked against a scene (see `pipeline::views::choose`).
     pub sources: Option<Vec<u32>>,

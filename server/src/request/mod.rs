@@ -6,13 +6,14 @@
 //! Parsing is strict: unknown fields are errors (nothing the client sent is silently dropped) and
 //! every error names the field as a path, e.g. `sources[1].camera.pose.kind`.
 
+pub mod cameras;
 mod domain;
 mod proto;
 mod validate;
 pub mod wire;
 
 pub use domain::{
-    HasSources, OutputKind, OutputSet, RenderRequest, SceneRequest, SourceSpec, TargetRequest, ValidRequest,
+    HasSources, OutputKind, OutputSet, RenderRequest, Sampling, SceneRequest, SourceSpec, TargetRequest, ValidRequest,
     ValidScene, ValidSource, ValidTarget,
 };
 pub use wire::{check_json_size, ImageMode};

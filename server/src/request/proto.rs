@@ -8,7 +8,7 @@ use scnerf_proto::v1 as pb;
 use super::{Limits, OutputKind, RenderRequest, SceneRequest, SourceSpec, TargetRequest};
 use nalgebra::SMatrix;
 
-use crate::camera::{Axes, CameraSpec, Pose, PoseKind};
+use super::cameras::{Axes, CameraSpec, PoseKind, PoseSpec};
 use crate::error::ApiError;
 
 impl RenderRequest {
@@ -175,7 +175,7 @@ fn camera_from_proto(c: Option<pb::Camera>, field: &str) -> Result<CameraSpec, A
         width: c.width,
         height: c.height,
         k,
-        pose: Pose { matrix: matrix(&pose.matrix, &format!("{field}.pose.matrix"))?, kind, axes },
+        pose: PoseSpec { matrix: matrix(&pose.matrix, &format!("{field}.pose.matrix"))?, kind, axes },
     })
 }
 

@@ -2,14 +2,15 @@
 //! whole-request checks come first, then the cameras (converted to the canonical form), then
 //! the images' presence; every refusal names the field.
 
+use super::cameras::{MAX_WORLD_EXTENT, MIN_NEAR};
 use super::{
     Limits, OutputKind, OutputSet, RenderRequest, SceneRequest, SourceSpec, TargetRequest, ValidRequest, ValidScene,
     ValidSource, ValidTarget,
 };
 use crate::bundle::ModelConfig;
-use crate::camera::{Camera, MAX_WORLD_EXTENT, MIN_NEAR};
+use crate::camera::CanonicalCamera;
 use crate::error::ApiError;
-use crate::pipeline::guided::Sampling;
+use crate::request::Sampling;
 
 impl RenderRequest {
     /// Checks the request against the bundle and the limits and converts the cameras.
@@ -64,7 +65,7 @@ impl SceneRequest {
 fn validate_source(
     i: usize,
     source: SourceSpec,
-    first: Option<&Camera>,
+    first: Option<&CanonicalCamera>,
     limits: &Limits,
 ) -> Result<ValidSource, ApiError> {
     let field = format!("sources[{i}].camera");

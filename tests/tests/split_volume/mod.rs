@@ -7,9 +7,10 @@
 
 use std::path::{Path, PathBuf};
 
-use scnerf_server::pipeline::guided::Sampling;
+use scnerf_server::pipeline::scene::Timings;
 use scnerf_server::pipeline::sources::padded_size;
-use scnerf_server::pipeline::{Pipeline, Timings};
+use scnerf_server::pipeline::Pipeline;
+use scnerf_server::request::Sampling;
 use scnerf_server::request::{ImageMode, Limits, RenderRequest, ValidRequest};
 use scnerf_server::testing::ort_pipeline;
 

@@ -9,11 +9,11 @@ from PIL import Image
 
 from ...cameras import Camera, invert_rigid, scaled_size
 from ..scene import (
-    IMAGE_EXTENSIONS,
     SceneData,
     View,
     check_near_far,
     check_scale,
+    is_image,
     read_image,
     resize_float,
     resolve_background,
@@ -24,7 +24,7 @@ LLFF_HOLDOUT = 8
 
 
 def _list_images(d: Path) -> list[Path]:
-    return sorted(p for p in d.iterdir() if p.is_file() and p.suffix in IMAGE_EXTENSIONS and not p.name.startswith("."))
+    return sorted(p for p in d.iterdir() if p.is_file() and is_image(p) and not p.name.startswith("."))
 
 
 class LlffParser(DataParser):

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from ...cameras import opengl_c2w_to_opencv_w2c
-from ..scene import IMAGE_EXTENSIONS
+from ..scene import IMAGE_EXTENSIONS, is_image
 
 
 def read_json(path: Path) -> dict:
@@ -31,8 +31,8 @@ def _resolve_image(base: Path, file_path: str) -> Path | None:
     p = (base / file_path) if not os.path.isabs(file_path) else Path(file_path)
     if p.exists():
         return p
-    if not p.suffix or p.suffix not in IMAGE_EXTENSIONS:
-        for ext in IMAGE_EXTENSIONS:
+    if not is_image(p):
+        for ext in IMAGE_EXTENSIONS + tuple(e.upper() for e in IMAGE_EXTENSIONS):
             q = p.with_name(p.name + ext)
             if q.exists():
                 return q

@@ -11,7 +11,7 @@
 //! protobuf whole, within the route's limit (`read`), and parsed off the async workers; multipart
 //! part by part (`multipart`: the request's JSON, then its images).
 
-mod memory;
+mod held;
 mod multipart;
 mod rate;
 mod read;
@@ -23,7 +23,7 @@ use crate::error::ApiError;
 use crate::request::{HasSources, ImageMode, Limits, RenderRequest, SceneRequest, TargetRequest};
 use multipart::read_multipart;
 
-pub use memory::BodyUse;
+pub use held::BodyUse;
 pub(super) use multipart::multipart_error;
 pub use rate::UploadPolicy;
 pub use read::{body_limit, read_bytes, refuse_declared_length, CAPTURES_PATH};

@@ -4,7 +4,7 @@ use axum::body::{Body, HttpBody};
 use bytes::Bytes;
 use futures_util::StreamExt;
 
-use super::memory::BodyRefused;
+use super::held::BodyRefused;
 use super::rate::TooSlow;
 use crate::backend::BackendError;
 use crate::error::ApiError;

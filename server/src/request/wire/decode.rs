@@ -5,8 +5,8 @@ use bytes::Bytes;
 
 use super::guards::parse_json;
 use super::{JsonRenderRequest, JsonSceneRequest, JsonSource, JsonTargetRequest};
-use crate::camera::CameraSpec;
 use crate::error::ApiError;
+use crate::request::cameras::CameraSpec;
 use crate::request::{Limits, RenderRequest, SceneRequest, SourceSpec, TargetRequest};
 
 /// Where source images come from in a JSON document.

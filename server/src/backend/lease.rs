@@ -1,85 +1,12 @@
-//! Admission by memory: the budget the admitted requests' estimates and the leases add up to
-//! within, and what a refusal says.
+//! Memory held against the budget outside any admitted request, and the part of the budget set
+//! aside for the process at rest.
 
 use std::sync::Arc;
-use std::time::Instant;
 
-use super::executor::{BackendHandle, Shared};
-use super::queue::Queue;
+use super::budget::MemoryBudget;
+use super::executor::BackendHandle;
+use super::shared::Shared;
 use super::BackendError;
-
-/// Requests refused for memory since the start (for /metrics).
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
-pub struct MemoryRefusals {
-    /// Would have exceeded the budget with the requests in progress (503).
-    pub busy: u64,
-    /// Larger than the whole budget (422).
-    pub too_large: u64,
-}
-
-/// The executor's memory budget: the bytes that the admitted requests' estimates may add up to.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct MemoryBudget {
-    /// What the process may use in all (`--memory-budget-mb`).
-    pub total: u64,
-    /// Held apart from requests: the process at rest and the scene cache. Set once the server
-    /// has warmed up (`BackendHandle::reserve`).
-    pub reserved: u64,
-}
-
-impl MemoryBudget {
-    /// No bound (tests, and the warm-up before the budget is known).
-    pub const UNLIMITED: MemoryBudget = MemoryBudget { total: u64::MAX, reserved: 0 };
-
-    /// What requests may have between them.
-    pub fn for_requests(&self) -> u64 {
-        self.total.saturating_sub(self.reserved)
-    }
-}
-
-impl Queue {
-    /// Seconds of admitted work, in the order the executor runs it (earliest deadline first),
-    /// until requests holding `needed` bytes of estimates have finished.
-    fn secs_until_freed(&self, needed: u64) -> f64 {
-        let mut queue: Vec<(Instant, f64, u64)> =
-            self.requests.values().map(|r| (r.deadline, r.remaining.secs(&self.rates), r.memory)).collect();
-        queue.sort_by_key(|&(due, _, _)| due);
-        let (mut secs, mut freed) = (0.0, 0u64);
-        for (_, took, memory) in queue {
-            if freed >= needed {
-                break;
-            }
-            secs += took;
-            freed += memory;
-        }
-        secs
-    }
-
-    /// The refusal of `needed` bytes, more than the budget for requests ever has.
-    pub(super) fn too_large(&mut self, needed: u64, budget: u64) -> BackendError {
-        self.refusals.too_large += 1;
-        BackendError::TooLarge { needed_mib: needed.div_ceil(1 << 20), budget_mib: budget >> 20 }
-    }
-
-    /// Holds `more` bytes of the budget for requests (`budget`) for something that holds
-    /// `held` already: `TooLarge` when `held + more` exceeds it, `MemoryBusy` when what is held
-    /// now leaves too little.
-    pub(super) fn hold(&mut self, budget: u64, held: u64, more: u64) -> Result<(), BackendError> {
-        if held.saturating_add(more) > budget {
-            return Err(self.too_large(held.saturating_add(more), budget));
-        }
-        if self.memory_in_use + more > budget {
-            self.refusals.busy += 1;
-            return Err(BackendError::MemoryBusy {
-                in_use_mib: self.memory_in_use >> 20,
-                budget_mib: budget >> 20,
-                ahead_secs: self.secs_until_freed(self.memory_in_use + more - budget),
-            });
-        }
-        self.memory_in_use += more;
-        Ok(())
-    }
-}
 
 impl BackendHandle {
     /// Holds `bytes` of the memory budget outside any admitted request (see [`MemoryLease`]):
@@ -142,6 +69,7 @@ impl Drop for MemoryLease {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::backend::budget::MemoryRefusals;
     use crate::backend::testkit::{budgeted, far, in_secs, plan_with, NONE};
     use crate::backend::Work;
     use crate::bundle::GraphKind;

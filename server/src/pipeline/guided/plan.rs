@@ -1,0 +1,223 @@
+//! A view being rendered level by level: its canvas, the weights later levels read, and what each
+//! level runs.
+
+use std::ops::Range;
+
+use ndarray::{ArcArray1, ArcArray2, Array1, Array2, ArrayView1};
+
+use super::grid::{grid_len, level_pixels, nearest_guide, neighbours, Pixel};
+use super::samples::{select_samples, spread_weights, Selection};
+use crate::bundle::GuidedPolicy;
+
+/// The weights over all S samples of the pixels later levels read: those on the grid of every
+/// second row and column (every level's neighbours are), stored compactly.
+pub struct Guidance {
+    width: usize,
+    weights: Array2<f32>,
+}
+
+impl Guidance {
+    pub fn new(width: usize, height: usize, samples: usize) -> Guidance {
+        Guidance {
+            width: grid_len(width, 2),
+            weights: Array2::zeros((grid_len(width, 2) * grid_len(height, 2), samples)),
+        }
+    }
+
+    fn row((v, u): Pixel, width: usize) -> usize {
+        debug_assert!(v % 2 == 0 && u % 2 == 0, "guidance is kept on the grid of 2");
+        (v / 2) * width + u / 2
+    }
+
+    pub fn of(&self, p: Pixel) -> ArrayView1<'_, f32> {
+        self.weights.row(Self::row(p, self.width))
+    }
+
+    pub fn set(&mut self, p: Pixel, weights: ArrayView1<f32>) {
+        self.weights.row_mut(Self::row(p, self.width)).assign(&weights);
+    }
+
+    pub fn set_with(&mut self, p: Pixel, fill: impl FnOnce(&mut [f32])) {
+        let row = Self::row(p, self.width);
+        fill(self.weights.row_mut(row).as_slice_mut().expect("rows of a standard array are contiguous"));
+    }
+
+    /// Bytes of a view's guidance: for the memory estimate.
+    pub fn bytes(width: usize, height: usize, samples: usize) -> u64 {
+        (grid_len(width, 2) * grid_len(height, 2) * samples * 4) as u64
+    }
+}
+
+/// Elementwise maximum of the neighbours' guidance: a fine ray's score.
+pub fn neighbour_score(guidance: &Guidance, near: &[Pixel], samples: usize) -> Array1<f32> {
+    let mut score = Array1::zeros(samples);
+    for &p in near {
+        score.zip_mut_with(&guidance.of(p), |s: &mut f32, &w| *s = s.max(w));
+    }
+    score
+}
+
+/// The raw outputs (before the background) of a view being rendered, row by row.
+pub struct Canvas {
+    pub width: usize,
+    pub rgb: Array2<f32>,
+    pub depth: Array1<f32>,
+    pub opacity: Array1<f32>,
+}
+
+impl Canvas {
+    pub fn new(width: usize, height: usize) -> Canvas {
+        let n = width * height;
+        Canvas { width, rgb: Array2::zeros((n, 3)), depth: Array1::zeros(n), opacity: Array1::zeros(n) }
+    }
+
+    pub fn index(&self, (v, u): Pixel) -> usize {
+        v * self.width + u
+    }
+
+    fn composited(&self, p: Pixel, background: [f32; 3]) -> [f32; 3] {
+        let i = self.index(p);
+        let clear = 1.0 - self.opacity[i];
+        std::array::from_fn(|c| self.rgb[[i, c]] + clear * background[c])
+    }
+
+    /// Whether at least two neighbours' composited colours agree within `tolerance` per channel.
+    pub fn neighbours_agree(&self, near: &[Pixel], background: [f32; 3], tolerance: f32) -> bool {
+        if near.len() < 2 {
+            return false;
+        }
+        let colours: Vec<[f32; 3]> = near.iter().map(|&p| self.composited(p, background)).collect();
+        (0..3).all(|c| {
+            let (lo, hi) =
+                colours.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), x| (lo.min(x[c]), hi.max(x[c])));
+            hi - lo <= tolerance
+        })
+    }
+
+    /// How far the pixel's outputs lie outside its neighbours': the largest distance of its
+    /// composited colour outside their range in a channel, or of its opacity below their lowest.
+    pub fn disagreement(&self, p: Pixel, near: &[Pixel], background: [f32; 3]) -> f32 {
+        let own = self.composited(p, background);
+        let colours: Vec<[f32; 3]> = near.iter().map(|&q| self.composited(q, background)).collect();
+        let colour = (0..3).fold(0f32, |gap, c| {
+            let (lo, hi) =
+                colours.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), x| (lo.min(x[c]), hi.max(x[c])));
+            gap.max(lo - own[c]).max(own[c] - hi)
+        });
+        let lowest = near.iter().map(|&q| self.opacity[self.index(q)]).fold(f32::INFINITY, f32::min);
+        colour.max(lowest - self.opacity[self.index(p)])
+    }
+
+    /// The pixel takes the mean of its neighbours' outputs.
+    pub fn take_mean(&mut self, p: Pixel, near: &[Pixel]) {
+        let n = near.len() as f32;
+        let rows: Vec<usize> = near.iter().map(|&q| self.index(q)).collect();
+        let i = self.index(p);
+        for c in 0..3 {
+            self.rgb[[i, c]] = rows.iter().map(|&r| self.rgb[[r, c]]).sum::<f32>() / n;
+        }
+        self.depth[i] = rows.iter().map(|&r| self.depth[r]).sum::<f32>() / n;
+        self.opacity[i] = rows.iter().map(|&r| self.opacity[r]).sum::<f32>() / n;
+    }
+
+    /// Outputs of rays `rows` of a run (rgb (R,3), depth (R), opacity (R)) into their pixels.
+    pub fn put(&mut self, pixels: &[Pixel], rgb: &ArcArray2<f32>, depth: &ArcArray1<f32>, opacity: &ArcArray1<f32>) {
+        for (r, &p) in pixels.iter().enumerate() {
+            let i = self.index(p);
+            self.rgb.row_mut(i).assign(&rgb.row(r));
+            self.depth[i] = depth[r];
+            self.opacity[i] = opacity[r];
+        }
+    }
+}
+
+/// A level's pixels that run the network, with what they run.
+pub struct FineRays {
+    pub pixels: Vec<Pixel>,
+    pub selections: Vec<Selection>,
+    /// (R, K) sample indices and multiplicities, (R) each ray's guide ray: graph inputs.
+    pub index: Array2<f32>,
+    pub multiplicity: Array2<f32>,
+    pub guide: Array1<f32>,
+}
+
+/// A view being rendered: its outputs so far and the weights later levels read.
+pub struct Frame {
+    pub canvas: Canvas,
+    pub guidance: Guidance,
+    pub height: usize,
+    pub background: [f32; 3],
+}
+
+/// One level: pixels whose neighbours agree take their mean (in the frame); the others get their
+/// samples, returned.
+pub fn plan_level(policy: &GuidedPolicy, frame: &mut Frame, spacing: usize, count: usize) -> FineRays {
+    let Frame { canvas, guidance, height, background } = frame;
+    let (width, height, background) = (canvas.width, *height, *background);
+    let samples = guidance.weights.ncols();
+    let keeps_guidance = spacing > 1;
+    let (grid_w, grid_h) = (grid_len(width, policy.step), grid_len(height, policy.step));
+    let mut run = Vec::new();
+    let mut selections = Vec::new();
+    for p in level_pixels(width, height, spacing) {
+        let near = neighbours(p, width, height, spacing);
+        if spacing <= policy.smooth_max_step && canvas.neighbours_agree(&near, background, policy.smooth_tolerance) {
+            canvas.take_mean(p, &near);
+            if keeps_guidance {
+                let score = neighbour_score(guidance, &near, samples);
+                guidance.set(p, score.view());
+            }
+            continue;
+        }
+        let score = neighbour_score(guidance, &near, samples);
+        selections.push(select_samples(score.view(), count, policy.support_threshold));
+        run.push(p);
+    }
+    let k = count.min(samples);
+    let rows = run.len();
+    let mut index = Array2::zeros((rows, k));
+    let mut multiplicity = Array2::zeros((rows, k));
+    for (r, sel) in selections.iter().enumerate() {
+        index.row_mut(r).assign(&Array1::from_iter(sel.index.iter().map(|&i| i as f32)));
+        multiplicity.row_mut(r).assign(&ArrayView1::from(&sel.multiplicity));
+    }
+    let guide = run.iter().map(|&p| nearest_guide(p, grid_w, grid_h, policy.step) as f32).collect();
+    FineRays { pixels: run, selections, index, multiplicity, guide }
+}
+
+/// The pixels of a level rendered at K samples (`fine`) whose outputs disagree with their
+/// neighbours' by more than the policy's `verify_tolerance` ([`Canvas::disagreement`]): the
+/// worst, at most [`GuidedPolicy::most_reruns`] of them (ties: the earlier pixel), row by row.
+/// Where their K samples missed matter the neighbours found, or found matter that is not there,
+/// they are rendered again at all S samples.
+pub fn disagreeing(policy: &GuidedPolicy, frame: &Frame, fine: &FineRays, spacing: usize) -> Vec<Pixel> {
+    let Some(tolerance) = policy.verify_tolerance else { return Vec::new() };
+    let (width, height) = (frame.canvas.width, frame.height);
+    let mut worst: Vec<(f32, Pixel)> = fine
+        .pixels
+        .iter()
+        .map(|&p| (frame.canvas.disagreement(p, &neighbours(p, width, height, spacing), frame.background), p))
+        .filter(|&(gap, _)| gap > tolerance)
+        .collect();
+    worst.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
+    worst.truncate(policy.most_reruns(fine.pixels.len()));
+    let mut pixels: Vec<Pixel> = worst.into_iter().map(|(_, p)| p).collect();
+    pixels.sort_unstable();
+    pixels
+}
+
+/// A fine run's outputs (rays `range` of the level) into the canvas, and its rays' weights into
+/// the guidance when later levels read them.
+pub fn put_fine(frame: &mut Frame, fine: &FineRays, range: Range<usize>, spacing: usize, outputs: &FineOutputs) {
+    let (rgb, depth, opacity, weights) = outputs;
+    frame.canvas.put(&fine.pixels[range.clone()], rgb, depth, opacity);
+    if spacing > 1 {
+        for (r, i) in range.enumerate() {
+            let selection = &fine.selections[i];
+            frame.guidance.set_with(fine.pixels[i], |row| spread_weights(weights.row(r), selection, row));
+        }
+    }
+}
+
+/// rgb (R,3), depth (R), opacity (R) and the samples' weights (R,K) of a fine run.
+pub type FineOutputs = (ArcArray2<f32>, ArcArray1<f32>, ArcArray1<f32>, ArcArray2<f32>);

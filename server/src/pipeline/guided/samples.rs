@@ -1,0 +1,72 @@
+//! A fine ray's samples, chosen from its neighbours' weights.
+
+use std::cmp::Ordering;
+
+use ndarray::ArrayView1;
+
+/// The samples a fine ray runs, chosen from its neighbours' weights.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Selection {
+    /// K uniform-sample indices, increasing.
+    pub index: Vec<u32>,
+    /// How many uniform samples each stands for (>= 1).
+    pub multiplicity: Vec<f32>,
+    /// Per uniform sample, the position in `index` of the taken sample that stands for it, or -1.
+    pub owner: Vec<i32>,
+}
+
+/// The `count` samples of a ray from its neighbours' weights `score` (S): see the Python twin,
+/// `select_samples`. The score is dilated by one sample (half a neighbour's score); the samples
+/// with the highest dilated scores are taken (ties: the nearer to the best sample, then the
+/// lower index); every sample whose dilated score reaches `threshold` and is not taken is stood
+/// for by the nearest taken one (ties: the lower).
+pub fn select_samples(score: ArrayView1<f32>, count: usize, threshold: f32) -> Selection {
+    let s = score.len();
+    let at = |k: isize| if k < 0 || k as usize >= s { 0.0 } else { score[k as usize] };
+    let dilated: Vec<f32> = (0..s as isize).map(|k| at(k).max(0.5 * at(k - 1).max(at(k + 1)))).collect();
+    let best = dilated.iter().enumerate().fold(0, |b, (k, &d)| if d > dilated[b] { k } else { b });
+    let rank = |a: &usize, b: &usize| {
+        dilated[*b]
+            .partial_cmp(&dilated[*a])
+            .unwrap_or(Ordering::Equal)
+            .then(a.abs_diff(best).cmp(&b.abs_diff(best)))
+            .then(a.cmp(b))
+    };
+    let mut order: Vec<usize> = (0..s).collect();
+    let count = count.min(s);
+    if count < s {
+        order.select_nth_unstable_by(count, rank);
+    }
+    let mut index: Vec<usize> = order[..count].to_vec();
+    index.sort_unstable();
+    let mut owner = vec![-1i32; s];
+    let mut multiplicity = vec![0f32; count];
+    let mut next = 0; // first taken index >= k
+    for k in 0..s {
+        while next < count && index[next] < k {
+            next += 1;
+        }
+        let taken = next < count && index[next] == k;
+        if !taken && dilated[k] < threshold {
+            continue;
+        }
+        let lower = next.checked_sub(1);
+        let nearest = match (lower, (next < count).then_some(next)) {
+            (Some(l), Some(h)) if k - index[l] <= index[h] - k => l,
+            (_, Some(h)) => h,
+            (Some(l), None) => l,
+            (None, None) => continue,
+        };
+        owner[k] = nearest as i32;
+        multiplicity[nearest] += 1.0;
+    }
+    Selection { index: index.into_iter().map(|k| k as u32).collect(), multiplicity, owner }
+}
+
+/// A fine ray's weights over all S samples, for the levels after it: each taken sample's weight
+/// shared among the samples it stands for.
+pub fn spread_weights(weights: ArrayView1<f32>, selection: &Selection, out: &mut [f32]) {
+    for (k, &o) in selection.owner.iter().enumerate() {
+        out[k] = if o < 0 { 0.0 } else { weights[o as usize] / selection.multiplicity[o as usize] };
+    }
+}

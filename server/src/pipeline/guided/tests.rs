@@ -1,0 +1,164 @@
+use ndarray::{arr1, Array1, Array2};
+
+use super::*;
+use crate::bundle::GuidedPolicy;
+
+#[test]
+fn levels_cover_every_pixel_once() {
+    let (w, h, step) = (21, 13, 8);
+    let mut seen = vec![0; w * h];
+    for (v, u) in first_level_pixels(w, h, step) {
+        seen[v * w + u] += 1;
+    }
+    let mut spacing = step / 2;
+    while spacing >= 1 {
+        for (v, u) in level_pixels(w, h, spacing) {
+            seen[v * w + u] += 1;
+            let near = neighbours((v, u), w, h, spacing);
+            assert!(!near.is_empty() && near.len() <= 4);
+            // Every neighbour lies on the coarser grid, rendered by an earlier level.
+            assert!(near.iter().all(|&(nv, nu)| nv % (2 * spacing) == 0 && nu % (2 * spacing) == 0));
+        }
+        spacing /= 2;
+    }
+    assert!(seen.iter().all(|&n| n == 1), "{seen:?}");
+}
+
+#[test]
+fn neighbours_are_one_spacing_away() {
+    assert_eq!(neighbours((0, 4), 16, 16, 4), vec![(0, 0), (0, 8)]);
+    assert_eq!(neighbours((4, 4), 16, 16, 4), vec![(0, 0), (0, 8), (8, 0), (8, 8)]);
+    // The last column has no neighbour beyond the image.
+    assert_eq!(neighbours((2, 15), 16, 16, 1), vec![(2, 14)]);
+}
+
+#[test]
+fn a_narrow_surface_is_sampled_exactly() {
+    let mut score = Array1::<f32>::zeros(16);
+    score[7] = 0.6;
+    score[8] = 0.3;
+    let sel = select_samples(score.view(), 4, 1e-3);
+    // The two samples with weight, their dilation (6 and 9), nothing else stands for more.
+    assert_eq!(sel.index, vec![6, 7, 8, 9]);
+    assert_eq!(sel.multiplicity, vec![1.0; 4]);
+    assert_eq!(sel.owner.iter().filter(|&&o| o >= 0).count(), 4);
+}
+
+#[test]
+fn a_wide_surface_is_stood_for_by_its_samples() {
+    let score = arr1(&[0.0, 0.1, 0.1, 0.1, 0.1, 0.5, 0.1, 0.1, 0.1, 0.0, 0.0, 0.0]);
+    let sel = select_samples(score.view(), 3, 1e-3);
+    assert_eq!(sel.index, vec![4, 5, 6]);
+    // Support: samples 0..=9 (0 and 9 by dilation); 0..=4 go to 4, 6..=9 to 6.
+    assert_eq!(sel.multiplicity, vec![5.0, 1.0, 4.0]);
+    assert_eq!(sel.multiplicity.iter().sum::<f32>(), 10.0);
+    let mut spread = vec![0.0; 12];
+    spread_weights(arr1(&[0.5, 0.2, 0.4]).view(), &sel, &mut spread);
+    assert_eq!(spread[0], 0.1);
+    assert_eq!(spread[5], 0.2);
+    assert_eq!(spread[9], 0.1);
+    assert_eq!(spread[10], 0.0);
+}
+
+#[test]
+fn ties_go_to_the_samples_nearest_the_best() {
+    let sel = select_samples(Array1::<f32>::zeros(10).view(), 3, 1e-3);
+    assert_eq!(sel.index, vec![0, 1, 2]);
+    let mut score = Array1::<f32>::zeros(10);
+    score[5] = 1.0;
+    let sel = select_samples(score.view(), 5, 0.6);
+    assert_eq!(sel.index, vec![3, 4, 5, 6, 7]);
+}
+
+#[test]
+fn the_nearest_guide_ray_rounds_half_way_up() {
+    // A 3 x 3 level-0 grid at step 8 (pixels 0, 8, 16).
+    assert_eq!(nearest_guide((4, 2), 3, 3, 8), 3);
+    assert_eq!(nearest_guide((3, 12), 3, 3, 8), 2);
+    // Beyond the last grid column: the last column.
+    assert_eq!(nearest_guide((0, 23), 3, 3, 8), 2);
+}
+
+/// A 5 x 5 frame whose every pixel is grey and opaque.
+fn grey_frame() -> Frame {
+    let mut canvas = Canvas::new(5, 5);
+    canvas.rgb.fill(0.5);
+    canvas.opacity.fill(1.0);
+    Frame { canvas, guidance: Guidance::new(5, 5, 4), height: 5, background: [0.0; 3] }
+}
+
+fn verifying(tolerance: f32, share: f64) -> GuidedPolicy {
+    GuidedPolicy {
+        step: 4,
+        samples: vec![4, 4],
+        support_threshold: 1e-3,
+        smooth_tolerance: 0.0,
+        smooth_max_step: 1,
+        verify_tolerance: Some(tolerance),
+        verify_share: Some(share),
+    }
+}
+
+fn fine_at(pixels: Vec<Pixel>) -> FineRays {
+    FineRays {
+        pixels,
+        selections: Vec::new(),
+        index: Array2::zeros((0, 0)),
+        multiplicity: Array2::zeros((0, 0)),
+        guide: Array1::zeros(0),
+    }
+}
+
+#[test]
+fn pixels_that_disagree_with_their_neighbours_are_rendered_again_worst_first() {
+    let mut frame = grey_frame();
+    // On the grid of spacing 1: (1, 1) missed its neighbours' matter (dark: the background
+    // shows), (1, 3) is brighter than any neighbour, (3, 1) a little off, (3, 3) agrees.
+    let i = |p| frame.canvas.index(p);
+    let (dark, bright, slight) = (i((1, 1)), i((1, 3)), i((3, 1)));
+    frame.canvas.opacity[dark] = 0.3;
+    frame.canvas.rgb.row_mut(dark).fill(0.15);
+    frame.canvas.rgb.row_mut(bright).fill(0.9);
+    frame.canvas.rgb.row_mut(slight).fill(0.55);
+    let fine = fine_at(vec![(1, 1), (1, 3), (3, 1), (3, 3)]);
+    let near = neighbours((1, 1), 5, 5, 1);
+    assert!((frame.canvas.disagreement((1, 1), &near, [0.0; 3]) - 0.7).abs() < 1e-6);
+    assert_eq!(disagreeing(&verifying(0.1, 1.0), &frame, &fine, 1), vec![(1, 1), (1, 3)]);
+    // The share bounds how many: the worst (the dark pixel, 0.7 off) first.
+    assert_eq!(disagreeing(&verifying(0.01, 0.25), &frame, &fine, 1), vec![(1, 1)]);
+    assert_eq!(disagreeing(&verifying(0.01, 0.75), &frame, &fine, 1), vec![(1, 1), (1, 3), (3, 1)]);
+    // A policy without verification renders no pixel again.
+    let plain = GuidedPolicy { verify_tolerance: None, verify_share: None, ..verifying(0.0, 1.0) };
+    assert!(disagreeing(&plain, &frame, &fine, 1).is_empty());
+}
+
+#[test]
+fn reruns_count_in_the_most_work() {
+    let policy = verifying(0.1, 0.5);
+    let plain = GuidedPolicy { verify_tolerance: None, verify_share: None, ..policy.clone() };
+    let (w, h) = (9, 9);
+    let fine: Vec<usize> = policy.levels().map(|(spacing, _)| level_pixels(w, h, spacing).len()).collect();
+    let reruns: usize = fine.iter().map(|&n| n / 2).sum();
+    assert_eq!(policy.most_work(w, h).0, plain.most_work(w, h).0 + reruns);
+    assert_eq!(policy.most_work(w, h).1, plain.most_work(w, h).1);
+    assert!(GuidedPolicy { verify_share: None, ..policy.clone() }.validate(128).is_err());
+    assert!(GuidedPolicy { verify_share: Some(1.5), ..policy }.validate(128).is_err());
+}
+
+#[test]
+fn policy_checks() {
+    let policy = GuidedPolicy {
+        step: 8,
+        samples: vec![32, 16, 8],
+        support_threshold: 1e-3,
+        smooth_tolerance: 0.03,
+        smooth_max_step: 2,
+        verify_tolerance: None,
+        verify_share: None,
+    };
+    assert!(policy.validate(128).is_ok());
+    assert!(policy.validate(16).unwrap_err().contains("32"));
+    assert!(GuidedPolicy { step: 6, ..policy.clone() }.validate(128).is_err());
+    assert!(GuidedPolicy { samples: vec![8], ..policy.clone() }.validate(128).is_err());
+    assert_eq!(policy.levels().collect::<Vec<_>>(), vec![(4, 32), (2, 16), (1, 8)]);
+}
