@@ -36,7 +36,9 @@ pub(super) fn resolve_image(fs: &dyn Files, base: &Path, file_path: &str) -> Opt
     if has_image_extension(&p) {
         return None;
     }
-    IMAGE_EXTENSIONS.iter().map(|ext| PathBuf::from(format!("{}.{ext}", p.display()))).find(|q| fs.is_file(q))
+    let lower = IMAGE_EXTENSIONS.iter().map(|ext| ext.to_string());
+    let upper = IMAGE_EXTENSIONS.iter().map(|ext| ext.to_ascii_uppercase());
+    lower.chain(upper).map(|ext| PathBuf::from(format!("{}.{ext}", p.display()))).find(|q| fs.is_file(q))
 }
 
 /// One warning for all frames whose image is missing, instead of one per frame.
