@@ -44,6 +44,12 @@
 #                          examples/tabletop (default 0.25: 80x64; full size takes ~1 min of CPU)
 #   SCNERF_VERIFY_BUNDLE   bundle baked into the image, relative to the repo (default bundles/default,
 #                          else the committed test bundle tests/fixtures/parity/bundle)
+#   SCNERF_VERIFY_REFINE   1: also build the exporter's `refine` target, run `scnerf-export refine` in it
+#                          on a small procedural capture into a models folder, and serve the refined
+#                          bundle from that folder with the server image (off by default: the image
+#                          installs torch, hundreds of MB)
+#   SCNERF_VERIFY_TORCH_INDEX  the pip index of the refine image's torch (its TORCH_INDEX_URL; default
+#                          PyTorch's CPU wheels)
 #   DEBIAN_MIRROR          debootstrap mirror (default http://deb.debian.org/debian)
 # Options: --clean  remove the cache directory (images, layers, venv) and exit.
 set -euo pipefail
@@ -358,6 +364,55 @@ assert r["statuses"].get("200", 0) > 0 and set(r["statuses"]) == {"200"}, r["sta
 PY
 }
 
+# The exporter's batch job (target `refine`, docs/refine.md).
+build_refine_image() {
+  local mounts=() ca
+  for ca in /usr/local/share/ca-certificates/*.crt; do
+    [[ -f ${ca} ]] && mounts+=(-v "${ca}:${ca}:ro")
+  done
+  (cd "${repo}" && bh bud --isolation chroot --pull=never --format docker --layers --force-rm \
+    -f docker/Dockerfile --target refine "${mounts[@]}" \
+    --build-arg "RUNTIME_BASE=${base_image}" --build-arg "BUNDLE_DIR=${bundle}" \
+    --build-arg "TORCH_INDEX_URL=${SCNERF_VERIFY_TORCH_INDEX:-https://download.pytorch.org/whl/cpu}" \
+    -t "${refine_image}" .)
+}
+
+# A 9-view procedural capture written by the image's own exporter, refined by the image's
+# entrypoint (`scnerf-export refine`, as the Kubernetes Job runs it) into ${work}/models/capture.
+run_refine() {
+  local entrypoint
+  mkdir -p "${work}/capture" "${work}/models"
+  chown 10001:10001 "${work}/capture" "${work}/models"
+  bh rm "${ctr_prefix}-refine" >/dev/null 2>&1 || true
+  bh from --pull=never --name "${ctr_prefix}-refine" "${refine_image}" >/dev/null
+  bh run --isolation chroot -v "${work}/capture:/capture" "${ctr_prefix}-refine" -- /opt/scnerf/venv/bin/python -c \
+    'from scnerf_export.train.refine_capture import write_procedural_capture as w; w("/capture/c")'
+  bh inspect --type image "${refine_image}" >"${work}/inspect-refine.json"
+  mapfile -t entrypoint < <(python3 -c 'import json, sys; [print(a) for a in json.load(open(sys.argv[1]))["Docker"]["config"]["Entrypoint"]]' "${work}/inspect-refine.json")
+  bh run --isolation chroot -v "${work}/capture:/capture:ro" -v "${work}/models:/models" "${ctr_prefix}-refine" -- \
+    "${entrypoint[@]}" /capture/c --out /models/capture --minutes 3 --threads 2 >"${work}/refine.log" 2>&1 || {
+    tail -20 "${work}/refine.log"
+    return 1
+  }
+  tail -2 "${work}/refine.log"
+  python3 - "${work}/models/capture/manifest.json" <<'PY'
+import json, sys
+m = json.load(open(sys.argv[1]))
+r = m["provenance"]["refinement"]
+h = r["held_out_psnr"]
+print(f"  {r['base_model_id']} -> {m['model_id']}: held-out PSNR {h['before']:.2f} -> {h['after']:.2f} dB, step {r['steps']}")
+assert r["capture"]["folder"] == "c" and r["held_out"] and h["after"] >= h["before"]
+PY
+}
+
+refined_model_served() {
+  local want got
+  want=$(python3 -c 'import json, sys; print(json.load(open(sys.argv[1]))["model_id"])' "${work}/models/capture/manifest.json")
+  got=$(curl -sS --max-time 10 "http://127.0.0.1:${port}/v1/model" | python3 -c 'import json, sys; print(json.load(sys.stdin)["model_id"])')
+  echo "  /v1/model model_id=${got} (refined bundle: ${want})"
+  [[ ${got} == "${want}" ]]
+}
+
 # ------------------------------------------------------------------------------------------------
 inspect_image() {
   bh inspect --type image "${image}" >"${work}/inspect.json"
@@ -593,3 +648,24 @@ else
 fi
 check "SIGTERM to tini: server exits 0" stopped_cleanly
 timings+=("$(printf '%-44s %5ds' "volume-mounted bundle run" "$((SECONDS - t0))")")
+
+# The refine job's image: a capture refined into the models folder, which the server image reads.
+if [[ ${SCNERF_VERIFY_REFINE:-0} == 1 ]]; then
+  refine_image=localhost/scnerf-verify/scnerf-refine:verify
+  export refine_image
+  step "buildah bud --target refine" 1800 build_refine_image
+  step "refine in the image: a capture into the models folder" 900 run_refine
+  t0=${SECONDS}
+  start_server "${ctr_prefix}-refined" "${work}/server-refined.log" \
+    -v "${work}/models/capture:/bundle:ro" -e SCNERF_BUNDLE=/bundle
+  if wait_ready "${work}/server-refined.log" 280; then
+    pass "the refined bundle from the models folder: server ready"
+    check "GET /v1/model = the refined bundle" refined_model_served
+    check "POST /v1/render examples/tabletop with the refined bundle" render_example image/png '["rgb"]'
+  else
+    fail "the refined bundle from the models folder: not ready"
+    tail -5 "${work}/server-refined.log"
+  fi
+  check "SIGTERM to tini: server exits 0" stopped_cleanly
+  timings+=("$(printf '%-44s %5ds' "refined bundle run" "$((SECONDS - t0))")")
+fi

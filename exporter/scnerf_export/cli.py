@@ -1,5 +1,5 @@
 """`scnerf-export`: convert-mvsnerf, init-scnerf, export, fixtures, eval, example, experiment, train,
-finetune, blend-heads, quantize, reexport, add-guided, split-volume, volume-tail."""
+finetune, blend-heads, refine, quantize, reexport, add-guided, split-volume, volume-tail."""
 
 from __future__ import annotations
 
@@ -124,6 +124,48 @@ def cmd_blend_heads(args) -> None:
 
     path, alpha = blend_heads(args.init, args.trained, args.out, args.shared, args.cache)
     print(f"checkpoint {path} (alpha {alpha})")
+
+
+def cmd_refine(args) -> None:
+    from .train.refine import Recipe as RefineRecipe
+    from .train.refine import refine
+
+    recipe = RefineRecipe(
+        minutes=args.minutes,
+        train=tuple(t.strip() for t in args.train.split(",") if t.strip()),
+        lr=args.lr,
+        rays=args.rays,
+        seed=args.seed,
+    )
+    try:
+        result = refine(
+            args.data,
+            args.out,
+            recipe,
+            base=args.base,
+            checkpoint=args.checkpoint,
+            fmt=args.format,
+            downscale=args.downscale,
+            max_pixels=args.max_source_pixels,
+            holdout=args.holdout,
+            targets=split_list(args.targets),
+            threads=args.threads,
+            keep_banks=args.keep_banks,
+        )
+    except KeyboardInterrupt:
+        print("scnerf-export refine: interrupted before the base was scored: nothing written", file=sys.stderr)
+        raise SystemExit(130) from None
+    held = result.record["held_out_psnr"]
+    steps = f"step {result.record['steps']} of {result.record['steps_run']}, {result.record['minutes']:.1f} min"
+    print(
+        f"wrote {result.out} ({result.model_id}; {steps}): held-out PSNR {held['before']:.2f} -> {held['after']:.2f} dB"
+    )
+    if result.interrupted:
+        raise SystemExit(130)
+
+
+def split_list(value: str | None) -> list[str] | None:
+    return [v.strip() for v in value.split(",") if v.strip()] if value else None
 
 
 def cmd_quantize(args) -> None:
@@ -310,6 +352,8 @@ def parser() -> argparse.ArgumentParser:
     b.add_argument("--cache", required=True, type=Path, help="folder for the validation views' ray banks")
     b.set_defaults(func=cmd_blend_heads)
 
+    add_refine_parser(sub)
+
     q = sub.add_parser("quantize", help="float32 bundle -> int8 or fp16 bundle (renderer MatMuls), PSNR check")
     q.add_argument("--bundle", required=True, type=Path, help="float32 bundle")
     q.add_argument("--out", required=True, type=Path)
@@ -355,6 +399,57 @@ def parser() -> argparse.ArgumentParser:
     t.add_argument("--bundle", required=True, type=Path)
     t.set_defaults(func=cmd_volume_tail)
     return p
+
+
+def add_refine_parser(sub) -> None:
+    from .train.refine import Recipe as RefineRecipe
+    from .train.refine_capture import MAX_SOURCE_PIXELS
+
+    defaults = RefineRecipe()
+    r = sub.add_parser(
+        "refine",
+        help="fine-tune a bundle's network on one capture's views, scored on held-out views -> bundle",
+        description="Fine-tune a bundle's renderer (trunk M1 and heads; the encoder and volume graphs stay) on "
+        "a capture's own views, each rendered from its 3 nearest training views as the server renders it; "
+        "held-out views are scored, never trained on, and the best-scoring step is written as a bundle. "
+        "Ctrl-C writes the best so far; the same command again resumes. docs/refine.md.",
+    )
+    r.add_argument("data", type=Path, help="capture folder (COLMAP, nerfstudio, Blender, LLFF, DTU) or transforms file")
+    r.add_argument("--out", required=True, type=Path, help="bundle folder to write (its .refine/ holds the state)")
+    r.add_argument("--minutes", type=float, default=defaults.minutes, help="time budget, writing included")
+    held = r.add_mutually_exclusive_group()
+    held.add_argument(
+        "--holdout",
+        type=int,
+        metavar="K",
+        help="hold out every K-th view (default: the capture's "
+        "own targets, e.g. Blender's val or DTU's test views, else every 8th)",
+    )
+    held.add_argument("--targets", help="comma-separated names of the views to hold out")
+    r.add_argument(
+        "--from", dest="base", type=Path, help="bundle to refine (default $SCNERF_BUNDLE, else bundles/default)"
+    )
+    r.add_argument(
+        "--checkpoint",
+        type=Path,
+        help="the base bundle's source checkpoint (default: weights read "
+        "back from its renderer.onnx); checked against the bundle's renderer either way",
+    )
+    r.add_argument("--format", choices=["dtu", "blender", "llff", "nerfstudio", "colmap"], help="default: detected")
+    r.add_argument(
+        "--downscale",
+        type=int,
+        metavar="N",
+        help="read images_N (default: the largest set within --max-source-pixels, as the server picks)",
+    )
+    r.add_argument("--max-source-pixels", type=int, default=MAX_SOURCE_PIXELS, help="the server's source limit")
+    r.add_argument("--train", default=",".join(defaults.train), help="what trains: trunk, heads or trunk,heads")
+    r.add_argument("--lr", type=float, default=defaults.lr)
+    r.add_argument("--rays", type=int, default=defaults.rays, help="rays per step")
+    r.add_argument("--seed", type=int, default=defaults.seed)
+    r.add_argument("--threads", type=int)
+    r.add_argument("--keep-banks", action="store_true", help="keep the ray banks (OUT/.refine/banks) at the end")
+    r.set_defaults(func=cmd_refine)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -233,7 +233,7 @@ class GuidedPolicy:
 
 
 # Sections a tool adds to the provenance of a bundle it rewrites, in the order they are written.
-TOOL_RECORDS = ("reexport", "volume_split", "guided_graphs", "quantization")
+TOOL_RECORDS = ("reexport", "volume_split", "guided_graphs", "quantization", "refinement")
 
 
 @dataclass
@@ -257,6 +257,7 @@ class Provenance:
     volume_split: dict | None = None
     guided_graphs: dict | None = None
     quantization: dict | None = None
+    refinement: dict | None = None  # `scnerf-export refine`: the base model, the capture, the held-out scores
     extra: dict[str, Any] = field(default_factory=dict)  # e.g. the public weights' licence
 
     @classmethod

@@ -1,0 +1,479 @@
+"""`scnerf-export refine DATA --out DIR`: a bundle's network fine-tuned on one capture's own views,
+written as an ordinary bundle.
+
+Per-scene refinement, as MVSNeRF's paper fine-tunes on a scene's images, within what a bundle can
+serve: the server builds a volume from whatever three views a request brings, so what refine
+changes is the network, not a volume. The encoder and volume net (G1, G2) stay the base bundle's
+graphs; the renderer's trunk M1 and its heads (M2, the geometry and appearance rectifiers, M4)
+train on banked rays (``refine_bank``): each training view rendered as the server renders it,
+from the 3 training views nearest to it (``cameras.rank_sources``), at the S uniform samples of
+the capture's [near, far]. Which of those train is the recipe's ``train`` (docs/results.md,
+"Refining a capture", measures the choices).
+
+Held-out views are never sources and never drawn for a step; a fixed sample of their pixels is
+scored before training, every ``score_every_s`` seconds of training and at the end, and the scored
+step with the best mean PSNR is what the bundle keeps (the base itself if no step beats it).
+
+The run keeps to a time budget (``minutes``: banking, training, scoring and writing the bundle).
+Views are banked in an order that spreads over the capture (``spread_order``), between stretches
+of training as long as the banking took, so a short budget trains on views from all around. The
+work folder (``OUT/.refine``) holds the state (weights, optimiser, best step, time spent) and the
+banks: Ctrl-C (or SIGTERM) stops, writes the best bundle so far and keeps the state, and the same
+command run again resumes until the budget is spent.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import signal
+import time
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from .. import __version__
+from ..runtime.onnx_pipeline import OnnxBundle
+from .from_scratch import hardware
+from .refine_bank import Encoded, PointBank, bank_view, score, shade
+from .refine_bundle import base_model, write_bundle
+from .refine_capture import MAX_SOURCE_PIXELS, Capture, Split, read_capture, split_views, spread_order
+
+# What may train, by the renderer's modules (the encoder and volume graphs never do).
+MODULES = {"trunk": ("m1",), "heads": ("m2", "geometry", "appearance", "colour_head")}
+
+
+def default_bundle() -> Path:
+    """$SCNERF_BUNDLE (the server's variable; the container sets it), else the repository's default bundle."""
+    return Path(os.environ.get("SCNERF_BUNDLE") or Path(__file__).resolve().parents[3] / "bundles" / "default")
+
+
+@dataclass(frozen=True)
+class Recipe:
+    minutes: float = 15.0
+    train: tuple[str, ...] = ("trunk", "heads")
+    lr: float = 1e-4
+    rays: int = 256  # per step
+    rays_per_view: int = 4096  # banked per training view, at most
+    bank_rays: int = 1 << 17  # banked over all training views, at most (~16 KB each)
+    held_out_rays: int = 8192  # scored over all held-out views
+    min_held_out_rays: int = 512  # scored per held-out view, at least
+    score_every_s: float = 90.0  # seconds of training between scorings
+    write_reserve_s: float = 60.0  # kept for writing the bundle at the end of the budget
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        unknown = sorted(set(self.train) - set(MODULES))
+        if unknown or not self.train:
+            raise ValueError(f"train: {', '.join(unknown) or 'nothing'}; choose from {', '.join(MODULES)}")
+        if not self.minutes > 0:
+            raise ValueError(f"minutes must be positive, got {self.minutes}")
+
+
+class RefineError(ValueError):
+    """An --out folder refine cannot use; the message is one line, fit for a CLI."""
+
+
+# ---------------------------------------------------------------------------------------- parameters
+
+
+def trainable(renderer, train: tuple[str, ...]) -> dict[str, torch.nn.Parameter]:
+    """The renderer's parameters of the modules ``train`` names (by their state-dict names), with
+    gradients; every other parameter frozen."""
+    for p in renderer.parameters():
+        p.requires_grad_(False)
+    chosen = {}
+    for group in train:
+        for module in MODULES[group]:
+            if getattr(renderer, module, None) is None:  # mvsnerf has no rectifiers
+                continue
+            for name, p in getattr(renderer, module).named_parameters():
+                chosen[f"{module}.{name}"] = p.requires_grad_(True)
+    return chosen
+
+
+def snapshot(params: dict[str, torch.nn.Parameter]) -> dict[str, torch.Tensor]:
+    return {k: p.detach().clone() for k, p in params.items()}
+
+
+def restore(params: dict[str, torch.nn.Parameter], values: dict[str, torch.Tensor]) -> None:
+    with torch.no_grad():
+        for k, p in params.items():
+            p.copy_(values[k])
+
+
+# ----------------------------------------------------------------------------------------- the run
+
+
+@dataclass
+class Progress:
+    """What a run has done; saved with the weights, so that a rerun resumes."""
+
+    step: int = 0
+    seconds: float = 0.0  # banking, training and scoring, over every run
+    best_step: int = 0
+    initial: dict | None = None  # the base's held-out scores
+    best: dict | None = None  # the kept step's
+    history: list = field(default_factory=list)  # every scoring: step, seconds, scores
+
+
+class Refinement:
+    """One capture's refinement: the banks, the optimiser, the schedule and the best step so far."""
+
+    def __init__(self, model, capture: Capture, split: Split, onnx: OnnxBundle, recipe: Recipe, work: Path):
+        self.model = model.eval()
+        self.renderer = model.renderer
+        self.capture, self.split, self.onnx, self.recipe, self.work = capture, split, onnx, recipe, work
+        self.params = trainable(self.renderer, recipe.train)
+        self.optimiser = torch.optim.Adam(self.params.values(), lr=recipe.lr)
+        self.generator = torch.Generator().manual_seed(recipe.seed)
+        self.progress = Progress()
+        self.best_params = snapshot(self.params)
+        self.pending = spread_order(capture.scene, split.training)
+        self.banked: list[str] = []
+        self.train_bank: PointBank | None = None
+        self.held_bank: PointBank | None = None
+        self.clock = time.perf_counter()
+        self.since_bank = self.since_score = self.bank_seconds = self.score_seconds = 0.0
+        self.loss = float("nan")
+        self.identity: dict = {}
+
+    # ------------------------------------------------------------------ time
+
+    def elapsed(self) -> float:
+        return time.perf_counter() - self.clock
+
+    def start_clock(self) -> None:
+        self.clock = time.perf_counter() - self.progress.seconds
+
+    # ------------------------------------------------------------------ banks
+
+    def _pixels(self, name: str, count: int) -> np.ndarray:
+        camera = self.capture.scene.views[name].camera
+        seed = int.from_bytes(hashlib.sha256(f"{self.recipe.seed}/{name}".encode()).digest()[:4], "little")
+        total = camera.width * camera.height
+        return np.sort(np.random.default_rng(seed).choice(total, size=min(count, total), replace=False))
+
+    def _bank(self, name: str, index: int, count: int) -> PointBank:
+        """The banked rays of view ``name``: read from the work folder, or built and written there."""
+        pick = self._pixels(name, count)
+        path = self.work / "banks" / f"{hashlib.sha256(name.encode()).hexdigest()[:16]}-{len(pick)}.pt"
+        if path.is_file():
+            bank = PointBank(**torch.load(path, weights_only=True))
+            bank.view.fill_(index)
+            return bank
+        scene = self.capture.scene
+        sources = [scene.views[s] for s in self.split.sources[name]]
+        encoded = self.onnx.encode_scene(
+            np.stack([v.image for v in sources]), [v.camera for v in sources], scene.near, scene.far, scene.background
+        )
+        bank = bank_view(
+            self.renderer, Encoded.of(encoded), scene.views[name], pick, scene.near, scene.far, scene.background, index
+        )
+        path.parent.mkdir(parents=True, exist_ok=True)
+        torch.save(bank.__dict__, path.with_suffix(".tmp"))
+        path.with_suffix(".tmp").replace(path)
+        return bank
+
+    def bank_held_out(self) -> None:
+        held = self.split.held_out
+        count = max(self.recipe.min_held_out_rays, self.recipe.held_out_rays // len(held))
+        self.held_bank = PointBank.concat([self._bank(name, i, count) for i, name in enumerate(held)])
+
+    def bank_next(self) -> None:
+        """Banks the next training view and adds it to the rays steps draw from."""
+        start = self.elapsed()
+        name = self.pending.pop(0)
+        count = min(self.recipe.rays_per_view, self.recipe.bank_rays // len(self.split.training))
+        bank = self._bank(name, len(self.banked), count)
+        self.banked.append(name)
+        self.train_bank = bank if self.train_bank is None else PointBank.concat([self.train_bank, bank])
+        self.bank_seconds, self.since_bank = self.elapsed() - start, 0.0
+
+    def wants_bank(self) -> bool:
+        """Bank the next view when none is banked, or after training as long as the last banking took."""
+        return bool(self.pending) and (self.train_bank is None or self.since_bank >= self.bank_seconds)
+
+    # ------------------------------------------------------------------ steps and scores
+
+    def step(self) -> float:
+        """One optimiser step on random banked rays of the training views; the loss before it."""
+        start = self.elapsed()
+        idx = torch.randint(len(self.train_bank), (self.recipe.rays,), generator=self.generator)
+        loss = torch.mean((shade(self.renderer, self.train_bank, idx) - self.train_bank.truth[idx]) ** 2)
+        self.optimiser.zero_grad(set_to_none=True)
+        loss.backward()
+        self.optimiser.step()
+        self.progress.step += 1
+        spent = self.elapsed() - start
+        self.since_bank += spent
+        self.since_score += spent
+        self.loss = float(loss.detach())
+        return self.loss
+
+    def score(self) -> dict:
+        """Scores the held-out views; keeps the weights when they beat every scored step before."""
+        start = self.elapsed()
+        result = score(self.renderer, self.held_bank, self.split.held_out)
+        self.score_seconds = self.elapsed() - start
+        p = self.progress
+        p.history.append({"step": p.step, "seconds": self.elapsed(), **result})
+        if p.initial is None:
+            p.initial = p.best = result
+        elif result["psnr"] > p.best["psnr"]:
+            p.best, p.best_step, self.best_params = result, p.step, snapshot(self.params)
+        self.since_score = 0.0
+        return result
+
+    # ------------------------------------------------------------------ state
+
+    def save(self, identity: dict | None = None) -> None:
+        """Writes the state a rerun resumes from (``identity``: what it must share with this run)."""
+        if identity is not None:
+            self.identity = identity
+        self.progress.seconds = self.elapsed()
+        state = {
+            "identity": self.identity,
+            "progress": asdict(self.progress),
+            "params": snapshot(self.params),
+            "best_params": self.best_params,
+            "optimiser": self.optimiser.state_dict(),
+            "generator": self.generator.get_state(),
+        }
+        path = self.work / "state.pt"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        torch.save(state, path.with_suffix(".tmp"))
+        path.with_suffix(".tmp").replace(path)
+
+    def load(self, state: dict) -> None:
+        self.progress = Progress(**state["progress"])
+        restore(self.params, state["params"])
+        self.best_params = state["best_params"]
+        self.optimiser.load_state_dict(state["optimiser"])
+        self.generator.set_state(state["generator"])
+
+
+# ------------------------------------------------------------------------------------------ schedule
+
+
+def status(run: Refinement) -> str:
+    p = run.progress
+    held = "" if p.best is None else f", held-out {p.history[-1]['psnr']:.2f} dB (best {p.best['psnr']:.2f})"
+    views = f"views {len(run.banked)}/{len(run.split.training)}"
+    return f"step {p.step}, loss {run.loss:.4f}{held}, {views}"
+
+
+def report(run: Refinement, result: dict) -> str:
+    p = run.progress
+    gain = result["psnr"] - p.initial["psnr"]
+    line = f"step {p.step} ({run.elapsed() / 60:.1f} min): held-out PSNR {result['psnr']:.2f} dB ({gain:+.2f})"
+    if "psnr_masked" in result:
+        line += f", masked {result['psnr_masked']:.2f} dB ({result['psnr_masked'] - p.initial['psnr_masked']:+.2f})"
+    return line + f"; best step {p.best_step}"
+
+
+def train_to(run: Refinement, deadline: float, bar: tqdm, log) -> None:
+    """Banks views and trains until ``deadline`` (seconds of the run's clock), scoring as it goes."""
+    while run.elapsed() < deadline:
+        if run.wants_bank():
+            bar.set_description(f"refine (banking {run.pending[0]})")
+            run.bank_next()
+            bar.set_description("refine")
+        elif run.train_bank is None:
+            break  # every view banked and none to train on: cannot happen after split_views
+        else:
+            loss = run.step()
+            log.write(json.dumps({"step": run.progress.step, "loss": loss, "seconds": run.elapsed()}) + "\n")
+            if run.since_score >= run.recipe.score_every_s:
+                tqdm.write(report(run, run.score()))
+                run.save()  # a run killed outright resumes from here
+        bar.n = min(int(run.elapsed()), bar.total)
+        bar.set_postfix_str(status(run), refresh=False)
+        bar.refresh()
+
+
+def finish(run: Refinement, bar: tqdm) -> None:
+    """The last scoring, if a step came after the one before."""
+    if run.progress.history and run.progress.history[-1]["step"] != run.progress.step:
+        tqdm.write(report(run, run.score()))
+    bar.n = min(int(run.elapsed()), bar.total)
+    bar.set_postfix_str(status(run))
+
+
+@contextmanager
+def sigterm_as_interrupt():
+    """SIGTERM (a Kubernetes Job deleted, `docker stop`) handled as Ctrl-C: the best so far is written."""
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    try:
+        previous = signal.signal(signal.SIGTERM, interrupt)
+    except ValueError:  # not the main thread
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+# ------------------------------------------------------------------------------------------ the command
+
+
+@dataclass
+class Result:
+    out: Path
+    model_id: str
+    record: dict
+    interrupted: bool
+
+
+def identity_of(about: dict, capture: Capture, split: Split, recipe: Recipe) -> dict:
+    """What a resumed run must share with the run it resumes."""
+    return {
+        "base_model_id": about["base_model_id"],
+        "capture_sha256": capture.sha256,
+        "held_out": split.held_out,
+        "training": split.training,
+        "train": list(recipe.train),
+    }
+
+
+def check_out(out: Path, base: Path, identity: dict) -> dict | None:
+    """The saved state of an earlier run into ``out`` (None for a fresh one); an error for a folder
+    refine may not write or a run of another capture, base or split."""
+    if out.resolve() == base.resolve():
+        raise RefineError("--out is the base bundle: refine writes a new bundle")
+    path = out / ".refine" / "state.pt"
+    if not path.is_file():
+        if (out / "manifest.json").is_file():
+            raise RefineError(f"{out} holds a bundle that refine did not write: pass another --out")
+        return None
+    state = torch.load(path, weights_only=False)
+    differ = [k for k in identity if state["identity"].get(k) != identity[k]]
+    if differ:
+        raise RefineError(
+            f"{out} holds the refinement of another {', '.join(differ)}: pass another --out, or remove {out}"
+        )
+    return state
+
+
+def refinement_record(run: Refinement, about: dict, interrupted: bool) -> dict:
+    """``provenance.refinement`` of the bundle written."""
+    p, recipe = run.progress, run.recipe
+    held = {"before": p.initial["psnr"], "after": p.best["psnr"]}
+    if "psnr_masked" in p.initial:
+        held.update(masked_before=p.initial["psnr_masked"], masked_after=p.best["psnr_masked"])
+    held["views"] = {n: [p.initial["views"][n], p.best["views"][n]] for n in run.split.held_out}
+    held["pixels"] = len(run.held_bank)
+    return {
+        "exporter_version": __version__,
+        **about,
+        "capture": run.capture.describe(),
+        "held_out": run.split.held_out,
+        "training": run.split.training,
+        "trained": sorted(m for g in recipe.train for m in MODULES[g] if getattr(run.renderer, m, None) is not None),
+        "recipe": {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(recipe).items()},
+        "sampling": f"{run.renderer.cfg.samples} uniform samples per ray on the capture's [near, far]",
+        "steps": p.best_step,
+        "steps_run": p.step,
+        "minutes": round(run.elapsed() / 60.0, 2),
+        "held_out_psnr": held,
+        "selection": "the scored step with the best mean held-out PSNR, the base included (held-out views are "
+        "never sources and never in a step)",
+        "hardware": hardware(),
+        "interrupted": interrupted,
+    }
+
+
+def refine(
+    data: str | Path,
+    out: str | Path,
+    recipe: Recipe = Recipe(),
+    base: str | Path | None = None,
+    checkpoint: str | Path | None = None,
+    fmt: str | None = None,
+    downscale: int | None = None,
+    max_pixels: int = MAX_SOURCE_PIXELS,
+    holdout: int | None = None,
+    targets: list[str] | None = None,
+    threads: int | None = None,
+    keep_banks: bool = False,
+) -> Result:
+    """Refine ``base`` (default :func:`default_bundle`) on the capture ``data``; write the bundle to
+    ``out``. The banks are removed once the budget is spent, unless ``keep_banks``."""
+    if threads:
+        torch.set_num_threads(threads)
+    out, base = Path(out), Path(base) if base else default_bundle()
+    capture = read_capture(data, fmt, downscale, max_pixels)
+    split = split_views(capture.scene, holdout, targets)
+    model, manifest, about = base_model(base, checkpoint)
+    identity = identity_of(about, capture, split, recipe)
+    state = check_out(out, base, identity)
+    run = Refinement(model, capture, split, OnnxBundle(base, threads=threads), recipe, out / ".refine")
+    run.identity = identity
+    if state is not None:
+        run.load(state)
+    interrupted = False
+    try:
+        with sigterm_as_interrupt():
+            run_budget(run, about)
+    except KeyboardInterrupt:
+        interrupted = True
+        tqdm.write("interrupted: writing the best bundle so far; run the same command again to resume")
+    result = write(run, manifest, base, out, about, identity, interrupted)
+    if not (interrupted or keep_banks):
+        shutil.rmtree(run.work / "banks", ignore_errors=True)
+    return result
+
+
+def run_budget(run: Refinement, about: dict) -> None:
+    """The held-out views banked and the base scored, then banking and training to the end of the
+    budget, less what the last scoring and the bundle's writing take."""
+    recipe = run.recipe
+    budget = recipe.minutes * 60.0
+    run.start_clock()
+    if run.elapsed() >= budget - recipe.write_reserve_s:
+        return
+    bar = tqdm(
+        total=int(budget),
+        initial=int(run.elapsed()),
+        unit="s",
+        desc="refine (banking held-out views)",
+        bar_format="{desc}{percentage:3.0f}%|{bar}| {elapsed}<{remaining}{postfix}",
+        dynamic_ncols=True,
+    )
+    run.work.mkdir(parents=True, exist_ok=True)
+    with open(run.work / "log.jsonl", "a") as log:
+        try:
+            run.bank_held_out()
+            if run.progress.initial is None:
+                tqdm.write(f"base {about['base_model_id']}: " + report(run, run.score()))
+            bar.set_description("refine")
+            train_to(run, budget - recipe.write_reserve_s - run.score_seconds, bar, log)
+            finish(run, bar)
+        finally:
+            bar.close()
+
+
+def write(run: Refinement, manifest, base: Path, out: Path, about: dict, identity: dict, interrupted: bool) -> Result:
+    """Saves the run's state and writes the bundle of its best step (the base's renderer if none beat it)."""
+    run.save(identity)
+    if run.progress.initial is None:
+        if interrupted:
+            raise KeyboardInterrupt
+        raise RefineError(f"the budget of {run.recipe.minutes:g} minutes ended before the held-out views were scored")
+    record = refinement_record(run, about, interrupted)
+    model = None
+    if run.progress.best_step > 0:
+        restore(run.params, run.best_params)
+        model = run.model
+    written = write_bundle(base, manifest, model, out, record, run.work / "staging")
+    return Result(out, written.model_id, record, interrupted)

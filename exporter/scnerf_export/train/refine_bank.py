@@ -1,0 +1,192 @@
+"""Ray banks for `scnerf-export refine`: what the trunk (M1) and the heads read for rays of a
+capture's views, computed once per view with the encoder and volume frozen.
+
+The finetune command banks F_r, the trunk's output (``finetune.RayBank``); refine banks the
+trunk's inputs instead, so that M1 can train as well: per sample the reference-frustum
+coordinates x (M1 reads E(x)), the point features f (M1's gate and the geometry rectifier's
+keys) and the appearance features (the appearance rectifier's keys), per ray its direction in
+the reference frame. A step then runs M1 and the heads on banked rays, never G1 or G2.
+
+Each view is encoded as the server encodes it: its 3 sources through the bundle's own encoder and
+volume graphs in ONNX Runtime (``OnnxBundle.encode_scene``: padding, the plane sweep), the S
+uniform samples of [near, far] on rays through pixel centres, ``depth_range = [near, far]``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from .. import cameras as cams
+from ..data.scene import View
+from ..model.layers import frequency_encoding
+from ..model.points import reference_frustum_coordinates, sample_views, sample_volume
+from ..model.renderer import RadiancePoints, RayRenderer, uniform_depths
+from .from_scratch import psnr_from_mse
+
+
+@dataclass
+class PointBank:
+    """Banked rays (of one view or many) and the truth they are compared with."""
+
+    frustum: torch.Tensor  # x in the reference frustum (N,S,3) float32
+    point_features: torch.Tensor  # f (N,F,S) float16
+    appearance: torch.Tensor  # mean [F_i, I_i] over the sources (N,A,S) float16; (N,0,S) without it
+    ref_dir: torch.Tensor  # (N,3)
+    truth: torch.Tensor  # (N,3) the view's colours
+    mask: torch.Tensor  # (N) bool: object pixel (DTU's masks), True where the view has none
+    view: torch.Tensor  # (N) index of the view each ray belongs to
+    z: torch.Tensor  # (S) sample depths, shared by every ray of a capture
+    depth_range: torch.Tensor  # (2) the rectifiers' depth range, [near, far]
+    background: torch.Tensor  # (3)
+
+    PER_RAY = ("frustum", "point_features", "appearance", "ref_dir", "truth", "mask", "view")
+
+    def __len__(self) -> int:
+        return self.truth.shape[0]
+
+    def rays(self, keep: torch.Tensor) -> PointBank:
+        """The bank's rays ``keep`` (indices or a mask)."""
+        shared = {k: v for k, v in self.__dict__.items() if k not in self.PER_RAY}
+        return PointBank(**{k: getattr(self, k)[keep] for k in self.PER_RAY}, **shared)
+
+    def storable(self) -> PointBank:
+        """Without rays whose features overflow float16 (they would make every step that draws them NaN)."""
+        finite = torch.isfinite(self.point_features).flatten(1).all(dim=1)
+        return self.rays(finite & torch.isfinite(self.appearance).flatten(1).all(dim=1))
+
+    @staticmethod
+    def concat(banks: list[PointBank]) -> PointBank:
+        """One bank of every ray of ``banks``, their ``view`` indices kept (each bank names its own)."""
+        fields = {k: torch.cat([getattr(b, k) for b in banks]) for k in PointBank.PER_RAY}
+        shared = {k: getattr(banks[0], k) for k in ("z", "depth_range", "background")}
+        return PointBank(**fields, **shared)
+
+
+@dataclass(frozen=True)
+class Encoded:
+    """A source triple through G1 and G2 (numpy, as ``OnnxBundle.encode_scene`` returns it)."""
+
+    images: torch.Tensor
+    features: torch.Tensor
+    volume: torch.Tensor
+    intrinsics: torch.Tensor
+    extrinsics: torch.Tensor
+
+    @staticmethod
+    def of(scene: dict[str, np.ndarray]) -> Encoded:
+        return Encoded(**{k: torch.from_numpy(np.ascontiguousarray(scene[k])) for k in Encoded.__dataclass_fields__})
+
+
+def trunk_inputs(
+    renderer: RayRenderer, encoded: Encoded, origins: torch.Tensor, directions: torch.Tensor, near_far: torch.Tensor
+) -> tuple[torch.Tensor, ...]:
+    """What ``RayRenderer.radiance_points`` computes before M1, for rays at the S uniform depths:
+    frustum coordinates (R,S,3), f (R,F,S), appearance features (R,A,S) and the ray directions in
+    the reference frame (R,3)."""
+    cfg = renderer.cfg
+    rays, samples = origins.shape[0], cfg.samples
+    z = uniform_depths(near_far, samples)
+    points = (origins[:, None, :] + directions[:, None, :] * z[None, :, None]).reshape(-1, 3)
+    _, _, height, width = encoded.images.shape
+    intrinsics, extrinsics = encoded.intrinsics, encoded.extrinsics
+    frustum = reference_frustum_coordinates(points, intrinsics[0], extrinsics[0], near_far, height, width, cfg.pad)
+    s = sample_volume(encoded.volume, frustum)
+    features = encoded.features if renderer.appearance is not None else None
+    colours, appearance = sample_views(points, encoded.images, features, intrinsics, extrinsics)
+    if appearance is None:
+        appearance = torch.zeros((0, rays * samples))
+    unit = directions / torch.linalg.vector_norm(directions, dim=-1, keepdim=True)
+
+    def per_ray(x: torch.Tensor) -> torch.Tensor:  # (K, R*S) -> (R,K,S)
+        return x.view(x.shape[0], rays, samples).transpose(0, 1)
+
+    return (
+        frustum.view(rays, samples, 3),
+        per_ray(torch.cat([s, colours])),
+        per_ray(appearance),
+        unit @ extrinsics[0, :3, :3].transpose(0, 1),
+    )
+
+
+@torch.no_grad()
+def bank_view(
+    renderer: RayRenderer,
+    encoded: Encoded,
+    view: View,
+    pick: np.ndarray,
+    near: float,
+    far: float,
+    background,
+    index: int,
+    chunk: int = 1024,
+) -> PointBank:
+    """The banked rays of the pixels ``pick`` (flat indices) of ``view``, seen from ``encoded``."""
+    origins, directions = cams.target_rays(view.camera)
+    near_far = torch.tensor([near, far], dtype=torch.float32)
+    parts = []
+    for start in range(0, len(pick), chunk):
+        rows = pick[start : start + chunk]
+        o, d = torch.from_numpy(origins[rows]), torch.from_numpy(directions[rows])
+        frustum, f, appearance, ref_dir = trunk_inputs(renderer, encoded, o, d, near_far)
+        parts.append((frustum, f.half(), appearance.half(), ref_dir))
+    n = len(pick)
+    mask = np.ones(n, dtype=bool) if view.mask is None else view.mask.reshape(-1)[pick]
+    return PointBank(
+        frustum=torch.cat([p[0] for p in parts]),
+        point_features=torch.cat([p[1] for p in parts]),
+        appearance=torch.cat([p[2] for p in parts]),
+        ref_dir=torch.cat([p[3] for p in parts]),
+        truth=torch.from_numpy(view.image.reshape(-1, 3)[pick].astype(np.float32)),
+        mask=torch.from_numpy(mask),
+        view=torch.full((n,), index, dtype=torch.long),
+        z=uniform_depths(near_far, renderer.cfg.samples),
+        depth_range=near_far,
+        background=torch.tensor(background, dtype=torch.float32),
+    ).storable()
+
+
+def radiance_points(renderer: RayRenderer, bank: PointBank, idx: torch.Tensor) -> RadiancePoints:
+    """The rays ``idx`` through M1 (with gradients when enabled): what the heads read."""
+    rays = idx.shape[0]
+
+    def channels_first(x: torch.Tensor) -> torch.Tensor:  # (R,K,S) -> (K, R*S)
+        return x[idx].float().transpose(0, 1).reshape(x.shape[1], -1)
+
+    f = channels_first(bank.point_features)
+    encoding = frequency_encoding(bank.frustum[idx].reshape(-1, 3), renderer.cfg.position_freqs)
+    appearance = channels_first(bank.appearance) if renderer.appearance is not None else None
+    radiance = renderer.m1(encoding, f.transpose(0, 1))
+    return RadiancePoints(bank.z, radiance.view(rays * bank.z.shape[0], -1), f, appearance, bank.ref_dir[idx])
+
+
+def shade(renderer: RayRenderer, bank: PointBank, idx: torch.Tensor) -> torch.Tensor:
+    """Composited colour of the rays ``idx``, as the server composites it on the background."""
+    rgb, _, opacity = renderer.shade(radiance_points(renderer, bank, idx), bank.depth_range)
+    return rgb + (1.0 - opacity[:, None]) * bank.background
+
+
+@torch.no_grad()
+def render(renderer: RayRenderer, bank: PointBank, chunk: int = 1024) -> torch.Tensor:
+    """Every ray of the bank, clamped to [0,1] as the server's 8-bit output is."""
+    parts = [shade(renderer, bank, torch.arange(s, min(s + chunk, len(bank)))) for s in range(0, len(bank), chunk)]
+    return torch.cat(parts).clamp(0.0, 1.0)
+
+
+def score(renderer: RayRenderer, bank: PointBank, names: list[str]) -> dict:
+    """PSNR of each view's banked pixels (``names[i]`` for view i), their mean, and the same on the
+    object pixels of views with masks (DTU's protocol)."""
+    error = ((render(renderer, bank) - bank.truth) ** 2).mean(dim=1)
+    views, masked = {}, {}
+    for i, name in enumerate(names):
+        rows = bank.view == i
+        views[name] = psnr_from_mse(float(error[rows].mean()))
+        if not bool(bank.mask[rows].all()):
+            masked[name] = psnr_from_mse(float(error[rows & bank.mask].mean()))
+    out = {"psnr": float(np.mean(list(views.values()))), "views": views}
+    if masked:
+        out["psnr_masked"] = float(np.mean(list(masked.values())))
+        out["views_masked"] = masked
+    return out

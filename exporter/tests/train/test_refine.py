@@ -1,0 +1,322 @@
+"""`scnerf-export refine` (scnerf_export.train.refine*) on a tiny procedural capture written as a
+nerfstudio folder, refining the committed parity-fixture bundle (its weights are
+``random_model(small_config(), 7)``, which ``base_model`` checks against its renderer graph).
+
+What is checked: the capture's format, image set and split (held-out views are never sources; a
+capture too small is refused), the banked rays shade as the renderer renders, steps on the
+training views make them score better, held-out views never reach the optimiser (instrumented: no
+encoding sees them, every step's rays are training rays, their poisoned pixels never make a
+gradient), a resumed run continues exactly as an uninterrupted one, and, end to end (slow), Ctrl-C
+writes the best bundle so far and the same command resumes into an ordinary bundle.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import shutil
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from scnerf_export import cli
+from scnerf_export.cameras import target_rays
+from scnerf_export.config import small_config
+from scnerf_export.data.procedural import make_scene
+from scnerf_export.data.scene import SceneData, View
+from scnerf_export.export.manifest import Manifest
+from scnerf_export.model.checkpoint import save_checkpoint
+from scnerf_export.rigs import random_model
+from scnerf_export.runtime.onnx_pipeline import OnnxBundle
+from scnerf_export.runtime.reference import encode_scene, render_rays
+from scnerf_export.train import refine as refine_module
+from scnerf_export.train.refine import Recipe, RefineError, Refinement, refine, snapshot
+from scnerf_export.train.refine_bank import Encoded, bank_view, score, shade
+from scnerf_export.train.refine_bundle import base_model
+from scnerf_export.train.refine_capture import (
+    CaptureError,
+    ImageSet,
+    detect_format,
+    fit_to_limit,
+    pick_image_set,
+    read_capture,
+    split_views,
+    spread_order,
+    write_procedural_capture,
+)
+
+from conftest import REPO
+
+PARITY_BUNDLE = REPO / "tests" / "fixtures" / "parity" / "bundle"
+DATASETS = REPO / "tests" / "fixtures" / "datasets"
+WIDTH, HEIGHT = 48, 32
+# Small steps and scorings, no time kept back for writing: a test's budget is seconds.
+QUICK = Recipe(rays=64, rays_per_view=512, held_out_rays=512, min_held_out_rays=128, score_every_s=2.0, lr=5e-4)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    """One torch thread: on a shared 2-core machine, two threads of small products wait on each
+    other (measured here: 25 steps in 22 s with 2 threads beside another job, 1.3 s with one)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def capture_dir(tmp_path_factory) -> Path:
+    return write_procedural_capture(tmp_path_factory.mktemp("capture") / "c", views=7, width=WIDTH, height=HEIGHT)
+
+
+@pytest.fixture(scope="module")
+def base(tmp_path_factory):
+    """The parity bundle and the checkpoint of its weights."""
+    checkpoint = tmp_path_factory.mktemp("base") / "parity.pt"
+    save_checkpoint(checkpoint, random_model(small_config(), 7), {})
+    return PARITY_BUNDLE, checkpoint
+
+
+@pytest.fixture(scope="module")
+def loaded(capture_dir, base):
+    """The capture (every 3rd view held out: v0, v3, v6) and the base network."""
+    capture = read_capture(capture_dir)
+    split = split_views(capture.scene, holdout=3)
+    model, manifest, about = base_model(*base)
+    return capture, split, model, OnnxBundle(base[0], threads=1)
+
+
+def scene_of(count: int) -> SceneData:
+    views = make_scene(3, "object", n_views=count, width=16, height=16).views
+    named = {f"v{i}": View(f"v{i}", v.image, v.camera) for i, v in enumerate(views)}
+    return SceneData(named, 2.0, 6.0, (0.0, 0.0, 0.0), None, None)
+
+
+# ----------------------------------------------------------------------------------------- capture
+
+
+@pytest.mark.parametrize("fmt", ["blender", "colmap", "dtu", "llff", "nerfstudio"])
+def test_formats_are_detected_as_the_rust_readers_detect_them(fmt):
+    assert detect_format(DATASETS / fmt) == fmt
+
+
+def test_the_image_set_is_the_largest_within_the_source_limit():
+    sets = [ImageSet(1, 4032, 3024), ImageSet(4, 1008, 756), ImageSet(8, 504, 378)]
+    assert pick_image_set(sets, None, 1 << 20).factor == 4
+    assert pick_image_set(sets, None, 1000).factor == 8  # none fits: the smallest
+    assert pick_image_set(sets, 1, 1 << 20).factor == 1
+    with pytest.raises(CaptureError, match="no images_2 folder"):
+        pick_image_set(sets, 2, 1 << 20)
+
+
+def test_views_over_the_limit_shrink_as_the_server_shrinks_them():
+    scene = scene_of(5)
+    assert fit_to_limit(scene, 16 * 16) is None
+    fit_to_limit(scene, 100)  # sqrt(100/256) = 0.625 of 16, rounded down
+    assert {(v.camera.width, v.camera.height, v.image.shape[:2]) for v in scene.views.values()} == {(10, 10, (10, 10))}
+
+
+def test_held_out_views_are_never_sources():
+    scene = scene_of(9)
+    split = split_views(scene, holdout=4)
+    assert split.held_out == ["v0", "v4", "v8"]
+    assert set(split.training) == set(scene.views) - set(split.held_out)
+    for name, sources in split.sources.items():
+        assert len(sources) == 3 and name not in sources and set(sources) <= set(split.training)
+    assert sorted(spread_order(scene, split.training)) == sorted(split.training)
+
+
+def test_a_capture_too_small_is_refused():
+    with pytest.raises(CaptureError, match="the capture has 4 views; refine needs at least 5"):
+        split_views(scene_of(4))
+    with pytest.raises(CaptureError, match="no views left to train on: holding out 3 of 6 views leaves 3"):
+        split_views(scene_of(6), targets=["v0", "v1", "v2"])
+
+
+def test_the_command_refuses_a_capture_too_small(tmp_path, capsys):
+    folder = write_procedural_capture(tmp_path / "four", views=4, width=16, height=16)
+    assert cli.main(["refine", str(folder), "--out", str(tmp_path / "out")]) == 2
+    assert "the capture has 4 views; refine needs at least 5" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
+# ------------------------------------------------------------------------------------------- banks
+
+
+def test_banked_rays_shade_as_the_renderer_renders(loaded):
+    capture, split, model, _ = loaded
+    scene = capture.scene
+    sources = [scene.views[s] for s in split.sources["v1"]]
+    encoded = encode_scene(model, np.stack([v.image for v in sources]), [v.camera for v in sources], 2.0, 6.0)
+    pick = np.arange(0, WIDTH * HEIGHT, 7)
+    bank = bank_view(model.renderer, Encoded(**encoded.__dict__), scene.views["v1"], pick, 2.0, 6.0, (0, 0, 0), 0)
+    origins, directions = target_rays(scene.views["v1"].camera)
+    with torch.no_grad():
+        rgb, _, opacity = render_rays(model, encoded, origins[pick], directions[pick], 2.0, 6.0, (2.0, 6.0), 512)
+        banked = shade(model.renderer, bank, torch.arange(len(pick))).numpy()
+    # The bank stores point and appearance features as float16.
+    assert np.abs(banked - rgb).max() < 2e-3 and opacity.std() > 0.01
+
+
+# ---------------------------------------------------------------------------------------- training
+
+
+def fresh_run(loaded, work: Path, recipe: Recipe = QUICK) -> Refinement:
+    capture, split, model, onnx = loaded
+    return Refinement(copy.deepcopy(model), capture, split, onnx, recipe, work)
+
+
+def banked(run: Refinement) -> Refinement:
+    run.bank_held_out()
+    while run.pending:
+        run.bank_next()
+    return run
+
+
+def test_steps_make_the_training_views_score_better(loaded, tmp_path):
+    run = banked(fresh_run(loaded, tmp_path))
+    names = run.banked
+    before = score(run.renderer, run.train_bank, names)["psnr"]
+    for _ in range(25):
+        run.step()
+    after = score(run.renderer, run.train_bank, names)["psnr"]
+    assert after > before + 0.5, (before, after)
+
+
+def test_held_out_views_never_reach_the_optimiser(loaded, tmp_path, monkeypatch):
+    capture, split, model, onnx = loaded
+    poisoned = copy.deepcopy(capture)
+    for name in split.held_out:  # a held-out pixel in a source or a step would make NaN
+        poisoned.scene.views[name].image[:] = np.nan
+    encodes = []
+    original_encode = onnx.encode_scene
+
+    def encode(images, *args):
+        encodes.append(bool(np.isfinite(images).all()))
+        return original_encode(images, *args)
+
+    monkeypatch.setattr(onnx, "encode_scene", encode)
+    drawn = []
+    original_shade = refine_module.shade
+
+    def recording_shade(renderer, bank, idx):
+        drawn.append((bank, idx.clone()))
+        return original_shade(renderer, bank, idx)
+
+    monkeypatch.setattr(refine_module, "shade", recording_shade)
+    run = banked(Refinement(copy.deepcopy(model), poisoned, split, onnx, QUICK, tmp_path))
+    gradients = []
+
+    def finite_gradients(optimiser, args, kwargs):
+        # W_k's bias never has one: a shift of every key by the same vector leaves the softmax as it is.
+        grads = [p.grad for p in run.params.values() if p.grad is not None]
+        gradients.append(len(grads) > len(run.params) // 2 and all(bool(torch.isfinite(g).all()) for g in grads))
+
+    run.optimiser.register_step_pre_hook(finite_gradients)
+    losses = [run.step() for _ in range(10)]
+
+    assert encodes and all(encodes), "an encoding saw a held-out view"
+    assert set(run.banked) == set(split.training)
+    for bank, idx in drawn:
+        assert bank is run.train_bank
+        assert {run.banked[i] for i in bank.view[idx].tolist()} <= set(split.training)
+    assert len(gradients) == 10 and all(gradients) and all(math.isfinite(x) for x in losses)
+    assert math.isnan(run.score()["psnr"])  # the held-out views are the poisoned ones
+
+
+def test_a_resumed_run_continues_as_the_uninterrupted_one(loaded, tmp_path):
+    whole = banked(fresh_run(loaded, tmp_path / "whole"))
+    whole.score()
+    for _ in range(3):
+        whole.step()
+    whole.save({"test": 1})
+
+    resumed = banked(fresh_run(loaded, tmp_path / "whole"))
+    resumed.load(torch.load(tmp_path / "whole" / "state.pt", weights_only=False))
+    assert resumed.progress.step == 3 and resumed.progress.initial is not None
+    for _ in range(2):
+        expected, got = whole.step(), resumed.step()
+        assert expected == got
+    for name, p in whole.params.items():
+        assert torch.equal(p, resumed.params[name]), name
+
+
+def test_the_kept_step_is_the_best_scored(loaded, tmp_path):
+    # A learning rate large enough that some scorings are worse than others.
+    run = banked(fresh_run(loaded, tmp_path, replace(QUICK, lr=2e-2)))
+    run.score()
+    weights = {0: snapshot(run.params)}
+    for _ in range(5):
+        for _ in range(3):
+            run.step()
+        run.score()
+        weights[run.progress.step] = snapshot(run.params)
+    history = {h["step"]: h["psnr"] for h in run.progress.history}
+    assert len(set(history.values())) > 1
+    best = max(history, key=history.get)
+    assert run.progress.best_step == best and run.progress.best["psnr"] == history[best]
+    assert all(torch.equal(run.best_params[k], weights[best][k]) for k in weights[best])
+
+
+def test_another_capture_into_the_same_out_is_refused(loaded, base, tmp_path):
+    capture, split, model, onnx = loaded
+    out = tmp_path / "out"
+    fresh_run(loaded, out / ".refine").save({"capture_sha256": "another"})
+    with pytest.raises(RefineError, match="refinement of another capture_sha256"):
+        refine_module.check_out(out, base[0], {"capture_sha256": capture.sha256})
+    (tmp_path / "bundle").mkdir()
+    (tmp_path / "bundle" / "manifest.json").write_text("{}")
+    with pytest.raises(RefineError, match="holds a bundle that refine did not write"):
+        refine_module.check_out(tmp_path / "bundle", base[0], {})
+
+
+# ------------------------------------------------------------------------------------- end to end
+
+
+@pytest.mark.slow
+def test_interrupted_then_resumed_into_an_ordinary_bundle(capture_dir, base, tmp_path, monkeypatch):
+    out = tmp_path / "refined"
+    recipe = replace(QUICK, minutes=1.0, write_reserve_s=0.0, score_every_s=3.0)
+    steps = {"n": 0}
+    original_step = Refinement.step
+
+    def step_then_interrupt(self):
+        steps["n"] += 1
+        if steps["n"] == 8:
+            raise KeyboardInterrupt
+        return original_step(self)
+
+    monkeypatch.setattr(Refinement, "step", step_then_interrupt)
+    first = refine(capture_dir, out, recipe, base=base[0], checkpoint=base[1], holdout=3, threads=1)
+    assert first.interrupted and first.record["steps_run"] == 7 and (out / ".refine" / "banks").is_dir()
+    monkeypatch.setattr(Refinement, "step", original_step)
+
+    second = refine(capture_dir, out, recipe, base=base[0], checkpoint=base[1], holdout=3, threads=1)
+    record = second.record
+    assert not second.interrupted and record["steps_run"] > 7
+    assert record["minutes"] >= first.record["minutes"]
+    assert not (out / ".refine" / "banks").exists()  # removed once the budget is spent
+    manifest = Manifest.load(out)
+    assert manifest.model_id == second.model_id == manifest.renderer_model_id()
+    refinement = manifest.provenance.refinement
+    assert refinement["base_model_id"] == Manifest.load(base[0]).model_id
+    assert refinement["capture"]["folder"] == capture_dir.name and len(refinement["capture"]["sha256"]) == 64
+    assert refinement["held_out"] == ["v0", "v3", "v6"]
+    held = refinement["held_out_psnr"]
+    assert held["after"] >= held["before"] and refinement["steps"] <= refinement["steps_run"]
+    if refinement["steps"] > 0:
+        assert manifest.model_id != Manifest.load(base[0]).model_id
+    # The bundle runs as the server runs it (ONNX Runtime, guided sampling included).
+    bundle = OnnxBundle(out, threads=1)
+    scene = read_capture(capture_dir).scene
+    sources = [scene.views[n] for n in ("v1", "v2", "v4")]
+    encoded = bundle.encode_scene(
+        np.stack([v.image for v in sources]), [v.camera for v in sources], 2.0, 6.0, (0, 0, 0)
+    )
+    for sampling in ("full", "guided"):
+        rgb = bundle.render_target(encoded, scene.views["v0"].camera, scene.near, scene.far, sampling=sampling).rgb
+        assert rgb.shape == (HEIGHT, WIDTH, 3) and np.isfinite(rgb).all()
+    shutil.rmtree(out)
