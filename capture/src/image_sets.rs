@@ -12,7 +12,7 @@ use std::path::{Path, PathBuf};
 use crate::error::{Error, Result};
 use crate::files::Files;
 pub use crate::readers::folder_name;
-use crate::readers::{self, has_image_extension, Capture, Format, ReadOptions};
+use crate::readers::{self, list_images, Capture, Format, ReadOptions};
 
 /// One image set: `images/` (factor 1) or `images_N/`, with the size of its first image.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -68,14 +68,7 @@ fn factor_of(name: &str) -> Option<u32> {
 
 /// The first image of a folder in name order (hidden files left out).
 fn first_image(fs: &dyn Files, folder: &Path) -> Result<Option<PathBuf>> {
-    let mut images: Vec<PathBuf> = fs
-        .list(folder)?
-        .into_iter()
-        .filter(|p| fs.is_file(p) && has_image_extension(p))
-        .filter(|p| !p.file_name().is_some_and(|n| n.to_string_lossy().starts_with('.')))
-        .collect();
-    images.sort();
-    Ok(images.into_iter().next())
+    Ok(list_images(fs, folder)?.into_iter().next())
 }
 
 /// Which set to read.

@@ -36,21 +36,48 @@ class CaptureFiles:
         return sum(len(data) for _, data in self.files)
 
 
+def is_image_name(name: str) -> bool:
+    """Whether a file of this name is one of a set's images: png, jpg or jpeg in any case, and not
+    hidden (``._IMG_0001.JPG`` is macOS's metadata). The ``scnerf`` readers' rule too
+    (scnerf_capture::readers::list_images), held with them by tests/fixtures/rules/image_files.json."""
+    return bool(IMAGE_FILE.search(name)) and not name.startswith(".")
+
+
 def image_sets(folder: Path) -> dict[int, Path]:
-    """The image sets beside each other in ``folder``: factor -> folder (``images`` is 1)."""
+    """The image sets beside each other in ``folder``, largest first: factor -> folder (``images``
+    is 1, ``images_N`` N > 1 written without leading zeros), each holding at least one image."""
     sets = {}
     for child in folder.iterdir():
         m = SET_FOLDER.match(child.name)
         if child.is_dir() and m and (m.group(1) is None or int(m.group(1)) > 1):
-            if any(IMAGE_FILE.search(p.name) for p in child.iterdir()):
+            if any(p.is_file() and is_image_name(p.name) for p in child.iterdir()):
                 sets[int(m.group(1) or 1)] = child
     return dict(sorted(sets.items()))
 
 
 def first_image_pixels(folder: Path) -> tuple[int, int]:
-    first = sorted(p for p in folder.iterdir() if IMAGE_FILE.search(p.name) and not p.name.startswith("."))[0]
+    """The size of a set's first image in name order."""
+    first = sorted(p for p in folder.iterdir() if p.is_file() and is_image_name(p.name))[0]
     with Image.open(first) as im:
         return im.size
+
+
+def choose_set(folder: Path, sets: dict[int, Path], max_source_pixels: int, downscale: int | None) -> int | None:
+    """The factor of the set of ``folder`` to send (``None`` when it has no sets): ``downscale``'s,
+    else the largest whose first image has at most ``max_source_pixels`` pixels, else the smallest.
+    A ``downscale`` without its folder is an error naming those there are."""
+    if downscale is not None:
+        if max(downscale, 1) not in sets and (sets or downscale > 1):
+            have = ", ".join(p.name for p in sets.values()) or "no image sets"
+            raise CaptureError(
+                f"downscale {downscale}: there is no images_{downscale} folder in {folder}; it has {have}"
+            )
+        return max(downscale, 1) if sets else None
+    if not sets:
+        return None
+    sizes = {f: first_image_pixels(p) for f, p in sets.items()}
+    fitting = [f for f in sets if sizes[f][0] * sizes[f][1] <= max_source_pixels]
+    return fitting[0] if fitting else max(sets)
 
 
 def collect(folder: str | Path, max_source_pixels: int, downscale: int | None = None) -> CaptureFiles:
@@ -60,18 +87,7 @@ def collect(folder: str | Path, max_source_pixels: int, downscale: int | None = 
         raise CaptureError(f"{folder}: no such capture folder")
     sets = image_sets(folder)
     resized: list[tuple[tuple[int, int], tuple[int, int]]] = []
-    chosen: int | None = None
-    if downscale is not None:
-        if max(downscale, 1) not in sets and (sets or downscale > 1):
-            have = ", ".join(p.name for p in sets.values()) or "no image sets"
-            raise CaptureError(
-                f"downscale {downscale}: there is no images_{downscale} folder in {folder}; it has {have}"
-            )
-        chosen = max(downscale, 1) if sets else None
-    elif sets:
-        sizes = {f: first_image_pixels(p) for f, p in sets.items()}
-        fitting = [f for f in sets if sizes[f][0] * sizes[f][1] <= max_source_pixels]
-        chosen = fitting[0] if fitting else max(sets)
+    chosen = choose_set(folder, sets, max_source_pixels, downscale)
     skipped = {p for f, p in sets.items() if f != chosen}
     files = []
     for path in sorted(folder.rglob("*")):

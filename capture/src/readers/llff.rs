@@ -9,11 +9,11 @@
 //! describes the full-size images: a downscaled set (`images_N`, `--downscale N`) gets f scaled by
 //! its width, f W_N / W_hwf, which is LLFF's f / N for sizes that divide exactly.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use nalgebra::{Matrix4, Vector3};
 
-use super::{cameras_of, folder_name, has_image_extension, Capture, CapturedView, DepthSource, Format, ReadOptions};
+use super::{cameras_of, folder_name, list_images, Capture, CapturedView, DepthSource, Format, ReadOptions};
 use crate::camera::{w2c_from_c2w, Camera, Intrinsics};
 use crate::depth_range;
 use crate::error::{Error, Result};
@@ -124,16 +124,4 @@ fn declared_shape(bytes: &[u8]) -> Option<(Vec<u64>, u64)> {
     let shape =
         tuple.split(',').map(str::trim).filter(|d| !d.is_empty()).map(|d| d.parse().ok()).collect::<Option<_>>()?;
     Some((shape, data_bytes))
-}
-
-/// Image files of a folder, sorted by name, hidden files left out (`llff.py::_list_images`).
-fn list_images(fs: &dyn Files, dir: &Path) -> Result<Vec<PathBuf>> {
-    let mut files: Vec<PathBuf> = fs
-        .list(dir)?
-        .into_iter()
-        .filter(|p| fs.is_file(p) && has_image_extension(p))
-        .filter(|p| !p.file_name().is_some_and(|n| n.to_string_lossy().starts_with('.')))
-        .collect();
-    files.sort();
-    Ok(files)
 }

@@ -26,7 +26,7 @@ use crate::undistort::{Fit, Lens};
 use json::{json_f64, json_matrix4};
 pub use json::{read_json, MAX_JSON_VALUES};
 use names::{base_name, resolve_image, skipped_warning, without_extension};
-pub use names::{folder_name, has_image_extension, natural_cmp, IMAGE_EXTENSIONS};
+pub use names::{folder_name, has_image_extension, list_images, natural_cmp, IMAGE_EXTENSIONS};
 
 #[derive(Debug, Clone)]
 pub struct CapturedView {

@@ -4,6 +4,7 @@
 use std::cmp::Ordering;
 use std::path::{Path, PathBuf};
 
+use crate::error::Result;
 use crate::files::Files;
 
 /// Extensions of the images the readers use, in any case (`IMG_0001.JPG`, `a.Png`): the Python
@@ -15,6 +16,21 @@ pub fn has_image_extension(path: &Path) -> bool {
     path.extension()
         .and_then(|e| e.to_str())
         .is_some_and(|e| IMAGE_EXTENSIONS.iter().any(|x| x.eq_ignore_ascii_case(e)))
+}
+
+/// The image files of a folder, sorted by name: files with an image extension whose name does not
+/// start with `.` (`._IMG_0001.JPG` is macOS's metadata). The LLFF reader's images and an image
+/// set's first image; `llff.py::_list_images` and the Python client's `captures.is_image_name`,
+/// held together by tests/fixtures/rules/image_files.json.
+pub fn list_images(fs: &dyn Files, dir: &Path) -> Result<Vec<PathBuf>> {
+    let mut files: Vec<PathBuf> = fs
+        .list(dir)?
+        .into_iter()
+        .filter(|p| fs.is_file(p) && has_image_extension(p))
+        .filter(|p| !p.file_name().is_some_and(|n| n.to_string_lossy().starts_with('.')))
+        .collect();
+    files.sort();
+    Ok(files)
 }
 
 /// The folder of the set `factor` under a capture's root: `images` for 1, `images_N` otherwise.

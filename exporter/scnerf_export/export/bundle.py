@@ -14,6 +14,7 @@ from torch import nn
 from torch.export import Dim
 
 from .. import __version__
+from ..config import ModelConfig
 from ..model.checkpoint import sha256_file
 from ..model.cost_volume import build_cost_volume, slab_halo
 from ..model.network import SCNeRF
@@ -191,75 +192,99 @@ class FineGraph(nn.Module):
         return shading.rgb, shading.depth, shading.opacity, shading.weights
 
 
-def graph_signatures(model: SCNeRF) -> dict[str, dict[str, list]]:
-    """Names and shapes of every graph's inputs and outputs, as written in the manifest."""
-    cfg = model.cfg
+# The rectifiers of the paper's variant, in the order they run (``Renderer.rectifiers``).
+RECTIFIERS = ("geometry", "appearance")
+# volume_net.onnx's outputs as the exporter writes it: G2's last step left to the server.
+VOLUME_NET_OUTPUTS = ("phases", "skip_affine", "phases_affine")
+
+
+def graph_contract(cfg: ModelConfig) -> dict[str, dict[str, list[dict]]]:
+    """The graphs' I/O contract of docs/bundle.md for the hyper-parameters ``cfg``: per graph, its
+    inputs and outputs in manifest order, each with its shape (fixed sizes, named dynamic axes) and
+    whether every bundle's graph declares it. The server checks manifests against the same
+    contract (server/src/bundle/contract.rs); tests/fixtures/rules/graph_contract.json holds
+    both to it. Optional tensors: the inputs a variant does not read, the rectifiers' heads, and
+    ``volume_net``'s outputs, in one of its two forms (the volume, or what the server computes
+    it from: the form the exporter writes)."""
     v, c, d = cfg.views, cfg.feature_channels, cfg.depth_planes
-    vol = [1, cfg.volume_channels, d, "Hp", "Wp"]
-    renderer_inputs = {
-        "ray_origins": ["R", 3],
-        "ray_directions": ["R", 3],
-        "near_far": [2],
-        "depth_range": [2],
-        "volume": vol,
-        "images": [v, 3, "H", "W"],
-        "features": [v, c, "h", "w"],
-        "intrinsics": [v, 3, 3],
-        "extrinsics": [v, 4, 4],
-    }
+    cv = cfg.volume_channels
+    images, features = [v, 3, "H", "W"], [v, c, "h", "w"]
+    vol = [1, cv, d, "Hp", "Wp"]
+    slab_conv0 = [1, cv, "Ds", "Hp", "Wp"]
     heads = cfg.heads * cfg.head_dim
-    fine_inputs = renderer_inputs | {
-        "sample_index": ["R", "K"],
-        "sample_multiplicity": ["R", "K"],
-        "head_index": ["R"],
-    }
-    fine_inputs |= {f"{r}_heads": ["G", heads, cfg.width] for r in model.renderer.rectifiers()}
-    conv0 = [1, cfg.volume_channels, d, "Hp", "Wp"]
-    slab_conv0 = [1, cfg.volume_channels, "Ds", "Hp", "Wp"]
+
+    def t(name: str, shape: list, required: bool = True) -> dict:
+        return {"name": name, "required": required, "shape": shape}
+
+    def sources(planes) -> list[dict]:
+        return [t("features", features), t("images", images), t("projections", [v, 4, 4]), t("depth_planes", [planes])]
+
+    rays = [t("ray_origins", ["R", 3]), t("ray_directions", ["R", 3])]
+    scene = [
+        t("near_far", [2]),
+        t("depth_range", [2], required=False),
+        t("volume", vol),
+        t("images", images),
+        t("features", features, required=False),
+        t("intrinsics", [v, 3, 3]),
+        t("extrinsics", [v, 4, 4]),
+    ]
+    pixels = [t("rgb", ["R", 3]), t("depth", ["R"]), t("opacity", ["R"])]
+    rectifier_heads = [t(f"{r}_heads", ["G", heads, cfg.width], required=False) for r in RECTIFIERS]
     return {
-        "encoder": {"inputs": {"images": [v, 3, "H", "W"]}, "outputs": {"features": [v, c, "h", "w"]}},
-        "volume": {
-            "inputs": {
-                "features": [v, c, "h", "w"],
-                "images": [v, 3, "H", "W"],
-                "projections": [v, 4, 4],
-                "depth_planes": [d],
-            },
-            "outputs": {"volume": vol},
+        "encoder": {"inputs": [t("images", images)], "outputs": [t("features", features)]},
+        "volume": {"inputs": sources(d), "outputs": [t("volume", vol)]},
+        "cost_slab": {"inputs": [*sources("Dh"), t("plane_inside", ["Dh"])], "outputs": [t("conv0", slab_conv0)]},
+        "cost_conv": {
+            "inputs": [t("cost", [1, 3 * v + c, "Dh", "Hp", "Wp"])],
+            "outputs": [t("conv0", slab_conv0)],
         },
-        "cost_slab": {
-            "inputs": {
-                "features": [v, c, "h", "w"],
-                "images": [v, 3, "H", "W"],
-                "projections": [v, 4, 4],
-                "depth_planes": ["Dh"],
-                "plane_inside": ["Dh"],
-            },
-            "outputs": {"conv0": slab_conv0},
-        },
-        "cost_conv": {"inputs": {"cost": [1, 3 * v + c, "Dh", "Hp", "Wp"]}, "outputs": {"conv0": slab_conv0}},
         "volume_net": {
-            "inputs": {"conv0": conv0},
-            "outputs": {
-                "phases": [1, 8 * cfg.volume_channels, d // 2, "Hp/2", "Wp/2"],
-                "skip_affine": [2, cfg.volume_channels],
-                "phases_affine": [2, cfg.volume_channels],
-            },
+            "inputs": [t("conv0", vol)],
+            "outputs": [
+                t("volume", vol, required=False),
+                t("phases", [1, 8 * cv, d // 2, "Hp/2", "Wp/2"], required=False),
+                t("skip_affine", [2, cv], required=False),
+                t("phases_affine", [2, cv], required=False),
+            ],
         },
-        "renderer": {
-            "inputs": {n: renderer_inputs[n] for n in renderer_input_names(model)},
-            "outputs": {"rgb": ["R", 3], "depth": ["R"], "opacity": ["R"]},
-        },
+        "renderer": {"inputs": rays + scene, "outputs": pixels},
         "renderer_guide": {
-            "inputs": {n: renderer_inputs[n] for n in renderer_input_names(model)},
-            "outputs": {"rgb": ["R", 3], "depth": ["R"], "opacity": ["R"], "sample_weights": ["R", cfg.samples]}
-            | {f"{r}_heads": ["R", heads, cfg.width] for r in model.renderer.rectifiers()},
+            "inputs": rays + scene,
+            "outputs": [*pixels, t("sample_weights", ["R", cfg.samples])]
+            + [{**h, "shape": ["R", *h["shape"][1:]]} for h in rectifier_heads],
         },
         "renderer_fine": {
-            "inputs": {n: fine_inputs[n] for n in guided_input_names(model, "renderer_fine")},
-            "outputs": {"rgb": ["R", 3], "depth": ["R"], "opacity": ["R"], "sample_weights": ["R", "K"]},
+            "inputs": [*rays, t("sample_index", ["R", "K"]), t("sample_multiplicity", ["R", "K"]), *scene]
+            + [*rectifier_heads, t("head_index", ["R"], required=False)],
+            "outputs": [*pixels, t("sample_weights", ["R", "K"])],
         },
     }
+
+
+def graph_signatures(model: SCNeRF) -> dict[str, dict[str, dict[str, list]]]:
+    """Names and shapes of every graph's inputs and outputs, as written in the manifest: the
+    contract's tensors this model's graphs declare (those of its variant; ``volume_net`` in the form
+    the exporter writes), in the contract's order."""
+    rectifiers = list(model.renderer.rectifiers())
+    renderer = renderer_input_names(model)
+    guide_outputs = ["rgb", "depth", "opacity", "sample_weights", *(f"{r}_heads" for r in rectifiers)]
+    declared = {
+        ("volume_net", "outputs"): VOLUME_NET_OUTPUTS,
+        ("renderer", "inputs"): renderer,
+        ("renderer_guide", "inputs"): renderer,
+        ("renderer_guide", "outputs"): guide_outputs,
+        ("renderer_fine", "inputs"): guided_input_names(model, "renderer_fine"),
+    }
+    signatures = {}
+    for graph, sides in graph_contract(model.cfg).items():
+        signatures[graph] = {}
+        for side, tensors in sides.items():
+            names = declared.get((graph, side))
+            signatures[graph][side] = {
+                tensor["name"]: tensor["shape"] for tensor in tensors if names is None or tensor["name"] in names
+            }
+    return signatures
 
 
 def example_inputs(

@@ -1,14 +1,35 @@
-"""The server's chunk policy in Python gives the server's numbers (server/src/pipeline/chunks.rs)."""
+"""The server's chunk policy in Python gives the server's numbers: both are held to
+tests/fixtures/rules/chunks.json (server/src/pipeline/chunks.rs reads it too; a change to the rule
+on one side fails that side's tests; scripts/make-rule-fixtures.py rewrites it)."""
 
-from scnerf_export.runtime.chunks import rays_per_run
+import json
+
+import pytest
+
+from scnerf_export.runtime import chunks
+
+from conftest import REPO
+
+FIXTURE = json.loads((REPO / "tests" / "fixtures" / "rules" / "chunks.json").read_text())
 
 
-def test_rays_per_run_follows_the_memory_budget_under_the_cap():
-    assert rays_per_run(128, memory_mb=4096, max_rays=4096) == 1820  # chunks.rs: chunk_size_from_budget
-    assert rays_per_run(1, memory_mb=4096, max_rays=4096) == 4096
-    assert rays_per_run(128, memory_mb=0, max_rays=4096) == 1
+def test_constants_and_defaults_are_the_servers():
+    assert (chunks.BYTES_PER_SAMPLE, chunks.GUIDED_BYTES_PER_RAY) == (
+        FIXTURE["bytes_per_sample"],
+        FIXTURE["guided_bytes_per_ray"],
+    )
+    assert (chunks.DEFAULT_MAX_RAYS, chunks.DEFAULT_MEMORY_MB) == (
+        FIXTURE["default"]["max_rays"],
+        FIXTURE["default"]["memory_mb"],
+    )
 
 
-def test_default_policy_for_the_paper_and_the_default_bundle():
-    assert rays_per_run(128) == 455  # 1 GiB / (128 x 18 KiB)
-    assert rays_per_run(48) == 512  # capped by --max-rays-per-chunk
+@pytest.mark.parametrize("case", FIXTURE["rays_per_chunk"], ids=str)
+def test_rays_per_run_follows_the_memory_budget_under_the_cap(case):
+    assert chunks.rays_per_run(case["samples"], case["memory_mb"], case["max_rays"]) == case["rays"]
+
+
+@pytest.mark.parametrize("case", FIXTURE["fine_rays_per_chunk"], ids=str)
+def test_fine_runs_hold_a_full_runs_points_within_the_budget(case):
+    got = chunks.fine_rays_per_run(case["samples"], case["full_samples"], case["memory_mb"], case["max_rays"])
+    assert got == case["rays"]

@@ -6,10 +6,10 @@ use super::manifest::{fmt_shape, Dim, GraphEntry, ModelConfig, TensorSpec};
 
 /// What the pipeline feeds or reads for one tensor: its shape pattern and whether the graph must
 /// declare it.
-struct Expected {
-    name: &'static str,
-    required: bool,
-    shape: Vec<Dim>,
+pub(super) struct Expected {
+    pub(super) name: &'static str,
+    pub(super) required: bool,
+    pub(super) shape: Vec<Dim>,
 }
 
 fn fixed(n: usize) -> Dim {
@@ -20,8 +20,10 @@ fn named(s: &str) -> Dim {
     Dim::Named(s.to_string())
 }
 
-/// The I/O contract of docs/bundle.md, instantiated with the bundle's hyper-parameters.
-fn expected_io(kind: GraphKind, c: &ModelConfig) -> (Vec<Expected>, Vec<Expected>) {
+/// The I/O contract of docs/bundle.md, instantiated with the bundle's hyper-parameters: (inputs,
+/// outputs). The exporter's `export/bundle.py::graph_contract` is its twin; both are held to
+/// tests/fixtures/rules/graph_contract.json (`bundle/tests.rs`).
+pub(super) fn expected_io(kind: GraphKind, c: &ModelConfig) -> (Vec<Expected>, Vec<Expected>) {
     let v = fixed(c.views);
     let images = vec![v.clone(), fixed(3), named("H"), named("W")];
     let features = vec![v.clone(), fixed(c.feature_channels), named("h"), named("w")];

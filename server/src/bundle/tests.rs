@@ -257,3 +257,58 @@ fn signature_check() {
     let e = check_signature(GraphKind::Renderer, "output", declared, &actual).unwrap_err();
     assert!(e.contains("\"extra\": present in the graph"), "{e}");
 }
+
+/// The contract as tests/fixtures/rules/graph_contract.json writes it: per graph, its inputs and
+/// outputs by name (the order of the manifest's lists does not matter to the server).
+fn contract_json(c: &ModelConfig) -> serde_json::Map<String, serde_json::Value> {
+    let side = |tensors: Vec<super::contract::Expected>| -> serde_json::Value {
+        tensors
+            .into_iter()
+            .map(|t| (t.name.to_string(), serde_json::json!({"required": t.required, "shape": t.shape})))
+            .collect()
+    };
+    GraphKind::ALL
+        .into_iter()
+        .map(|kind| {
+            let (inputs, outputs) = super::contract::expected_io(kind, c);
+            (kind.name().to_string(), serde_json::json!({"inputs": side(inputs), "outputs": side(outputs)}))
+        })
+        .collect()
+}
+
+#[test]
+fn contract_is_the_fixtures() {
+    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../tests/fixtures/rules/graph_contract.json");
+    let fixture: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap();
+    let configs = fixture["configs"].as_array().unwrap();
+    assert!(configs.len() >= 2, "the default bundle's config and another");
+    for case in configs {
+        let config: ModelConfig = serde_json::from_value(case["config"].clone()).unwrap();
+        let by_name = |tensors: &serde_json::Value| -> serde_json::Value {
+            let tensors = tensors.as_array().unwrap().iter();
+            tensors
+                .map(|t| {
+                    (
+                        t["name"].as_str().unwrap().to_string(),
+                        serde_json::json!({"required": t["required"], "shape": t["shape"]}),
+                    )
+                })
+                .collect()
+        };
+        let want: serde_json::Map<String, serde_json::Value> = case["graphs"]
+            .as_object()
+            .unwrap()
+            .iter()
+            .map(|(graph, io)| {
+                (
+                    graph.clone(),
+                    serde_json::json!({"inputs": by_name(&io["inputs"]), "outputs": by_name(&io["outputs"])}),
+                )
+            })
+            .collect();
+        let got = contract_json(&config);
+        for graph in want.keys().chain(got.keys()) {
+            assert_eq!(got.get(graph), want.get(graph), "{}: {graph}", case["name"]);
+        }
+    }
+}

@@ -180,23 +180,41 @@ pub fn chunk_inputs(
 mod tests {
     use super::*;
 
+    /// tests/fixtures/rules/chunks.json: the rule's numbers, which the exporter's twin
+    /// (`runtime/chunks.py`) is held to as well.
+    fn fixture() -> serde_json::Value {
+        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../tests/fixtures/rules/chunks.json");
+        serde_json::from_str(&std::fs::read_to_string(path).expect("chunks.json")).expect("JSON")
+    }
+
+    fn policy(case: &serde_json::Value) -> ChunkPolicy {
+        let n = |key: &str| case[key].as_u64().unwrap_or_else(|| panic!("{key} in {case}")) as usize;
+        ChunkPolicy { max_rays: n("max_rays"), memory_budget_bytes: n("memory_mb") << 20 }
+    }
+
+    #[test]
+    fn constants_and_defaults_are_the_fixtures() {
+        let f = fixture();
+        assert_eq!(BYTES_PER_SAMPLE as u64, f["bytes_per_sample"]);
+        assert_eq!(GUIDED_BYTES_PER_RAY as u64, f["guided_bytes_per_ray"]);
+        let (got, want) = (ChunkPolicy::default(), policy(&f["default"]));
+        assert_eq!((got.max_rays, got.memory_budget_bytes), (want.max_rays, want.memory_budget_bytes));
+    }
+
     #[test]
     fn chunk_size_from_budget() {
-        let p = ChunkPolicy { max_rays: 4096, memory_budget_bytes: 4096 << 20 };
-        assert_eq!(p.rays_per_chunk(128), 1820);
-        assert_eq!(p.rays_per_chunk(1), 4096);
-        let tiny = ChunkPolicy { max_rays: 4096, memory_budget_bytes: 1 };
-        assert_eq!(tiny.rays_per_chunk(128), 1);
+        for case in fixture()["rays_per_chunk"].as_array().unwrap() {
+            let samples = case["samples"].as_u64().unwrap() as usize;
+            assert_eq!(policy(case).rays_per_chunk(samples) as u64, case["rays"], "{case}");
+        }
     }
 
     #[test]
     fn fine_chunks_hold_a_full_chunks_points() {
-        let p = ChunkPolicy { max_rays: 512, memory_budget_bytes: 1024 << 20 };
-        // 8 samples: the cap is 512 x 128 / 8 rays, the budget 1 GiB / (8 x 18 KiB + 64 KiB).
-        assert_eq!(p.fine_rays_per_chunk(8, 128), 5041);
-        // All 128 samples: the heads make a ray heavier than a full run's, so the budget binds.
-        assert_eq!(p.fine_rays_per_chunk(128, 128), 442);
-        let tiny = ChunkPolicy { max_rays: 512, memory_budget_bytes: 1 };
-        assert_eq!(tiny.fine_rays_per_chunk(8, 128), 1);
+        for case in fixture()["fine_rays_per_chunk"].as_array().unwrap() {
+            let (samples, full) =
+                (case["samples"].as_u64().unwrap() as usize, case["full_samples"].as_u64().unwrap() as usize);
+            assert_eq!(policy(case).fine_rays_per_chunk(samples, full) as u64, case["rays"], "{case}");
+        }
     }
 }

@@ -1,0 +1,98 @@
+"""The rules the Python side shares with the Rust capture crate, against tests/fixtures/rules/
+(written by scripts/make-rule-fixtures.py; capture/tests/rules.rs holds the Rust side to the same
+files): which files are images and which image set a capture is read from (image_files.json:
+the parsers' ``is_image`` and LLFF's listing and ``images_N``, the Python client's sets and
+choice), the API's pose conventions, look_at and resized cameras (cameras.json). A rule changed on
+one side alone fails that side's tests."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from scnerf_client import captures
+from scnerf_export.cameras import Camera, canonical_w2c, look_at
+from scnerf_export.data.dataparsers.llff import LlffParser, _list_images
+from scnerf_export.data.scene import is_image
+
+from conftest import REPO
+
+RULES = REPO / "tests" / "fixtures" / "rules"
+IMAGE_FILES = json.loads((RULES / "image_files.json").read_text())
+CAMERAS = json.loads((RULES / "cameras.json").read_text())
+
+
+def build(root: Path, files: dict) -> None:
+    """PNG bytes of each size (whatever the extension: readers go by the bytes), a byte for the rest."""
+    for rel, size in files.items():
+        path = root / rel
+        path.parent.mkdir(parents=True, exist_ok=True)
+        if size is None:
+            path.write_bytes(b"x")
+        else:
+            Image.new("RGB", tuple(size)).save(path, format="PNG")
+
+
+def test_which_files_are_images(tmp_path):
+    names = IMAGE_FILES["names"]
+    build(tmp_path, {n["name"]: None for n in names})
+    for n in names:
+        assert is_image(Path(n["name"])) == n["image_extension"], n
+        assert captures.is_image_name(n["name"]) == n["image"], n
+    assert [p.name for p in _list_images(tmp_path)] == sorted(n["name"] for n in names if n["image"])
+
+
+@pytest.mark.parametrize("case", IMAGE_FILES["captures"], ids=lambda c: c["name"])
+def test_image_sets_and_the_set_a_pick_takes(tmp_path, case):
+    build(tmp_path, case["files"])
+    for folder, images in case["images"].items():
+        assert [p.name for p in _list_images(tmp_path / folder)] == images, folder
+    sets = captures.image_sets(tmp_path)
+    sizes = {f: captures.first_image_pixels(p) for f, p in sets.items()}
+    got = [{"folder": p.name, "factor": f, "width": sizes[f][0], "height": sizes[f][1]} for f, p in sets.items()]
+    assert got == case["sets"]
+    poses = len(case["images"].get("images", []))
+    for want in case["picks"]:
+        limit, downscale = want.get("fit", 1 << 62), want.get("downscale")
+        try:
+            factor = captures.choose_set(tmp_path, sets, limit, downscale)
+        except captures.CaptureError:
+            assert want.get("error"), want
+            factor = None
+        else:
+            assert not want.get("error"), want
+            assert (sets[factor].name if factor is not None else None) == want["set"], want
+            if factor is not None:
+                assert (sizes[factor][0] * sizes[factor][1] <= limit) == want["fits"], want
+        if downscale and downscale > 1 and poses:
+            # The exporter's LLFF parser reads images_N for scale 1/N when it holds every image.
+            files = LlffParser._downscaled_set(tmp_path, 1 / downscale, poses)
+            assert (files[0].parent.name if files else None) == want.get("set"), want
+
+
+@pytest.mark.parametrize("case", CAMERAS["poses"], ids=lambda c: f"{c['kind']}-{c['axes']}")
+def test_every_pose_convention_gives_the_canonical_pose(case):
+    w2c = canonical_w2c(case["matrix"], case["kind"], case["axes"])
+    np.testing.assert_allclose(w2c, case["w2c"], rtol=0, atol=1e-12)
+    camera = Camera.from_pose(np.eye(3), case["matrix"], 8, 6, case["kind"], case["axes"])
+    np.testing.assert_allclose(camera.w2c, case["w2c"], rtol=0, atol=1e-12)
+
+
+def test_look_at_is_the_fixtures():
+    for case in CAMERAS["look_at"]:
+        np.testing.assert_allclose(look_at(case["eye"], case["target"], case["up"]), case["w2c"], rtol=0, atol=1e-12)
+
+
+def test_resized_cameras_are_the_fixtures():
+    for case in CAMERAS["resized"]:
+        c, r = case["camera"], case["resized"]
+        K = np.array([[c["fx"], 0, c["cx"]], [0, c["fy"], c["cy"]], [0, 0, 1]], dtype=np.float64)
+        got = Camera(K, np.eye(4), c["width"], c["height"]).resized(r["width"], r["height"])
+        assert (got.width, got.height) == (r["width"], r["height"])
+        np.testing.assert_allclose(
+            [got.K[0, 0], got.K[1, 1], got.K[0, 2], got.K[1, 2]], [r["fx"], r["fy"], r["cx"], r["cy"]], atol=1e-9
+        )
