@@ -66,8 +66,9 @@ fn factor_of(name: &str) -> Option<u32> {
     (n > 1 && name == format!("images_{n}")).then_some(n)
 }
 
-/// The first image of a folder in name order (hidden files left out).
-fn first_image(fs: &dyn Files, folder: &Path) -> Result<Option<PathBuf>> {
+/// The first image of a folder in name order (hidden files left out): the one whose size is the
+/// set's.
+pub fn first_image(fs: &dyn Files, folder: &Path) -> Result<Option<PathBuf>> {
     Ok(list_images(fs, folder)?.into_iter().next())
 }
 

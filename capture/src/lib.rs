@@ -3,8 +3,9 @@
 //! camera ([`wire`]), the dataset readers ([`readers`]) over a folder on disk or an in-memory set
 //! of files ([`files`]), which image set of a capture to read ([`image_sets`]), how its photos
 //! are read ([`images`]), lens distortion ([`undistort`]), the depth range a capture's poses give
-//! ([`depth_range`]), the image and camera sent for a view ([`upload`]), and the policy that thins
-//! a capture to a view budget ([`thin_evenly`]).
+//! ([`depth_range`]), the image and camera sent for a view ([`upload`]), which files of a capture
+//! folder a client sends ([`plan`]), and the policy that thins a capture to a view budget
+//! ([`thin_evenly`]).
 
 pub mod camera;
 pub mod depth_range;
@@ -12,6 +13,7 @@ mod error;
 pub mod files;
 pub mod image_sets;
 pub mod images;
+pub mod plan;
 pub mod readers;
 pub mod undistort;
 pub mod upload;

@@ -9,35 +9,47 @@ use std::path::Path;
 
 use image::{DynamicImage, ImageFormat, Rgba};
 
-use crate::camera::Camera;
 use crate::error::{Error, Result};
 use crate::images;
 use crate::readers::{Capture, CapturedView};
 
-/// Shrinks every view of more than `max_pixels` pixels to fit (aspect kept, the size rounded
-/// down, cameras scaled with pixel centres at integers); [`image_bytes`] then resamples the
-/// images. What was done, in one line, if anything.
+/// Shrinks every view of more than `max_pixels` pixels to fit ([`fitted_size`]; cameras scaled
+/// with pixel centres at integers); [`image_bytes`] then resamples the images. What was done, in
+/// one line ([`fit_note`]), if anything.
 pub fn fit_to_limit(capture: &mut Capture, max_pixels: u64) -> Option<String> {
-    let pixels = |c: &Camera| u64::from(c.width) * u64::from(c.height);
-    let over: Vec<usize> =
-        (0..capture.views.len()).filter(|&i| pixels(&capture.views[i].camera) > max_pixels).collect();
-    let first = capture.views[*over.first()?].camera.clone();
-    for &i in &over {
-        let camera = &mut capture.views[i].camera;
-        let scale = (max_pixels as f64 / pixels(camera) as f64).sqrt();
-        let (w, h) = ((f64::from(camera.width) * scale) as u32, (f64::from(camera.height) * scale) as u32);
-        *camera = camera.resized(w.max(1), h.max(1));
+    let mut resized = Vec::new();
+    for view in &mut capture.views {
+        let camera = &mut view.camera;
+        if let Some((w, h)) = fitted_size(camera.width, camera.height, max_pixels) {
+            resized.push(((camera.width, camera.height), (w, h)));
+            *camera = camera.resized(w, h);
+        }
     }
-    let resized = &capture.views[over[0]].camera;
-    Some(format!(
-        "{} images of {}x{} exceed the server's limit of {max_pixels} pixels per source view: resizing them to \
+    let &(from, to) = resized.first()?;
+    Some(fit_note(resized.len(), from, to, max_pixels))
+}
+
+/// The size an image of `width` x `height` is resized to when it has more than `max_pixels`
+/// pixels: the aspect kept, each side scaled by sqrt(max_pixels / pixels) and rounded down (at
+/// least 1); `None` when it fits as it is.
+pub fn fitted_size(width: u32, height: u32, max_pixels: u64) -> Option<(u32, u32)> {
+    let pixels = u64::from(width) * u64::from(height);
+    if pixels <= max_pixels {
+        return None;
+    }
+    let scale = (max_pixels as f64 / pixels as f64).sqrt();
+    let (w, h) = ((f64::from(width) * scale) as u32, (f64::from(height) * scale) as u32);
+    Some((w.max(1), h.max(1)))
+}
+
+/// The one line said of `count` images resized to fit (the first of them `from` -> `to`): by the
+/// `scnerf` client, `POST /v1/captures` and the plan of what a client sends of a capture.
+pub fn fit_note(count: usize, from: (u32, u32), to: (u32, u32), max_pixels: u64) -> String {
+    format!(
+        "{count} images of {}x{} exceed the server's limit of {max_pixels} pixels per source view: resizing them to \
          {}x{}",
-        over.len(),
-        first.width,
-        first.height,
-        resized.width,
-        resized.height
-    ))
+        from.0, from.1, to.0, to.1
+    )
 }
 
 /// Most pixels of a photo that is decoded to be undistorted or resized (a 48-megapixel phone

@@ -64,7 +64,9 @@ class Rendering:
 @dataclass
 class Scene:
     """A scene the server holds: its id, cameras (API JSON, in the order of view indices) and
-    depth range; for a capture also its view names, format, image set and warnings."""
+    depth range; for a capture also its view names, format, image set, the notes of the server's
+    plan of what was sent (the image set picked and why, images resized first, files left out) and
+    the warnings of its reading."""
 
     id: str
     cameras: list[dict[str, Any]]
@@ -76,6 +78,7 @@ class Scene:
     format: str | None = None
     image_set: str | None = None
     warnings: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
     upload: Callable[[], str] | None = field(default=None, repr=False)
 
     def __repr__(self) -> str:
@@ -186,11 +189,13 @@ class Client:
         ignore_distortion: bool = False,
     ) -> Scene:
         """A capture folder as its tools leave it (COLMAP, nerfstudio, Blender, LLFF, DTU) as a
-        scene (``POST /v1/captures``): the server reads its cameras. Of the image sets
-        ``images/``, ``images_N/`` the one ``downscale`` names is sent, or else the largest within
-        the server's source limit; images beyond it are resized here first."""
+        scene (``POST /v1/captures``): the server reads its cameras. What is sent is the server's
+        plan (``POST /v1/captures/plan``): the capture's files, of the image sets ``images/``,
+        ``images_N/`` the one ``downscale`` names or else the largest within the server's source
+        limit, and images beyond that limit resized here first to the size it says."""
         limits = self.limits()
-        chosen = captures.collect(folder, limits.max_source_pixels, downscale)
+        planned = captures.plan(folder, self._plan_capture, downscale)
+        chosen = captures.collect(folder, planned)
         if chosen.bytes > limits.max_capture_bytes:
             raise CaptureError(
                 f"{folder}: {chosen.bytes / 2**20:.1f} MiB to send, more than the server takes "
@@ -201,7 +206,7 @@ class Client:
         if ignore_distortion:
             params["ignore_distortion"] = "true"
         parts = [("file", (name, data, "application/octet-stream")) for name, data in chosen.files]
-        scene = Scene("", [], 0.0, 0.0)
+        scene = Scene("", [], 0.0, 0.0, notes=chosen.notes)
 
         def upload() -> str:
             response = self._send("POST", "/v1/captures", files=parts, params=params)
@@ -213,12 +218,16 @@ class Client:
                 body["far"],
             )
             scene.names, scene.format = body.get("names", []), body.get("format")
-            scene.image_set, scene.warnings = body.get("image_set"), chosen.notes + body.get("warnings", [])
+            scene.image_set, scene.warnings = body.get("image_set"), body.get("warnings", [])
             return scene.id
 
         upload()
         scene.upload = upload
         return scene
+
+    def _plan_capture(self, listing: dict[str, Any]) -> dict[str, Any]:
+        """``POST /v1/captures/plan``: what to send of a capture folder, from its listing."""
+        return self._send("POST", "/v1/captures/plan", json=listing).json()
 
     def render_scene(
         self,

@@ -1,15 +1,16 @@
 """scnerf_client against a real server (conftest.py): renders as arrays, scenes and their
-re-upload, captures as distributed (image sets chosen by the server's limit), typed errors."""
+re-upload, captures as distributed (what is sent of them planned by the server), typed errors."""
 
 from __future__ import annotations
 
+import io
 import json
 
 import numpy as np
 import pytest
 from PIL import Image
 
-from scnerf_client import Camera, Client, InvalidRequest, SceneNotFound, Unauthorized
+from scnerf_client import Camera, Client, InvalidRequest, SceneNotFound, Unauthorized, captures
 from scnerf_client.client import Client as _Client
 
 #: Forward-facing views on a small grid, looking down the world's -z; the scene between 2 and 6.
@@ -132,11 +133,81 @@ def test_capture_without_a_set_that_fits_is_resized_here(client, tmp_path):
     llff_as_distributed(tmp_path, full=(128, 96), factors=())
     scene = client.upload_capture(tmp_path)
     assert scene.image_set == "images" and (scene.cameras[0]["width"], scene.cameras[0]["height"]) == (64, 48)
-    assert "exceed the server's limit of 3072 pixels per source view: resizing them to 64x48" in scene.warnings[0]
+    assert scene.notes == [
+        "5 images of 128x96 exceed the server's limit of 3072 pixels per source view: resizing them to 64x48"
+    ]
+    assert not scene.warnings, "resized here as planned: nothing left for the server to resize"
     (tmp_path / "poses_bounds.npy").unlink()  # images without cameras: refused, saying why
     with pytest.raises(InvalidRequest) as refused:
         client.upload_capture(tmp_path)
     assert refused.value.status == 422 and "cannot tell the dataset format" in refused.value.message
+
+
+def test_the_server_plans_what_is_sent_of_a_capture(client, tmp_path):
+    """Any case of png/jpg/jpeg is an image, hidden files never go, images_1 is no set: the
+    server's rules (POST /v1/captures/plan), asked with the listing and one size per folder."""
+    llff_as_distributed(tmp_path)
+    for i in range(len(CENTRES)):  # extensions as phones and tools write them
+        (tmp_path / "images" / f"IMG_{i:04}.jpg").rename(tmp_path / "images" / f"IMG_{i:04}.JPG")
+        (tmp_path / "images_4" / f"IMG_{i:04}.png").rename(tmp_path / "images_4" / f"IMG_{i:04}.Png")
+    (tmp_path / ".DS_Store").write_bytes(b"\0")
+    (tmp_path / "images_4" / "._IMG_0000.Png").write_bytes(b"\0")
+    (tmp_path / "notes.md").write_text("taken at noon")
+    (tmp_path / "images_1").mkdir()
+    Image.fromarray(photo(0, 8, 6)).save(tmp_path / "images_1" / "a.png")
+    asked = []
+
+    def ask(listing):
+        asked.append(dict(listing))
+        return client._plan_capture(listing)
+
+    planned = captures.plan(tmp_path, ask)
+    assert [sorted(s["path"] for s in a.get("sizes", [])) for a in asked] == [
+        [],
+        ["images/IMG_0000.JPG", "images_1/a.png", "images_4/IMG_0000.Png", "images_8/IMG_0000.png"],
+    ], "one header read per folder of images"
+    assert planned["image_set"] == "images_4" and [s["folder"] for s in planned["image_sets"]] == [
+        "images",
+        "images_4",
+        "images_8",
+    ]
+    sent = [f["path"] for f in planned["send"]]
+    assert sent == ["images_1/a.png", *(f"images_4/IMG_{i:04}.Png" for i in range(5)), "poses_bounds.npy"]
+    reasons = {f["path"]: f["reason"] for f in planned["left_out"]}
+    assert reasons[".DS_Store"] == reasons["images_4/._IMG_0000.Png"] == "hidden"
+    assert reasons["notes.md"] == "not_capture_file" and reasons["images/IMG_0000.JPG"] == "other_image_set"
+    scene = client.upload_capture(tmp_path)
+    assert (scene.image_set, scene.cameras[0]["width"], scene.names[0]) == ("images_4", 64, "images_4/IMG_0000.Png")
+    assert scene.notes[0].startswith("image set: images_4 (64x48) of images (256x192)"), scene.notes
+    assert scene.notes[1].startswith("not sent: notes.md, neither images"), scene.notes
+    with pytest.raises(InvalidRequest) as refused:
+        client.upload_capture(tmp_path, downscale=2)
+    assert (refused.value.status, refused.value.field) == (422, "downscale")
+    assert "no images_2 folder" in refused.value.message
+
+
+def test_images_are_resized_upright_to_the_size_the_server_says():
+    """A phone JPEG stored 96x54 and tagged "rotate 90" is 54x96 as displayed, as the server reads
+    it: its size is read so, and it is resized upright; an image of another size stays as it is."""
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    stored = io.BytesIO()
+    Image.fromarray(photo(0, 96, 54)).save(stored, format="JPEG", exif=exif)
+    data = stored.getvalue()
+    resize = {"from": {"width": 54, "height": 96}, "to": {"width": 41, "height": 73}}
+    with Image.open(io.BytesIO(captures.resized(data, resize))) as out:
+        assert (out.format, out.size) == ("JPEG", (41, 73))
+    other = {"from": {"width": 96, "height": 54}, "to": {"width": 73, "height": 41}}
+    assert captures.resized(data, other) == data
+
+
+def test_displayed_sizes_apply_the_exif_orientation(tmp_path):
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    Image.fromarray(photo(0, 96, 54)).save(tmp_path / "turned.jpg", exif=exif)
+    Image.fromarray(photo(0, 96, 54)).save(tmp_path / "plain.png")
+    assert captures.displayed_size(tmp_path / "turned.jpg") == (54, 96)
+    assert captures.displayed_size(tmp_path / "plain.png") == (96, 54)
 
 
 def phone_capture(folder, size=(54, 96), count=6) -> None:
@@ -166,7 +237,7 @@ def test_a_phone_capture_is_undistorted_and_fitted_by_the_server(client, tmp_pat
     scene = client.upload_capture(tmp_path)
     # the images (5184 pixels) are over the limit (3072): resized here, undistorted by the server
     assert (scene.cameras[0]["width"], scene.cameras[0]["height"]) == (41, 73)
-    assert "6 images of 54x96 exceed the server's limit of 3072 pixels per source view" in scene.warnings[0]
+    assert "6 images of 54x96 exceed the server's limit of 3072 pixels per source view" in scene.notes[0]
     fx = scene.cameras[0]["intrinsics"]["fx"]
     assert fx < 0.9 * 96 * 41 / 54, "barrel distortion squeezed a wider view into the photo than its focal length says"
     assert 0 < scene.near < scene.far

@@ -103,11 +103,21 @@ impl Format {
 /// Which layout a folder holds. The order matters: LLFF and nerfstudio folders often carry the
 /// COLMAP model they were made from, so COLMAP is the last guess.
 pub fn detect(fs: &dyn Files, path: &Path) -> Result<Format> {
+    if let Some(format) = detect_by_names(fs, path)? {
+        return Ok(format);
+    }
+    let file = if fs.is_file(path) { path.to_path_buf() } else { path.join("transforms.json") };
+    Ok(if is_blender_json(fs, &file)? { Format::Blender } else { Format::Nerfstudio })
+}
+
+/// What the file names alone say of a folder's layout ([`detect`]'s rule): its format, or `None`
+/// for a transforms file (the one given, or a folder's single `transforms.json`), which is
+/// Blender's or nerfstudio's by its content.
+pub fn detect_by_names(fs: &dyn Files, path: &Path) -> Result<Option<Format>> {
     if fs.is_file(path) {
         // a transforms file given directly
         return match path.extension().and_then(|e| e.to_str()) {
-            Some("json") if is_blender_json(fs, path)? => Ok(Format::Blender),
-            Some("json") => Ok(Format::Nerfstudio),
+            Some("json") => Ok(None),
             _ => Err(Error::dataset(path, "not a dataset folder or transforms JSON file")),
         };
     }
@@ -121,11 +131,7 @@ pub fn detect(fs: &dyn Files, path: &Path) -> Result<Format> {
     } else if ["train", "val", "test"].iter().any(|s| fs.is_file(&path.join(format!("transforms_{s}.json")))) {
         Format::Blender
     } else if fs.is_file(&path.join("transforms.json")) {
-        if is_blender_json(fs, &path.join("transforms.json"))? {
-            Format::Blender
-        } else {
-            Format::Nerfstudio
-        }
+        return Ok(None);
     } else if colmap::find_model(fs, path).is_some() {
         Format::Colmap
     } else {
@@ -136,7 +142,7 @@ pub fn detect(fs: &dyn Files, path: &Path) -> Result<Format> {
              (cameras/images .txt or .bin in ., sparse/0 or sparse); or pass --format",
         ));
     };
-    Ok(format)
+    Ok(Some(format))
 }
 
 /// Blender files give `camera_angle_x`; nerfstudio files give `fl_x`.

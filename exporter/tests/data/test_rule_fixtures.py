@@ -1,8 +1,8 @@
 """The rules the Python side shares with the Rust capture crate, against tests/fixtures/rules/
 (written by scripts/make-rule-fixtures.py; capture/tests/rules.rs holds the Rust side to the same
 files): which files are images and which image set a capture is read from (image_files.json:
-the parsers' ``is_image`` and LLFF's listing and ``images_N``, the Python client's sets and
-choice), the API's pose conventions, look_at and resized cameras (cameras.json). A rule changed on
+the parsers' ``is_image`` and LLFF's listing and ``images_N``; the Python client asks the server,
+POST /v1/captures/plan), the API's pose conventions, look_at and resized cameras (cameras.json). A rule changed on
 one side alone fails that side's tests."""
 
 from __future__ import annotations
@@ -14,7 +14,6 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from scnerf_client import captures
 from scnerf_export.cameras import Camera, canonical_w2c, look_at
 from scnerf_export.data.dataparsers.llff import LlffParser, _list_images
 from scnerf_export.data.scene import is_image
@@ -42,32 +41,17 @@ def test_which_files_are_images(tmp_path):
     build(tmp_path, {n["name"]: None for n in names})
     for n in names:
         assert is_image(Path(n["name"])) == n["image_extension"], n
-        assert captures.is_image_name(n["name"]) == n["image"], n
     assert [p.name for p in _list_images(tmp_path)] == sorted(n["name"] for n in names if n["image"])
 
 
 @pytest.mark.parametrize("case", IMAGE_FILES["captures"], ids=lambda c: c["name"])
-def test_image_sets_and_the_set_a_pick_takes(tmp_path, case):
+def test_image_lists_and_the_downscaled_set_llff_reads(tmp_path, case):
     build(tmp_path, case["files"])
     for folder, images in case["images"].items():
         assert [p.name for p in _list_images(tmp_path / folder)] == images, folder
-    sets = captures.image_sets(tmp_path)
-    sizes = {f: captures.first_image_pixels(p) for f, p in sets.items()}
-    got = [{"folder": p.name, "factor": f, "width": sizes[f][0], "height": sizes[f][1]} for f, p in sets.items()]
-    assert got == case["sets"]
     poses = len(case["images"].get("images", []))
     for want in case["picks"]:
-        limit, downscale = want.get("fit", 1 << 62), want.get("downscale")
-        try:
-            factor = captures.choose_set(tmp_path, sets, limit, downscale)
-        except captures.CaptureError:
-            assert want.get("error"), want
-            factor = None
-        else:
-            assert not want.get("error"), want
-            assert (sets[factor].name if factor is not None else None) == want["set"], want
-            if factor is not None:
-                assert (sizes[factor][0] * sizes[factor][1] <= limit) == want["fits"], want
+        downscale = want.get("downscale")
         if downscale and downscale > 1 and poses:
             # The exporter's LLFF parser reads images_N for scale 1/N when it holds every image.
             files = LlffParser._downscaled_set(tmp_path, 1 / downscale, poses)

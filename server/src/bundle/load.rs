@@ -15,6 +15,8 @@ pub struct BundleError {
     pub dir: PathBuf,
     pub message: String,
 }
+
+/// A verified bundle.
 #[derive(Debug, Clone)]
 pub struct Bundle {
     pub dir: PathBuf,

@@ -4,6 +4,7 @@
 //! `openapi`.
 
 pub mod body;
+mod capture_plan;
 mod captures;
 mod deadline;
 pub mod middleware;
@@ -45,6 +46,7 @@ pub fn router(state: AppState) -> Router {
         .route("/v1/render", post(render::render))
         .route("/v1/scenes", post(scenes::create))
         .route(body::CAPTURES_PATH, post(captures::create).layer(DefaultBodyLimit::max(capture_limit)))
+        .route(body::CAPTURE_PLAN_PATH, post(capture_plan::plan_capture))
         .route("/v1/scenes/{id}", axum::routing::put(scenes::put).delete(scenes::delete))
         .route("/v1/scenes/{id}/render", post(scenes::render))
         .fallback(service::not_found)

@@ -11,6 +11,10 @@ use scnerf_capture::wire::{Matrix3Rows, Matrix4Rows, WireCamera, WireIntrinsics,
 use utoipa::openapi::security::{HttpAuthScheme, HttpBuilder, SecurityScheme};
 use utoipa::{Modify, OpenApi};
 
+use super::capture_plan::{
+    CaptureImageSet, CaptureImageSize, CapturePlan, CapturePlanRequest, LeftOutFile, PixelSize, PlannedFile,
+    PlannedResize,
+};
 use super::captures::CaptureCreated;
 use super::respond::{FloatImageJson, PngImageJson, RenderResponseJson};
 use super::scenes::SceneCreated;
@@ -47,6 +51,7 @@ Errors are always `{\"error\": {\"code\", \"message\", \"field\"}}`. With bearer
         crate::http::scenes::render,
         crate::http::scenes::delete,
         crate::http::captures::create,
+        crate::http::capture_plan::plan_capture,
         crate::http::service::model,
         crate::http::service::limits,
         crate::http::service::healthz,
@@ -57,7 +62,8 @@ Errors are always `{\"error\": {\"code\", \"message\", \"field\"}}`. With bearer
     components(schemas(
         JsonRenderRequest, JsonSceneRequest, JsonTargetRequest, JsonSource, WireCamera, Intrinsics,
         WireIntrinsics, WirePose, OutputKind, RenderResponseJson, PngImageJson, FloatImageJson, SceneCreated,
-        CaptureCreated, LimitsBody, ErrorBody, ErrorDetail, RenderMultipart, SceneMultipart, CaptureMultipart, Binary, Matrix3Rows,
+        CaptureCreated, CapturePlanRequest, CaptureImageSize, CapturePlan, PlannedFile, PlannedResize, PixelSize,
+        LeftOutFile, CaptureImageSet, LimitsBody, ErrorBody, ErrorDetail, RenderMultipart, SceneMultipart, CaptureMultipart, Binary, Matrix3Rows,
         Matrix4Rows,
     )),
     modifiers(&BearerAuth),

@@ -26,7 +26,7 @@ use multipart::read_multipart;
 pub use held::BodyUse;
 pub(super) use multipart::multipart_error;
 pub use rate::UploadPolicy;
-pub use read::{body_limit, read_bytes, refuse_declared_length, CAPTURES_PATH};
+pub use read::{body_limit, read_bytes, refuse_declared_length, CAPTURES_PATH, CAPTURE_PLAN_PATH};
 
 /// `POST /v1/render` in any of the three forms.
 pub async fn read_render_request(

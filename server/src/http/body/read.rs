@@ -28,15 +28,18 @@ pub async fn read_bytes(body: Body, limit: usize) -> Result<Bytes, ApiError> {
     Ok(Bytes::from(buf))
 }
 
-/// Path of the one route with its own body limit (`--max-capture-bytes`).
+/// Path of the one route with a body limit larger than the others' (`--max-capture-bytes`).
 pub const CAPTURES_PATH: &str = "/v1/captures";
 
-/// The largest body a route takes: a capture's files, or any other request.
+/// Path of the route whose body is a capture's listing, a JSON document (`--max-json-bytes`).
+pub const CAPTURE_PLAN_PATH: &str = "/v1/captures/plan";
+
+/// The largest body a route takes: a capture's files, a capture's listing, or any other request.
 pub fn body_limit(limits: &Limits, path: &str) -> usize {
-    if path == CAPTURES_PATH {
-        limits.max_capture_bytes
-    } else {
-        limits.max_body_bytes
+    match path {
+        CAPTURES_PATH => limits.max_capture_bytes,
+        CAPTURE_PLAN_PATH => limits.max_json_bytes,
+        _ => limits.max_body_bytes,
     }
 }
 

@@ -191,6 +191,30 @@ impl IntoResponses for CaptureRefusals {
     }
 }
 
+/// Error responses of `POST /v1/captures/plan`.
+pub struct CapturePlanRefusals;
+
+impl IntoResponses for CapturePlanRefusals {
+    fn responses() -> BTreeMap<String, RefOr<Response>> {
+        responses(&[
+            malformed("Malformed JSON or an unknown field (`field` names it), or a malformed deadline header"),
+            UNAUTHORIZED,
+            BODY_TIMEOUT,
+            too_large("The listing is larger than --max-json-bytes"),
+            unsupported("Not application/json"),
+            invalid(
+                "A listing that cannot be planned; `field` names the entry (`files[3]`: not a path inside the \
+                 folder, or listed twice; `sizes[0]`: not a listed image, given twice, or no pixels), `files` (no \
+                 capture files, or no format the readers know) or `downscale` (no such image set)",
+            ),
+            TOO_MANY_REQUESTS,
+            UNAVAILABLE,
+            DEADLINE_EXCEEDED,
+            INTERNAL,
+        ])
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use std::collections::BTreeSet;
@@ -201,13 +225,14 @@ mod tests {
     use crate::http::openapi::document;
 
     /// Every operation of the document, by its id.
-    const OPERATIONS: [&str; 12] = [
+    const OPERATIONS: [&str; 13] = [
         "render",
         "create_scene",
         "put_scene",
         "render_scene",
         "delete_scene",
         "create_capture_scene",
+        "plan_capture",
         "model",
         "limits",
         "healthz",
@@ -223,12 +248,14 @@ mod tests {
         "render_scene",
         "delete_scene",
         "create_capture_scene",
+        "plan_capture",
         "model",
         "limits",
     ];
     /// POST and PUT: the in-flight limit, a `Deadline` (readiness, the deadline header), a body
-    /// read and validated, then work on the executor.
-    const WITH_BODY: &[&str] = &["render", "create_scene", "put_scene", "render_scene", "create_capture_scene"];
+    /// read and validated, then work on the executor or a blocking thread.
+    const WITH_BODY: &[&str] =
+        &["render", "create_scene", "put_scene", "render_scene", "create_capture_scene", "plan_capture"];
     /// Answers in the format that Accept asks for.
     const RENDERING: &[&str] = &["render", "render_scene"];
     /// Needs a scene that exists.
@@ -262,7 +289,7 @@ mod tests {
             ApiError::Unauthorized { .. } => AUTHENTICATED.to_vec(),
             // A bad body, deadline header or scene id (in the path or the proxy's header).
             ApiError::Malformed { .. } => [WITH_BODY, &["delete_scene"]].concat(),
-            // Internal: a failure of the executor or of a graph, which the body's work runs.
+            // Internal: a failure of the executor, a graph or a blocking thread, which the body's work runs.
             ApiError::TooLarge { .. }
             | ApiError::UnsupportedMediaType { .. }
             | ApiError::Invalid { .. }

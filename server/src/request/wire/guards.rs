@@ -7,7 +7,7 @@ use crate::error::ApiError;
 /// Parses a JSON document into `T`, naming the offending field on failure. The nesting depth is
 /// checked first (a linear scan), so deeply nested input never reaches the recursive parser.
 /// `root` names the whole document in errors about it (`body`, or the multipart part `request`).
-pub(super) fn parse_json<T: serde::de::DeserializeOwned>(
+pub fn parse_json<T: serde::de::DeserializeOwned>(
     body: &[u8],
     max_depth: usize,
     what: &str,

@@ -16,7 +16,7 @@ use serde::Deserialize;
 use super::OutputKind;
 
 pub use decode::ImageMode;
-pub use guards::check_json_size;
+pub use guards::{check_json_size, parse_json};
 
 /// `POST /v1/render` JSON body (and the `request` part of a multipart body, without images).
 #[derive(Deserialize, utoipa::ToSchema)]
