@@ -76,7 +76,7 @@ pub struct Config {
 
     /// Whether ONNX Runtime's idle intra-op workers spin before sleeping. On: each of the
     /// renderer's few hundred operators per run starts without waking threads (measured 5-10%
-    /// faster on 2 cores, bench/README.md), at the price of busy workers for a moment after each
+    /// faster, docs/results.md), at the price of busy workers for a moment after each
     /// run; off for machines shared with other work. Accepts on/off, true/false.
     #[arg(long, env = "SCNERF_ORT_SPIN", default_value = "on", action = clap::ArgAction::Set,
           value_parser = clap::builder::BoolishValueParser::new())]
@@ -88,9 +88,9 @@ pub struct Config {
     #[arg(long, env = "SCNERF_SAMPLING", value_enum, default_value_t = Sampling::Guided)]
     pub sampling: Sampling,
 
-    /// Upper bound on rays per renderer run. Small runs keep the activations in cache: on 2 cores,
-    /// 512 rays rendered the default bundle 6-34% faster than 4096 with 1.6-4x less memory
-    /// (bench/README.md).
+    /// Upper bound on rays per renderer run. Small runs keep the activations in cache: 512 rays
+    /// rendered the default bundle faster than 4096 with a fifth to three fifths of the memory
+    /// (docs/results.md, "What made the server faster").
     #[arg(long, env = "SCNERF_MAX_RAYS_PER_CHUNK", default_value_t = ChunkPolicy::default().max_rays)]
     pub max_rays_per_chunk: usize,
 
@@ -110,7 +110,8 @@ pub struct Config {
     pub max_body_bytes: usize,
 
     /// Largest accepted source image, in pixels (width x height), checked before decoding.
-    /// Memory grows with it: the volume net over 800x800 sources peaks near 10 GB.
+    /// Memory grows with it: a server given one scene of 800x800 sources peaks near 811 MiB
+    /// (docs/results.md).
     #[arg(long, env = "SCNERF_MAX_SOURCE_PIXELS", default_value_t = Limits::default().max_source_pixels)]
     pub max_source_pixels: u64,
 

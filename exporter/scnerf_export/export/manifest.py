@@ -1,7 +1,7 @@
 """manifest.json, the bundle's description of itself (docs/bundle.md), as typed objects: read and
 written without torch, so that running a bundle does not load the training stack.
 
-The server reads the same file into ``Manifest`` of server/src/bundle.rs, and this module takes
+The server reads the same file into ``Manifest`` of server/src/bundle/manifest.rs, and this module takes
 serde's rules from there, so that the two accept the same files:
 
 * keys serde ignores (unknown keys of the manifest, a graph or a tensor) are kept in ``extra`` and

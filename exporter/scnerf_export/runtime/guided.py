@@ -1,6 +1,6 @@
 """Guided sampling: a view rendered coarse to fine, the network run only where the surface is.
 
-The one description of the policy in Python (the server's is server/src/pipeline/guided.rs; the
+The one description of the policy in Python (the server's is server/src/pipeline/guided/; the
 two are held to each other by the parity fixtures); its numbers are the manifest's ``guided``
 object, ``export.manifest.GuidedPolicy``. A view is rendered in levels of pixels on
 nested grids:
