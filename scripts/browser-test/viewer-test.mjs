@@ -313,18 +313,38 @@ try {
 
   const exampleScene = renders[0].request.url();
   const dropped = renders.length;
-  // With a second image set (images_2/) beside images/: the page reads the server's limits first
-  // and sends one set, the largest that fits (here images/).
+  // With a second image set (images_2/) beside images/, a Finder file and a hidden image: the page
+  // reads the server's limits, asks the server's plan (the listing, then one image's size a
+  // folder) and sends what it says: one set, the largest that fits (here images/), nothing hidden.
   const folder = await captureFolder(nerfstudio(example), ['source_0.png', 'source_1.png', 'source_2.png']);
   mkdirSync(join(folder, 'images_2'));
   for (const i of [1, 2, 3]) writeFileSync(join(folder, 'images_2', `photo_${i}.png`), readFileSync(join(folder, 'images', `photo_${i}.png`)));
+  writeFileSync(join(folder, '.DS_Store'), 'Bud1');
+  writeFileSync(join(folder, 'images', '._photo_1.png'), 'AppleDouble');
+  // The files of the upload, as the page hands them to fetch (the browser does not report a
+  // multipart body of files).
+  await page.evaluate(() => {
+    const fetched = window.fetch;
+    window.fetch = (url, init) => {
+      if (String(url).endsWith('/v1/captures') && init?.body instanceof FormData) window.sentFiles = init.body.getAll('file').map((f) => f.name);
+      return fetched(url, init);
+    };
+  });
   const limitsRead = urls.length;
+  const planned = [];
+  const planning = (r) => r.url().endsWith('/v1/captures/plan') && planned.push(r) && false;
   const [uploaded] = await Promise.all([
-    page.waitForResponse((r) => r.url().endsWith('/v1/captures')),
+    page.waitForResponse((r) => planning(r) || r.url().endsWith('/v1/captures')),
     page.setInputFiles('#capture-input', folder),
   ]);
   const answer = await uploaded.json();
-  check(urls.slice(limitsRead).findIndex((u) => u.endsWith('/v1/limits')) < urls.slice(limitsRead).findIndex((u) => u.endsWith('/v1/captures')), 'the page read GET /v1/limits before uploading');
+  const asked = urls.slice(limitsRead);
+  const at = (path) => asked.findIndex((u) => u.endsWith(path));
+  check(at('/v1/limits') >= 0 && at('/v1/limits') < at('/v1/captures/plan') && at('/v1/captures/plan') < at('/v1/captures'), 'the page read GET /v1/limits and the plan before uploading');
+  const listings = planned.map((r) => r.request().postDataJSON());
+  check(listings.length === 2 && listings[0].files.includes('.DS_Store') && listings[1].sizes.map((s) => s.path).sort().join() === 'images/photo_1.png,images_2/photo_1.png', `the page listed every file, then gave the sizes asked for (${JSON.stringify(listings.map((l) => l.sizes ?? []))})`);
+  const sent = (await page.evaluate(() => window.sentFiles)).sort();
+  check(sent.join() === 'images/photo_1.png,images/photo_2.png,images/photo_3.png,transforms.json', `the page sent the files the plan named (${sent.join(', ')})`);
   // the server names any set it got but did not read: none, so only images/ was sent
   check(answer.image_set === 'images' && !answer.warnings.some((w) => w.includes('not read')), `only the image set that fits was sent (${answer.image_set}; ${JSON.stringify(answer.warnings)})`);
   const captured = await firstAnswered(dropped);

@@ -119,8 +119,8 @@ pub struct Config {
     #[arg(long, env = "SCNERF_MAX_TARGET_PIXELS", default_value_t = Limits::default().max_target_pixels)]
     pub max_target_pixels: u64,
 
-    /// Largest JSON document without images, in bytes: the multipart `request` part and
-    /// scene-render bodies (413 beyond).
+    /// Largest JSON document without images, in bytes: the multipart `request` part,
+    /// scene-render bodies and a capture's listing (`POST /v1/captures/plan`) (413 beyond).
     #[arg(long, env = "SCNERF_MAX_JSON_BYTES", default_value_t = Limits::default().max_json_bytes)]
     pub max_json_bytes: usize,
 

@@ -95,6 +95,15 @@ export class Api {
     return this.json('Uploading the scene (POST /v1/scenes)', '/v1/scenes', { method: 'POST', body: form, signal });
   }
 
+  /** What to send of a capture folder, from its `listing` ({files, sizes?}; see capture.js). */
+  planCapture(listing) {
+    return this.json('Planning the capture\'s upload (POST /v1/captures/plan)', '/v1/captures/plan', {
+      method: 'POST',
+      headers: { 'Content-Type': 'application/json' },
+      body: JSON.stringify(listing),
+    });
+  }
+
   /** `form`: the capture's files, named by their paths (see capture.js). */
   createCaptureScene(form, signal) {
     return this.json('Uploading the capture (POST /v1/captures)', '/v1/captures', { method: 'POST', body: form, signal });

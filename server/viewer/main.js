@@ -232,14 +232,13 @@ function openExample() {
   );
 }
 
-/** Reads the server's limits, prepares the capture's files within them, then uploads it. */
+/** Reads the server's limits, prepares the capture's files as the server plans them, then uploads it. */
 async function openCapture(entries) {
   setStatus('Reading the capture…', 'uploading');
   let capture;
   try {
     const { body: limits } = await api.limits();
-    capture = await captureForm(entries, limits);
-    if (capture.count === 0) throw new Error('Nothing to upload: a capture is images plus transforms.json, poses_bounds.npy or COLMAP text files.');
+    capture = await captureForm(entries, api);
     if (capture.bytes > limits.max_capture_bytes) {
       const mb = (n) => (n / 2 ** 20).toFixed(1);
       throw new Error(`The capture is ${mb(capture.bytes)} MB, more than this server takes (${mb(limits.max_capture_bytes)} MB, its --max-capture-bytes): drop a smaller image set (images_N) or fewer images.`);

@@ -83,8 +83,8 @@ pub struct LimitsBody {
     pub max_body_bytes: usize,
     /// Largest body of `POST /v1/captures`: every file of a capture (`--max-capture-bytes`).
     pub max_capture_bytes: usize,
-    /// Largest JSON document without images: a multipart `request` part, a scene-render body
-    /// (`--max-json-bytes`).
+    /// Largest JSON document without images: a multipart `request` part, a scene-render body, a
+    /// capture's listing (`--max-json-bytes`).
     pub max_json_bytes: usize,
 }
 

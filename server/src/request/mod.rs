@@ -24,8 +24,9 @@ pub struct Limits {
     pub max_body_bytes: usize,
     pub max_source_pixels: u64,
     pub max_target_pixels: u64,
-    /// Largest JSON document without images: the multipart `request` part and scene-render
-    /// bodies. (An `application/json` render body carries base64 images: `max_body_bytes`.)
+    /// Largest JSON document without images: the multipart `request` part, scene-render bodies
+    /// and a capture's listing. (An `application/json` render body carries base64 images:
+    /// `max_body_bytes`.)
     pub max_json_bytes: usize,
     /// Deepest accepted nesting of JSON arrays/objects; checked before parsing so that a
     /// pathological document costs one linear scan, not recursion.
