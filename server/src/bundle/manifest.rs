@@ -91,8 +91,6 @@ pub struct Manifest {
     pub provenance: serde_json::Value,
 }
 
-/// A verified bundle.
-
 /// The manifest's `guided` object (docs/bundle.md).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
