@@ -19,6 +19,21 @@ use scnerf_client::api::{Client, Upload};
 use scnerf_e2e::{http_request, repo_root, server_binary, ServerProcess};
 use serde_json::{json, Value};
 
+/// A frame is a render, not a blank: its values spread (standard deviation over every channel of
+/// every pixel above 2 levels of 255) and fewer than 99 % of its pixels are the background colour
+/// (`background`, in [0, 1], rounded as the server quantises).
+fn assert_not_blank(frame: &Path, background: [f64; 3]) {
+    let img = image::open(frame).unwrap_or_else(|e| panic!("{}: {e}", frame.display())).into_rgb8();
+    let values: Vec<f64> = img.as_raw().iter().map(|&b| f64::from(b)).collect();
+    let mean = values.iter().sum::<f64>() / values.len() as f64;
+    let std = (values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / values.len() as f64).sqrt();
+    let bg = background.map(|c| (255.0 * c).round() as u8);
+    let share = img.pixels().filter(|p| p.0 == bg).count() as f64 / f64::from(img.width() * img.height());
+    eprintln!("{}: std {std:.2} of 255, {:.1} % background", frame.display(), 100.0 * share);
+    assert!(std > 2.0, "{}: a blank frame (std {std:.2} of 255)", frame.display());
+    assert!(share < 0.99, "{}: {:.1} % of the pixels are the background", frame.display(), 100.0 * share);
+}
+
 /// The value of an unlabelled sample (`name value`) of the server's /metrics.
 fn metric(server: &ServerProcess, name: &str) -> f64 {
     let r = http_request(server.addr, "GET", "/metrics", &[], b"", Duration::from_secs(10)).unwrap();
@@ -95,9 +110,11 @@ fn render_lego_orbit_to_frames_and_video() {
     let run = Command::new(env!("CARGO_BIN_EXE_scnerf")).args(args).output().unwrap();
     let stdout = String::from_utf8_lossy(&run.stdout);
     assert!(run.status.success(), "{stdout}\n{}", String::from_utf8_lossy(&run.stderr));
+    let background = readers::load(&lego, None, ReadOptions::default()).unwrap().background;
     for i in 0..FRAMES {
         let frame = out.path().join(format!("frames/frame_{i:04}.png"));
         assert_eq!(image::image_dimensions(&frame).unwrap(), (40, 40));
+        assert_not_blank(&frame, background);
         assert!(out.path().join(format!("depth/frame_{i:04}.npy")).is_file());
     }
     assert!(out.path().join("video.mp4").is_file() || out.path().join("video.gif").is_file(), "{stdout}");
@@ -135,9 +152,11 @@ fn render_a_capture_to_frames_and_video_through_the_real_server() {
     assert!(first.status.success(), "{stdout}\n{stderr}");
     assert!(stderr.contains("uploaded 5 views as scene cap-"), "{stderr}");
     assert!(stdout.contains("5 rendered, 0 already there"), "{stdout}");
+    let background = readers::load(&data, None, ReadOptions::default()).unwrap().background;
     for i in 0..5 {
         let frame = out.path().join(format!("frames/frame_{i:04}.png"));
         assert_eq!(image::image_dimensions(&frame).unwrap(), (16, 12));
+        assert_not_blank(&frame, background);
         assert!(out.path().join(format!("depth/frame_{i:04}.npy")).is_file());
     }
     assert!(out.path().join("video.gif").is_file(), "{stdout}");

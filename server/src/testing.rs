@@ -3,11 +3,11 @@
 
 use std::path::Path;
 use std::sync::atomic::{AtomicUsize, Ordering};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use crate::backend::ort::{OrtOptions, OrtRunner};
-use ndarray::{ArrayD, Axis, Ix2, IxDyn};
+use ndarray::{Array2, ArrayD, Axis, Ix2, IxDyn};
 use scnerf_capture::camera::{Axes, Intrinsics, PoseKind};
 use scnerf_capture::wire::{WireCamera, WireIntrinsics, WirePose};
 
@@ -134,11 +134,33 @@ pub struct FakeRunner {
     pub delay: Duration,
     /// Graph runs so far, by kind (`GraphKind::index`), to see which work was dropped.
     pub calls: Arc<[AtomicUsize; GraphKind::ALL.len()]>,
+    /// The cameras each renderer run was fed, in order: to check them against a request's.
+    pub renderer_cameras: Arc<Mutex<Vec<RendererCameras>>>,
+}
+
+/// The camera inputs of one renderer run: the sources' (what the volume was built from) and the
+/// target's rays.
+#[derive(Debug, Clone)]
+pub struct RendererCameras {
+    pub graph: GraphKind,
+    /// (V, 3, 3) K per source view.
+    pub intrinsics: ArrayD<f32>,
+    /// (V, 4, 4) world-to-camera per source view.
+    pub extrinsics: ArrayD<f32>,
+    /// (R, 3) each ray's origin and direction (`R_c2w [(u - cx) / fx, (v - cy) / fy, 1]`).
+    pub ray_origins: Array2<f32>,
+    pub ray_directions: Array2<f32>,
 }
 
 impl FakeRunner {
     pub fn new(bundle: &Bundle) -> FakeRunner {
-        FakeRunner { config: bundle.config.clone(), fail_with: None, delay: Duration::ZERO, calls: Arc::default() }
+        FakeRunner {
+            config: bundle.config.clone(),
+            fail_with: None,
+            delay: Duration::ZERO,
+            calls: Arc::default(),
+            renderer_cameras: Arc::default(),
+        }
     }
 }
 
@@ -152,6 +174,16 @@ impl GraphRunner for FakeRunner {
         std::thread::sleep(self.delay);
         if let Some(message) = &self.fail_with {
             return Err(BackendError::Run { graph, message: message.clone() });
+        }
+        if matches!(graph, GraphKind::Renderer | GraphKind::RendererGuide | GraphKind::RendererFine) {
+            let rays = |name| input(inputs, name).view().into_dimensionality::<Ix2>().expect("(R, 3) rays").to_owned();
+            self.renderer_cameras.lock().unwrap().push(RendererCameras {
+                graph,
+                intrinsics: input(inputs, "intrinsics").to_owned(),
+                extrinsics: input(inputs, "extrinsics").to_owned(),
+                ray_origins: rays("ray_origins"),
+                ray_directions: rays("ray_directions"),
+            });
         }
         let c = &self.config;
         let filled = |shape: &[usize], value: f32| ArrayD::from_elem(IxDyn(shape), value).into_shared();

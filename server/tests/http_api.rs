@@ -2,18 +2,22 @@
 //! runner (no ONNX Runtime needed). Every error path of the API has a test here; numerical
 //! parity with real graphs is in tests/tests/parity.rs.
 
+use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use axum::body::Body;
 use axum::http::Request;
 use axum::Router;
 use base64::Engine;
+use nalgebra::{Matrix3, Matrix4, Vector3, Vector4};
 use prost::Message;
 use scnerf_proto::v1 as pb;
 use scnerf_server::bundle::GraphKind;
 use scnerf_server::http::router;
 use scnerf_server::request::Limits;
-use scnerf_server::testing::{self, bundle, camera_json, fake_state, png, request_json, state_with, FakeRunner};
+use scnerf_server::testing::{
+    self, bundle, camera_json, fake_state, png, request_json, state_with, FakeRunner, RendererCameras,
+};
 use serde_json::{json, Value};
 
 mod common;
@@ -21,6 +25,81 @@ use common::*;
 
 fn app() -> Router {
     router(fake_state())
+}
+
+/// What the fake renderers were fed, run by run.
+type Fed = Arc<Mutex<Vec<RendererCameras>>>;
+
+/// The app over a fake runner of `variant` and `norm`, and the cameras its renderers are fed.
+fn recording_app(variant: &str, norm: &str) -> (Router, Fed) {
+    let b = bundle(variant, norm);
+    let runner = FakeRunner::new(&b);
+    let fed = runner.renderer_cameras.clone();
+    (router(state_with(b, runner, Limits::default(), Duration::from_secs(60))), fed)
+}
+
+/// A request's camera in the canonical form, from the conventions' definitions (docs/api.md):
+/// K from `intrinsics` (`{fx, fy, cx, cy}` or rows) or `K`; world-to-camera = the pose matrix, or
+/// its inverse when it is camera-to-world, with the camera's y and z flipped when its axes are
+/// OpenGL's (y up, z back) rather than OpenCV's.
+fn canonical(camera: &Value) -> (Matrix3<f64>, Matrix4<f64>) {
+    let f = |v: &Value| v.as_f64().unwrap_or_else(|| panic!("a number: {v}"));
+    let k = match camera.get("K").or_else(|| camera.get("intrinsics").filter(|i| i.is_array())) {
+        Some(rows) => Matrix3::from_fn(|r, c| f(&rows[r][c])),
+        None => {
+            let i = &camera["intrinsics"];
+            Matrix3::new(f(&i["fx"]), 0.0, f(&i["cx"]), 0.0, f(&i["fy"]), f(&i["cy"]), 0.0, 0.0, 1.0)
+        }
+    };
+    let pose = &camera["pose"];
+    let m = Matrix4::from_fn(|r, c| f(&pose["matrix"][r][c]));
+    let w2c = if pose["kind"] == "camera_to_world" { m.try_inverse().unwrap() } else { m };
+    let flip = if pose["axes"] == "opengl" { Vector4::new(1.0, -1.0, -1.0, 1.0) } else { Vector4::repeat(1.0) };
+    (k, Matrix4::from_diagonal(&flip) * w2c)
+}
+
+fn assert_close(got: f32, want: f64, what: &str) {
+    assert!((f64::from(got) - want).abs() <= 1e-5 * want.abs().max(1.0), "{what}: {got} vs {want}");
+}
+
+/// Every renderer run was fed the request's sources in canonical form, in the request's order
+/// (`intrinsics`, `extrinsics`), and the rays of its target: from its centre, through each pixel
+/// centre in row order. `passes`: the runs expected (a target of at most 100 pixels is one run per
+/// pass with the test state's chunks).
+fn assert_fed_the_cameras(fed: &Fed, request: &Value, passes: usize) {
+    let runs = fed.lock().unwrap();
+    assert_eq!(runs.len(), passes, "renderer runs");
+    let sources: Vec<_> = request["sources"].as_array().unwrap().iter().map(|s| canonical(&s["camera"])).collect();
+    let target = &request["target"];
+    let (k, w2c) = canonical(target);
+    let c2w = w2c.try_inverse().unwrap();
+    let (width, height) = (target["width"].as_u64().unwrap() as usize, target["height"].as_u64().unwrap() as usize);
+    for run in runs.iter() {
+        assert_eq!(run.intrinsics.shape(), [sources.len(), 3, 3]);
+        assert_eq!(run.extrinsics.shape(), [sources.len(), 4, 4]);
+        for (v, (sk, sw2c)) in sources.iter().enumerate() {
+            for (r, c) in (0..3).flat_map(|r| (0..3).map(move |c| (r, c))) {
+                assert_close(run.intrinsics[[v, r, c]], sk[(r, c)], &format!("{:?} source {v} K[{r},{c}]", run.graph));
+            }
+            for (r, c) in (0..4).flat_map(|r| (0..4).map(move |c| (r, c))) {
+                assert_close(
+                    run.extrinsics[[v, r, c]],
+                    sw2c[(r, c)],
+                    &format!("{:?} source {v} w2c[{r},{c}]", run.graph),
+                );
+            }
+        }
+        assert_eq!(run.ray_origins.nrows(), width * height, "one run per pass");
+        for (i, (origin, direction)) in run.ray_origins.rows().into_iter().zip(run.ray_directions.rows()).enumerate() {
+            let (u, v) = ((i % width) as f64, (i / width) as f64);
+            let camera_ray = Vector3::new((u - k[(0, 2)]) / k[(0, 0)], (v - k[(1, 2)]) / k[(1, 1)], 1.0);
+            let want = c2w.fixed_view::<3, 3>(0, 0) * camera_ray;
+            for a in 0..3 {
+                assert_close(origin[a], c2w[(a, 3)], &format!("ray {i} origin[{a}]"));
+                assert_close(direction[a], want[a], &format!("ray {i} direction[{a}]"));
+            }
+        }
+    }
 }
 
 async fn render_multipart_error(request: Value, status: u16, code: &str, field: Option<&str>) {
@@ -33,20 +112,23 @@ async fn render_multipart_error(request: Value, status: u16, code: &str, field: 
 
 #[tokio::test]
 async fn multipart_renders_png_by_default() {
-    let (status, headers, body) = send(app(), multipart_with("/v1/render", &request_json(32), 32, &[])).await;
+    let (app, fed) = recording_app("scnerf", "near_far");
+    let (status, headers, body) = send(app, multipart_with("/v1/render", &request_json(32), 32, &[])).await;
     assert_eq!(status, 200, "{}", String::from_utf8_lossy(&body));
     assert_eq!(headers["content-type"], "image/png");
     assert!(headers["x-model-id"].to_str().unwrap().starts_with("scnerf-scnerf-"));
     assert!(headers["server-timing"].to_str().unwrap().contains("renderer;dur="));
     let img = image::load_from_memory(&body).unwrap();
     assert_eq!((img.width(), img.height()), (8, 6));
+    assert_fed_the_cameras(&fed, &request_json(32), 1);
 }
 
 #[tokio::test]
 async fn json_body_and_json_response_with_all_outputs() {
     let mut req = json_with_images(40); // not a multiple of 32: padded
     req["outputs"] = json!(["rgb", "depth", "opacity"]);
-    let (status, headers, body) = send(app(), json_to("/v1/render", &req, &[("accept", "application/json")])).await;
+    let (app, fed) = recording_app("scnerf", "near_far");
+    let (status, headers, body) = send(app, json_to("/v1/render", &req, &[("accept", "application/json")])).await;
     assert_eq!(status, 200, "{}", String::from_utf8_lossy(&body));
     assert_eq!(headers["content-type"], "application/json");
     let v: Value = serde_json::from_slice(&body).unwrap();
@@ -64,6 +146,8 @@ async fn json_body_and_json_response_with_all_outputs() {
     for stage in ["decode", "encoder", "volume", "renderer", "assemble", "encode", "total"] {
         assert!(v["timings_ms"][stage].as_f64().is_some(), "missing timing {stage}");
     }
+    // Sources padded to the image multiple (40 -> 64) keep their K.
+    assert_fed_the_cameras(&fed, &req, 1);
 }
 
 #[tokio::test]
@@ -90,7 +174,8 @@ fn proto_req(msg: &pb::RenderRequest) -> Request<Body> {
 
 #[tokio::test]
 async fn protobuf_in_protobuf_out_matches_multipart() {
-    let (status, headers, body) = send(app(), proto_req(&proto_render())).await;
+    let (recording, fed) = recording_app("scnerf", "near_far");
+    let (status, headers, body) = send(recording, proto_req(&proto_render())).await;
     assert_eq!(status, 200, "{}", String::from_utf8_lossy(&body));
     assert_eq!(headers["content-type"], "application/x-protobuf");
     let resp = pb::RenderResponse::decode(body).unwrap();
@@ -98,6 +183,7 @@ async fn protobuf_in_protobuf_out_matches_multipart() {
     assert_eq!(resp.depth.as_ref().unwrap().data.len(), 8 * 6 * 4);
     assert!(resp.opacity.is_none());
     assert!(resp.timings_ms.contains_key("renderer"));
+    assert_fed_the_cameras(&fed, &request_json(32), 1);
     // Same request as multipart: same pixels.
     let (_, _, png_body) = send(app(), multipart_with("/v1/render", &request_json(32), 32, &[])).await;
     assert_eq!(resp.rgb_png, png_body.to_vec());
@@ -110,18 +196,24 @@ async fn k_matrix_and_opencv_world_to_camera_are_accepted() {
         "width": 4, "height": 4, "K": [[4.0, 0.0, 2.0], [0.0, 4.0, 2.0], [0.0, 0.0, 1.0]],
         "pose": {"matrix": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 4], [0, 0, 0, 1]], "kind": "world_to_camera", "axes": "opencv"}
     });
-    let (status, _, body) = send(app(), multipart_with("/v1/render", &req, 32, &[])).await;
+    // And a source in the same form: its K and pose reach the renderer as they are.
+    req["sources"][1]["camera"] = json!({
+        "width": 32, "height": 32, "K": [[30.0, 0.0, 15.5], [0.0, 31.0, 16.0], [0.0, 0.0, 1.0]],
+        "pose": {"matrix": [[0, 0, -1, 0.5], [0, 1, 0, 0], [1, 0, 0, 4], [0, 0, 0, 1]], "kind": "world_to_camera", "axes": "opencv"}
+    });
+    let (app, fed) = recording_app("scnerf", "near_far");
+    let (status, _, body) = send(app, multipart_with("/v1/render", &req, 32, &[])).await;
     assert_eq!(status, 200, "{}", String::from_utf8_lossy(&body));
+    assert_fed_the_cameras(&fed, &req, 1);
 }
 
 #[tokio::test]
 async fn other_variants_and_two_pass_depth_norm() {
-    for (variant, norm) in [("mvsnerf", "near_far"), ("scnerf-geometry", "image_minmax")] {
-        let b = bundle(variant, norm);
-        let runner = FakeRunner::new(&b);
-        let app = router(state_with(b, runner, Limits::default(), Duration::from_secs(60)));
+    for (variant, norm, passes) in [("mvsnerf", "near_far", 1), ("scnerf-geometry", "image_minmax", 2)] {
+        let (app, fed) = recording_app(variant, norm);
         let (status, _, body) = send(app, multipart_with("/v1/render", &request_json(32), 32, &[])).await;
         assert_eq!(status, 200, "{variant}: {}", String::from_utf8_lossy(&body));
+        assert_fed_the_cameras(&fed, &request_json(32), passes);
     }
 }
 

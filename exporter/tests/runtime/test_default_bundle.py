@@ -1,8 +1,9 @@
 """The committed default bundle: what it is (SC-NeRF derived from the public MVSNeRF weights, with
-their licence) and what it renders. Regression floors, protocol as in docs/results.md (per target
-the 3 nearest source views): the committed example above examples/tabletop/regression.json's
-floor; lego r_28 at 200x200 >= 23 dB; DTU scan37 view 32 from 33, 31, 25 at 320x256 >= 20 dB on
-the object mask, through ONNX Runtime and through the real server alike."""
+their licence) and what it renders. Regression floors 0.5 dB below the measured figures, protocol
+as in docs/results.md (per target the 3 nearest source views, full-size sources): the committed
+example above examples/tabletop/regression.json's floor; lego r_28 at 200x200 >= 24.86 dB;
+DTU scan37 view 32 (from 31, 33, 25) at 320x256 >= 22.11 dB on the object mask, through ONNX
+Runtime and through the real server alike."""
 
 import json
 
@@ -24,7 +25,10 @@ from conftest import REPO, shared_dir
 EXAMPLE = REPO / "examples" / "tabletop"
 BUNDLE = REPO / "bundles" / "default"
 PUBLIC_SHA256 = "84c2a397760d5e717c21faee9c4f8f8f8a1ba22b378b10971c44f4a0b932c124"
-LEGO_FLOOR_DB, SCAN37_MASKED_FLOOR_DB = 23.0, 20.0
+# Measured - 0.5 dB. lego r_28 at 200x200: 25.36 dB (`scnerf-export eval --target-scale 0.25`,
+# bundles/default/eval/lego.json, docs/client.md); scan37 view 32 at 320x256, object-masked:
+# 22.61 dB (docs/results.md, "Through the server, targets at half size").
+LEGO_FLOOR_DB, SCAN37_MASKED_FLOOR_DB = 24.86, 22.11
 SERVER_AGREEMENT_DB = 0.1
 GUIDED_LOSS_DB = 0.3
 SPECKLED_SHARE = 0.003
@@ -132,7 +136,7 @@ def lego_r28():
 
 @pytest.fixture(scope="module")
 def scan37_view32():
-    return RealView("dtu_scan37", "dtu", "32", ["33", "31", "25"], 0.5)
+    return RealView("dtu_scan37", "dtu", "32", None, 0.5)
 
 
 @pytest.fixture(scope="module")
