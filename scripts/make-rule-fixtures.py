@@ -22,7 +22,7 @@ rule against the same file, so a rule changed on one side alone fails that side'
 
 Run from the repository root (deterministic: a second run rewrites the same bytes):
 
-    PYTHONPATH=exporter:client-python .venv/bin/python scripts/make-rule-fixtures.py
+    PYTHONPATH=exporter .venv/bin/python scripts/make-rule-fixtures.py
 """
 
 from __future__ import annotations
@@ -35,7 +35,6 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from scnerf_client import captures
 from scnerf_export.cameras import OPENGL_TO_OPENCV, Camera, canonical_w2c, look_at
 from scnerf_export.data.dataparsers.llff import LlffParser, _list_images
 from scnerf_export.data.scene import is_image
@@ -198,7 +197,6 @@ def image_files() -> dict:
         names = []
         for name in NAMES:
             image = name in listed
-            assert captures.is_image_name(name) == image, f"the Python client and the parsers differ on {name}"
             names.append({"name": name, "image_extension": is_image(Path(name)), "image": image})
         cases = [dict(case, **capture_answers(Path(tmp) / f"capture_{i}", case)) for i, case in enumerate(CAPTURES)]
     return {
@@ -214,32 +212,22 @@ def capture_answers(root: Path, case: dict) -> dict:
     build(root, case["files"])
     folders = sorted({rel.split("/")[0] for rel in case["files"] if "/" in rel})
     images = {f: [p.name for p in _list_images(root / f)] for f in folders}
-    sets = captures.image_sets(root)
-    sizes = {f: captures.first_image_pixels(p) for f, p in sets.items()}
     count = len(images.get("images", []))
-    picks = []
-    for pick in case["picks"]:
-        limit = pick.get("fit", 1 << 62)
-        try:
-            factor = captures.choose_set(root, sets, limit, pick.get("downscale"))
-        except captures.CaptureError:
-            picks.append({**pick, "error": True})
-            continue
-        if factor is None:
-            picks.append({**pick, "set": None})
-            continue
-        w, h = sizes[factor]
-        picks.append({**pick, "set": sets[factor].name, "fits": w * h <= limit})
+    # The sets and the set each pick takes are the capture crate's alone (the clients ask the
+    # server, POST /v1/captures/plan): kept from the fixture, which capture/tests/rules.rs checks.
+    kept = next(
+        c
+        for c in json.loads((REPO / "tests/fixtures/rules/image_files.json").read_text())["captures"]
+        if c["name"] == case["name"]
+    )
+    for pick in kept["picks"]:
         if pick.get("downscale", 0) > 1 and count:
             llff = LlffParser._downscaled_set(root, 1 / pick["downscale"], count)
-            assert llff is not None and llff[0].parent.name == sets[factor].name, "the LLFF parser picks another set"
-    for pick in picks:
-        if pick.get("error") and pick["downscale"] > 1 and count:
-            assert LlffParser._downscaled_set(root, 1 / pick["downscale"], count) is None
+            assert (llff[0].parent.name if llff else None) == pick.get("set"), "the LLFF parser picks another set"
     return {
         "images": images,
-        "sets": [{"folder": p.name, "factor": f, "width": sizes[f][0], "height": sizes[f][1]} for f, p in sets.items()],
-        "picks": picks,
+        "sets": kept["sets"],
+        "picks": kept["picks"],
     }
 
 
