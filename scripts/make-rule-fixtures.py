@@ -36,8 +36,8 @@ import numpy as np
 from PIL import Image
 
 from scnerf_export.cameras import OPENGL_TO_OPENCV, Camera, canonical_w2c, look_at
-from scnerf_export.data.dataparsers.llff import LlffParser, _list_images
-from scnerf_export.data.scene import is_image
+from scnerf_export.data.dataparsers.llff import LlffParser
+from scnerf_export.data.scene import is_image, list_images
 from scnerf_export.export.bundle import graph_contract
 from scnerf_export.export.manifest import Manifest
 from scnerf_export.runtime.chunks import (
@@ -193,7 +193,7 @@ def image_files() -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp) / "names"
         build(folder, dict.fromkeys(NAMES))
-        listed = {p.name for p in _list_images(folder)}
+        listed = {p.name for p in list_images(folder)}
         names = []
         for name in NAMES:
             image = name in listed
@@ -211,7 +211,7 @@ def image_files() -> dict:
 def capture_answers(root: Path, case: dict) -> dict:
     build(root, case["files"])
     folders = sorted({rel.split("/")[0] for rel in case["files"] if "/" in rel})
-    images = {f: [p.name for p in _list_images(root / f)] for f in folders}
+    images = {f: [p.name for p in list_images(root / f)] for f in folders}
     count = len(images.get("images", []))
     # The sets and the set each pick takes are the capture crate's alone (the clients ask the
     # server, POST /v1/captures/plan): kept from the fixture, which capture/tests/rules.rs checks.

@@ -28,6 +28,11 @@ def is_image(path: Path) -> bool:
     return path.suffix.lower() in IMAGE_EXTENSIONS
 
 
+def list_images(folder: Path) -> list[Path]:
+    """The images of ``folder`` in name order, hidden files (``._IMG.JPG``, ``.x.png``) left out."""
+    return sorted(p for p in folder.iterdir() if p.is_file() and is_image(p) and not p.name.startswith("."))
+
+
 @dataclass
 class View:
     name: str

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ..data import datasets
-from ..data.scene import IMAGE_EXTENSIONS, SceneData, image_size, resize_view
+from ..data.scene import SceneData, image_size, list_images, resize_view
 
 # The server's --max-source-pixels (server/src/request/mod.rs, Limits::default).
 MAX_SOURCE_PIXELS = 1024 * 1024
@@ -108,15 +108,7 @@ def image_sets(root: Path, fmt: str) -> list[ImageSet]:
     sets = []
     for folder in sorted(root.iterdir()):
         factor = _set_factor(folder.name) if folder.is_dir() else None
-        images = (
-            sorted(
-                p
-                for p in folder.iterdir()
-                if p.is_file() and p.suffix in IMAGE_EXTENSIONS and not p.name.startswith(".")
-            )
-            if factor
-            else []
-        )
+        images = list_images(folder) if factor else []
         if images:
             sets.append(ImageSet(factor, *image_size(images[0])))
     return sorted(sets, key=lambda s: s.factor)

@@ -15,8 +15,9 @@ import pytest
 from PIL import Image
 
 from scnerf_export.cameras import Camera, canonical_w2c, look_at
-from scnerf_export.data.dataparsers.llff import LlffParser, _list_images
-from scnerf_export.data.scene import is_image
+from scnerf_export.data.dataparsers.llff import LlffParser
+from scnerf_export.data.scene import is_image, list_images
+from scnerf_export.train.refine_capture import MAX_SOURCE_PIXELS, CaptureError, image_sets, pick_image_set
 
 from conftest import REPO
 
@@ -41,14 +42,14 @@ def test_which_files_are_images(tmp_path):
     build(tmp_path, {n["name"]: None for n in names})
     for n in names:
         assert is_image(Path(n["name"])) == n["image_extension"], n
-    assert [p.name for p in _list_images(tmp_path)] == sorted(n["name"] for n in names if n["image"])
+    assert [p.name for p in list_images(tmp_path)] == sorted(n["name"] for n in names if n["image"])
 
 
 @pytest.mark.parametrize("case", IMAGE_FILES["captures"], ids=lambda c: c["name"])
 def test_image_lists_and_the_downscaled_set_llff_reads(tmp_path, case):
     build(tmp_path, case["files"])
     for folder, images in case["images"].items():
-        assert [p.name for p in _list_images(tmp_path / folder)] == images, folder
+        assert [p.name for p in list_images(tmp_path / folder)] == images, folder
     poses = len(case["images"].get("images", []))
     for want in case["picks"]:
         downscale = want.get("downscale")
@@ -56,6 +57,20 @@ def test_image_lists_and_the_downscaled_set_llff_reads(tmp_path, case):
             # The exporter's LLFF parser reads images_N for scale 1/N when it holds every image.
             files = LlffParser._downscaled_set(tmp_path, 1 / downscale, poses)
             assert (files[0].parent.name if files else None) == want.get("set"), want
+
+
+@pytest.mark.parametrize("case", IMAGE_FILES["captures"], ids=lambda c: c["name"])
+def test_the_image_set_refine_reads(tmp_path, case):
+    build(tmp_path, case["files"])
+    sets = image_sets(tmp_path, "llff")
+    for want in case["picks"]:
+        if want.get("error"):
+            with pytest.raises(CaptureError):
+                pick_image_set(sets, want["downscale"], MAX_SOURCE_PIXELS)
+            continue
+        chosen = pick_image_set(sets, want.get("downscale"), want.get("fit", MAX_SOURCE_PIXELS))
+        name = None if chosen is None else "images" if chosen.factor == 1 else f"images_{chosen.factor}"
+        assert name == want["set"], want
 
 
 @pytest.mark.parametrize("case", CAMERAS["poses"], ids=lambda c: f"{c['kind']}-{c['axes']}")

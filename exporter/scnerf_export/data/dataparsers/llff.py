@@ -13,7 +13,7 @@ from ..scene import (
     View,
     check_near_far,
     check_scale,
-    is_image,
+    list_images,
     read_image,
     resize_float,
     resolve_background,
@@ -21,10 +21,6 @@ from ..scene import (
 from .base import DataParser
 
 LLFF_HOLDOUT = 8
-
-
-def _list_images(d: Path) -> list[Path]:
-    return sorted(p for p in d.iterdir() if p.is_file() and is_image(p) and not p.name.startswith("."))
 
 
 class LlffParser(DataParser):
@@ -63,7 +59,7 @@ class LlffParser(DataParser):
             img_root = root / "images"
             if not img_root.is_dir():
                 raise FileNotFoundError(f"LLFF images folder not found: {img_root}")
-            files, resize_needed = _list_images(img_root), scale != 1.0
+            files, resize_needed = list_images(img_root), scale != 1.0
             if len(files) != len(poses):
                 raise ValueError(f"{pb}: {len(poses)} poses but {len(files)} images in {img_root}")
         bg = resolve_background(background, (0.0, 0.0, 0.0))
@@ -99,5 +95,5 @@ class LlffParser(DataParser):
         if scale == 1.0 or abs(factor - round(factor)) > 1e-6:
             return None
         sub = root / f"images_{int(round(factor))}"
-        files = _list_images(sub) if sub.is_dir() else []
+        files = list_images(sub) if sub.is_dir() else []
         return files if len(files) == count else None
