@@ -165,8 +165,14 @@ impl From<BackendError> for ApiError {
             BackendError::QueueFull => {
                 ApiError::Unavailable { message: "server busy: inference queue is full".into(), retry_after_secs: 2 }
             }
-            BackendError::WouldMissDeadline { ahead_secs, .. } => {
-                ApiError::Unavailable { message: e.to_string(), retry_after_secs: ahead_secs.ceil().max(1.0) as u64 }
+            // Work admitted before it is what makes it late: the client may come back when that
+            // is done. With none ahead the server could not meet the deadline even idle.
+            BackendError::WouldMissDeadline { ahead_secs, .. } if ahead_secs > 0.0 => ApiError::TooManyRequests {
+                message: format!("server busy: {e}"),
+                retry_after_secs: ahead_secs.ceil().max(1.0) as u64,
+            },
+            BackendError::WouldMissDeadline { .. } => {
+                ApiError::Unavailable { message: e.to_string(), retry_after_secs: 1 }
             }
             // Come back when the work ahead is within the wait (a client's deadline header
             // makes the wait as long as it allows).

@@ -21,11 +21,13 @@ const NOT_ACCEPTABLE: Documented = (ApiError::NotAcceptable { message: String::n
 const BODY_TIMEOUT: Documented = (ApiError::BodyTimeout { message: String::new() }, "The body arrived too slowly");
 const TOO_MANY_REQUESTS: Documented = (
     ApiError::TooManyRequests { message: String::new(), retry_after_secs: 0 },
-    "This client has too many requests in flight (Retry-After)",
+    "This client has too many requests in flight, or the work admitted ahead of the request would make it wait \
+     too long or miss its deadline (Retry-After)",
 );
 const UNAVAILABLE: Documented = (
     ApiError::Unavailable { message: String::new(), retry_after_secs: 0 },
-    "Warming up, overloaded, the memory budget in use, or the request cannot finish by its deadline (Retry-After)",
+    "Warming up, overloaded, the memory budget in use, or the request cannot finish by its deadline even alone \
+     (Retry-After)",
 );
 /// Readiness's 503: the probe's expected answer until the warm-up render is done, not a fault.
 const WARMING_UP: Documented =
