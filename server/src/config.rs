@@ -17,6 +17,7 @@ use crate::cache::CacheConfig;
 use crate::http::body::UploadPolicy;
 use crate::http::serve::ServeOptions;
 use crate::http::ServiceOptions;
+use crate::models::ModelSettings;
 use crate::pipeline::chunks::ChunkPolicy;
 use crate::pipeline::volume::SlabPolicy;
 use crate::request::Limits;
@@ -38,9 +39,22 @@ pub enum LogFormat {
 #[derive(Debug, Clone, Parser)]
 #[command(name = "scnerf-server", version, about = "SC-NeRF novel-view inference server")]
 pub struct Config {
-    /// Bundle directory (manifest.json + ONNX graphs). Default: <repo>/bundles/default.
-    #[arg(long, env = "SCNERF_BUNDLE")]
-    pub bundle: Option<PathBuf>,
+    /// Bundle directory (manifest.json + ONNX graphs): a model, named by the folder's name.
+    /// Repeatable (`SCNERF_BUNDLE=a:b`). Default, without --bundle and --models:
+    /// <repo>/bundles/default.
+    #[arg(long, env = "SCNERF_BUNDLE", value_delimiter = ':')]
+    pub bundle: Vec<PathBuf>,
+
+    /// Serve every bundle folder below DIR too (a folder with a manifest.json, each named by its
+    /// folder), and load new ones on `POST /v1/models/reload`. An invalid bundle found there is
+    /// skipped with a warning; an invalid --bundle fails the start.
+    #[arg(long, env = "SCNERF_MODELS")]
+    pub models: Option<PathBuf>,
+
+    /// The model of requests that name none (a model's name). Default: the first --bundle, else
+    /// the first bundle folder of --models by path.
+    #[arg(long, env = "SCNERF_DEFAULT_MODEL")]
+    pub default_model: Option<String>,
 
     /// Address to listen on. Port 0 picks a free port; the bound address is printed on stdout
     /// as `listening on http://ADDR`.
@@ -293,8 +307,17 @@ fn non_negative_secs(s: &str) -> Result<f64, String> {
 }
 
 impl Config {
-    pub fn bundle_dir(&self) -> PathBuf {
-        self.bundle.clone().unwrap_or_else(default_bundle_dir)
+    /// The --bundle folders; the default bundle when neither --bundle nor --models is given.
+    pub fn bundle_dirs(&self) -> Vec<PathBuf> {
+        match (self.bundle.is_empty(), &self.models) {
+            (true, None) => vec![default_bundle_dir()],
+            _ => self.bundle.clone(),
+        }
+    }
+
+    /// What every model's pipeline is built with.
+    pub fn model_settings(&self) -> ModelSettings {
+        ModelSettings { chunking: self.chunking(), slabs: self.slabs(), limits: self.limits(), sampling: self.sampling }
     }
 
     pub fn intra_threads(&self) -> usize {

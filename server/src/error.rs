@@ -43,6 +43,14 @@ pub enum ApiError {
     #[error("no scene {id} here (unknown, expired, evicted, or on another replica): upload it again (PUT /v1/scenes/{id}) and retry")]
     SceneNotFound { id: String },
 
+    /// The request names a model this server does not serve (`GET /v1/models` lists them).
+    #[error("no model \"{name}\" here: GET /v1/models lists the models served")]
+    ModelNotFound { name: String },
+
+    /// A scene is rendered with the model it was created with; the request names another.
+    #[error("scene {scene} was created with model \"{scene_model}\", not \"{requested}\": render it with \"{scene_model}\" (or without \"model\"), or upload it again with \"model\": \"{requested}\"")]
+    ModelMismatch { scene: String, scene_model: String, requested: String },
+
     #[error("method not allowed")]
     MethodNotAllowed,
 
@@ -84,7 +92,8 @@ impl ApiError {
             Self::NotAcceptable { .. } => StatusCode::NOT_ACCEPTABLE,
             Self::Invalid { .. } => StatusCode::UNPROCESSABLE_ENTITY,
             Self::Unauthorized { .. } => StatusCode::UNAUTHORIZED,
-            Self::NotFound { .. } | Self::SceneNotFound { .. } => StatusCode::NOT_FOUND,
+            Self::NotFound { .. } | Self::SceneNotFound { .. } | Self::ModelNotFound { .. } => StatusCode::NOT_FOUND,
+            Self::ModelMismatch { .. } => StatusCode::CONFLICT,
             Self::MethodNotAllowed => StatusCode::METHOD_NOT_ALLOWED,
             Self::BodyTimeout { .. } => StatusCode::REQUEST_TIMEOUT,
             Self::TooManyRequests { .. } => StatusCode::TOO_MANY_REQUESTS,
@@ -105,6 +114,8 @@ impl ApiError {
             Self::Unauthorized { .. } => "unauthorized",
             Self::NotFound { .. } => "not_found",
             Self::SceneNotFound { .. } => "scene_not_found",
+            Self::ModelNotFound { .. } => "model_not_found",
+            Self::ModelMismatch { .. } => "model_mismatch",
             Self::MethodNotAllowed => "method_not_allowed",
             Self::BodyTimeout { .. } => "body_timeout",
             Self::TooManyRequests { .. } => "too_many_requests",
@@ -121,6 +132,7 @@ impl ApiError {
             }
             Self::Invalid { field, .. } => Some(field),
             Self::SceneNotFound { .. } => Some("scene_id"),
+            Self::ModelNotFound { .. } | Self::ModelMismatch { .. } => Some("model"),
             Self::BodyTimeout { .. } => Some("body"),
             // Not fields of the body, but what the client got wrong all the same.
             Self::Unauthorized { .. } => Some("authorization"),

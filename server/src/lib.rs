@@ -20,6 +20,7 @@ pub mod http;
 pub mod image_io;
 pub mod logging;
 pub mod metrics;
+pub mod models;
 pub mod pipeline;
 pub mod request;
 pub mod server;

@@ -17,6 +17,7 @@ use prometheus_client::registry::{Registry, Unit};
 
 use crate::backend::BackendHandle;
 use crate::cache::SceneCache;
+use crate::models::Model;
 use crate::pipeline::scene::SamplingReport;
 use crate::pipeline::scene::Timings;
 use crate::sysmem;
@@ -49,11 +50,15 @@ struct RouteLabels {
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
 struct StageLabels {
     stage: String,
+    /// A served model's name (`models::Model::name`), never text from a request: the label's
+    /// values are the configured models.
+    model: String,
 }
 
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
 struct SamplingLabels {
     sampling: String,
+    model: String,
 }
 
 type HistogramFamily<L> = Family<L, Histogram, fn() -> Histogram>;
@@ -111,16 +116,17 @@ impl Metrics {
         self.request_seconds.get_or_create(&RouteLabels { route: route.to_string() }).observe(elapsed.as_secs_f64());
     }
 
-    /// Records the stages of a finished request (`total` is the request histogram's job).
-    pub fn observe_stages(&self, timings: &Timings) {
+    /// Records the stages of a finished request of `model` (`total` is the request histogram's job).
+    pub fn observe_stages(&self, model: &Model, timings: &Timings) {
         for (stage, d) in timings.0.iter().filter(|(s, _)| *s != "total") {
-            self.stage_seconds.get_or_create(&StageLabels { stage: stage.to_string() }).observe(d.as_secs_f64());
+            let labels = StageLabels { stage: stage.to_string(), model: model.name.to_string() };
+            self.stage_seconds.get_or_create(&labels).observe(d.as_secs_f64());
         }
     }
 
-    /// Records how a rendered view was sampled.
-    pub fn observe_sampling(&self, report: &SamplingReport) {
-        let labels = SamplingLabels { sampling: report.mode.name().to_string() };
+    /// Records how a view of `model` was sampled.
+    pub fn observe_sampling(&self, model: &Model, report: &SamplingReport) {
+        let labels = SamplingLabels { sampling: report.mode.name().to_string(), model: model.name.to_string() };
         self.samples_per_ray.get_or_create(&labels).observe(report.samples_per_ray);
     }
 

@@ -1,22 +1,20 @@
-//! Start-up: load and verify the bundle, create the ONNX Runtime sessions, bind, warm up, serve.
+//! Start-up: load and verify the bundles, create each model's ONNX Runtime sessions, bind, warm
+//! up every model, serve.
 
 use std::io::Write;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use nalgebra::{Isometry3, Matrix3, Vector3};
-use ndarray::Array4;
 use tokio::net::TcpListener;
 
 use crate::backend::ort::OrtRunner;
-use crate::backend::{BackendHandle, MemoryBudget};
+use crate::backend::{BackendHandle, GraphRunner, MemoryBudget};
 use crate::bundle::Bundle;
-use crate::camera::CanonicalCamera;
 use crate::config::Config;
 use crate::http::serve::{ensure_file_limit, serve};
 use crate::http::{router, AppState};
-use crate::pipeline::scene::Timings;
-use crate::pipeline::Pipeline;
+pub use crate::models::warm_up;
+use crate::models::{duplicate_name, model_name, scan, Loader, MakeRunner, Model, Models};
 use crate::sysmem;
 
 pub async fn run(config: Config) -> Result<(), String> {
@@ -28,27 +26,9 @@ pub async fn run(config: Config) -> Result<(), String> {
     if options.auth.enabled() {
         tracing::info!(tokens = options.auth.token_count(), "bearer-token authentication on");
     }
-    let bundle_dir = config.bundle_dir();
-    let bundle = Bundle::load(&bundle_dir).map_err(|e| e.to_string())?;
-    tracing::info!(model_id = %bundle.manifest.model_id, dir = %bundle_dir.display(), "bundle verified");
-    let ort = config.ort_options();
-    let runner = {
-        let bundle = bundle.clone();
-        let exec = config.exec_options();
-        tokio::task::spawn_blocking(move || OrtRunner::load_with(&bundle, &ort, &exec))
-            .await
-            .map_err(|e| e.to_string())?
-            .map_err(|e| format!("bundle {}: {e}", bundle_dir.display()))?
-    };
     let (budget, budget_source) = config.memory_budget();
     tracing::info!(budget_mib = budget >> 20, source = %budget_source, "memory budget");
-    let backend = BackendHandle::spawn(Box::new(runner), config.executor_options()).map_err(|e| e.to_string())?;
-    let pipeline = Pipeline::new(backend, bundle, config.chunking(), config.slabs(), config.limits())
-        .with_default_sampling(config.sampling);
-    if pipeline.default_sampling() != config.sampling {
-        tracing::info!(asked = %config.sampling, "the bundle has no guided-sampling graphs: views are sampled in full");
-    }
-    let state = AppState::new(pipeline, options);
+    let state = AppState::with_models(load_models(&config).await?, options);
     spawn_cache_sweeper(&state);
 
     let listener =
@@ -66,7 +46,7 @@ pub async fn run(config: Config) -> Result<(), String> {
     } else {
         let state = state.clone();
         tokio::spawn(async move {
-            let warmed = warm_up(state.pipeline()).await.map_err(|e| format!("warm-up render failed: {e}"));
+            let warmed = warm_up_all(state.models()).await;
             match warmed.and_then(|elapsed| Ok((elapsed, reserve_memory(&state)?))) {
                 Ok((elapsed, memory)) => {
                     tracing::info!(
@@ -113,8 +93,105 @@ pub async fn run(config: Config) -> Result<(), String> {
     Ok(())
 }
 
-/// Sets aside the memory held apart from requests: the process at rest after the warm-up (the
-/// sessions, their weights, the renderer's arena) and the scene cache at its limit.
+/// The bundles of `--bundle` (any that fails fails the start) and below `--models` (one that
+/// fails is skipped with a warning), each model's runner in a slot of the one executor.
+async fn load_models(config: &Config) -> Result<Models, String> {
+    let bundles = find_bundles(config)?;
+    let make_runner = ort_runners(config);
+    let settings = config.model_settings();
+    let (mut executor, mut models): (Option<BackendHandle>, Vec<Model>) = (None, Vec::new());
+    for (bundle, required) in bundles {
+        let dir = bundle.dir.clone();
+        tracing::info!(model_id = %bundle.manifest.model_id, dir = %dir.display(), "bundle verified");
+        let (make, for_runner) = (make_runner.clone(), bundle.clone());
+        let runner = tokio::task::spawn_blocking(move || make(&for_runner)).await.map_err(|e| e.to_string())?;
+        let runner = match runner {
+            Ok(runner) => runner,
+            Err(e) if required => return Err(format!("bundle {}: {e}", dir.display())),
+            Err(reason) => {
+                tracing::warn!(path = %dir.display(), %reason, "bundle skipped");
+                continue;
+            }
+        };
+        let backend = match &executor {
+            Some(executor) => executor.add_runner(runner),
+            None => BackendHandle::spawn(runner, config.executor_options()).map_err(|e| e.to_string())?,
+        };
+        executor.get_or_insert_with(|| backend.clone());
+        let model = Model::new(settings.pipeline(backend, bundle));
+        if model.pipeline.default_sampling() != config.sampling {
+            tracing::info!(model = %model.name, asked = %config.sampling,
+                           "the bundle has no guided-sampling graphs: views are sampled in full");
+        }
+        models.push(model);
+    }
+    let executor = executor.ok_or("no model to serve: every bundle below --models was skipped")?;
+    let loader = config.models.clone().map(|dir| Loader {
+        dir,
+        make_runner,
+        settings,
+        executor,
+        warm_up: !config.skip_warmup,
+    });
+    Models::new(models, config.default_model.as_deref(), loader)
+}
+
+/// The verified bundles to serve, each with whether it must load (`--bundle`) or may be skipped
+/// (found below `--models`); two of one name fail the start, naming both folders.
+fn find_bundles(config: &Config) -> Result<Vec<(Bundle, bool)>, String> {
+    let mut bundles = Vec::new();
+    for dir in config.bundle_dirs() {
+        bundles.push((Bundle::load(&dir).map_err(|e| e.to_string())?, true));
+    }
+    let (found, unreadable) = config.models.as_deref().map(scan::bundle_dirs).unwrap_or_default();
+    for (path, reason) in unreadable {
+        tracing::warn!(path = %path.display(), %reason, "folder skipped");
+    }
+    for dir in found {
+        match Bundle::load(&dir) {
+            Ok(bundle) => bundles.push((bundle, false)),
+            Err(e) => tracing::warn!(path = %dir.display(), reason = %e.message, "bundle skipped"),
+        }
+    }
+    let mut names: Vec<(String, std::path::PathBuf)> = Vec::new();
+    let mut unique = Vec::new();
+    for (bundle, required) in bundles {
+        let (name, dir) = (model_name(&bundle.dir), canonical(&bundle.dir));
+        match names.iter().find(|(n, _)| *n == name) {
+            // The same folder twice (a --bundle inside --models): one model.
+            Some((_, first)) if *first == dir => continue,
+            Some((_, first)) => return Err(duplicate_name(&name, first, &bundle.dir)),
+            None => names.push((name, dir)),
+        }
+        unique.push((bundle, required));
+    }
+    Ok(unique)
+}
+
+fn canonical(dir: &std::path::Path) -> std::path::PathBuf {
+    std::fs::canonicalize(dir).unwrap_or_else(|_| dir.to_path_buf())
+}
+
+/// Each model's runner: its graphs' ONNX Runtime sessions, on the configured device.
+fn ort_runners(config: &Config) -> MakeRunner {
+    let (ort, exec) = (config.ort_options(), config.exec_options());
+    Arc::new(move |bundle: &Bundle| {
+        OrtRunner::load_with(bundle, &ort, &exec).map(|runner| Box::new(runner) as Box<dyn GraphRunner>)
+    })
+}
+
+/// Every model's warm-up render, in turn.
+async fn warm_up_all(models: &Models) -> Result<Duration, String> {
+    let mut elapsed = Duration::ZERO;
+    for model in models.all() {
+        let took = warm_up(&model.pipeline).await.map_err(|e| format!("model {}: warm-up render failed: {e}", model.name))?;
+        elapsed += took;
+    }
+    Ok(elapsed)
+}
+
+/// Sets aside the memory held apart from requests: the process at rest after the warm-up (every
+/// model's sessions, their weights, the renderer's arena) and the scene cache at its limit.
 fn reserve_memory(state: &AppState) -> Result<MemoryBudget, String> {
     let at_rest = sysmem::resident().map_or(0, |r| r.now);
     let cache = state.scenes().config().max_bytes as u64;
@@ -147,53 +224,3 @@ fn shutdown_signals() -> Result<impl std::future::Future<Output = ()>, String> {
     })
 }
 
-/// Renders a tiny synthetic view through all three graphs: checks that the bundle really runs
-/// before /readyz says so, and lets ONNX Runtime allocate its kernels.
-pub async fn warm_up(pipeline: &Pipeline) -> Result<Duration, String> {
-    let start = Instant::now();
-    let config = pipeline.config();
-    let size = config.image_multiple;
-    let cameras = warmup_cameras(config.views, size as u32);
-    let images = Array4::from_elem((config.views, 3, size, size), 0.5);
-    let mut timings = Timings::default();
-    let mut target = cameras[0].clone();
-    target.width = 4;
-    target.height = 4;
-    // Warm-up runs before readiness, alone on the executor; the deadline only bounds a hang.
-    let samplings = pipeline.samplings();
-    let work = samplings.iter().fold(pipeline.scene_work(&cameras), |w, &s| w.plus(pipeline.view_work(&target, s)));
-    let ticket = pipeline.admit(Instant::now() + Duration::from_secs(3600), work, 0).map_err(|e| e.to_string())?;
-    let scene = pipeline
-        .build_scene(&ticket, &cameras, images.into_shared(), 2.0, 6.0, &mut timings)
-        .await
-        .map_err(|e| e.to_string())?;
-    // Every way of sampling the bundle has, so that each of its graphs has run once.
-    for sampling in samplings {
-        let view = pipeline
-            .render_view(&ticket, &scene, &target, [0.0; 3], sampling, None, &mut timings)
-            .await
-            .map_err(|e| e.to_string())?;
-        if view.rgb.iter().chain(&view.depth).chain(&view.opacity).any(|v| !v.is_finite()) {
-            return Err(format!("the warm-up render ({sampling} sampling) produced non-finite values"));
-        }
-    }
-    pipeline.executor().forget_rates();
-    Ok(start.elapsed())
-}
-
-/// Cameras on a small arc 4 units from the origin, looking at it (OpenCV, world-to-camera).
-fn warmup_cameras(views: usize, size: u32) -> Vec<CanonicalCamera> {
-    let (f, c) = (f64::from(size), f64::from(size) / 2.0);
-    (0..views)
-        .map(|i| {
-            // Rotation about y by -0.1·i; the origin lies 4 units ahead on the optical axis.
-            let w2c = Isometry3::new(Vector3::new(0.0, 0.0, 4.0), Vector3::y() * (-0.1 * i as f64));
-            CanonicalCamera {
-                width: size,
-                height: size,
-                k: Matrix3::new(f, 0.0, c, 0.0, f, c, 0.0, 0.0, 1.0),
-                w2c: w2c.to_homogeneous(),
-            }
-        })
-        .collect()
-}

@@ -115,7 +115,7 @@ impl BackendHandle {
         q.next_ticket += 1;
         let id = q.next_ticket;
         q.requests.insert(id, Admitted { deadline, remaining: work, memory, jobs: VecDeque::new() });
-        Ok(Ticket { id, deadline, shared: self.shared.clone() })
+        Ok(Ticket { id, model: self.model, deadline, shared: self.shared.clone() })
     }
 
     /// Forgets the measured rates: the graphs count as unmeasured (admitted without an estimate)

@@ -7,6 +7,7 @@ use std::time::{Duration, Instant};
 use super::budget::{MemoryBudget, MemoryRefusals};
 use super::queue::{Finish, Inputs, Job, Running};
 use super::runner::Outputs;
+use super::runners::Runners;
 use super::shared::Shared;
 use super::{BackendError, GraphRunner, NamedTensors};
 use crate::bundle::GraphKind;
@@ -33,7 +34,7 @@ impl ExecutorOptions {
 }
 
 /// Closes the queue when the last `BackendHandle` goes away.
-struct Closer(Arc<Shared>);
+pub(super) struct Closer(Arc<Shared>);
 
 impl Drop for Closer {
     fn drop(&mut self) {
@@ -46,7 +47,9 @@ impl Drop for Closer {
 #[derive(Clone)]
 pub struct BackendHandle {
     pub(super) shared: Arc<Shared>,
-    _closer: Arc<Closer>,
+    /// The runner this handle's requests run on (`add_runner`): one executor serves every model.
+    pub(super) model: usize,
+    pub(super) closer: Arc<Closer>,
 }
 
 /// How busy the executor is (for /metrics).
@@ -74,9 +77,11 @@ impl BackendHandle {
             probe: options.probe,
             max_queue_wait: options.max_queue_wait,
         });
+        shared.lock().next_slot = 1;
         let worker_shared = shared.clone();
-        std::thread::Builder::new().name("scnerf-inference".into()).spawn(move || worker(runner, worker_shared))?;
-        Ok(BackendHandle { _closer: Arc::new(Closer(shared.clone())), shared })
+        let runners = Runners::new(runner);
+        std::thread::Builder::new().name("scnerf-inference".into()).spawn(move || worker(runners, worker_shared))?;
+        Ok(BackendHandle { closer: Arc::new(Closer(shared.clone())), model: 0, shared })
     }
 
     /// The per-stage memory probe, when `--memory-probe` is on.
@@ -102,9 +107,10 @@ impl BackendHandle {
 /// Waits for the next job and says whether it is the last of its request's runs of its graph
 /// with no other job waiting (then the runner releases what it keeps); `None` once the queue is
 /// closed and empty.
-fn next_job(shared: &Shared) -> Option<(Job, bool)> {
+fn next_job(shared: &Shared, runners: &mut Runners) -> Option<(Job, bool)> {
     let mut q = shared.lock();
     loop {
+        runners.apply(std::mem::take(&mut q.runner_changes));
         if let Some(job) = q.pop() {
             let release = job.last && q.queued_jobs == 0;
             return Some((job, release));
@@ -117,8 +123,8 @@ fn next_job(shared: &Shared) -> Option<(Job, bool)> {
     }
 }
 
-fn worker(mut runner: Box<dyn GraphRunner>, shared: Arc<Shared>) {
-    while let Some((mut job, release)) = next_job(&shared) {
+fn worker(mut runners: Runners, shared: Arc<Shared>) {
+    while let Some((mut job, release)) = next_job(&shared, &mut runners) {
         // The request went away (client disconnected, deadline passed): skip its work.
         if job.reply.is_closed() {
             continue;
@@ -136,7 +142,10 @@ fn worker(mut runner: Box<dyn GraphRunner>, shared: Arc<Shared>) {
             q.running = Some(Running { deadline: job.deadline, secs, started });
         }
         let inputs = std::mem::replace(&mut job.inputs, Inputs::Ready(Vec::new()));
-        let result = run_guarded(runner.as_mut(), job.graph, inputs, job.finish.take(), release);
+        let result = match runners.get(job.model) {
+            Some(runner) => run_guarded(runner, job.graph, inputs, job.finish.take(), release),
+            None => Err(BackendError::Run { graph: job.graph, message: "its model is no longer loaded".into() }),
+        };
         let took = started.elapsed().as_secs_f64();
         if let Some(probe) = probe {
             probe.finish(job.graph.name());

@@ -54,6 +54,7 @@ pub mod ort;
 mod queue;
 mod rates;
 mod runner;
+mod runners;
 mod shared;
 #[cfg(test)]
 mod testkit;

@@ -73,10 +73,19 @@ pub fn resolve_dylib(explicit: Option<&Path>) -> Result<PathBuf, String> {
     })
 }
 
+/// The process's one ONNX Runtime environment (ort allows one per process): every model's
+/// sessions are created in it and share its thread pool.
+static ENVIRONMENT: std::sync::Mutex<Option<Environment>> = std::sync::Mutex::new(None);
+
 /// Loads the library and creates the process's ONNX Runtime environment with one intra-op
 /// thread pool shared by all sessions (the graphs run one at a time on the inference thread,
-/// so one pool of `threads` workers never oversubscribes the CPU).
+/// so one pool of `threads` workers never oversubscribes the CPU). Later calls (another model's
+/// runner) get the same environment: the library and pool of the first.
 pub fn init_environment(opts: &OrtOptions) -> Result<Environment, String> {
+    let mut current = ENVIRONMENT.lock().unwrap_or_else(|p| p.into_inner());
+    if let Some(env) = current.as_ref() {
+        return Ok(env.clone());
+    }
     let path = resolve_dylib(opts.dylib.as_deref())?;
     let builder =
         ort::init_from(&path).map_err(|e| format!("cannot load ONNX Runtime from {}: {e}", path.display()))?;
@@ -91,6 +100,7 @@ pub fn init_environment(opts: &OrtOptions) -> Result<Environment, String> {
         .build()
         .map_err(|e| format!("ONNX Runtime environment: {e}"))?;
     tracing::info!(library = %path.display(), threads = opts.intra_threads, "ONNX Runtime loaded");
+    *current = Some(env.clone());
     Ok(env)
 }
 

@@ -10,6 +10,7 @@ use tracing::Span;
 use super::budget::MemoryRefusals;
 use super::rates::{Rates, Work};
 use super::runner::Outputs;
+use super::runners::RunnerChange;
 use super::{BackendError, NamedTensors};
 use crate::bundle::GraphKind;
 
@@ -39,6 +40,8 @@ impl Inputs {
 
 pub(super) struct Job {
     pub(super) ticket: u64,
+    /// The model whose runner runs it (`BackendHandle::add_runner`'s slot).
+    pub(super) model: usize,
     pub(super) graph: GraphKind,
     pub(super) units: f64,
     pub(super) inputs: Inputs,
@@ -87,6 +90,10 @@ pub(super) struct Queue {
     pub(super) closed: bool,
     /// The executor thread has ended; new jobs fail with `Stopped`.
     pub(super) stopped: bool,
+    /// Runners added or removed since the executor last looked (see `runners.rs`).
+    pub(super) runner_changes: Vec<RunnerChange>,
+    /// The slot the next runner added gets (0 is the first runner's).
+    pub(super) next_slot: usize,
 }
 
 impl Queue {

@@ -18,6 +18,8 @@ use crate::bundle::GraphKind;
 /// went away and the handler future was dropped) removes its waiting jobs from the queue.
 pub struct Ticket {
     pub(super) id: u64,
+    /// The model whose runner runs the request's graphs.
+    pub(super) model: usize,
     pub(super) deadline: Instant,
     pub(super) shared: Arc<Shared>,
 }
@@ -83,7 +85,10 @@ impl Ticket {
     ) -> impl Future<Output = Result<Outputs, BackendError>> + Send + 'static {
         let (reply, rx) = oneshot::channel();
         let span = Span::current();
-        let job = Job { ticket: self.id, graph, units, inputs, finish, reply, span, deadline: self.deadline, last };
+        let job = Job {
+            ticket: self.id,
+            model: self.model,
+            graph, units, inputs, finish, reply, span, deadline: self.deadline, last };
         let queued = {
             let mut q = self.shared.lock();
             if q.stopped {

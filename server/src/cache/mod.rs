@@ -17,7 +17,10 @@
 //! Entries are `Arc`s: evicting what a request is rendering frees it when that request ends.
 //!
 //! Ids are the client's (`PUT /v1/scenes/{id}`) or random (`POST`), and are namespaced by owner:
-//! two tokens may hold scenes of the same id without seeing each other's.
+//! two tokens may hold scenes of the same id without seeing each other's. A scene belongs to the
+//! model it was created with (`CachedScene::model`); an id names one scene, so one model: a PUT
+//! of the id with another model replaces it. Volumes are keyed by their scene's serial, so by
+//! its model too.
 //!
 //! Time is passed in (`now`) rather than read here, so tests can drive expiry without sleeping.
 
@@ -40,6 +43,9 @@ use crate::pipeline::views::Views;
 pub struct CachedScene {
     pub views: Views,
     pub background: [f32; 3],
+    /// The model whose graphs built its volumes: a scene belongs to one model, and its renders
+    /// use it (its volumes mean nothing to another model's renderer).
+    pub model: Arc<str>,
     fixed: Option<Arc<Scene>>,
     key: SceneKey,
     /// Tells a scene from an earlier one of the same id (replaced meanwhile).
@@ -63,6 +69,7 @@ pub struct NewScene {
     /// The volume of the views in upload order, when built at creation.
     pub volume: Option<Scene>,
     pub background: [f32; 3],
+    pub model: Arc<str>,
 }
 
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -177,6 +184,7 @@ impl SceneCache {
         let scene = CachedScene {
             views: new.views,
             background: new.background,
+            model: new.model,
             fixed: new.volume.map(Arc::new),
             key: key.clone(),
             serial,

@@ -27,12 +27,12 @@ fn volume(floats: usize) -> Scene {
 
 /// A 3-view scene with its volume of `floats` floats: 4 (3 + 1 + floats) bytes.
 fn three_views(floats: usize) -> NewScene {
-    NewScene { views: views(3), volume: Some(volume(floats)), background: [0.0; 3] }
+    NewScene { views: views(3), volume: Some(volume(floats)), background: [0.0; 3], model: "m".into() }
 }
 
 /// A capture of `n` views, `4 n` bytes, no volume yet.
 fn capture(n: usize) -> NewScene {
-    NewScene { views: views(n), volume: None, background: [0.0; 3] }
+    NewScene { views: views(n), volume: None, background: [0.0; 3], model: "m".into() }
 }
 
 fn cache(max_bytes: usize, ttl_secs: u64) -> SceneCache {

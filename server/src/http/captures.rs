@@ -65,12 +65,16 @@ pub struct CaptureOptions {
     /// sent whose images fit `max_source_pixels` (GET /v1/limits).
     #[param(value_type = Option<u32>, minimum = 1)]
     downscale: Option<std::num::NonZeroU32>,
+    /// The model the scene belongs to (a name `GET /v1/models` lists); default: the server's.
+    model: Option<String>,
 }
 
 /// `201 Created` body of `POST /v1/captures`: the scene, and what the capture was read as.
 #[derive(Debug, Serialize, utoipa::ToSchema)]
 pub struct CaptureCreated {
     pub scene_id: String,
+    /// The model the scene belongs to.
+    pub model: String,
     /// RFC 3339 UTC, as for `POST /v1/scenes`.
     pub expires_at: String,
     /// Every view of the scene (canonical: OpenCV world-to-camera), in the order of the indices
@@ -130,6 +134,8 @@ async fn create_within(
         });
     }
     let owner = owner_of(&req);
+    // Before the upload is read: a wrong name costs the client no upload.
+    let model = state.models.get(options.model.as_deref())?;
     let (files, metadata_bytes) = read_files(req, state.pipeline.limits()).await?;
     let mut parsing =
         state.pipeline.executor().lease(capture_parse_bytes(metadata_bytes as u64)).map_err(|e| match e {
@@ -138,7 +144,7 @@ async fn create_within(
             }
             other => other.into(),
         })?;
-    let (config, limits) = (state.pipeline.config().clone(), state.pipeline.limits().clone());
+    let (config, limits) = (model.pipeline.config().clone(), model.pipeline.limits().clone());
     let parsed = blocking::run(move |cancel| {
         let read = read_capture(files, &options, &limits, &mut parsing, cancel)?;
         let names = read.names.clone();
@@ -149,9 +155,10 @@ async fn create_within(
     let (valid, cameras, names, format, image_set, warnings) = parsed;
     let (near, far) = (valid.near, valid.far);
     let mut timings = Timings::default();
-    let stored = store_scene(&state, valid, id, owner, &deadline, &mut timings).await?;
+    let stored = store_scene(&state, &model, valid, id, owner, &deadline, &mut timings).await?;
     let body = CaptureCreated {
         scene_id: stored.id.clone(),
+        model: model.name.to_string(),
         expires_at: rfc3339(stored.expires_at),
         cameras,
         names,
@@ -162,7 +169,7 @@ async fn create_within(
         warnings,
     };
     let status = if stored.replaced { StatusCode::OK } else { StatusCode::CREATED };
-    Ok(scene_response(&state, status, &stored.id, body, &timings))
+    Ok(scene_response(&model, status, &stored.id, body, &timings))
 }
 
 /// Every `file` part, by its filename, and the bytes of those that are not images (at most
@@ -286,7 +293,7 @@ fn read_capture(
     }
     let background = Some(background.to_vec());
     Ok(ReadCapture {
-        request: SceneRequest { sources, near, far, background },
+        request: SceneRequest { sources, near, far, background, model: None },
         cameras,
         names,
         format: format.name().to_string(),

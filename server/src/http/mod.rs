@@ -8,6 +8,7 @@ mod capture_plan;
 mod captures;
 mod deadline;
 pub mod middleware;
+mod models;
 pub mod negotiate;
 pub mod openapi;
 mod render;
@@ -43,6 +44,8 @@ pub fn router(state: AppState) -> Router {
         .route("/openapi.json", get(openapi::serve))
         .route("/v1/model", get(service::model))
         .route("/v1/limits", get(service::limits))
+        .route("/v1/models", get(models::list))
+        .route("/v1/models/reload", post(models::reload))
         .route("/v1/render", post(render::render))
         .route("/v1/scenes", post(scenes::create))
         .route(body::CAPTURES_PATH, post(captures::create).layer(DefaultBodyLimit::max(capture_limit)))

@@ -19,9 +19,11 @@ use super::captures::CaptureCreated;
 use super::respond::{FloatImageJson, PngImageJson, RenderResponseJson};
 use super::scenes::SceneCreated;
 use super::schema::{Binary, CaptureMultipart, RenderMultipart, SceneMultipart};
+use super::models::ModelList;
 use super::service::LimitsBody;
 use crate::error::{ErrorBody, ErrorDetail};
 use crate::request::wire::{JsonRenderRequest, JsonSceneRequest, JsonSource, JsonTargetRequest};
+use crate::models::{ModelInfo, Reloaded, Skipped};
 use crate::request::OutputKind;
 
 struct BearerAuth;
@@ -54,6 +56,8 @@ Errors are always `{\"error\": {\"code\", \"message\", \"field\"}}`. With bearer
         crate::http::capture_plan::plan_capture,
         crate::http::service::model,
         crate::http::service::limits,
+        crate::http::models::list,
+        crate::http::models::reload,
         crate::http::service::healthz,
         crate::http::service::readyz,
         crate::http::service::metrics,
@@ -63,7 +67,7 @@ Errors are always `{\"error\": {\"code\", \"message\", \"field\"}}`. With bearer
         JsonRenderRequest, JsonSceneRequest, JsonTargetRequest, JsonSource, WireCamera, Intrinsics,
         WireIntrinsics, WirePose, OutputKind, RenderResponseJson, PngImageJson, FloatImageJson, SceneCreated,
         CaptureCreated, CapturePlanRequest, CaptureImageSize, CapturePlan, PlannedFile, PlannedResize, PixelSize,
-        LeftOutFile, CaptureImageSet, LimitsBody, ErrorBody, ErrorDetail, RenderMultipart, SceneMultipart, CaptureMultipart, Binary, Matrix3Rows,
+        LeftOutFile, CaptureImageSet, LimitsBody, ModelList, ModelInfo, Reloaded, Skipped, ErrorBody, ErrorDetail, RenderMultipart, SceneMultipart, CaptureMultipart, Binary, Matrix3Rows,
         Matrix4Rows,
     )),
     modifiers(&BearerAuth),

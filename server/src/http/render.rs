@@ -38,12 +38,13 @@ pub async fn render(State(state): State<AppState>, deadline: Deadline, req: Requ
 async fn render_within(state: AppState, deadline: Deadline, req: Request) -> Result<Response, ApiError> {
     let format = request_format(req.headers())?;
     let headers = req.headers().clone();
-    let pipeline = &state.pipeline;
-    let parsed = read_render_request(format, req, pipeline.limits()).await?;
+    let parsed = read_render_request(format, req, state.pipeline.limits()).await?;
+    let model = state.models.get(parsed.scene.model.as_deref())?;
+    let pipeline = &model.pipeline;
     let valid = parsed.validate(pipeline.config(), pipeline.limits())?;
     let out_format = response_format(&headers, valid.view.outputs)?;
     let mut timings = Timings::default();
     let view = pipeline.render(&valid, deadline.due(), &mut timings).await?;
-    let rendered = Rendered { view, sources: (0..valid.scene.sources.len()).collect() };
+    let rendered = Rendered { view, sources: (0..valid.scene.sources.len()).collect(), model: model.clone() };
     finish(&state, rendered, valid.view.outputs, out_format, timings, deadline.started()).await
 }

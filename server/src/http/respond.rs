@@ -3,6 +3,7 @@
 //! JSON types here are also the OpenAPI schema of the responses.
 
 use std::collections::BTreeMap;
+use std::sync::Arc;
 use std::time::Instant;
 
 use axum::http::{header, HeaderValue};
@@ -16,6 +17,7 @@ use super::negotiate::ResponseFormat;
 use super::state::AppState;
 use crate::error::ApiError;
 use crate::image_io;
+use crate::models::Model;
 use crate::pipeline::assemble;
 use crate::pipeline::scene::SamplingReport;
 use crate::pipeline::scene::{Timings, View};
@@ -34,6 +36,8 @@ pub const SAMPLES_PER_RAY_HEADER: &str = "x-scnerf-samples-per-ray";
 pub struct Rendered {
     pub view: View,
     pub sources: Vec<usize>,
+    /// The model that rendered it.
+    pub model: Arc<Model>,
 }
 
 /// Encodes a rendered view and answers in the negotiated format (shared by /v1/render and
@@ -48,14 +52,15 @@ pub async fn finish(
 ) -> Result<Response, ApiError> {
     let encode_start = Instant::now();
     let encoded = encode_outputs(rendered.view, outputs, &rendered.sources).await?;
+    let model = &rendered.model;
     timings.add("encode", encode_start.elapsed());
     timings.add("total", started.elapsed());
     let sampling = encoded.sampling;
-    tracing::info!(timings = ?timings.millis(), sources = ?rendered.sources, sampling = %sampling.mode,
+    tracing::info!(model = %model.name, timings = ?timings.millis(), sources = ?rendered.sources, sampling = %sampling.mode,
                    samples_per_ray = sampling.samples_per_ray, "rendered");
-    state.metrics.observe_stages(&timings);
-    state.metrics.observe_sampling(&sampling);
-    Ok(respond(format, encoded, &timings, &state.pipeline.manifest().model_id))
+    state.metrics.observe_stages(model, &timings);
+    state.metrics.observe_sampling(model, &sampling);
+    Ok(respond(format, encoded, &timings, model))
 }
 
 /// The outputs in their wire encodings: PNG for rgb, little-endian float32 for the others.
@@ -91,11 +96,11 @@ async fn encode_outputs(view: View, outputs: OutputSet, sources: &[usize]) -> Re
     .map_err(|e| ApiError::Internal(format!("encoding task failed: {e}")))?
 }
 
-fn respond(format: ResponseFormat, out: Encoded, timings: &Timings, model_id: &str) -> Response {
+fn respond(format: ResponseFormat, out: Encoded, timings: &Timings, model: &Model) -> Response {
     let mut response = match format {
         ResponseFormat::Png => out.rgb_png.unwrap_or_default().into_response(),
-        ResponseFormat::Json => axum::Json(json_body(&out, timings, model_id)).into_response(),
-        ResponseFormat::Protobuf => proto_body(&out, timings, model_id).encode_to_vec().into_response(),
+        ResponseFormat::Json => axum::Json(json_body(&out, timings, model)).into_response(),
+        ResponseFormat::Protobuf => proto_body(&out, timings, model).encode_to_vec().into_response(),
     };
     let headers = response.headers_mut();
     headers.insert(header::CONTENT_TYPE, HeaderValue::from_static(format.content_type()));
@@ -107,15 +112,22 @@ fn respond(format: ResponseFormat, out: Encoded, timings: &Timings, model_id: &s
     if let Ok(v) = HeaderValue::from_str(&format!("{:.2}", out.sampling.samples_per_ray)) {
         headers.insert(SAMPLES_PER_RAY_HEADER, v);
     }
-    set_common_headers(&mut response, timings, model_id);
+    set_common_headers(&mut response, timings, model);
     response
 }
 
-/// `x-model-id` and `server-timing` (per-stage milliseconds), on every successful response.
-pub fn set_common_headers(response: &mut Response, timings: &Timings, model_id: &str) {
+/// Header naming the model (its name, what requests send as `"model"`) that answered.
+pub const MODEL_HEADER: &str = "x-scnerf-model";
+
+/// `x-model-id`, [`MODEL_HEADER`] and `server-timing` (per-stage milliseconds), on every
+/// successful response of the render and scene endpoints.
+pub fn set_common_headers(response: &mut Response, timings: &Timings, model: &Model) {
     let headers = response.headers_mut();
-    if let Ok(v) = HeaderValue::from_str(model_id) {
+    if let Ok(v) = HeaderValue::from_str(&model.bundle().manifest.model_id) {
         headers.insert("x-model-id", v);
+    }
+    if let Ok(v) = HeaderValue::from_str(&model.name) {
+        headers.insert(MODEL_HEADER, v);
     }
     let server_timing: Vec<String> = timings.millis().iter().map(|(s, ms)| format!("{s};dur={ms:.1}")).collect();
     if let Ok(v) = HeaderValue::from_str(&server_timing.join(", ")) {
@@ -128,6 +140,8 @@ pub fn set_common_headers(response: &mut Response, timings: &Timings, model_id: 
 #[schema(as = RenderResponse)]
 pub struct RenderResponseJson {
     pub model_id: String,
+    /// The model's name (`GET /v1/models`).
+    pub model: String,
     pub width: u32,
     pub height: u32,
     /// Present when `rgb` was asked for.
@@ -172,7 +186,7 @@ pub struct FloatImageJson {
     pub data: String,
 }
 
-fn json_body(out: &Encoded, timings: &Timings, model_id: &str) -> RenderResponseJson {
+fn json_body(out: &Encoded, timings: &Timings, model: &Model) -> RenderResponseJson {
     let b64 = |b: &[u8]| base64::engine::general_purpose::STANDARD.encode(b);
     let float_image = |data: &Option<Vec<u8>>| {
         data.as_ref().map(|d| FloatImageJson {
@@ -184,7 +198,8 @@ fn json_body(out: &Encoded, timings: &Timings, model_id: &str) -> RenderResponse
         })
     };
     RenderResponseJson {
-        model_id: model_id.to_string(),
+        model_id: model.bundle().manifest.model_id.clone(),
+        model: model.name.to_string(),
         width: out.width,
         height: out.height,
         rgb: out.rgb_png.as_ref().map(|png| PngImageJson { format: "png", data: b64(png) }),
@@ -197,12 +212,13 @@ fn json_body(out: &Encoded, timings: &Timings, model_id: &str) -> RenderResponse
     }
 }
 
-fn proto_body(out: &Encoded, timings: &Timings, model_id: &str) -> scnerf_proto::v1::RenderResponse {
+fn proto_body(out: &Encoded, timings: &Timings, model: &Model) -> scnerf_proto::v1::RenderResponse {
     use scnerf_proto::v1 as pb;
     let float_image =
         |data: Option<Vec<u8>>| data.map(|data| pb::FloatImage { width: out.width, height: out.height, data });
     pb::RenderResponse {
-        model_id: model_id.to_string(),
+        model_id: model.bundle().manifest.model_id.clone(),
+        model: model.name.to_string(),
         width: out.width,
         height: out.height,
         rgb_png: out.rgb_png.clone().unwrap_or_default(),
@@ -214,6 +230,7 @@ fn proto_body(out: &Encoded, timings: &Timings, model_id: &str) -> scnerf_proto:
         samples_per_ray: out.sampling.samples_per_ray,
     }
 }
+
 /// RFC 3339 UTC with milliseconds, e.g. `2026-01-01T12:00:00.000Z`.
 pub fn rfc3339(t: std::time::SystemTime) -> String {
     humantime::format_rfc3339_millis(t).to_string()

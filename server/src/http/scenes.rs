@@ -2,6 +2,7 @@
 //! (under the client's id, replacing one of that id), `POST /v1/scenes/{id}/render` (a view of
 //! it: the renderer alone once its sources' volume is cached) and `DELETE /v1/scenes/{id}`.
 
+use std::sync::Arc;
 use std::time::Instant;
 
 use axum::extract::rejection::PathRejection;
@@ -22,6 +23,7 @@ use super::respond::{finish, set_common_headers, Rendered};
 use super::state::AppState;
 use crate::cache::{is_valid_id, NewScene, Owner, Stored, ID_PATTERN};
 use crate::error::ApiError;
+use crate::models::Model;
 use crate::pipeline::scene::Timings;
 use crate::pipeline::views::choose;
 use crate::request::ValidScene;
@@ -69,6 +71,8 @@ pub struct SceneCreated {
     /// RFC 3339 UTC. The scene expires this long after its last use; every render extends it
     /// (the new time is in the render response's `x-scene-expires-at` header).
     pub expires_at: String,
+    /// The model the scene belongs to: its renders use it.
+    pub model: String,
 }
 
 /// Who is asking (set by the auth layer; `None` when auth is off).
@@ -102,6 +106,7 @@ pub(super) fn proxy_scene_id(headers: &HeaderMap) -> Result<Option<String>, ApiE
 /// `id` (`None`: a random id).
 pub(super) async fn store_scene(
     state: &AppState,
+    model: &Model,
     valid: ValidScene,
     id: Option<String>,
     owner: Owner,
@@ -109,20 +114,20 @@ pub(super) async fn store_scene(
     timings: &mut Timings,
 ) -> Result<Stored, ApiError> {
     // A scene larger than the whole cache is refused before its images are decoded.
-    state.scenes.check_fits(state.pipeline.scene_bytes(&valid))?;
-    let (views, volume) = state.pipeline.encode_scene(&valid, deadline.due(), timings).await?;
-    let new = NewScene { views, volume, background: valid.background };
+    state.scenes.check_fits(model.pipeline.scene_bytes(&valid))?;
+    let (views, volume) = model.pipeline.encode_scene(&valid, deadline.due(), timings).await?;
+    let new = NewScene { views, volume, background: valid.background, model: model.name.clone() };
     let stored = state.scenes.insert(id, owner, new, Instant::now())?;
     timings.add("total", deadline.started().elapsed());
-    tracing::info!(scene_id = %stored.id, replaced = stored.replaced, views = valid.sources.len(),
-                   timings = ?timings.millis(), "scene cached");
-    state.metrics.observe_stages(timings);
+    tracing::info!(scene_id = %stored.id, model = %model.name, replaced = stored.replaced,
+                   views = valid.sources.len(), timings = ?timings.millis(), "scene cached");
+    state.metrics.observe_stages(model, timings);
     Ok(stored)
 }
 
 /// A scene endpoint's success: `body` with `Location: /v1/scenes/{id}` and the common headers.
 pub(super) fn scene_response(
-    state: &AppState,
+    model: &Model,
     status: StatusCode,
     id: &str,
     body: impl Serialize,
@@ -132,7 +137,7 @@ pub(super) fn scene_response(
     if let Ok(v) = HeaderValue::from_str(&format!("/v1/scenes/{id}")) {
         response.headers_mut().insert(header::LOCATION, v);
     }
-    set_common_headers(&mut response, timings, &state.pipeline.manifest().model_id);
+    set_common_headers(&mut response, timings, model);
     response
 }
 
@@ -197,14 +202,18 @@ async fn put_within(
 ) -> Result<Response, ApiError> {
     let format = request_format(req.headers())?;
     let owner = owner_of(&req);
-    let pipeline = &state.pipeline;
-    let parsed = read_scene_request(format, req, pipeline.limits()).await?;
-    let valid = parsed.validate(pipeline.config(), pipeline.limits())?;
+    let parsed = read_scene_request(format, req, state.pipeline.limits()).await?;
+    let model = state.models.get(parsed.model.as_deref())?;
+    let valid = parsed.validate(model.pipeline.config(), model.pipeline.limits())?;
     let mut timings = Timings::default();
-    let stored = store_scene(&state, valid, id, owner, &deadline, &mut timings).await?;
+    let stored = store_scene(&state, &model, valid, id, owner, &deadline, &mut timings).await?;
     let status = if stored.replaced { StatusCode::OK } else { StatusCode::CREATED };
-    let body = SceneCreated { scene_id: stored.id.clone(), expires_at: rfc3339(stored.expires_at) };
-    Ok(scene_response(&state, status, &stored.id, body, &timings))
+    let body = SceneCreated {
+        scene_id: stored.id.clone(),
+        expires_at: rfc3339(stored.expires_at),
+        model: model.name.to_string(),
+    };
+    Ok(scene_response(&model, status, &stored.id, body, &timings))
 }
 
 /// `POST /v1/scenes/{id}/render`: a target view of a cached scene, answered exactly like
@@ -243,12 +252,14 @@ async fn render_within(state: AppState, deadline: Deadline, id: String, req: Req
     let format = request_format(req.headers())?;
     let headers = req.headers().clone();
     let owner = owner_of(&req);
-    let pipeline = &state.pipeline;
-    let parsed = read_target_request(format, req, pipeline.limits()).await?;
-    let valid = parsed.validate(pipeline.limits())?;
+    let parsed = read_target_request(format, req, state.pipeline.limits()).await?;
+    let requested = parsed.model.clone();
+    let valid = parsed.validate(state.pipeline.limits())?;
     let out_format = response_format(&headers, valid.outputs)?;
-    let hit = state.scenes.get(&id, &owner, Instant::now()).ok_or(ApiError::SceneNotFound { id })?;
+    let hit = state.scenes.get(&id, &owner, Instant::now()).ok_or_else(|| ApiError::SceneNotFound { id: id.clone() })?;
     let scene = &hit.scene;
+    let model = scene_model(&state, &id, &scene.model, requested)?;
+    let pipeline = &model.pipeline;
     let sources = choose(&scene.views.cameras, &valid.target, valid.sources.as_deref(), pipeline.config().views)?;
     let cached = state.scenes.volume(scene, &sources);
     let mut timings = Timings::default();
@@ -267,12 +278,26 @@ async fn render_within(state: AppState, deadline: Deadline, id: String, req: Req
     if let Some(volume) = built {
         state.scenes.insert_volume(scene, sources.clone(), volume);
     }
-    let rendered = Rendered { view, sources };
+    let rendered = Rendered { view, sources, model: model.clone() };
     let mut response = finish(&state, rendered, valid.outputs, out_format, timings, deadline.started()).await?;
     if let Ok(v) = HeaderValue::from_str(&rfc3339(hit.expires_at)) {
         response.headers_mut().insert("x-scene-expires-at", v);
     }
     Ok(response)
+}
+
+/// The model a scene is rendered with: its own. A request naming another is refused (409
+/// `model_mismatch`, naming both) rather than rendered with a model the scene's volumes do not
+/// belong to.
+fn scene_model(state: &AppState, id: &str, own: &Arc<str>, requested: Option<String>) -> Result<Arc<Model>, ApiError> {
+    match requested {
+        Some(name) if *name != **own => {
+            // An unknown name is the client's typo, whatever the scene: say so first.
+            state.models.get(Some(&name))?;
+            Err(ApiError::ModelMismatch { scene: id.to_string(), scene_model: own.to_string(), requested: name })
+        }
+        _ => state.models.get(Some(own)),
+    }
 }
 
 /// `DELETE /v1/scenes/{id}`: 204, or 404 when there is no such scene (for this client).

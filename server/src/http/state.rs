@@ -10,11 +10,16 @@ use crate::auth::Auth;
 use crate::cache::{CacheConfig, SceneCache};
 use crate::error::ApiError;
 use crate::metrics::Metrics;
+use crate::models::Models;
 use crate::pipeline::Pipeline;
 
 /// State shared by all handlers.
 #[derive(Clone)]
 pub struct AppState {
+    /// Every model served, and the default.
+    pub(super) models: Arc<Models>,
+    /// The default model's pipeline: the limits, the executor and the warm-up's model (the
+    /// limits and the executor are every model's).
     pub(super) pipeline: Pipeline,
     /// Set once the warm-up render succeeded; cleared again when shutting down.
     ready: Arc<AtomicBool>,
@@ -55,11 +60,18 @@ impl Default for ServiceOptions {
 }
 
 impl AppState {
-    /// Not ready until `set_ready` (after the warm-up render).
+    /// A server of one model. Not ready until `set_ready` (after the warm-up render).
     pub fn new(pipeline: Pipeline, options: ServiceOptions) -> AppState {
+        AppState::with_models(Models::single(pipeline), options)
+    }
+
+    /// A server of `models`. Not ready until `set_ready` (after the warm-up renders).
+    pub fn with_models(models: Models, options: ServiceOptions) -> AppState {
+        let pipeline = models.default_model().pipeline.clone();
         let scenes = Arc::new(SceneCache::new(options.cache, options.auth.token_count()));
         let metrics = Arc::new(Metrics::new(pipeline.executor().clone(), scenes.clone()));
         AppState {
+            models: Arc::new(models),
             pipeline,
             ready: Arc::new(AtomicBool::new(false)),
             request_timeout: options.request_timeout,
@@ -71,8 +83,13 @@ impl AppState {
         }
     }
 
+    /// The default model's pipeline.
     pub fn pipeline(&self) -> &Pipeline {
         &self.pipeline
+    }
+
+    pub fn models(&self) -> &Arc<Models> {
+        &self.models
     }
 
     pub fn scenes(&self) -> &Arc<SceneCache> {

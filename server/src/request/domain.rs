@@ -86,6 +86,9 @@ pub struct SceneRequest {
     pub near: f64,
     pub far: f64,
     pub background: Option<Vec<f64>>,
+    /// The model named (a render request's too); `None`: the default. Resolved by the handler
+    /// before validation, which needs the model's config.
+    pub model: Option<String>,
 }
 
 /// The view part of a request: the body of `POST /v1/scenes/{id}/render`.
@@ -98,6 +101,8 @@ pub struct TargetRequest {
     pub sources: Option<Vec<u32>>,
     /// `full` or `guided` as sent (checked by `validate`); `None`: the server's default.
     pub sampling: Option<String>,
+    /// The model named; `None`: the scene's. (A render request's model is its scene's.)
+    pub model: Option<String>,
 }
 
 /// A parsed, not yet validated, render request (`POST /v1/render`): a scene and a view of it.

@@ -32,8 +32,14 @@ impl TargetRequest {
             outputs: outputs_from_proto(&msg.outputs)?,
             sources: (!msg.sources.is_empty()).then_some(msg.sources),
             sampling: (!msg.sampling.is_empty()).then_some(msg.sampling),
+            model: named(msg.model),
         })
     }
+}
+
+/// A proto3 string field left empty means no model named (the default).
+fn named(model: String) -> Option<String> {
+    (!model.is_empty()).then_some(model)
 }
 
 /// Decodes message `name` once its repeated fields are within `bounds`.
@@ -105,12 +111,14 @@ fn request_from_proto(msg: pb::RenderRequest) -> Result<RenderRequest, ApiError>
         near: msg.near,
         far: msg.far,
         background: (!msg.background.is_empty()).then_some(msg.background),
+        model: named(msg.model),
     };
     let view = TargetRequest {
         target: camera_from_proto(msg.target, "target")?,
         outputs: outputs_from_proto(&msg.outputs)?,
         sources: None,
         sampling: (!msg.sampling.is_empty()).then_some(msg.sampling),
+        model: None,
     };
     Ok(RenderRequest { scene, view })
 }
@@ -121,6 +129,7 @@ fn scene_from_proto(msg: pb::SceneRequest) -> Result<SceneRequest, ApiError> {
         near: msg.near,
         far: msg.far,
         background: (!msg.background.is_empty()).then_some(msg.background),
+        model: named(msg.model),
     })
 }
 

@@ -187,6 +187,7 @@ pub fn proto_request(r: &Value, images: &[Vec<u8>]) -> scnerf_proto::v1::RenderR
         background: numbers(&r["background"]),
         outputs: strings(&r["outputs"]),
         sampling: r["sampling"].as_str().unwrap_or_default().to_string(),
+        model: r["model"].as_str().unwrap_or_default().to_string(),
     }
 }
 

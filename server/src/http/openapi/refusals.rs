@@ -42,6 +42,15 @@ const SCENE_NOT_FOUND: Documented = (
     "No such scene here (unknown, expired, evicted, another token's, or on another replica): `hint: reupload`",
 );
 
+const MODEL_NOT_FOUND: Documented = (
+    ApiError::ModelNotFound { name: String::new() },
+    "`model` names no model this server serves (`GET /v1/models` lists them)",
+);
+const MODEL_MISMATCH: Documented = (
+    ApiError::ModelMismatch { scene: String::new(), scene_model: String::new(), requested: String::new() },
+    "`model` names another model than the scene's (the message names both)",
+);
+
 const fn malformed(description: &'static str) -> Documented {
     (ApiError::Malformed { field: None, message: String::new() }, description)
 }
@@ -58,19 +67,21 @@ const fn invalid(description: &'static str) -> Documented {
     (ApiError::Invalid { field: String::new(), message: String::new() }, description)
 }
 
-/// The responses as utoipa puts them in an operation: by status, each with the error body. One
-/// error a status: two would leave one description.
+/// The responses as utoipa puts them in an operation: by status, each with the error body. Two
+/// errors of one status (404: no such scene, no such model) share it, their descriptions joined.
 fn responses(documented: &[Documented]) -> BTreeMap<String, RefOr<Response>> {
     let body = ContentBuilder::new().schema(Some(Ref::from_schema_name(ErrorBody::name()))).build();
-    let responses: BTreeMap<String, RefOr<Response>> = documented
-        .iter()
-        .map(|(error, description)| {
-            let response = ResponseBuilder::new().description(*description).content("application/json", body.clone());
-            (error.status().as_str().to_string(), response.build().into())
+    let mut descriptions: BTreeMap<String, Vec<&str>> = BTreeMap::new();
+    for (error, description) in documented {
+        descriptions.entry(error.status().as_str().to_string()).or_default().push(description);
+    }
+    descriptions
+        .into_iter()
+        .map(|(status, said)| {
+            let response = ResponseBuilder::new().description(said.join("; or ")).content("application/json", body.clone());
+            (status, response.build().into())
         })
-        .collect();
-    debug_assert_eq!(responses.len(), documented.len(), "two errors of one status");
-    responses
+        .collect()
 }
 
 /// Error responses of the routes behind the bearer token that read no body: `GET /v1/model`
@@ -105,6 +116,7 @@ impl IntoResponses for RenderRefusals {
             too_large("Body or JSON document too large"),
             unsupported("Unsupported content type or image format"),
             invalid("Semantically invalid (camera, view count, sizes, near/far...)"),
+            MODEL_NOT_FOUND,
             TOO_MANY_REQUESTS,
             UNAVAILABLE,
             DEADLINE_EXCEEDED,
@@ -125,6 +137,7 @@ impl IntoResponses for SceneUploadRefusals {
             too_large("Body or JSON document too large"),
             unsupported("Unsupported content type or image format"),
             invalid("Semantically invalid"),
+            MODEL_NOT_FOUND,
             TOO_MANY_REQUESTS,
             UNAVAILABLE,
             DEADLINE_EXCEEDED,
@@ -147,6 +160,8 @@ impl IntoResponses for SceneRenderRefusals {
             too_large("JSON document too large"),
             unsupported("Unsupported content type"),
             invalid("Semantically invalid target, or bad `sources`"),
+            MODEL_NOT_FOUND,
+            MODEL_MISMATCH,
             TOO_MANY_REQUESTS,
             UNAVAILABLE,
             DEADLINE_EXCEEDED,
@@ -185,6 +200,7 @@ impl IntoResponses for CaptureRefusals {
                 "Not a usable capture; `field` names the file (missing poses, unknown format, distorted camera, \
                  too few images, ...)",
             ),
+            MODEL_NOT_FOUND,
             TOO_MANY_REQUESTS,
             UNAVAILABLE,
             DEADLINE_EXCEEDED,
@@ -227,7 +243,7 @@ mod tests {
     use crate::http::openapi::document;
 
     /// Every operation of the document, by its id.
-    const OPERATIONS: [&str; 13] = [
+    const OPERATIONS: [&str; 15] = [
         "render",
         "create_scene",
         "put_scene",
@@ -237,6 +253,8 @@ mod tests {
         "plan_capture",
         "model",
         "limits",
+        "models",
+        "reload_models",
         "healthz",
         "readyz",
         "metrics",
@@ -253,6 +271,8 @@ mod tests {
         "plan_capture",
         "model",
         "limits",
+        "models",
+        "reload_models",
     ];
     /// POST and PUT: the in-flight limit, a `Deadline` (readiness, the deadline header), a body
     /// read and validated, then work on the executor or a blocking thread.
@@ -262,6 +282,8 @@ mod tests {
     const RENDERING: &[&str] = &["render", "render_scene"];
     /// Needs a scene that exists.
     const OF_A_SCENE: &[&str] = &["render_scene", "delete_scene"];
+    /// May name a model.
+    const NAMING_A_MODEL: &[&str] = &["render", "create_scene", "put_scene", "render_scene", "create_capture_scene"];
 
     /// One error of each kind of `ApiError` (add a new kind here and to `answering`).
     fn one_of_each() -> Vec<ApiError> {
@@ -275,6 +297,8 @@ mod tests {
             ApiError::Unauthorized { message: message() },
             ApiError::NotFound { path: message() },
             ApiError::SceneNotFound { id: message() },
+            ApiError::ModelNotFound { name: message() },
+            ApiError::ModelMismatch { scene: message(), scene_model: message(), requested: message() },
             ApiError::MethodNotAllowed,
             ApiError::BodyTimeout { message: message() },
             ApiError::TooManyRequests { message: message(), retry_after_secs: 1 },
@@ -301,6 +325,9 @@ mod tests {
             | ApiError::Internal(_) => WITH_BODY.to_vec(),
             ApiError::NotAcceptable { .. } => RENDERING.to_vec(),
             ApiError::SceneNotFound { .. } => OF_A_SCENE.to_vec(),
+            ApiError::ModelNotFound { .. } => NAMING_A_MODEL.to_vec(),
+            // Only a scene's render can name another model than the scene's.
+            ApiError::ModelMismatch { .. } => vec!["render_scene"],
             // Warming up or overloaded; the readiness probe's answer while warming up.
             ApiError::Unavailable { .. } => [WITH_BODY, &["readyz"]].concat(),
             // The router's answers to a path or a method that no operation has.

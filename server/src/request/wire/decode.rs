@@ -59,12 +59,14 @@ impl RenderRequest {
             near: parsed.near,
             far: parsed.far,
             background: parsed.background,
+            model: parsed.model,
         };
         let view = TargetRequest {
             target: CameraSpec::from_wire(&parsed.target, "target")?,
             outputs: parsed.outputs,
             sources: None,
             sampling: parsed.sampling,
+            model: None,
         };
         Ok(RenderRequest { scene, view })
     }
@@ -78,6 +80,7 @@ impl SceneRequest {
             near: parsed.near,
             far: parsed.far,
             background: parsed.background,
+            model: parsed.model,
         })
     }
 }
@@ -90,6 +93,7 @@ impl TargetRequest {
             outputs: parsed.outputs,
             sources: parsed.sources,
             sampling: parsed.sampling,
+            model: parsed.model,
         })
     }
 }

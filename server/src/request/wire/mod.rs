@@ -45,6 +45,10 @@ pub struct JsonRenderRequest {
     #[serde(default)]
     #[schema(pattern = "^(full|guided)$")]
     sampling: Option<String>,
+    /// The model to render with: a name `GET /v1/models` lists (default: the server's default
+    /// model; an unknown name is 404 `model_not_found`).
+    #[serde(default)]
+    model: Option<String>,
 }
 
 /// `POST /v1/scenes` and `PUT /v1/scenes/{id}` JSON body (and the `request` part of a multipart
@@ -64,6 +68,9 @@ pub struct JsonSceneRequest {
     #[serde(default)]
     #[schema(min_items = 3, max_items = 3)]
     background: Option<Vec<f64>>,
+    /// The model the scene belongs to: its renders use it (default: the server's default model).
+    #[serde(default)]
+    model: Option<String>,
 }
 
 /// `POST /v1/scenes/{id}/render` JSON body.
@@ -85,6 +92,9 @@ pub struct JsonTargetRequest {
     #[serde(default)]
     #[schema(pattern = "^(full|guided)$")]
     sampling: Option<String>,
+    /// The scene's model (default); another is refused with 409 `model_mismatch`.
+    #[serde(default)]
+    model: Option<String>,
 }
 
 #[derive(Deserialize, utoipa::ToSchema)]

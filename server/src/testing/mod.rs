@@ -1,5 +1,10 @@
 //! Test support (not part of the API): a fake graph runner with the bundle contract's shapes,
 //! a manifest for it, and request builders. Lets the HTTP layer be tested without ONNX Runtime.
+//! `models.rs`: servers of several models over fakes, and bundle folders on disk.
+
+mod models;
+
+pub use models::{models_state, named_bundle, write_bundle, FakeModel};
 
 use std::path::Path;
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -118,7 +123,7 @@ pub fn guided_bundle_with(variant: &str, policy: GuidedPolicy) -> Bundle {
     bundle_of(manifest)
 }
 
-fn bundle_of(manifest: Manifest) -> Bundle {
+pub(crate) fn bundle_of(manifest: Manifest) -> Bundle {
     let config = validate_manifest(&manifest).expect("test manifest is valid");
     Bundle { dir: "/nonexistent".into(), manifest, config }
 }
@@ -136,6 +141,8 @@ pub struct FakeRunner {
     pub calls: Arc<[AtomicUsize; GraphKind::ALL.len()]>,
     /// The cameras each renderer run was fed, in order: to check them against a request's.
     pub renderer_cameras: Arc<Mutex<Vec<RendererCameras>>>,
+    /// Scales the rendered colours: two models' fakes that differ in it render different views.
+    pub tint: f32,
 }
 
 /// The camera inputs of one renderer run: the sources' (what the volume was built from) and the
@@ -160,6 +167,7 @@ impl FakeRunner {
             delay: Duration::ZERO,
             calls: Arc::default(),
             renderer_cameras: Arc::default(),
+            tint: 1.0,
         }
     }
 }
@@ -213,10 +221,10 @@ impl GraphRunner for FakeRunner {
                 let conv0 = input(inputs, "conv0");
                 vec![("volume".into(), filled(conv0.shape(), conv0[[0, 0, 0, 0, 0]]))]
             }
-            GraphKind::Renderer => fake_pixels(inputs),
+            GraphKind::Renderer => fake_pixels(inputs, self.tint),
             GraphKind::RendererGuide => {
                 let rays = input(inputs, "ray_origins").shape()[0];
-                let mut out = fake_pixels(inputs);
+                let mut out = fake_pixels(inputs, self.tint);
                 // All weight on the middle sample; heads of zeros (4 x 8 per ray).
                 let mut weights = ArrayD::zeros(IxDyn(&[rays, c.samples]));
                 weights.index_axis_mut(Axis(1), c.samples / 2).fill(1.0);
@@ -227,7 +235,7 @@ impl GraphRunner for FakeRunner {
             GraphKind::RendererFine => {
                 let index = input(inputs, "sample_index");
                 let (rays, k) = (index.shape()[0], index.shape()[1]);
-                let mut out = fake_pixels(inputs);
+                let mut out = fake_pixels(inputs, self.tint);
                 out.push(("sample_weights".into(), filled(&[rays, k], 1.0 / k as f32)));
                 out
             }
@@ -236,14 +244,14 @@ impl GraphRunner for FakeRunner {
 }
 
 /// The fake renderers' pixels: per ray, functions of its unit direction.
-fn fake_pixels(inputs: &NamedTensors) -> NamedTensors {
+fn fake_pixels(inputs: &NamedTensors, tint: f32) -> NamedTensors {
     let dirs = input(inputs, "ray_directions").view().into_dimensionality::<Ix2>().expect("(R, 3) rays");
     let near = input(inputs, "near_far")[0];
     let range = inputs.iter().find(|(n, _)| n == "depth_range").map_or(1.0, |(_, t)| t[1] - t[0]);
     let norm = dirs.map_axis(Axis(1), |d| (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt());
     let unit = &dirs / &norm.insert_axis(Axis(1));
     vec![
-        ("rgb".into(), unit.mapv(|x| 0.5 * x.abs()).into_shared().into_dyn()),
+        ("rgb".into(), unit.mapv(|x| (0.5 * tint * x.abs()).min(1.0)).into_shared().into_dyn()),
         ("depth".into(), unit.column(0).mapv(|x| near + x.abs() * range).into_shared().into_dyn()),
         ("opacity".into(), unit.column(1).mapv(|x| 0.5 + 0.5 * x.abs()).into_shared().into_dyn()),
     ]

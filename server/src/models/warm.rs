@@ -1,0 +1,61 @@
+//! The warm-up render: every model renders a tiny synthetic view before it serves.
+
+use std::time::{Duration, Instant};
+
+use nalgebra::{Isometry3, Matrix3, Vector3};
+use ndarray::Array4;
+
+use crate::camera::CanonicalCamera;
+use crate::pipeline::scene::Timings;
+use crate::pipeline::Pipeline;
+
+/// Renders a tiny synthetic view through all three graphs: checks that the bundle really runs
+/// before /readyz says so, and lets ONNX Runtime allocate its kernels.
+pub async fn warm_up(pipeline: &Pipeline) -> Result<Duration, String> {
+    let start = Instant::now();
+    let config = pipeline.config();
+    let size = config.image_multiple;
+    let cameras = warmup_cameras(config.views, size as u32);
+    let images = Array4::from_elem((config.views, 3, size, size), 0.5);
+    let mut timings = Timings::default();
+    let mut target = cameras[0].clone();
+    target.width = 4;
+    target.height = 4;
+    // Warm-up runs before readiness, alone on the executor; the deadline only bounds a hang.
+    let samplings = pipeline.samplings();
+    let work = samplings.iter().fold(pipeline.scene_work(&cameras), |w, &s| w.plus(pipeline.view_work(&target, s)));
+    let ticket = pipeline.admit(Instant::now() + Duration::from_secs(3600), work, 0).map_err(|e| e.to_string())?;
+    let scene = pipeline
+        .build_scene(&ticket, &cameras, images.into_shared(), 2.0, 6.0, &mut timings)
+        .await
+        .map_err(|e| e.to_string())?;
+    // Every way of sampling the bundle has, so that each of its graphs has run once.
+    for sampling in samplings {
+        let view = pipeline
+            .render_view(&ticket, &scene, &target, [0.0; 3], sampling, None, &mut timings)
+            .await
+            .map_err(|e| e.to_string())?;
+        if view.rgb.iter().chain(&view.depth).chain(&view.opacity).any(|v| !v.is_finite()) {
+            return Err(format!("the warm-up render ({sampling} sampling) produced non-finite values"));
+        }
+    }
+    pipeline.executor().forget_rates();
+    Ok(start.elapsed())
+}
+
+/// Cameras on a small arc 4 units from the origin, looking at it (OpenCV, world-to-camera).
+fn warmup_cameras(views: usize, size: u32) -> Vec<CanonicalCamera> {
+    let (f, c) = (f64::from(size), f64::from(size) / 2.0);
+    (0..views)
+        .map(|i| {
+            // Rotation about y by -0.1·i; the origin lies 4 units ahead on the optical axis.
+            let w2c = Isometry3::new(Vector3::new(0.0, 0.0, 4.0), Vector3::y() * (-0.1 * i as f64));
+            CanonicalCamera {
+                width: size,
+                height: size,
+                k: Matrix3::new(f, 0.0, c, 0.0, f, c, 0.0, 0.0, 1.0),
+                w2c: w2c.to_homogeneous(),
+            }
+        })
+        .collect()
+}
