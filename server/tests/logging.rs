@@ -124,3 +124,31 @@ async fn refusals_are_not_logged_as_errors_and_failures_are() {
         assert_eq!(line["span"]["path"], "/v1/render", "only the failed render warns:\n{logs}");
     }
 }
+
+/// A corrupt bundle found by a reload is skipped with a warning that names its folder and the
+/// reason, and the server keeps serving.
+#[tokio::test]
+async fn a_skipped_bundle_is_logged_with_its_reason() {
+    use scnerf_server::testing::{models_state, FakeModel};
+    let captured = Captured::default();
+    let _guard = captured.install();
+    let dir = std::env::temp_dir().join(format!("scnerf-logging-{}", std::process::id()));
+    let broken = dir.join("broken");
+    std::fs::create_dir_all(&broken).unwrap();
+    std::fs::write(broken.join("manifest.json"), "not json").unwrap();
+    let state = models_state(vec![FakeModel::new("lego", 1.0)], None, Some(&dir), ServiceOptions::default()).unwrap();
+    let app = router(state);
+    let got = send(app.clone(), raw_to("POST", "/v1/models/reload", "application/json", vec![], &[])).await;
+    assert_eq!(got.0, 200);
+    let warning = captured
+        .text()
+        .lines()
+        .map(|l| serde_json::from_str::<Value>(l).unwrap())
+        .find(|l| l["fields"]["message"] == "bundle skipped")
+        .unwrap_or_else(|| panic!("no warning:\n{}", captured.text()));
+    assert_eq!(warning["level"], "WARN");
+    assert_eq!(warning["fields"]["path"], broken.display().to_string());
+    assert!(warning["fields"]["reason"].as_str().unwrap().contains("not a valid manifest"), "{warning}");
+    assert_eq!(send(app, multipart_with("/v1/render", &request_json(32), 32, &[])).await.0, 200);
+    std::fs::remove_dir_all(&dir).unwrap();
+}

@@ -45,7 +45,7 @@ async fn metrics_count_requests_stages_queue_and_cache() {
     let render_latency = sample(&m, "scnerf_http_request_duration_seconds_count", r#"route="/v1/render""#);
     assert_eq!(render_latency, Some(1.0));
     for (stage, n) in [("decode", 2.0), ("encoder", 2.0), ("volume", 2.0), ("renderer", 3.0), ("encode", 3.0)] {
-        let labels = format!(r#"stage="{stage}""#);
+        let labels = format!(r#"stage="{stage}",model="fake""#);
         assert_eq!(sample(&m, "scnerf_stage_duration_seconds_count", &labels), Some(n), "{stage}\n{m}");
     }
     assert_eq!(sample(&m, "scnerf_inference_queue_requests", ""), Some(0.0));

@@ -125,7 +125,7 @@ pub fn guided_bundle_with(variant: &str, policy: GuidedPolicy) -> Bundle {
 
 pub(crate) fn bundle_of(manifest: Manifest) -> Bundle {
     let config = validate_manifest(&manifest).expect("test manifest is valid");
-    Bundle { dir: "/nonexistent".into(), manifest, config }
+    Bundle { dir: "/nonexistent/fake".into(), manifest, config }
 }
 
 /// Deterministic stand-in for the three graphs. The renderer is a per-ray function of the inputs

@@ -85,9 +85,11 @@ pub fn write_bundle(dir: &Path, tint: f32) -> std::io::Result<()> {
     let mut manifest: Manifest = bundle("scnerf", "near_far").manifest;
     for (name, entry) in manifest.graphs.iter_mut() {
         let path = dir.join(&entry.file);
-        std::fs::write(&path, format!("stand-in for the {name} graph"))?;
+        std::fs::write(&path, format!("stand-in for the {name} graph of tint {tint}"))?;
         entry.sha256 = sha256_file(&path)?;
     }
     manifest.provenance["tint"] = tint.into();
+    // The model id is the renderer's hash (`validate_manifest`).
+    manifest.model_id = format!("scnerf-{}-{}", manifest.variant, &manifest.graphs["renderer"].sha256[..12]);
     std::fs::write(dir.join("manifest.json"), serde_json::to_vec_pretty(&manifest).map_err(std::io::Error::other)?)
 }
