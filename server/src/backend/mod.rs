@@ -42,7 +42,9 @@
 //! requests and their jobs, earliest deadline first), `admission.rs` (admission by time),
 //! `memory.rs` (the memory budget and its leases), `rates.rs` (`Work` and the measured rates),
 //! `ticket.rs` (`Ticket` and the `Outputs` of a run), `runner.rs` (the `GraphRunner` the
-//! executor drives), `ort.rs` (ONNX Runtime's), `error.rs` (`BackendError`).
+//! executor drives), `runners.rs` and `slots.rs` (several models' runners on the one executor,
+//! each in a slot that a `BackendHandle` names), `ort.rs` (ONNX Runtime's), `error.rs`
+//! (`BackendError`).
 
 mod admission;
 mod budget;
@@ -55,6 +57,7 @@ mod queue;
 mod rates;
 mod runner;
 mod runners;
+mod slots;
 mod shared;
 #[cfg(test)]
 mod testkit;
