@@ -96,6 +96,9 @@ pub struct Client {
     limits: std::sync::OnceLock<Limits>,
     /// How views are sampled (`full`, `guided`); `None`: the server's default.
     sampling: Option<String>,
+    /// The model scenes are uploaded to and rendered with (`GET /v1/models`); `None`: the
+    /// server's default.
+    model: Option<String>,
 }
 
 impl Client {
@@ -110,7 +113,14 @@ impl Client {
             notice: Box::new(|m| eprintln!("{m}")),
             limits: std::sync::OnceLock::new(),
             sampling: None,
+            model: None,
         }
+    }
+
+    /// Uploads scenes to and renders them with this model (the server checks the name).
+    pub fn with_model(mut self, model: Option<String>) -> Client {
+        self.model = model;
+        self
     }
 
     /// Renders sample views this way (`full` or `guided`; the server checks the name).
@@ -146,9 +156,14 @@ impl Client {
         // earlier versions of the client.
         let sources: Vec<Value> =
             upload.sources.iter().map(|v| json!({ "camera": WireCamera::from(&v.camera) })).collect();
-        let request = json!({
+        let mut request = json!({
             "sources": sources, "near": upload.near, "far": upload.far, "background": upload.background,
         });
+        // Only when named: an upload to the default model keeps the id earlier clients gave it,
+        // and one to another model gets an id of its own (a scene belongs to one model).
+        if let Some(model) = &self.model {
+            request["model"] = json!(model);
+        }
         let mut parts = vec![Part { name: "request".into(), file: None, bytes: request.to_string().into_bytes() }];
         for (i, view) in upload.sources.iter().enumerate() {
             let photo = read_bytes(&view.image_path)?;
@@ -198,6 +213,10 @@ impl Client {
         let mut body = json!({ "target": WireCamera::from(target), "outputs": outputs });
         if let Some(sampling) = &self.sampling {
             body["sampling"] = json!(sampling);
+        }
+        // The scene's model already; named again, a scene of another model is refused (409).
+        if let Some(model) = &self.model {
+            body["model"] = json!(model);
         }
         let body = body.to_string();
         let mut uploaded_again = false;

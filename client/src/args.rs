@@ -20,6 +20,10 @@ pub struct Cli {
     /// ray). Default: the server's (GET /v1/model).
     #[arg(long, global = true, env = "SCNERF_SAMPLING", value_parser = ["full", "guided"])]
     pub(crate) sampling: Option<String>,
+    /// The model to render with, for a server of several (GET /v1/models lists them). Default:
+    /// the server's default model.
+    #[arg(long, global = true, env = "SCNERF_MODEL")]
+    pub(crate) model: Option<String>,
     #[command(subcommand)]
     pub(crate) command: Command,
 }

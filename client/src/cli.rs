@@ -19,7 +19,7 @@ use scnerf_capture::upload::fit_to_limit;
 use scnerf_capture::wire::WireCamera;
 
 pub fn run(cli: Cli) -> Result<()> {
-    let client = Client::new(&cli.server, cli.token).with_sampling(cli.sampling);
+    let client = Client::new(&cli.server, cli.token).with_sampling(cli.sampling).with_model(cli.model);
     match cli.command {
         Command::Info { data, set, json } => info(&data, &set, json),
         Command::Render(args) => render(client, &args),

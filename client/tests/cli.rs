@@ -125,6 +125,31 @@ fn sampling_is_sent_only_when_asked_for_and_reported() {
     assert!(!bad.status.success() && stderr.contains("--sampling"), "{stderr}");
 }
 
+/// `--model` names the model in the upload (so the scene belongs to it, under an id of its
+/// own) and in every render; without it neither says one and the server's default renders.
+#[test]
+fn the_model_is_sent_with_the_upload_and_the_renders_only_when_named() {
+    let server = FakeServer::start();
+    let dir = tempfile::tempdir().unwrap();
+    let data = fixture("blender");
+    let view = |extra: &[&str]| {
+        let png = dir.path().join("v.png");
+        let mut args = vec!["view", data.to_str().unwrap(), "--server", &server.url, "--pose", "train/r_1"];
+        args.extend(["--size", "8x6", "--out", png.to_str().unwrap()]);
+        args.extend(extra);
+        let out = scnerf(&args);
+        let (stdout, stderr) = text(&out);
+        assert!(out.status.success(), "{stdout}\n{stderr}");
+    };
+    view(&["--model", "lego-refined"]);
+    view(&[]);
+    let named = Some("lego-refined".to_string());
+    assert_eq!(*server.state.upload_models.lock().unwrap(), vec![named.clone(), None]);
+    assert_eq!(*server.state.render_models.lock().unwrap(), vec![named, None]);
+    let ids = server.ids();
+    assert_ne!(ids[0], ids[1], "a scene of another model has an id of its own");
+}
+
 #[test]
 fn eval_scores_held_out_views_against_the_nearest_sources() {
     let server = FakeServer::start();

@@ -51,6 +51,9 @@ pub struct FakeState {
     pub first_image_sizes: Mutex<Vec<(u32, u32)>>,
     /// The `sampling` of every render request (None: not sent).
     pub samplings: Mutex<Vec<Option<String>>>,
+    /// The `model` of every upload and of every render request, in order (None: not sent).
+    pub upload_models: Mutex<Vec<Option<String>>>,
+    pub render_models: Mutex<Vec<Option<String>>>,
     scenes: Mutex<HashSet<String>>,
 }
 
@@ -115,6 +118,7 @@ struct SceneRequest {
     near: f64,
     far: f64,
     background: [f64; 3],
+    model: Option<String>,
 }
 
 #[derive(Deserialize)]
@@ -129,6 +133,7 @@ struct RenderRequest {
     target: WireCamera,
     outputs: Vec<String>,
     sampling: Option<String>,
+    model: Option<String>,
 }
 
 /// What the client always sends: `{fx, fy, cx, cy}` with positive focal lengths, canonical poses.
@@ -172,6 +177,7 @@ async fn create(State(state): State<Arc<FakeState>>, Path(id): Path<String>, mut
     let first = &request.sources[0].camera;
     state.first_image_sizes.lock().unwrap().push((first.width, first.height));
     state.uploads.lock().unwrap().push(images.len());
+    state.upload_models.lock().unwrap().push(request.model.clone());
     state.ids.lock().unwrap().push(id.clone());
     let status = if state.scenes.lock().unwrap().insert(id.clone()) { StatusCode::CREATED } else { StatusCode::OK };
     (status, Json(json!({"scene_id": id, "expires_at": "2026-12-01T00:00:00.000Z"}))).into_response()
@@ -227,6 +233,7 @@ async fn render(State(state): State<Arc<FakeState>>, Path(id): Path<String>, bod
         body["samples_per_ray"] = json!(if sampling == "full" { 128.0 } else { 7.5 });
     }
     state.samplings.lock().unwrap().push(request.sampling.clone());
+    state.render_models.lock().unwrap().push(request.model.clone());
     state.renders.fetch_add(1, Ordering::SeqCst);
     let mut headers = HeaderMap::new();
     headers.insert("x-scnerf-sources", HeaderValue::from_static("0,1,2"));
