@@ -1,5 +1,5 @@
 """Python client of scnerf-serve (SC-NeRF novel-view rendering): ``Client(url, token)`` with
-``model()``, ``limits()``, ``render(...)``, ``upload_scene(...)``, ``upload_capture(folder)`` and
+``model()``, ``models()``, ``limits()``, ``render(...)``, ``upload_scene(...)``, ``upload_capture(folder)`` and
 ``render_scene(scene, target)``; renders come back as numpy arrays."""
 
 from .cameras import Camera
@@ -8,6 +8,8 @@ from .errors import (
     CaptureError,
     ConnectionFailed,
     InvalidRequest,
+    ModelMismatch,
+    ModelNotFound,
     Overloaded,
     SceneNotFound,
     ScnerfError,
@@ -22,6 +24,8 @@ __all__ = [
     "ConnectionFailed",
     "InvalidRequest",
     "Limits",
+    "ModelMismatch",
+    "ModelNotFound",
     "Overloaded",
     "Rendering",
     "Scene",

@@ -53,6 +53,8 @@ class Rendering:
     sources: list[int] | None = None
     sampling: str | None = None
     samples_per_ray: float | None = None
+    #: The name of the model that rendered it (``GET /v1/models``).
+    model: str | None = None
 
     def __repr__(self) -> str:
         image = next(a for a in (self.rgb, self.depth, self.opacity, np.zeros((0, 0))) if a is not None)
@@ -79,6 +81,8 @@ class Scene:
     image_set: str | None = None
     warnings: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
+    #: The model the scene belongs to: its renders use it.
+    model: str | None = None
     upload: Callable[[], str] | None = field(default=None, repr=False)
 
     def __repr__(self) -> str:
@@ -118,8 +122,18 @@ class Client:
         return self._send("GET", "/metrics").text
 
     def model(self) -> dict[str, Any]:
-        """The served model: id, variant, config and provenance (``GET /v1/model``)."""
+        """The default model: id, variant, config and provenance (``GET /v1/model``)."""
         return self._send("GET", "/v1/model").json()
+
+    def models(self) -> list[dict[str, Any]]:
+        """Every model the server serves (``GET /v1/models``): its ``name`` (what ``model=``
+        takes), path, whether it is the ``default``, and what its manifest says."""
+        return self._send("GET", "/v1/models").json()["models"]
+
+    def reload_models(self) -> dict[str, Any]:
+        """Has the server load the bundles added to its ``--models`` folder
+        (``POST /v1/models/reload``): ``{"loaded": [...], "skipped": [{"name", "path", "reason"}]}``."""
+        return self._send("POST", "/v1/models/reload").json()
 
     def limits(self) -> Limits:
         """The server's request limits (``GET /v1/limits``), asked once."""
@@ -140,10 +154,11 @@ class Client:
         background: Sequence[float] | None = None,
         outputs: Outputs = ALL_OUTPUTS,
         sampling: str | None = None,
+        model: str | None = None,
     ) -> Rendering:
         """One view from source ``images`` (arrays, PIL images, PNG/JPEG bytes or files) with
-        their ``cameras`` (``POST /v1/render``)."""
-        document = self._scene_document(cameras, near, far, background)
+        their ``cameras`` (``POST /v1/render``), by ``model`` (default: the server's)."""
+        document = self._scene_document(cameras, near, far, background, model)
         document.update(self._target_document(target, outputs, sampling))
         response = self._send("POST", "/v1/render", files=self._parts(document, images))
         return self._rendering(response)
@@ -158,10 +173,12 @@ class Client:
         far: float,
         background: Sequence[float] | None = None,
         scene_id: str | None = None,
+        model: str | None = None,
     ) -> Scene:
         """Encodes the sources once (``PUT /v1/scenes/{id}``); views of it cost only the renderer.
-        The id is ``scene_id``, or derived from what is uploaded (the same upload, the same id)."""
-        document = self._scene_document(cameras, near, far, background)
+        The id is ``scene_id``, or derived from what is uploaded (the same upload, the same id).
+        The scene belongs to ``model`` (default: the server's), which renders its views."""
+        document = self._scene_document(cameras, near, far, background, model)
         parts = self._parts(document, images)
         if scene_id is None:
             digest = hashlib.sha256()
@@ -174,7 +191,9 @@ class Client:
         def upload() -> str:
             response = self._send("PUT", f"/v1/scenes/{scene_id}", files=parts)
             scene.timings = server_timing(response.headers.get("server-timing", ""))
-            return response.json()["scene_id"]
+            body = response.json()
+            scene.model = body.get("model")
+            return body["scene_id"]
 
         upload()
         scene.upload = upload
@@ -187,6 +206,7 @@ class Client:
         near: float | None = None,
         far: float | None = None,
         ignore_distortion: bool = False,
+        model: str | None = None,
     ) -> Scene:
         """A capture folder as its tools leave it (COLMAP, nerfstudio, Blender, LLFF, DTU) as a
         scene (``POST /v1/captures``): the server reads its cameras. What is sent is the server's
@@ -201,7 +221,7 @@ class Client:
                 f"{folder}: {chosen.bytes / 2**20:.1f} MiB to send, more than the server takes "
                 f"({limits.max_capture_bytes / 2**20:.1f} MiB, its --max-capture-bytes): pass downscale=N"
             )
-        query = {"downscale": downscale, "near": near, "far": far}
+        query = {"downscale": downscale, "near": near, "far": far, "model": model}
         params = {k: v for k, v in query.items() if v is not None}
         if ignore_distortion:
             params["ignore_distortion"] = "true"
@@ -219,6 +239,7 @@ class Client:
             )
             scene.names, scene.format = body.get("names", []), body.get("format")
             scene.image_set, scene.warnings = body.get("image_set"), body.get("warnings", [])
+            scene.model = body.get("model")
             return scene.id
 
         upload()
@@ -236,10 +257,14 @@ class Client:
         outputs: Outputs = ALL_OUTPUTS,
         sources: Sequence[int] | None = None,
         sampling: str | None = None,
+        model: str | None = None,
     ) -> Rendering:
         """A view of a scene (``POST /v1/scenes/{id}/render``); ``sources`` pins its three source
-        views. A :class:`Scene` the server lost is uploaded again once."""
+        views. The scene's model renders it; ``model`` naming another is refused (409
+        ``model_mismatch``). A :class:`Scene` the server lost is uploaded again once."""
         document = self._target_document(target, outputs, sampling)
+        if model is not None:
+            document["model"] = model
         if sources is not None:
             document["sources"] = [int(i) for i in sources]
         scene_id = scene.id if isinstance(scene, Scene) else scene
@@ -257,7 +282,7 @@ class Client:
     # -- the wire
 
     @staticmethod
-    def _scene_document(cameras, near, far, background) -> dict[str, Any]:
+    def _scene_document(cameras, near, far, background, model: str | None = None) -> dict[str, Any]:
         document: dict[str, Any] = {
             "sources": [{"camera": camera_json(c)} for c in cameras],
             "near": float(near),
@@ -265,6 +290,9 @@ class Client:
         }
         if background is not None:
             document["background"] = [float(b) for b in background]
+        # Only when named: a document without it is the one earlier clients sent (the same id).
+        if model is not None:
+            document["model"] = model
         return document
 
     @staticmethod
@@ -315,6 +343,7 @@ class Client:
             model_id=body.get("model_id", ""),
             sources=sources,
             sampling=body.get("sampling"),
+            model=body.get("model"),
             samples_per_ray=body.get("samples_per_ray"),
         )
 

@@ -46,6 +46,14 @@ class SceneNotFound(ServerError):
     """404 ``scene_not_found``: the scene expired, was evicted or deleted (hint ``reupload``)."""
 
 
+class ModelNotFound(ServerError):
+    """404 ``model_not_found``: the server serves no model of that name (``Client.models()``)."""
+
+
+class ModelMismatch(ServerError):
+    """409 ``model_mismatch``: the scene belongs to another model than the one named."""
+
+
 class Overloaded(ServerError):
     """429 or 503 still answered after the client's retries (``retry_after`` seconds)."""
 
@@ -69,6 +77,10 @@ def server_error(
         kind = Unauthorized
     elif status == 404 and code == "scene_not_found":
         kind = SceneNotFound
+    elif status == 404 and code == "model_not_found":
+        kind = ModelNotFound
+    elif status == 409 and code == "model_mismatch":
+        kind = ModelMismatch
     elif status in (429, 503):
         kind = Overloaded
     elif status in (400, 413, 415, 422):

@@ -65,3 +65,18 @@ def token_server():
     s = Server("--auth-token", "secret-token")
     yield s
     s.stop()
+
+
+@pytest.fixture(scope="session")
+def models_dir(tmp_path_factory) -> Path:
+    """The ``--models`` folder of ``models_server``: empty at its start."""
+    return tmp_path_factory.mktemp("models")
+
+
+@pytest.fixture(scope="session")
+def models_server(models_dir):
+    """A server of the fixture bundle (model ``bundle``, the default) that also serves the bundle
+    folders put in ``models_dir`` once reloaded."""
+    s = Server("--models", str(models_dir))
+    yield s
+    s.stop()

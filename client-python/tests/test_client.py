@@ -5,12 +5,23 @@ from __future__ import annotations
 
 import io
 import json
+import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
 from PIL import Image
 
-from scnerf_client import Camera, Client, InvalidRequest, SceneNotFound, Unauthorized, captures
+from scnerf_client import (
+    Camera,
+    Client,
+    InvalidRequest,
+    ModelMismatch,
+    ModelNotFound,
+    SceneNotFound,
+    Unauthorized,
+    captures,
+)
 from scnerf_client.client import Client as _Client
 
 #: Forward-facing views on a small grid, looking down the world's -z; the scene between 2 and 6.
@@ -113,6 +124,33 @@ def test_sampling_is_sent_only_when_given_and_said_back(client):
     with pytest.raises(InvalidRequest) as bad:
         client.render(images, cameras, view, near=2.0, far=6.0, sampling="fast")
     assert (bad.value.status, bad.value.field) == (422, "sampling")
+
+
+def test_the_model_is_sent_only_when_named_and_each_render_says_its_model(models_server, models_dir):
+    bundle = Path(__file__).resolve().parents[2] / "tests/fixtures/parity/bundle"
+    client = Client(models_server.url)
+    assert "model" not in _Client._scene_document([], 2.0, 6.0, None)
+    assert _Client._scene_document([], 2.0, 6.0, None, "second")["model"] == "second"
+    assert [(m["name"], m["default"]) for m in client.models()] == [("bundle", True)]
+    shutil.copytree(bundle, models_dir / "second")
+    reloaded = client.reload_models()
+    assert [m["name"] for m in reloaded["loaded"]] == ["second"] and reloaded["skipped"] == []
+    assert [m["name"] for m in client.models()] == ["bundle", "second"]
+
+    images = [photo(i, 32, 24) for i in range(3)]
+    cameras = [camera(x, y) for x, y in CENTRES[:3]]
+    target = camera(0.05, 0.05, 16, 12)
+    assert client.render(images, cameras, target, near=2.0, far=6.0, model="second").model == "second"
+    assert client.render(images, cameras, target, near=2.0, far=6.0).model == "bundle"
+    scene = client.upload_scene(images, cameras, near=2.0, far=6.0, model="second")
+    assert scene.model == "second"
+    assert client.render_scene(scene, target).model == "second"
+    with pytest.raises(ModelMismatch) as mismatch:
+        client.render_scene(scene, target, model="bundle")
+    assert (mismatch.value.status, mismatch.value.field) == (409, "model")
+    with pytest.raises(ModelNotFound) as unknown:
+        client.render(images, cameras, target, near=2.0, far=6.0, model="nerf")
+    assert (unknown.value.status, unknown.value.field) == (404, "model") and "nerf" in unknown.value.message
 
 
 def test_capture_as_distributed_sends_the_largest_set_that_fits(client, tmp_path):
