@@ -4,8 +4,8 @@
 # scripts/browser-test/viewer-test.mjs (Node's playwright-core): the token prompt, the first
 # render and its finer sizes, depth/opacity, the PNG download, a mouse drag to a new pose, a
 # second drag that aborts a render in flight (checked in the server's log: its remaining chunks
-# never run), keyboard snapping, the capture endpoint's 404, and that every request stays on the
-# server. Installs Chromium (apt) and the npm package when they are missing. Exits non-zero on
+# never run), keyboard snapping, captures, the model picker (a copy of the bundle is served as a
+# second model), and that every request stays on the server. Installs Chromium (apt) and the npm package when they are missing. Exits non-zero on
 # failure. Needs Node.js >= 20.
 #
 #   OUT=DIR          screenshots, the server's log (default target/viewer-test)
@@ -41,7 +41,9 @@ build_binaries
 export VIEWER_TOKEN=viewer-test-token
 export SCNERF_AUTH_TOKENS=${VIEWER_TOKEN}
 export RUST_LOG=info,ort=warn,scnerf_server::backend=debug
-SERVER_ARGS="--log-format json" start_server
+# A second model (a copy of the bundle, named by its folder) gives the page's model picker a choice.
+rm -rf "${OUT}/models" && mkdir -p "${OUT}/models" && cp -r "${BUNDLE}" "${OUT}/models/second"
+SERVER_ARGS="--log-format json --bundle ${OUT}/models/second" start_server
 echo "viewer-test: server at http://${ADDR}/ (log: ${OUT}/server.log)"
 
 started=${SECONDS}

@@ -358,6 +358,22 @@ try {
   await shot('07-capture.png');
   await page.keyboard.press('Escape');
 
+  // 8b. Two models served (viewer-test.sh adds a copy of the bundle, "second"): the picker lists
+  //     them; choosing the other uploads the scene to it, and its views come from it.
+  const models = await page.$$eval('#model-select option', (os) => os.map((o) => o.value));
+  check((await page.isVisible('#model-select')) && models.join() === 'bundle,second', `the model picker lists the models served (${models.join(', ')})`);
+  const beforeSwitch = renders.length;
+  const [reuploaded] = await Promise.all([
+    page.waitForResponse((r) => r.url().endsWith('/v1/captures?model=second')),
+    page.selectOption('#model-select', 'second'),
+  ]);
+  check(reuploaded.ok() && (await reuploaded.json()).model === 'second', 'choosing a model uploads the scene to it');
+  const byOther = await firstAnswered(beforeSwitch);
+  const answeredBy = (await byOther.request.response()).headers()['x-scnerf-model'];
+  check(answeredBy === 'second', `the scene's views come from the model chosen (${answeredBy})`);
+  await shot('08-model-chosen.png');
+  await page.keyboard.press('Escape');
+
   // 9. The server's books: nothing left queued, and only the renders the page received were finished.
   await waitFor('an idle executor', async () => (await metric('scnerf_inference_queue_requests')) === 0);
   check((await metric('scnerf_inference_queue_jobs')) === 0, 'no graph runs left in the queue');

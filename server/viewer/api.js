@@ -44,6 +44,8 @@ export class Api {
   /** `token()` returns the bearer token to send, or '' for none. */
   constructor(token) {
     this.token = token;
+    /** The model scenes are uploaded to (a name GET /v1/models lists), or null for the server's default. */
+    this.modelName = null;
   }
 
   headers(extra = {}) {
@@ -85,6 +87,11 @@ export class Api {
     return this.json('Reading the model (GET /v1/model)', '/v1/model');
   }
 
+  /** Every model the server serves, the default marked: `{models: [{name, model_id, variant, default, ...}], default}`. */
+  models() {
+    return this.json('Reading the models (GET /v1/models)', '/v1/models');
+  }
+
   /** What the server accepts (source pixels, scene views, body sizes), read before any upload. */
   limits() {
     return this.json('Reading the server\'s limits (GET /v1/limits)', '/v1/limits');
@@ -104,12 +111,16 @@ export class Api {
     });
   }
 
-  /** `form`: the capture's files, named by their paths (see capture.js). */
+  /** `form`: the capture's files, named by their paths (see capture.js); the scene belongs to the chosen model. */
   createCaptureScene(form, signal) {
-    return this.json('Uploading the capture (POST /v1/captures)', '/v1/captures', { method: 'POST', body: form, signal });
+    const url = this.modelName ? `/v1/captures?model=${encodeURIComponent(this.modelName)}` : '/v1/captures';
+    return this.json('Uploading the capture (POST /v1/captures)', url, { method: 'POST', body: form, signal });
   }
 
-  /** A view of a cached scene, as JSON with rgb, depth and opacity; `sampling` (full, guided) or null for the server's default. */
+  /**
+   * A view of a cached scene, as JSON with rgb, depth and opacity; `sampling` (full, guided) or null for the server's default.
+   * The scene's own model renders it (it was uploaded to the chosen one).
+   */
   render(sceneId, target, requestId, signal, sampling = null) {
     const body = { target, outputs: ['rgb', 'depth', 'opacity'], ...(sampling ? { sampling } : {}) };
     return this.json(`Rendering ${target.width}x${target.height} (POST /v1/scenes/{id}/render)`, `/v1/scenes/${sceneId}/render`, {

@@ -295,13 +295,38 @@ function downloadPath() {
   setTimeout(() => URL.revokeObjectURL(link.href), 1000);
 }
 
+/** The models served (GET /v1/models): the picker lists them when there is a choice; the line says the chosen one. */
 async function showModel() {
   try {
-    const { body } = await api.model();
-    $('model').textContent = `${body.model_id} (${body.variant})`;
+    const { body } = await api.models();
+    const chosen = body.models.find((m) => m.name === api.modelName) ?? body.models.find((m) => m.default);
+    // The default model is the server's: requests name none, as a page of one model sends them.
+    api.modelName = chosen.default ? null : chosen.name;
+    const options = body.models.map((m) => Object.assign(document.createElement('option'), { value: m.name, textContent: m.name, selected: m === chosen }));
+    $('model-select').replaceChildren(...options);
+    $('model-field').hidden = body.models.length < 2;
+    $('model').textContent = `${chosen.model_id} (${chosen.variant})`;
   } catch (e) {
     // The reason is in the error box when it matters (the scene upload is refused alike).
     $('model').textContent = `Model unknown (${e.status ? `HTTP ${e.status}` : 'no answer'})`;
+  }
+}
+
+/** Another model chosen: the scene is uploaded to it (a scene belongs to one model), then rendered again. */
+async function modelChanged() {
+  api.modelName = $('model-select').value;
+  await showModel();
+  const name = $('model-select').value;
+  if (!state.scene) return openExample();
+  progressive.stop();
+  setStatus(`Uploading ${state.scene.label} to the model ${name}…`, 'uploading');
+  try {
+    state.scene.id = await state.scene.upload(api);
+    clearError();
+    setView(state.view);
+  } catch (e) {
+    showError(e);
+    setStatus(`Could not upload ${state.scene.label} to the model ${name}.`, 'error');
   }
 }
 
@@ -343,6 +368,7 @@ function dropTarget() {
 function wire() {
   $('token').value = sessionStorage.getItem(TOKEN_KEY) ?? '';
   $('token').addEventListener('change', tokenChanged);
+  $('model-select').addEventListener('change', modelChanged);
   $('open-capture').addEventListener('click', () => $('capture-input').click());
   $('capture-input').addEventListener('change', (e) => {
     openCapture(filesFromPicker(e.target.files));
@@ -372,5 +398,5 @@ function wire() {
 }
 
 wire();
-showModel();
-openExample();
+// The example goes to the model chosen: the default, unless the list says otherwise first.
+showModel().then(openExample);

@@ -11,10 +11,11 @@ import { poseOf } from './camera.js';
 /** Where the server serves the example's request.json and source_N.png. */
 const EXAMPLE = '/viewer/example/';
 
-/** The example's scene request: its sources' cameras and depth range, without the target. */
-function sceneRequest(request) {
+/** The example's scene request: its sources' cameras and depth range, without the target, for `model` (null: the default). */
+function sceneRequest(request, model) {
   const body = { sources: request.sources.map((s) => ({ camera: s.camera })), near: request.near, far: request.far };
   if (request.background) body.background = request.background;
+  if (model) body.model = model;
   return body;
 }
 
@@ -23,13 +24,14 @@ export async function exampleScene(api, signal) {
   const { body: request } = await api.json(`Reading the example (GET ${EXAMPLE}request.json)`, `${EXAMPLE}request.json`);
   const names = request.sources.map((_, i) => `source_${i}.png`);
   const images = await Promise.all(names.map((name) => api.blob(`Reading the example (GET ${EXAMPLE}${name})`, EXAMPLE + name)));
-  const form = () => {
+  // Built at each upload: a model chosen since goes with it.
+  const form = (api) => {
     const f = new FormData();
-    f.append('request', new Blob([JSON.stringify(sceneRequest(request))], { type: 'application/json' }), 'request.json');
+    f.append('request', new Blob([JSON.stringify(sceneRequest(request, api.modelName))], { type: 'application/json' }), 'request.json');
     images.forEach((image, i) => f.append(`source_${i}`, image, names[i]));
     return f;
   };
-  const upload = async (api, signal) => (await api.createScene(form(), signal)).body.scene_id;
+  const upload = async (api, signal) => (await api.createScene(form(api), signal)).body.scene_id;
   return {
     id: await upload(api, signal),
     label: 'the example scene',
