@@ -126,13 +126,8 @@ async fn load_models(config: &Config) -> Result<Models, String> {
         models.push(model);
     }
     let executor = executor.ok_or("no model to serve: every bundle below --models was skipped")?;
-    let loader = config.models.clone().map(|dir| Loader {
-        dir,
-        make_runner,
-        settings,
-        executor,
-        warm_up: !config.skip_warmup,
-    });
+    let loader =
+        config.models.clone().map(|dir| Loader { dir, make_runner, settings, executor, warm_up: !config.skip_warmup });
     Models::new(models, config.default_model.as_deref(), loader)
 }
 
@@ -184,7 +179,8 @@ fn ort_runners(config: &Config) -> MakeRunner {
 async fn warm_up_all(models: &Models) -> Result<Duration, String> {
     let mut elapsed = Duration::ZERO;
     for model in models.all() {
-        let took = warm_up(&model.pipeline).await.map_err(|e| format!("model {}: warm-up render failed: {e}", model.name))?;
+        let took =
+            warm_up(&model.pipeline).await.map_err(|e| format!("model {}: warm-up render failed: {e}", model.name))?;
         elapsed += took;
     }
     Ok(elapsed)
@@ -223,4 +219,3 @@ fn shutdown_signals() -> Result<impl std::future::Future<Output = ()>, String> {
         tokio::select! { _ = term.recv() => {}, _ = int.recv() => {} }
     })
 }
-

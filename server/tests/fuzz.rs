@@ -111,14 +111,13 @@ fn seeds() -> Seeds {
     let target = json!({"target": request["target"], "outputs": ["rgb", "depth"]});
     let request_bytes = serde_json::to_vec(&request).unwrap();
     let proto = pb::RenderRequest { outputs: vec!["rgb".into(), "opacity".into()], ..proto_request(&request, &imgs) };
-    let proto_scene =
-        pb::SceneRequest {
-            sources: proto.sources.clone(),
-            near: 2.0,
-            far: 6.0,
-            background: vec![0.5, 0.5, 0.5],
-            ..Default::default()
-        };
+    let proto_scene = pb::SceneRequest {
+        sources: proto.sources.clone(),
+        near: 2.0,
+        far: 6.0,
+        background: vec![0.5, 0.5, 0.5],
+        ..Default::default()
+    };
     let proto_target =
         pb::SceneRenderRequest { target: proto.target.clone(), outputs: vec!["depth".into()], ..Default::default() };
     Seeds {

@@ -107,7 +107,8 @@ async fn an_unknown_model_is_404_naming_it() {
     let (mut parts, body) = put.into_parts();
     parts.method = axum::http::Method::PUT;
     named(&send(app.clone(), axum::http::Request::from_parts(parts, body)).await);
-    let proto = scnerf_proto::v1::RenderRequest { model: "nerf".into(), ..proto_request(&request_json(32), &images(32)) };
+    let proto =
+        scnerf_proto::v1::RenderRequest { model: "nerf".into(), ..proto_request(&request_json(32), &images(32)) };
     let body = prost::Message::encode_to_vec(&proto);
     named(&send(app.clone(), raw_to("POST", "/v1/render", "application/x-protobuf", body, &[])).await);
     let capture = multipart_to("/v1/captures?model=nerf", &[("file", b"x")], &[]);
@@ -159,8 +160,10 @@ async fn the_metrics_model_label_holds_only_served_names() {
     labels.sort_unstable();
     labels.dedup();
     assert_eq!(labels, ["dtu", "lego"], "{metrics}");
-    let renderer = |model: &str| format!("scnerf_stage_duration_seconds_count{{stage=\"renderer\",model=\"{model}\"}} ");
-    let count = |model: &str| metrics.lines().find_map(|l| l.strip_prefix(&renderer(model))?.trim().parse::<f64>().ok());
+    let renderer =
+        |model: &str| format!("scnerf_stage_duration_seconds_count{{stage=\"renderer\",model=\"{model}\"}} ");
+    let count =
+        |model: &str| metrics.lines().find_map(|l| l.strip_prefix(&renderer(model))?.trim().parse::<f64>().ok());
     assert_eq!((count("lego"), count("dtu")), (Some(2.0), Some(1.0)), "{metrics}");
 }
 

@@ -57,8 +57,8 @@ mod queue;
 mod rates;
 mod runner;
 mod runners;
-mod slots;
 mod shared;
+mod slots;
 #[cfg(test)]
 mod testkit;
 mod ticket;

@@ -88,7 +88,15 @@ impl Ticket {
         let job = Job {
             ticket: self.id,
             model: self.model,
-            graph, units, inputs, finish, reply, span, deadline: self.deadline, last };
+            graph,
+            units,
+            inputs,
+            finish,
+            reply,
+            span,
+            deadline: self.deadline,
+            last,
+        };
         let queued = {
             let mut q = self.shared.lock();
             if q.stopped {

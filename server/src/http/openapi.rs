@@ -16,14 +16,14 @@ use super::capture_plan::{
     PlannedResize,
 };
 use super::captures::CaptureCreated;
+use super::models::ModelList;
 use super::respond::{FloatImageJson, PngImageJson, RenderResponseJson};
 use super::scenes::SceneCreated;
 use super::schema::{Binary, CaptureMultipart, RenderMultipart, SceneMultipart};
-use super::models::ModelList;
 use super::service::LimitsBody;
 use crate::error::{ErrorBody, ErrorDetail};
-use crate::request::wire::{JsonRenderRequest, JsonSceneRequest, JsonSource, JsonTargetRequest};
 use crate::models::{ModelInfo, Reloaded, Skipped};
+use crate::request::wire::{JsonRenderRequest, JsonSceneRequest, JsonSource, JsonTargetRequest};
 use crate::request::OutputKind;
 
 struct BearerAuth;

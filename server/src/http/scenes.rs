@@ -256,7 +256,8 @@ async fn render_within(state: AppState, deadline: Deadline, id: String, req: Req
     let requested = parsed.model.clone();
     let valid = parsed.validate(state.pipeline.limits())?;
     let out_format = response_format(&headers, valid.outputs)?;
-    let hit = state.scenes.get(&id, &owner, Instant::now()).ok_or_else(|| ApiError::SceneNotFound { id: id.clone() })?;
+    let hit =
+        state.scenes.get(&id, &owner, Instant::now()).ok_or_else(|| ApiError::SceneNotFound { id: id.clone() })?;
     let scene = &hit.scene;
     let model = scene_model(&state, &id, &scene.model, requested)?;
     let pipeline = &model.pipeline;

@@ -139,8 +139,12 @@ impl Loader {
     /// Refuses a bundle whose graphs alone would not fit the memory left beside what is set
     /// aside now (sessions hold at least their weights), before any session is made.
     fn check_room(&self, bundle: &Bundle) -> Result<(), String> {
-        let graphs: u64 =
-            bundle.graphs().into_iter().filter_map(|k| std::fs::metadata(bundle.graph_path(k)).ok()).map(|m| m.len()).sum();
+        let graphs: u64 = bundle
+            .graphs()
+            .into_iter()
+            .filter_map(|k| std::fs::metadata(bundle.graph_path(k)).ok())
+            .map(|m| m.len())
+            .sum();
         let memory = self.executor.stats().memory;
         match memory.reserved.saturating_add(graphs) < memory.total {
             true => Ok(()),

@@ -78,7 +78,8 @@ fn responses(documented: &[Documented]) -> BTreeMap<String, RefOr<Response>> {
     descriptions
         .into_iter()
         .map(|(status, said)| {
-            let response = ResponseBuilder::new().description(said.join("; or ")).content("application/json", body.clone());
+            let response =
+                ResponseBuilder::new().description(said.join("; or ")).content("application/json", body.clone());
             (status, response.build().into())
         })
         .collect()
