@@ -317,7 +317,13 @@ impl Config {
 
     /// What every model's pipeline is built with.
     pub fn model_settings(&self) -> ModelSettings {
-        ModelSettings { chunking: self.chunking(), slabs: self.slabs(), limits: self.limits(), sampling: self.sampling }
+        ModelSettings {
+            chunking: self.chunking(),
+            slabs: self.slabs(),
+            limits: self.limits(),
+            sampling: self.sampling,
+            renderer_arena: self.exec_options().cpu_arena,
+        }
     }
 
     pub fn intra_threads(&self) -> usize {

@@ -9,8 +9,9 @@ use std::path::{Path, PathBuf};
 
 use axum::Router;
 use common::*;
+use scnerf_server::backend::{ExecutorOptions, MemoryBudget};
 use scnerf_server::http::{router, ServiceOptions};
-use scnerf_server::testing::{models_state, request_json, write_bundle, FakeModel};
+use scnerf_server::testing::{models_state, models_state_with, request_json, write_bundle, FakeModel};
 use serde_json::{json, Value};
 
 /// A server of `lego` (the default) and `dtu`, whose fakes render different colours.
@@ -228,6 +229,25 @@ async fn a_reload_skips_a_second_bundle_of_a_served_name() {
     assert!(answer["loaded"].as_array().unwrap().is_empty(), "{answer}");
     let reason = answer["skipped"][0]["reason"].as_str().unwrap();
     assert!(reason.contains("/nonexistent/lego") && reason.contains("a/lego"), "{reason}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// A bundle whose graphs alone exceed the memory budget left is skipped before its sessions are
+/// made, and says so; the server keeps serving.
+#[tokio::test]
+async fn a_reload_skips_a_bundle_the_memory_budget_cannot_hold() {
+    let dir = scratch("memory");
+    write_bundle(&dir.join("lego"), 1.0).unwrap();
+    let budget = MemoryBudget { total: 64, reserved: 0 };
+    let executor = ExecutorOptions { memory: budget, ..ExecutorOptions::with_capacity(8) };
+    let models = vec![FakeModel::new("first", 1.0)];
+    let state = models_state_with(models, None, Some(&dir), ServiceOptions::default(), executor).unwrap();
+    let app = router(state);
+    let answer = reload(&app).await;
+    assert!(answer["loaded"].as_array().unwrap().is_empty(), "{answer}");
+    let reason = answer["skipped"][0]["reason"].as_str().unwrap();
+    assert!(reason.starts_with("not enough memory: its graphs"), "{reason}");
+    assert_eq!(names(&json_of(&send(app, get("/v1/models", &[])).await)["models"]), ["first"]);
     std::fs::remove_dir_all(&dir).unwrap();
 }
 

@@ -28,6 +28,9 @@ pub struct ModelSettings {
     pub limits: Limits,
     /// `--sampling`: each model's default where its bundle can.
     pub sampling: Sampling,
+    /// Whether renderer sessions keep ONNX Runtime's CPU arena (`--ort-arena`): then a model's
+    /// arena may be held while another model's request runs.
+    pub renderer_arena: bool,
 }
 
 impl ModelSettings {
@@ -126,14 +129,16 @@ impl Loader {
     }
 
     /// The new model's warm-up, then what it added to the process at rest (its sessions, their
-    /// weights) set aside from the memory budget, as the models' at start were.
+    /// weights) and the renderer arena it may hold beside other models' requests set aside from
+    /// the memory budget, as the models' at start were.
     async fn settle(&self, model: &Model, before: u64) -> Result<(), String> {
         if self.warm_up {
             warm_up(&model.pipeline).await.map_err(|e| format!("warm-up render failed: {e}"))?;
         }
         let grown = resident().saturating_sub(before);
+        let arena = if self.settings.renderer_arena { model.pipeline.renderer_arena_bytes() } else { 0 };
         let reserved = self.executor.stats().memory.reserved;
-        self.executor.reserve(reserved + grown).map(drop)
+        self.executor.reserve(reserved + grown + arena).map(drop)
     }
 
     /// Refuses a bundle whose graphs alone would not fit the memory left beside what is set

@@ -108,6 +108,14 @@ impl Models {
         self.all().iter().map(|m| m.name.clone()).collect()
     }
 
+    /// The renderer arenas that may be held beside a request's own (ONNX Runtime's CPU arena on):
+    /// every model's but the smallest, none with one model. Set aside from the memory budget
+    /// with the process at rest, as each model's sessions are.
+    pub fn other_arenas(&self) -> u64 {
+        let arenas: Vec<u64> = self.all().iter().map(|m| m.pipeline.renderer_arena_bytes()).collect();
+        arenas.iter().sum::<u64>() - arenas.iter().min().copied().unwrap_or(0)
+    }
+
     /// What `GET /v1/models` says of each model.
     pub fn describe(&self) -> Vec<ModelInfo> {
         self.all().iter().map(|m| ModelInfo::of(m, m.name == self.default.name)).collect()
@@ -194,5 +202,21 @@ impl ModelInfo {
             sampling_modes: model.pipeline.samplings(),
             default_sampling: model.pipeline.default_sampling(),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use crate::testing::{models_state, FakeModel};
+
+    #[tokio::test]
+    async fn the_arenas_beside_a_requests_own_are_every_models_but_the_smallest() {
+        let one = models_state(vec![FakeModel::new("a", 1.0)], None, None, Default::default()).unwrap();
+        assert_eq!(one.models().other_arenas(), 0, "one model: its request counts its own arena");
+        let models = vec![FakeModel::new("a", 1.0), FakeModel::new("b", 1.0), FakeModel::new("c", 1.0)];
+        let three = models_state(models, None, None, Default::default()).unwrap();
+        let arena = three.pipeline().renderer_arena_bytes();
+        assert!(arena > 0);
+        assert_eq!(three.models().other_arenas(), 2 * arena);
     }
 }

@@ -71,6 +71,12 @@ impl Pipeline {
         estimate::estimate(&self.bundle.config, &plan, &sizes)
     }
 
+    /// What this model's renderer may keep in ONNX Runtime's arena between requests (see
+    /// [`estimate::renderer_arena_bytes`]).
+    pub fn renderer_arena_bytes(&self) -> u64 {
+        estimate::renderer_arena_bytes(&self.bundle.config, &self.chunking)
+    }
+
     /// What the scene of `req` will hold in the scene cache (see [`estimate::scene_bytes`]).
     pub fn scene_bytes(&self, req: &ValidScene) -> u64 {
         let cameras = req.cameras();

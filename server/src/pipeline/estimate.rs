@@ -176,6 +176,13 @@ fn with_target(config: &ModelConfig, plan: &MemoryPlan, sizes: &RequestSizes, mu
     e
 }
 
+/// What a model's renderer session may keep in ONNX Runtime's arena between its requests: one
+/// full chunk's working memory. A request's estimate counts one chunk (its own model's); with
+/// several models, the others' arenas may be held meanwhile (`models`' reserve counts them).
+pub fn renderer_arena_bytes(config: &ModelConfig, chunking: &ChunkPolicy) -> u64 {
+    chunking.rays_per_chunk(config.samples) as u64 * config.samples as u64 * RENDERER_BYTES_PER_SAMPLE
+}
+
 /// What a scene of `views` padded `width` x `height` views keeps in the scene cache: the views'
 /// images, and when its volume is built with them (the model's view count), the features and
 /// the volume. The cache's own accounting (`Scene::bytes`, `Views::bytes`), before anything is

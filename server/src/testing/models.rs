@@ -45,18 +45,30 @@ pub fn models_state(
     reload_dir: Option<&Path>,
     options: ServiceOptions,
 ) -> Result<AppState, String> {
+    models_state_with(models, default, reload_dir, options, ExecutorOptions::with_capacity(8))
+}
+
+/// [`models_state`] with any executor settings (a memory budget).
+pub fn models_state_with(
+    models: Vec<FakeModel>,
+    default: Option<&str>,
+    reload_dir: Option<&Path>,
+    options: ServiceOptions,
+    executor_options: ExecutorOptions,
+) -> Result<AppState, String> {
     let settings = ModelSettings {
         chunking: ChunkPolicy { max_rays: 100, memory_budget_bytes: usize::MAX },
         slabs: SlabPolicy::default(),
         limits: Limits::default(),
         sampling: Sampling::Guided,
+        renderer_arena: true,
     };
     let mut served = Vec::new();
     let mut executor: Option<BackendHandle> = None;
     for FakeModel { bundle, runner } in models {
         let backend = match &executor {
             Some(executor) => executor.add_runner(Box::new(runner)),
-            None => BackendHandle::spawn(Box::new(runner), ExecutorOptions::with_capacity(8)).expect("spawn backend"),
+            None => BackendHandle::spawn(Box::new(runner), executor_options.clone()).expect("spawn backend"),
         };
         executor.get_or_insert_with(|| backend.clone());
         served.push(Model::new(settings.pipeline(backend, bundle)));
