@@ -45,9 +45,18 @@ impl Model {
 }
 
 /// A bundle folder's name: its model's name (`/srv/models/lego-refined` serves `lego-refined`).
+/// The name as given, a link's own (a link in `--models DIR` names its model); resolved only
+/// for a path without one (`.`, `..`).
 pub fn model_name(dir: &Path) -> String {
-    let dir = std::fs::canonicalize(dir).unwrap_or_else(|_| dir.to_path_buf());
-    dir.file_name().map_or_else(|| dir.display().to_string(), |n| n.to_string_lossy().into_owned())
+    let resolved;
+    let named = match dir.file_name() {
+        Some(_) => dir,
+        None => {
+            resolved = std::fs::canonicalize(dir).unwrap_or_else(|_| dir.to_path_buf());
+            &resolved
+        }
+    };
+    named.file_name().map_or_else(|| named.display().to_string(), |n| n.to_string_lossy().into_owned())
 }
 
 /// The registry: the models in the order they were loaded, the default's name, and how to
@@ -207,7 +216,21 @@ impl ModelInfo {
 
 #[cfg(test)]
 mod tests {
+    use std::path::Path;
+
+    use super::model_name;
     use crate::testing::{models_state, FakeModel};
+
+    #[test]
+    fn a_model_is_named_by_its_folder_or_its_link_never_by_where_a_link_leads() {
+        assert_eq!(model_name(Path::new("/srv/models/lego-refined/")), "lego-refined");
+        let dir = std::env::temp_dir().join(format!("scnerf-names-{}", std::process::id()));
+        std::fs::create_dir_all(dir.join("target")).unwrap();
+        std::os::unix::fs::symlink(dir.join("target"), dir.join("link")).unwrap();
+        assert_eq!(model_name(&dir.join("link")), "link");
+        assert_eq!(model_name(&dir.join("target/.")), "target");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 
     #[tokio::test]
     async fn the_arenas_beside_a_requests_own_are_every_models_but_the_smallest() {
