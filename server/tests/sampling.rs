@@ -142,6 +142,6 @@ async fn metrics_count_views_by_sampling() {
     }
     let (_, _, body) = send(app, get("/metrics", &[])).await;
     let text = String::from_utf8_lossy(&body);
-    assert!(text.contains("scnerf_samples_per_ray_count{sampling=\"full\"} 1"), "{text}");
-    assert!(text.contains("scnerf_samples_per_ray_count{sampling=\"guided\"} 2"), "{text}");
+    assert!(text.contains("scnerf_samples_per_ray_count{sampling=\"full\",model=\"fake\"} 1"), "{text}");
+    assert!(text.contains("scnerf_samples_per_ray_count{sampling=\"guided\",model=\"fake\"} 2"), "{text}");
 }
