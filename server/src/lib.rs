@@ -5,8 +5,9 @@
 //! `volume` (cost volume) -> `rays` -> `chunks` (renderer runs) -> `assemble` (image) ->
 //! `http::respond`. The graphs run on one inference thread (`backend`, ONNX Runtime in
 //! `backend::ort`); other CPU work runs on blocking threads and stops with its request
-//! (`blocking`). `bundle` is the model contract, `cache` keeps scenes, `error` maps every
-//! refusal to HTTP, `config` is the one configuration struct.
+//! (`blocking`). `bundle` is the model contract, `models` the models served (a pipeline per
+//! bundle, all on the one executor; a request names its model), `cache` keeps scenes, `error`
+//! maps every refusal to HTTP, `config` is the one configuration struct.
 
 pub mod auth;
 pub mod backend;
