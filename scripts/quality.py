@@ -46,6 +46,7 @@ def measure(
     protocols: list[str],
     threads: int | None,
     sampling: str | None,
+    scenes: list[str],
 ) -> None:
     binary = find_server_binary()
     if binary is None:
@@ -53,7 +54,8 @@ def measure(
     # Paper-size views take minutes on a few cores: a deadline far beyond the default 900 s.
     extra = ("--request-timeout-secs", "7200", *(("--sampling", sampling) if sampling else ()))
     with ServerProcess(binary, bundle, threads=threads, extra=extra) as server:
-        for scene, (folder, fmt, scale, _) in SCENES.items():
+        for scene in scenes:
+            folder, fmt, scale, _ = SCENES[scene]
             for protocol in scene_protocols(scene, protocols):
                 sources = PROTOCOLS[protocol]
                 path = out / f"{name}-{scene}-{protocol}.json"
@@ -78,9 +80,9 @@ def scene_protocols(scene: str, protocols: list[str]) -> list[str]:
     return [p for p in protocols if p != "fixed" or SCENES[scene][3]]
 
 
-def table(names: list[str], out: Path, protocols: list[str]) -> str:
+def table(names: list[str], out: Path, protocols: list[str], scenes: list[str]) -> str:
     lines = ["| scene, sources | view | " + " | ".join(names) + " |", "|---|---|" + "---|" * len(names)]
-    for scene in SCENES:
+    for scene in scenes:
         for protocol in scene_protocols(scene, protocols):
             runs = [json.loads((out / f"{n}-{scene}-{protocol}.json").read_text()) for n in names]
             for view in [*runs[0]["views"], "mean"]:
@@ -117,6 +119,9 @@ def main(argv=None) -> int:
     )
     p.add_argument("--views", action="append", default=[], metavar="SCENE=V,V", help="only these targets of a scene")
     p.add_argument("--protocols", type=lambda t: t.split(","), default=list(PROTOCOLS), help="nearest,fixed")
+    p.add_argument(
+        "--scenes", type=lambda t: t.split(","), default=list(SCENES), help="lego,scan37,horns (a refined bundle: its)"
+    )
     p.add_argument("--threads", type=int)
     p.add_argument(
         "--sampling", action="append", default=[], metavar="NAME=MODE", help="a column's sampling (full or guided)"
@@ -130,8 +135,9 @@ def main(argv=None) -> int:
     samplings = per_scene(args.sampling, str)
     for name, bundle in pairs:
         sampling = samplings.get(name)
-        measure(name, bundle, args.out, scales, target_scales, views, args.protocols, args.threads, sampling)
-    print(table([name for name, _ in pairs], args.out, args.protocols))
+        protocols, scenes = args.protocols, args.scenes
+        measure(name, bundle, args.out, scales, target_scales, views, protocols, args.threads, sampling, scenes)
+    print(table([name for name, _ in pairs], args.out, args.protocols, args.scenes))
     return 0
 
 
