@@ -101,18 +101,21 @@ fn view_renders_one_named_view_from_three_sources() {
     assert_eq!(server.ids(), vec!["my-view"]);
 }
 
+/// `scnerf view` of the Blender fixture's train/r_1 at 8x6 into `dir`, with `extra` flags.
+fn view_r_1(server: &FakeServer, dir: &Path, extra: &[&str]) -> Output {
+    let data = fixture("blender");
+    let png = dir.join("v.png");
+    let mut args = vec!["view", data.to_str().unwrap(), "--server", &server.url, "--pose", "train/r_1"];
+    args.extend(["--size", "8x6", "--out", png.to_str().unwrap()]);
+    args.extend(extra);
+    scnerf(&args)
+}
+
 #[test]
 fn sampling_is_sent_only_when_asked_for_and_reported() {
     let server = FakeServer::start();
     let dir = tempfile::tempdir().unwrap();
-    let data = fixture("blender");
-    let view = |extra: &[&str]| {
-        let png = dir.path().join("v.png");
-        let mut args = vec!["view", data.to_str().unwrap(), "--server", &server.url, "--pose", "train/r_1"];
-        args.extend(["--size", "8x6", "--out", png.to_str().unwrap()]);
-        args.extend(extra);
-        scnerf(&args)
-    };
+    let view = |extra: &[&str]| view_r_1(&server, dir.path(), extra);
     let out = view(&["--sampling", "full"]);
     let (stdout, stderr) = text(&out);
     assert!(out.status.success(), "{stdout}\n{stderr}");
@@ -131,13 +134,8 @@ fn sampling_is_sent_only_when_asked_for_and_reported() {
 fn the_model_is_sent_with_the_upload_and_the_renders_only_when_named() {
     let server = FakeServer::start();
     let dir = tempfile::tempdir().unwrap();
-    let data = fixture("blender");
     let view = |extra: &[&str]| {
-        let png = dir.path().join("v.png");
-        let mut args = vec!["view", data.to_str().unwrap(), "--server", &server.url, "--pose", "train/r_1"];
-        args.extend(["--size", "8x6", "--out", png.to_str().unwrap()]);
-        args.extend(extra);
-        let out = scnerf(&args);
+        let out = view_r_1(&server, dir.path(), extra);
         let (stdout, stderr) = text(&out);
         assert!(out.status.success(), "{stdout}\n{stderr}");
     };
