@@ -14,7 +14,7 @@ use crate::config::Config;
 use crate::http::serve::{ensure_file_limit, serve};
 use crate::http::{router, AppState};
 pub use crate::models::warm_up;
-use crate::models::{duplicate_name, model_name, scan, Loader, MakeRunner, Model, Models};
+use crate::models::{duplicate_name, model_name, same_folder, scan, Loader, MakeRunner, Model, Models};
 use crate::sysmem;
 
 pub async fn run(config: Config) -> Result<(), String> {
@@ -152,20 +152,16 @@ fn find_bundles(config: &Config) -> Result<Vec<(Bundle, bool)>, String> {
     let mut names: Vec<(String, std::path::PathBuf)> = Vec::new();
     let mut unique = Vec::new();
     for (bundle, required) in bundles {
-        let (name, dir) = (model_name(&bundle.dir), canonical(&bundle.dir));
+        let name = model_name(&bundle.dir);
         match names.iter().find(|(n, _)| *n == name) {
             // The same folder twice (a --bundle inside --models): one model.
-            Some((_, first)) if *first == dir => continue,
+            Some((_, first)) if same_folder(first, &bundle.dir) => continue,
             Some((_, first)) => return Err(duplicate_name(&name, first, &bundle.dir)),
-            None => names.push((name, dir)),
+            None => names.push((name, bundle.dir.clone())),
         }
         unique.push((bundle, required));
     }
     Ok(unique)
-}
-
-fn canonical(dir: &std::path::Path) -> std::path::PathBuf {
-    std::fs::canonicalize(dir).unwrap_or_else(|_| dir.to_path_buf())
 }
 
 /// Each model's runner: its graphs' ONNX Runtime sessions, on the configured device.

@@ -151,7 +151,7 @@ async fn plan_within(state: AppState, req: Request) -> Result<Json<CapturePlan>,
             message: "a capture's listing is sent as application/json".into(),
         });
     }
-    let limits = state.pipeline.limits().clone();
+    let limits = state.pipeline().limits().clone();
     let body = read_bytes(req.into_body(), limits.max_json_bytes).await?;
     // A listing of up to --max-json-bytes of short paths is many thousands of entries: off the
     // async workers.

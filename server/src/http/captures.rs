@@ -136,9 +136,9 @@ async fn create_within(
     let owner = owner_of(&req);
     // Before the upload is read: a wrong name costs the client no upload.
     let model = state.models.get(options.model.as_deref())?;
-    let (files, metadata_bytes) = read_files(req, state.pipeline.limits()).await?;
+    let (files, metadata_bytes) = read_files(req, state.pipeline().limits()).await?;
     let mut parsing =
-        state.pipeline.executor().lease(capture_parse_bytes(metadata_bytes as u64)).map_err(|e| match e {
+        state.pipeline().executor().lease(capture_parse_bytes(metadata_bytes as u64)).map_err(|e| match e {
             BackendError::TooLarge { .. } => {
                 ApiError::invalid("file", format!("parsing {metadata_bytes} bytes of capture files needs {e}"))
             }

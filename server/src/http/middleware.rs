@@ -115,7 +115,7 @@ pub async fn limit_in_flight(State(state): State<AppState>, req: Request, next: 
     }
     let unread = !req.body().is_end_stream();
     let refuse = |e: ApiError| close_unless(!unread, e.into_response());
-    let limit = body_limit(state.pipeline.limits(), req.uri().path());
+    let limit = body_limit(state.pipeline().limits(), req.uri().path());
     if let Err(e) = refuse_declared_length(req.body(), limit) {
         return refuse(e);
     }
@@ -124,7 +124,7 @@ pub async fn limit_in_flight(State(state): State<AppState>, req: Request, next: 
         Ok(slot) => slot,
         Err(e) => return refuse(e),
     };
-    let lease = match state.pipeline.executor().lease(0) {
+    let lease = match state.pipeline().executor().lease(0) {
         Ok(lease) => lease,
         Err(e) => return refuse(e.into()),
     };

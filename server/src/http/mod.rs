@@ -35,8 +35,8 @@ pub use state::{AppState, ServiceOptions};
 /// by status: `middleware::response_level`), panic catcher, metrics, auth, the in-flight limit,
 /// the body limit, the handler.
 pub fn router(state: AppState) -> Router {
-    let body_limit = state.pipeline.limits().max_body_bytes;
-    let capture_limit = state.pipeline.limits().max_capture_bytes;
+    let body_limit = state.pipeline().limits().max_body_bytes;
+    let capture_limit = state.pipeline().limits().max_capture_bytes;
     Router::new()
         .route("/healthz", get(service::healthz))
         .route(service::READINESS_PATH, get(service::readyz))

@@ -38,7 +38,7 @@ pub async fn render(State(state): State<AppState>, deadline: Deadline, req: Requ
 async fn render_within(state: AppState, deadline: Deadline, req: Request) -> Result<Response, ApiError> {
     let format = request_format(req.headers())?;
     let headers = req.headers().clone();
-    let parsed = read_render_request(format, req, state.pipeline.limits()).await?;
+    let parsed = read_render_request(format, req, state.pipeline().limits()).await?;
     let model = state.models.get(parsed.scene.model.as_deref())?;
     let pipeline = &model.pipeline;
     let valid = parsed.validate(pipeline.config(), pipeline.limits())?;

@@ -202,7 +202,7 @@ async fn put_within(
 ) -> Result<Response, ApiError> {
     let format = request_format(req.headers())?;
     let owner = owner_of(&req);
-    let parsed = read_scene_request(format, req, state.pipeline.limits()).await?;
+    let parsed = read_scene_request(format, req, state.pipeline().limits()).await?;
     let model = state.models.get(parsed.model.as_deref())?;
     let valid = parsed.validate(model.pipeline.config(), model.pipeline.limits())?;
     let mut timings = Timings::default();
@@ -252,9 +252,9 @@ async fn render_within(state: AppState, deadline: Deadline, id: String, req: Req
     let format = request_format(req.headers())?;
     let headers = req.headers().clone();
     let owner = owner_of(&req);
-    let parsed = read_target_request(format, req, state.pipeline.limits()).await?;
+    let parsed = read_target_request(format, req, state.pipeline().limits()).await?;
     let requested = parsed.model.clone();
-    let valid = parsed.validate(state.pipeline.limits())?;
+    let valid = parsed.validate(state.pipeline().limits())?;
     let out_format = response_format(&headers, valid.outputs)?;
     let hit =
         state.scenes.get(&id, &owner, Instant::now()).ok_or_else(|| ApiError::SceneNotFound { id: id.clone() })?;

@@ -51,19 +51,19 @@ pub async fn metrics(State(state): State<AppState>) -> Response {
     TokenRefusals,
 ), security((), ("bearer" = [])))]
 pub async fn model(State(state): State<AppState>) -> Json<serde_json::Value> {
-    let m = state.pipeline.manifest();
+    let m = state.pipeline().manifest();
     Json(json!({
         "model_id": m.model_id,
         "variant": m.variant,
         "format_version": m.format_version,
         "config": m.config,
         "provenance": m.provenance,
-        "max_scene_views": state.pipeline.limits().max_scene_views,
+        "max_scene_views": state.pipeline().limits().max_scene_views,
         "sampling": {
-            "modes": state.pipeline.samplings(),
-            "default": state.pipeline.default_sampling(),
-            "samples_full": state.pipeline.config().samples,
-            "guided": state.pipeline.bundle().guided(),
+            "modes": state.pipeline().samplings(),
+            "default": state.pipeline().default_sampling(),
+            "samples_full": state.pipeline().config().samples,
+            "guided": state.pipeline().bundle().guided(),
         },
     }))
 }
@@ -107,7 +107,7 @@ impl From<&Limits> for LimitsBody {
     TokenRefusals,
 ), security((), ("bearer" = [])))]
 pub async fn limits(State(state): State<AppState>) -> Json<LimitsBody> {
-    Json(LimitsBody::from(state.pipeline.limits()))
+    Json(LimitsBody::from(state.pipeline().limits()))
 }
 
 pub async fn not_found(uri: Uri) -> Response {

@@ -18,9 +18,6 @@ use crate::pipeline::Pipeline;
 pub struct AppState {
     /// Every model served, and the default.
     pub(super) models: Arc<Models>,
-    /// The default model's pipeline: the limits, the executor and the warm-up's model (the
-    /// limits and the executor are every model's).
-    pub(super) pipeline: Pipeline,
     /// Set once the warm-up render succeeded; cleared again when shutting down.
     ready: Arc<AtomicBool>,
     pub(super) request_timeout: Duration,
@@ -67,12 +64,10 @@ impl AppState {
 
     /// A server of `models`. Not ready until `set_ready` (after the warm-up renders).
     pub fn with_models(models: Models, options: ServiceOptions) -> AppState {
-        let pipeline = models.default_model().pipeline.clone();
         let scenes = Arc::new(SceneCache::new(options.cache, options.auth.token_count()));
-        let metrics = Arc::new(Metrics::new(pipeline.executor().clone(), scenes.clone()));
+        let metrics = Arc::new(Metrics::new(models.default_model().pipeline.executor().clone(), scenes.clone()));
         AppState {
             models: Arc::new(models),
-            pipeline,
             ready: Arc::new(AtomicBool::new(false)),
             request_timeout: options.request_timeout,
             scenes,
@@ -83,9 +78,9 @@ impl AppState {
         }
     }
 
-    /// The default model's pipeline.
+    /// The default model's pipeline: the limits and the executor, which are every model's.
     pub fn pipeline(&self) -> &Pipeline {
-        &self.pipeline
+        &self.models.default_model().pipeline
     }
 
     pub fn models(&self) -> &Arc<Models> {

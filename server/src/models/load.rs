@@ -8,7 +8,7 @@ use std::sync::Arc;
 
 use serde::Serialize;
 
-use super::{duplicate_name, model_name, scan, warm_up, Model, ModelInfo};
+use super::{duplicate_name, model_name, same_folder, scan, warm_up, Model, ModelInfo};
 use crate::backend::{BackendHandle, GraphRunner};
 use crate::bundle::Bundle;
 use crate::pipeline::chunks::ChunkPolicy;
@@ -165,9 +165,4 @@ impl Loader {
 
 fn resident() -> u64 {
     sysmem::resident().map_or(0, |r| r.now)
-}
-
-fn same_folder(a: &Path, b: &Path) -> bool {
-    let canonical = |p: &Path| std::fs::canonicalize(p).unwrap_or_else(|_| p.to_path_buf());
-    canonical(a) == canonical(b)
 }

@@ -83,16 +83,16 @@ impl Models {
                 return Err(duplicate_name(&m.name, &first.bundle().dir, &m.bundle().dir));
             }
         }
+        let list: Vec<Arc<Model>> = models.into_iter().map(Arc::new).collect();
         let default = match default {
-            Some(name) => models.iter().find(|m| &*m.name == name).ok_or_else(|| {
-                let names: Vec<&str> = models.iter().map(|m| &*m.name).collect();
+            Some(name) => list.iter().find(|m| &*m.name == name).ok_or_else(|| {
+                let names: Vec<&str> = list.iter().map(|m| &*m.name).collect();
                 format!("--default-model {name}: no such model (serving {})", names.join(", "))
             })?,
-            None => models.first().ok_or("no model to serve: give --bundle or --models")?,
-        };
-        let default = Arc::new(Model { name: default.name.clone(), pipeline: default.pipeline.clone() });
-        let list = models.into_iter().map(|m| if m.name == default.name { default.clone() } else { Arc::new(m) });
-        Ok(Models { list: RwLock::new(list.collect()), default, loader, reloading: Default::default() })
+            None => list.first().ok_or("no model to serve: give --bundle or --models")?,
+        }
+        .clone();
+        Ok(Models { list: RwLock::new(list), default, loader, reloading: Default::default() })
     }
 
     /// The model a request names, or the default when it names none; 404 `model_not_found`
@@ -144,6 +144,13 @@ impl Models {
         }
         reloaded
     }
+}
+
+/// Whether two paths name one folder (a link and its target, `a/../b` and `b`): given twice, it
+/// serves one model.
+pub fn same_folder(a: &Path, b: &Path) -> bool {
+    let canonical = |p: &Path| std::fs::canonicalize(p).unwrap_or_else(|_| p.to_path_buf());
+    canonical(a) == canonical(b)
 }
 
 /// Two bundle folders of one name: which model a request meant would be a guess.
