@@ -10,7 +10,9 @@ and 640x512 are DTU scan37 (views 33, 31, 25 -> 32; 640x512 is its own size), 80
 1024x1024 the Blender lego (r_6, r_43, r_33 -> r_28; 800x800 is its own size); the targets are
 ``--targets`` (each a row; default 80x64). ``--scene-views N`` adds, per source size, a row of
 ``POST /v1/scenes`` with N views (the triple's images in turn): a capture's upload, decoded and
-kept, no volume built.
+kept, no volume built. ``--capture-views N`` adds, per square source size, a row of
+``POST /v1/captures`` with a Blender capture of N views (lego's training photos in turn, resized),
+read by the server's readers and decoded as a scene's.
 
 A watchdog stops a server when the machine's available memory falls under ``--keep-free-mb``
 (the machine is shared): that measurement is then reported as stopped, with the peak reached.
@@ -21,6 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 import re
+import tempfile
 import threading
 import time
 from dataclasses import dataclass
@@ -79,11 +82,33 @@ def request_for(triple: Triple, size: tuple[int, int], target: tuple[int, int] |
     return request
 
 
+def capture_for(size: tuple[int, int], views: int, into: Path) -> dict:
+    """A Blender capture folder of ``views`` views at ``size`` (square) in ``into``: lego's
+    training photos in turn, resized; the arguments of ``Client.upload_capture`` for it."""
+    from PIL import Image
+
+    lego = SHARED / LEGO.scene
+    transforms = json.loads((lego / "transforms_train.json").read_text())
+    frames = [f for f in transforms["frames"] if (lego / f"{f['file_path']}.png").is_file()]
+    (into / "train").mkdir(parents=True)
+    chosen = []
+    for i in range(views):
+        frame = frames[i % len(frames)]
+        with Image.open(lego / f"{frame['file_path']}.png") as photo:
+            photo.resize(size, Image.LANCZOS).save(into / "train" / f"v_{i:03d}.png")
+        chosen.append({**frame, "file_path": f"./train/v_{i:03d}"})
+    (into / "transforms_train.json").write_text(json.dumps({**transforms, "frames": chosen}))
+    return {"folder": into}
+
+
 def request_status(client: Client, request: dict) -> tuple[int | None, str, float | None]:
-    """Status of one render or scene upload without retries (``client`` made with
-    ``max_retries=0``): 200 or 201, the server's refusal (its message and Retry-After), or None
-    when the server did not answer."""
+    """Status of one render, scene upload or capture upload without retries (``client`` made
+    with ``max_retries=0``): 200 or 201, the server's refusal (its message and Retry-After), or
+    None when the server did not answer."""
     try:
+        if "folder" in request:
+            client.upload_capture(**request)
+            return 201, "", None
         if "target" in request:
             client.render(**request, outputs=["rgb"])
             return 200, "", None
@@ -137,10 +162,10 @@ def stage_metrics(metrics: str) -> dict:
     return out
 
 
-def measure(binary: Path, bundle: Path, size: tuple[int, int], target: tuple[int, int] | None, views: int, args):
+def measure(binary: Path, bundle: Path, size: tuple[int, int], target, views: int, args, capture: Path | None = None):
     """One request on a fresh server: a render of ``target`` from 3 sources at ``size``, or (no
-    target) a scene upload of ``views`` views."""
-    request = request_for(triple_for(size), size, target, views)
+    target) a scene upload of ``views`` views, or the capture folder ``capture`` of them."""
+    request = capture_for(size, views, capture) if capture else request_for(triple_for(size), size, target, views)
     # A server without the probe (one built before it, for the "before" figures) gives only the
     # process's peak over the request (VmHWM: the warm-up's peak is cleared first where possible).
     extra = (*(("--memory-probe", "on") if args.probe else ()), *args.server_arg)
@@ -152,7 +177,14 @@ def measure(binary: Path, bundle: Path, size: tuple[int, int], target: tuple[int
         "sources": "x".join(map(str, size)),
         "views": views,
         "target": "x".join(map(str, target)) if target else None,
+        "capture": capture is not None,
     }
+    if capture:
+        files = [f for f in capture.rglob("*") if f.is_file()]
+        out["body_bytes"] = sum(f.stat().st_size for f in files)
+        out["metadata_bytes"] = sum(f.stat().st_size for f in files if f.suffix == ".json")
+    else:
+        out["body_bytes"] = sum(map(len, request["images"])) + len(json.dumps(request["cameras"]))
     try:
         out["at_rest"] = process_memory(server.proc.pid)
         if not args.probe:
@@ -179,6 +211,8 @@ def measure(binary: Path, bundle: Path, size: tuple[int, int], target: tuple[int
         out["request_peak_mib"] = stages.get("decode", {}).get("peak_mib")
     elif args.probe:
         out["request_peak_mib"] = max((s.get("peak_mib", 0.0) for s in stages.values()), default=None)
+        before = [s.get("peak_mib", 0.0) for name, s in stages.items() if not name.startswith("renderer")]
+        out["before_renderer_peak_mib"] = max(before, default=None)
     else:
         out["request_peak_mib"] = out.get("after_request", {}).get("hwm_mib")
     return out
@@ -191,7 +225,7 @@ def table(rows: list[dict]) -> str:
     head += ["request peak", "after request"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
-        target = r.get("target") or f"scene of {r.get('views', 3)}"
+        target = r.get("target") or f"{'capture' if r.get('capture') else 'scene'} of {r.get('views', 3)}"
         cells = [Path(r["bundle"]).name, r["sources"], target, f"{r['at_rest']['rss_mib']:.0f}"]
         for s in used:
             m = r.get("stages", {}).get(s)
@@ -216,7 +250,7 @@ def update_fixture(path: Path, rows: list[dict]) -> None:
     fixture = json.loads(path.read_text()) if path.exists() else {"bundles": {}, "rows": []}
 
     def key(x: dict) -> tuple:
-        return x["bundle"], x["build"], x["sources"], x.get("views", 3), x["target"]
+        return x["bundle"], x["build"], x["sources"], x.get("views", 3), x["target"], x.get("capture", False)
 
     for r in rows:
         if r.get("status") not in (200, 201) or not r.get("request_peak_mib"):
@@ -232,6 +266,12 @@ def update_fixture(path: Path, rows: list[dict]) -> None:
             "target": [int(v) for v in r["target"].split("x")] if r.get("target") else [0, 0],
             "peak_above_rest_mib": round(r["request_peak_mib"] - r["at_rest"]["rss_mib"], 1),
         }
+        if "body_bytes" in r:
+            row["body_bytes"] = r["body_bytes"]
+        if r.get("capture"):
+            row |= {"capture": True, "metadata_bytes": r["metadata_bytes"]}
+        if before := r.get("before_renderer_peak_mib"):
+            row["before_renderer_peak_above_rest_mib"] = round(before - r["at_rest"]["rss_mib"], 1)
         fixture["rows"] = [x for x in fixture["rows"] if key(x) != key(row)] + [row]
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(fixture, indent=1) + "\n")
@@ -244,6 +284,9 @@ def main(argv=None) -> None:
     parser.add_argument("--targets", default=",".join(TARGETS), help="target sizes WxH, comma-separated")
     parser.add_argument(
         "--scene-views", default="", help="view counts of scene uploads to measure per source size, comma-separated"
+    )
+    parser.add_argument(
+        "--capture-views", default="", help="view counts of capture uploads per square source size, comma-separated"
     )
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--server-bin", default=None)
@@ -265,12 +308,17 @@ def main(argv=None) -> None:
     scene_views = [int(v) for v in args.scene_views.split(",") if v]
     runs = [(size, target, 3) for size in sizes for target in targets]
     runs += [(size, None, views) for size in sizes for views in scene_views]
+    capture_views = [int(v) for v in args.capture_views.split(",") if v]
+    captures = [(size, views) for size in sizes if size[0] == size[1] for views in capture_views]
     rows = []
     for bundle in args.bundle:
         for size, target, views in runs:
-            row = measure(binary, Path(bundle), size, target, views, args)
-            print(json.dumps(row), flush=True)
-            rows.append(row)
+            rows.append(measure(binary, Path(bundle), size, target, views, args))
+            print(json.dumps(rows[-1]), flush=True)
+        for size, views in captures:
+            with tempfile.TemporaryDirectory(prefix="capture-") as folder:
+                rows.append(measure(binary, Path(bundle), size, None, views, args, capture=Path(folder)))
+            print(json.dumps(rows[-1]), flush=True)
     print(table(rows))
     if args.out:
         Path(args.out).write_text(json.dumps({"server_args": args.server_arg, "rows": rows}, indent=1) + "\n")

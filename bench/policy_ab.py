@@ -6,7 +6,9 @@ changed by the policy (the graphs linked, not copied); per scene of ``bench.samp
 rounds (A B C, C B A, ...), so the machine's drift falls on all alike. Per policy: the median and
 fastest renderer time (the server's own stage timing), samples per pixel, PSNR and SSIM against
 the photo and, with ``--full``, the share of pixels more than 0.25 from full sampling in a channel
-and the SSIM against full (full rendered once, by the first server).
+and the SSIM against full (full rendered once, by the first server). ``--binary NAME=PATH`` serves
+a policy with another server build (the same policy under two builds: an A/B of a change), and
+each server's peak resident set (``VmHWM``) is printed at the end.
 
     .venv/bin/python -m bench.policy_ab --sizes 320x256 --full \\
         'before={"verify_tolerance": null, "verify_share": null}' 'now={}'
@@ -98,7 +100,9 @@ def main(argv=None) -> None:
     p.add_argument("--rounds", type=int, default=2)
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--full", action="store_true", help="also compare with full sampling")
+    p.add_argument("--binary", action="append", default=[], help="NAME=PATH: the server build for policy NAME")
     args = p.parse_args(argv)
+    binaries = dict(item.split("=", 1) for item in args.binary)
     binary = find_server_binary()
     if binary is None:
         raise SystemExit("no scnerf-server binary: cargo build --release -p scnerf-server")
@@ -110,9 +114,12 @@ def main(argv=None) -> None:
                 name, _, changes = item.partition("=")
                 bundle = policy_bundle(args.bundle, json.loads(changes or "{}"), work / name)
                 extra = ("--request-timeout-secs", "7200")
-                servers[name] = stack.enter_context(ServerProcess(binary, bundle, threads=args.threads, extra=extra))
+                served_by = binaries.get(name, binary)
+                servers[name] = stack.enter_context(ServerProcess(served_by, bundle, threads=args.threads, extra=extra))
             for scene_name in args.scenes:
                 compare(servers, scene_name, args.sizes, args.rounds, args.full)
+            for name, server in servers.items():
+                print(json.dumps({"policy": name, "peak_rss_mib": server.peak_rss_mib()}), flush=True)
     finally:
         shutil.rmtree(work, ignore_errors=True)
 

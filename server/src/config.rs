@@ -80,9 +80,10 @@ pub struct Config {
     #[arg(long, env = "SCNERF_DEVICE", default_value = "cpu")]
     pub device: Device,
 
-    /// ONNX Runtime's CPU memory arena for the renderer (on: a chunk's buffers are kept for the
-    /// next chunk, and released after a request's last chunk when nothing else waits; off:
-    /// returned to the allocator after every chunk). The encoder and the volume's graphs, which
+    /// ONNX Runtime's CPU memory arena for the renderer graphs, one shared by every model's
+    /// (on: a chunk's buffers are kept for the next chunk, full, guide or fine, and released
+    /// after a request's last chunk when nothing else waits; off: returned to the allocator after
+    /// every chunk). The encoder and the volume's graphs, which
     /// run once per request, never keep theirs. Accepts on/off, true/false.
     #[arg(long, env = "SCNERF_ORT_ARENA", default_value = "on", action = clap::ArgAction::Set,
           value_parser = clap::builder::BoolishValueParser::new())]
@@ -317,13 +318,7 @@ impl Config {
 
     /// What every model's pipeline is built with.
     pub fn model_settings(&self) -> ModelSettings {
-        ModelSettings {
-            chunking: self.chunking(),
-            slabs: self.slabs(),
-            limits: self.limits(),
-            sampling: self.sampling,
-            renderer_arena: self.exec_options().cpu_arena,
-        }
+        ModelSettings { chunking: self.chunking(), slabs: self.slabs(), limits: self.limits(), sampling: self.sampling }
     }
 
     pub fn intra_threads(&self) -> usize {

@@ -29,7 +29,6 @@ pub async fn run(config: Config) -> Result<(), String> {
     let (budget, budget_source) = config.memory_budget();
     tracing::info!(budget_mib = budget >> 20, source = %budget_source, "memory budget");
     let state = AppState::with_models(load_models(&config).await?, options);
-    let arenas = config.exec_options().cpu_arena;
     spawn_cache_sweeper(&state);
 
     let listener =
@@ -42,13 +41,13 @@ pub async fn run(config: Config) -> Result<(), String> {
 
     let (failed_tx, failed_rx) = tokio::sync::oneshot::channel::<String>();
     if config.skip_warmup {
-        reserve_memory(&state, arenas)?;
+        reserve_memory(&state)?;
         state.set_ready();
     } else {
         let state = state.clone();
         tokio::spawn(async move {
             let warmed = warm_up_all(state.models()).await;
-            match warmed.and_then(|elapsed| Ok((elapsed, reserve_memory(&state, arenas)?))) {
+            match warmed.and_then(|elapsed| Ok((elapsed, reserve_memory(&state)?))) {
                 Ok((elapsed, memory)) => {
                     tracing::info!(
                         ms = elapsed.as_millis() as u64,
@@ -184,14 +183,13 @@ async fn warm_up_all(models: &Models) -> Result<Duration, String> {
 }
 
 /// Sets aside the memory held apart from requests: the process at rest after the warm-up (every
-/// model's sessions, their weights), the renderer arenas of all models but one (`arenas`: the
-/// CPU arena is on), and the scene cache at its limit.
-fn reserve_memory(state: &AppState, arenas: bool) -> Result<MemoryBudget, String> {
+/// model's sessions, their weights), one renderer run (runs take turns on the executor; the
+/// renderers' shared arena may keep it between requests) and the scene cache at its limit.
+fn reserve_memory(state: &AppState) -> Result<MemoryBudget, String> {
     let at_rest = sysmem::resident().map_or(0, |r| r.now);
     let cache = state.scenes().config().max_bytes as u64;
-    // With several models, the others' renderer arenas may be held while one's request runs.
-    let others = if arenas { state.models().other_arenas() } else { 0 };
-    state.pipeline().executor().reserve(at_rest + cache + others)
+    let renderer = state.models().largest_renderer_run();
+    state.pipeline().executor().reserve(at_rest + cache + renderer)
 }
 
 /// Expired scenes are also dropped on every cache access; this frees their memory when the

@@ -5,9 +5,11 @@ use std::path::{Path, PathBuf};
 
 use ort::environment::{Environment, GlobalThreadPoolOptions};
 use ort::ep;
+use ort::memory::{AllocationDevice, AllocatorType, MemoryInfo, MemoryType};
 use ort::session::builder::{GraphOptimizationLevel, SessionBuilder};
 use ort::session::{RunOptions, Session};
 use ort::value::{TensorElementType, TensorRef, ValueType};
+use ort::AsPointer;
 
 use super::device::{Device, GraphOptLevel};
 use super::{BackendError, GraphRunner, NamedTensors};
@@ -132,6 +134,9 @@ impl OrtRunner {
         tracing::info!(device = %exec.device, cpu_arena = exec.cpu_arena, "execution settings");
         let mut sessions = HashMap::new();
         let arenas: Vec<GraphKind> = bundle.graphs().into_iter().filter(|&k| uses_arena(k, exec)).collect();
+        if !arenas.is_empty() {
+            register_renderer_arena(&env)?;
+        }
         // ONNX Runtime frees the arena's unused chunks at the end of a run with this option;
         // "cpu:0" names the CPU arena (the option must not name an arena that is off).
         let mut shrink = RunOptions::new().map_err(|e| format!("ONNX Runtime run options: {e}"))?;
@@ -144,6 +149,9 @@ impl OrtRunner {
                 .and_then(|b| b.with_optimization_level(opt_level(opts.opt_level)).map_err(Into::into))
                 .map_err(|e| format!("cannot load {}: {e}", path.display()))?;
             let mut builder = with_execution_providers(builder, exec, uses_arena(kind, exec))?;
+            if uses_arena(kind, exec) {
+                builder = builder.with_env_allocators().map_err(|e| format!("cannot load {}: {e}", path.display()))?;
+            }
             let session =
                 builder.commit_from_file(&path).map_err(|e| format!("cannot load {}: {e}", path.display()))?;
             let entry = bundle.graph(kind);
@@ -155,13 +163,35 @@ impl OrtRunner {
     }
 }
 
-/// Whether a graph's session keeps ONNX Runtime's CPU arena. Only the renderer does (when
-/// `--ort-arena` is on): it runs many times per request on buffers of the same sizes, which the
-/// arena serves without page faults. The graphs that run once per request (the encoder and the
+/// Whether a graph's session allocates from the renderers' CPU arena (`--ort-arena` on): the
+/// renderer graphs run many times per request on buffers of the same few sizes, which the arena
+/// serves without page faults. The graphs that run once per request (the encoder and the
 /// volume's) allocate their working memory from the system and give it back when the run ends;
 /// in an arena it would stay held at the largest request's peak for the life of the process.
 fn uses_arena(kind: GraphKind, exec: &ExecOptions) -> bool {
-    exec.cpu_arena && kind == GraphKind::Renderer
+    exec.cpu_arena && matches!(kind, GraphKind::Renderer | GraphKind::RendererGuide | GraphKind::RendererFine)
+}
+
+/// The one CPU arena of every renderer session of the process, every model's, registered with
+/// the environment once (`session.use_env_allocators`). The executor runs one graph at a time,
+/// so one arena sized for the largest run serves them all, where an arena per session would
+/// each keep its own graph's largest working set (docs/results.md, "Memory at paper size").
+fn register_renderer_arena(env: &Environment) -> Result<(), String> {
+    static REGISTERED: std::sync::OnceLock<Result<(), String>> = std::sync::OnceLock::new();
+    REGISTERED
+        .get_or_init(|| {
+            let info = MemoryInfo::new(AllocationDevice::CPU, 0, AllocatorType::Arena, MemoryType::Default)
+                .map_err(|e| format!("ONNX Runtime arena: {e}"))?;
+            // SAFETY: both pointers are live for the call (the environment is the process's, kept
+            // in `ENVIRONMENT`; ONNX Runtime copies the memory info); a null config asks for the
+            // arena's defaults (growing to the next power of two: an arena that grows by what is
+            // asked, tried, reached a higher peak, docs/results.md). The returned status is owned
+            // and released by `result_from_status`.
+            let status =
+                unsafe { (ort::api().CreateAndRegisterAllocator)(env.ptr().cast_mut(), info.ptr(), std::ptr::null()) };
+            unsafe { ort::Error::result_from_status(status) }.map_err(|e| format!("ONNX Runtime arena: {e}"))
+        })
+        .clone()
 }
 
 /// Registers the execution providers of `exec` on a session builder: CUDA (when asked; failing

@@ -28,9 +28,6 @@ pub struct ModelSettings {
     pub limits: Limits,
     /// `--sampling`: each model's default where its bundle can.
     pub sampling: Sampling,
-    /// Whether renderer sessions keep ONNX Runtime's CPU arena (`--ort-arena`): then a model's
-    /// arena may be held while another model's request runs.
-    pub renderer_arena: bool,
 }
 
 impl ModelSettings {
@@ -83,8 +80,9 @@ impl Reloaded {
 
 impl Loader {
     /// Loads the bundle folders below DIR whose names no model of `served` (name, folder) has;
-    /// a folder of a served name elsewhere is skipped (two models of one name).
-    pub(super) async fn load_new(&self, served: &[(Arc<str>, PathBuf)]) -> Reloaded {
+    /// a folder of a served name elsewhere is skipped (two models of one name). `renderer`: the
+    /// renderer run set aside so far (`Models::largest_renderer_run`).
+    pub(super) async fn load_new(&self, served: &[(Arc<str>, PathBuf)], mut renderer: u64) -> Reloaded {
         let (dirs, unreadable) = scan::bundle_dirs(&self.dir);
         let mut out = Reloaded { dir: Some(self.dir.display().to_string()), ..Reloaded::default() };
         for (dir, reason) in unreadable {
@@ -97,7 +95,7 @@ impl Loader {
             match taken {
                 Some((_, first)) if same_folder(first, &dir) => {}
                 Some((_, first)) => out.skip(&dir, duplicate_name(&name, first, &dir)),
-                None => match self.load(&dir).await {
+                None => match self.load(&dir, &mut renderer).await {
                     Ok(model) => {
                         tracing::info!(model = %model.name, path = %dir.display(), "model loaded");
                         out.models.push(model);
@@ -109,8 +107,9 @@ impl Loader {
         out
     }
 
-    /// Loads one bundle folder into a model, or says why it cannot serve.
-    async fn load(&self, dir: &Path) -> Result<Model, String> {
+    /// Loads one bundle folder into a model, or says why it cannot serve; `renderer` grows to its
+    /// renderer run's when larger.
+    async fn load(&self, dir: &Path, renderer: &mut u64) -> Result<Model, String> {
         let bundle = Bundle::load(dir).map_err(|e| e.message)?;
         self.check_room(&bundle)?;
         let before = resident();
@@ -119,7 +118,7 @@ impl Loader {
         let runner = tokio::task::spawn_blocking(move || make(&for_runner)).await.map_err(|e| e.to_string())??;
         let backend = self.executor.add_runner(runner);
         let model = Model::new(self.settings.pipeline(backend.clone(), bundle));
-        match self.settle(&model, before).await {
+        match self.settle(&model, before, renderer).await {
             Ok(()) => Ok(model),
             Err(e) => {
                 backend.remove_runner();
@@ -129,16 +128,18 @@ impl Loader {
     }
 
     /// The new model's warm-up, then what it added to the process at rest (its sessions, their
-    /// weights) and the renderer arena it may hold beside other models' requests set aside from
-    /// the memory budget, as the models' at start were.
-    async fn settle(&self, model: &Model, before: u64) -> Result<(), String> {
+    /// weights) and what its renderer run adds to the one set aside (`renderer`) from the memory
+    /// budget, as the models' at start were.
+    async fn settle(&self, model: &Model, before: u64, renderer: &mut u64) -> Result<(), String> {
         if self.warm_up {
             warm_up(&model.pipeline).await.map_err(|e| format!("warm-up render failed: {e}"))?;
         }
         let grown = resident().saturating_sub(before);
-        let arena = if self.settings.renderer_arena { model.pipeline.renderer_arena_bytes() } else { 0 };
+        let own = model.pipeline.renderer_run_bytes();
         let reserved = self.executor.stats().memory.reserved;
-        self.executor.reserve(reserved + grown + arena).map(drop)
+        self.executor.reserve(reserved + grown + own.saturating_sub(*renderer))?;
+        *renderer = (*renderer).max(own);
+        Ok(())
     }
 
     /// Refuses a bundle whose graphs alone would not fit the memory left beside what is set

@@ -117,12 +117,11 @@ impl Models {
         self.all().iter().map(|m| m.name.clone()).collect()
     }
 
-    /// The renderer arenas that may be held beside a request's own (ONNX Runtime's CPU arena on):
-    /// every model's but the smallest, none with one model. Set aside from the memory budget
-    /// with the process at rest, as each model's sessions are.
-    pub fn other_arenas(&self) -> u64 {
-        let arenas: Vec<u64> = self.all().iter().map(|m| m.pipeline.renderer_arena_bytes()).collect();
-        arenas.iter().sum::<u64>() - arenas.iter().min().copied().unwrap_or(0)
+    /// The working memory of the largest model's renderer run. Every model's runs take turns on
+    /// the one executor (and share one ONNX Runtime arena, `backend::ort`), so it is set aside
+    /// from the memory budget once, with the process at rest, not counted per request.
+    pub fn largest_renderer_run(&self) -> u64 {
+        self.all().iter().map(|m| m.pipeline.renderer_run_bytes()).max().unwrap_or(0)
     }
 
     /// What `GET /v1/models` says of each model.
@@ -136,7 +135,7 @@ impl Models {
         let Some(loader) = &self.loader else { return Reloaded::default() };
         let served: Vec<(Arc<str>, PathBuf)> =
             self.all().iter().map(|m| (m.name.clone(), m.bundle().dir.clone())).collect();
-        let mut reloaded = loader.load_new(&served).await;
+        let mut reloaded = loader.load_new(&served, self.largest_renderer_run()).await;
         let mut list = self.list.write().unwrap_or_else(|p| p.into_inner());
         for model in reloaded.models.drain(..) {
             reloaded.loaded.push(ModelInfo::of(&model, false));
@@ -240,13 +239,13 @@ mod tests {
     }
 
     #[tokio::test]
-    async fn the_arenas_beside_a_requests_own_are_every_models_but_the_smallest() {
+    async fn one_renderer_run_is_set_aside_however_many_models() {
         let one = models_state(vec![FakeModel::new("a", 1.0)], None, None, Default::default()).unwrap();
-        assert_eq!(one.models().other_arenas(), 0, "one model: its request counts its own arena");
+        let run = one.pipeline().renderer_run_bytes();
+        assert!(run > 0);
+        assert_eq!(one.models().largest_renderer_run(), run);
         let models = vec![FakeModel::new("a", 1.0), FakeModel::new("b", 1.0), FakeModel::new("c", 1.0)];
         let three = models_state(models, None, None, Default::default()).unwrap();
-        let arena = three.pipeline().renderer_arena_bytes();
-        assert!(arena > 0);
-        assert_eq!(three.models().other_arenas(), 2 * arena);
+        assert_eq!(three.models().largest_renderer_run(), run, "the models' renderer runs take turns");
     }
 }

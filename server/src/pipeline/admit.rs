@@ -71,10 +71,9 @@ impl Pipeline {
         estimate::estimate(&self.bundle.config, &plan, &sizes)
     }
 
-    /// What this model's renderer may keep in ONNX Runtime's arena between requests (see
-    /// [`estimate::renderer_arena_bytes`]).
-    pub fn renderer_arena_bytes(&self) -> u64 {
-        estimate::renderer_arena_bytes(&self.bundle.config, &self.chunking)
+    /// One renderer run's working memory (see [`estimate::renderer_run_bytes`]).
+    pub fn renderer_run_bytes(&self) -> u64 {
+        estimate::renderer_run_bytes(&self.bundle.config, &self.chunking)
     }
 
     /// What the scene of `req` will hold in the scene cache (see [`estimate::scene_bytes`]).

@@ -61,7 +61,6 @@ pub fn models_state_with(
         slabs: SlabPolicy::default(),
         limits: Limits::default(),
         sampling: Sampling::Guided,
-        renderer_arena: true,
     };
     let mut served = Vec::new();
     let mut executor: Option<BackendHandle> = None;
