@@ -83,8 +83,8 @@ pub struct Config {
     /// ONNX Runtime's CPU memory arena for the renderer graphs, one shared by every model's
     /// (on: a chunk's buffers are kept for the next chunk, full, guide or fine, and released
     /// after a request's last chunk when nothing else waits; off: returned to the allocator after
-    /// every chunk). The encoder and the volume's graphs, which
-    /// run once per request, never keep theirs. Accepts on/off, true/false.
+    /// every chunk). The encoder and the volume's graphs, which run once per request, never keep
+    /// theirs. Accepts on/off, true/false.
     #[arg(long, env = "SCNERF_ORT_ARENA", default_value = "on", action = clap::ArgAction::Set,
           value_parser = clap::builder::BoolishValueParser::new())]
     pub ort_arena: bool,

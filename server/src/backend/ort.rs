@@ -148,8 +148,9 @@ impl OrtRunner {
             let builder = Session::builder(&env)
                 .and_then(|b| b.with_optimization_level(opt_level(opts.opt_level)).map_err(Into::into))
                 .map_err(|e| format!("cannot load {}: {e}", path.display()))?;
-            let mut builder = with_execution_providers(builder, exec, uses_arena(kind, exec))?;
-            if uses_arena(kind, exec) {
+            let arena = arenas.contains(&kind);
+            let mut builder = with_execution_providers(builder, exec, arena)?;
+            if arena {
                 builder = builder.with_env_allocators().map_err(|e| format!("cannot load {}: {e}", path.display()))?;
             }
             let session =

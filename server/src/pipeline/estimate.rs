@@ -116,15 +116,15 @@ impl RequestSizes {
 
 /// The request's estimate split into what it holds and the largest working set of its stages.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub struct Estimate {
+struct Estimate {
     /// Held from the decode to the last renderer run.
-    pub held: u64,
+    held: u64,
     /// The largest of the decode's, the encoder's and the volume stages' working memory.
-    pub stage: u64,
+    stage: u64,
 }
 
 impl Estimate {
-    pub fn total(&self) -> u64 {
+    fn total(&self) -> u64 {
         PER_REQUEST_BYTES + self.held + self.stage
     }
 }
@@ -135,7 +135,7 @@ pub fn estimate(config: &ModelConfig, plan: &MemoryPlan, sizes: &RequestSizes) -
 }
 
 /// [`estimate`] by part.
-pub fn parts(config: &ModelConfig, plan: &MemoryPlan, sizes: &RequestSizes) -> Estimate {
+fn parts(config: &ModelConfig, plan: &MemoryPlan, sizes: &RequestSizes) -> Estimate {
     let mut e = Estimate::default();
     let Some((w, h)) = sizes.sources else { return with_target(sizes, e) };
     let image_pixels = w as u64 * h as u64;
