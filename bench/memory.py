@@ -162,7 +162,15 @@ def stage_metrics(metrics: str) -> dict:
     return out
 
 
-def measure(binary: Path, bundle: Path, size: tuple[int, int], target, views: int, args, capture: Path | None = None):
+def measure(
+    binary: Path,
+    bundle: Path,
+    size: tuple[int, int],
+    target: tuple[int, int] | None,
+    views: int,
+    args,
+    capture: Path | None = None,
+):
     """One request on a fresh server: a render of ``target`` from 3 sources at ``size``, or (no
     target) a scene upload of ``views`` views, or the capture folder ``capture`` of them."""
     request = capture_for(size, views, capture) if capture else request_for(triple_for(size), size, target, views)

@@ -290,9 +290,10 @@ mod tests {
                     sampling_bytes: 0,
                 };
                 let scene = estimate(config, &plan(build), &upload);
-                match row.capture {
-                    true => scene.max(capture_parse_bytes(row.metadata_bytes)),
-                    false => scene,
+                if row.capture {
+                    scene.max(capture_parse_bytes(row.metadata_bytes))
+                } else {
+                    scene
                 }
             }
             pixels => {
