@@ -174,11 +174,15 @@ class GuidedPolicy:
     smooth_max_step: int = 1
     # A K-sample pixel that disagrees with its neighbours by more than this is rendered again at
     # all S samples, at most ``verify_share`` of a level's, the worst first (None: never).
-    verify_tolerance: float | None = 0.15
+    verify_tolerance: float | None = 0.1
     verify_share: float | None = 0.1
+    # A pixel whose neighbours' colours span more than ``edge_span`` in a channel runs at
+    # ``edge_samples`` samples where its level's count is lower (None: at the level's count).
+    edge_span: float | None = 0.2
+    edge_samples: int | None = 32
 
     # Keys a manifest may leave out (bundles written before them): the server reads them as absent.
-    OPTIONAL = ("verify_tolerance", "verify_share")
+    OPTIONAL = ("verify_tolerance", "verify_share", "edge_span", "edge_samples")
 
     def __post_init__(self) -> None:
         if self.step < 1 or self.step & (self.step - 1):
@@ -187,12 +191,15 @@ class GuidedPolicy:
             raise ValueError(f"guided.samples needs one count per level below step {self.step}")
         if (self.verify_tolerance is None) != (self.verify_share is None):
             raise ValueError("guided.verify_tolerance and guided.verify_share come together")
+        if (self.edge_span is None) != (self.edge_samples is None):
+            raise ValueError("guided.edge_span and guided.edge_samples come together")
 
     @staticmethod
     def for_model(cfg: ModelConfig) -> GuidedPolicy:
         """The default policy for a model of ``cfg.samples`` samples per ray."""
         default = GuidedPolicy()
-        return GuidedPolicy(samples=tuple(min(k, cfg.samples) for k in default.samples))
+        edge_samples = None if default.edge_samples is None else min(default.edge_samples, cfg.samples)
+        return GuidedPolicy(samples=tuple(min(k, cfg.samples) for k in default.samples), edge_samples=edge_samples)
 
     @classmethod
     def from_json(cls, data: Any, where: str = "guided") -> GuidedPolicy:
@@ -202,8 +209,8 @@ class GuidedPolicy:
         values, _ = _keys(cls, data, where, open_keys=False)
         samples = _list(values["samples"], f"{where}.samples")
 
-        def optional(key: str) -> float | None:
-            return None if values.get(key) is None else _typed(values[key], (int, float), f"{where}.{key}")
+        def optional(key: str, kind=(int, float)) -> float | None:
+            return None if values.get(key) is None else _typed(values[key], kind, f"{where}.{key}")
 
         try:
             return cls(
@@ -214,6 +221,8 @@ class GuidedPolicy:
                 smooth_max_step=_typed(values["smooth_max_step"], int, f"{where}.smooth_max_step"),
                 verify_tolerance=optional("verify_tolerance"),
                 verify_share=optional("verify_share"),
+                edge_span=optional("edge_span"),
+                edge_samples=optional("edge_samples", int),
             )
         except ValueError as exc:
             raise ManifestError(str(exc)) from None

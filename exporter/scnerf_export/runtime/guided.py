@@ -14,9 +14,11 @@ nested grids:
   weights (:func:`select_samples`): the K (the level's ``samples``) uniform samples where the
   neighbours composite most, each standing for the nearby samples where a neighbour saw matter
   (its multiplicity), run through ``renderer_fine.onnx`` with the rectifier heads of the nearest
-  level-0 ray (:func:`nearest_guide`). Where the policy has ``verify_tolerance``, a level's
-  K-sample pixels whose outputs disagree with their neighbours' (:func:`disagreeing`) are rendered
-  again at all S samples before the next level reads them.
+  level-0 ray (:func:`nearest_guide`). Where the neighbours' colours span more than
+  ``edge_span``, the pixel lies on an edge and runs at ``edge_samples`` instead (:func:`samples_at`).
+  Where the policy has ``verify_tolerance``, a level's K-sample pixels whose outputs disagree with
+  their neighbours' (:func:`disagreeing`) are rendered again at all S samples before the next
+  level reads them.
 
 A level-0 pixel, and a pixel rendered again, is rendered exactly as with full sampling.
 """
@@ -153,6 +155,14 @@ def disagreeing(policy: GuidedPolicy, gap: np.ndarray) -> np.ndarray:
     return again
 
 
+def samples_at(policy: GuidedPolicy, count: int, span: np.ndarray) -> np.ndarray:
+    """Samples per pixel of a level of ``count`` samples, from its neighbours' colour ``span``:
+    more on an edge, where the policy says so (the server's ``GuidedPolicy::samples_at``)."""
+    if policy.edge_span is None:
+        return np.full(span.shape, count)
+    return np.where(span > np.float32(policy.edge_span), max(count, policy.edge_samples), count)
+
+
 def nearest_guide(pixels: np.ndarray, grid_width: int, grid_height: int, step: int) -> np.ndarray:
     """The level-0 ray nearest each pixel (half-way: the later), as a row of the level-0 grid
     (row by row), float32 (the graph's input): its rectifier heads stand for the pixel's."""
@@ -203,9 +213,10 @@ def render_guided(
         near, valid = neighbours(pixels, width, height, spacing)
         near_rows = near[..., 0] * width + near[..., 1]
         colours = rgb[near_rows] + (1.0 - opacity[near_rows])[..., None] * background
+        span = _span(colours, valid)
         smooth = np.zeros(len(pixels), bool)
         if spacing <= policy.smooth_max_step:
-            smooth = _agree(colours, valid, policy.smooth_tolerance)
+            smooth = (valid.sum(axis=1) >= 2) & (span <= np.float32(policy.smooth_tolerance))
         here = pixels[:, 0] * width + pixels[:, 1]
         keeps_guidance = spacing > 1
         if smooth.any():
@@ -218,15 +229,19 @@ def render_guided(
         run = ~smooth
         if not run.any():
             continue
-        score = _masked_max(guidance[near_rows[run]], valid[run])
-        index, multiplicity, owner = select_samples(score, count, policy.support_threshold)
-        guide_rows = nearest_guide(pixels[run], grid_w, grid_h, policy.step)
+        counts = np.minimum(samples_at(policy, count, span[run]), samples)
+        for k in np.unique(counts):
+            ray = np.nonzero(run)[0][counts == k]
+            score = _masked_max(guidance[near_rows[ray]], valid[ray])
+            index, multiplicity, owner = select_samples(score, int(k), policy.support_threshold)
+            guide_rows = nearest_guide(pixels[ray], grid_w, grid_h, policy.step)
+            rows = here[ray]
+            out = fine(origins[rows], directions[rows], index.astype(np.float32), multiplicity, guide_rows)
+            rgb[rows], depth[rows], opacity[rows] = out["rgb"], out["depth"], out["opacity"]
+            if keeps_guidance:
+                guidance[rows] = spread_weights(out["weights"], multiplicity, owner)
+            run_samples += len(rows) * int(k)
         rows = here[run]
-        out = fine(origins[rows], directions[rows], index.astype(np.float32), multiplicity, guide_rows)
-        rgb[rows], depth[rows], opacity[rows] = out["rgb"], out["depth"], out["opacity"]
-        if keeps_guidance:
-            guidance[rows] = spread_weights(out["weights"], multiplicity, owner)
-        run_samples += len(rows) * count
         outputs = np.concatenate([rgb + (1.0 - opacity)[:, None] * background, opacity[:, None]], axis=1)
         again = disagreeing(policy, disagreement(outputs[rows], outputs[near_rows[run]], valid[run]))
         if again.any():
@@ -239,11 +254,11 @@ def render_guided(
     return GuidedView(rgb, depth, opacity, run_samples, interpolated)
 
 
-def _agree(colours: np.ndarray, valid: np.ndarray, tolerance: float) -> np.ndarray:
-    """At least two neighbours, and in every channel their colours span at most ``tolerance``."""
+def _span(colours: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """The largest spread of the valid neighbours' colours in a channel (N), float32."""
     high = np.where(valid[..., None], colours, -np.inf).max(axis=1)
     low = np.where(valid[..., None], colours, np.inf).min(axis=1)
-    return (valid.sum(axis=1) >= 2) & ((high - low).max(axis=1) <= tolerance)
+    return (high - low).max(axis=1).astype(np.float32)
 
 
 def _masked_mean(values: np.ndarray, valid: np.ndarray) -> np.ndarray:

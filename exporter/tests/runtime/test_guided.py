@@ -23,6 +23,8 @@ from scnerf_export.runtime.guided import (
     level_pixels,
     nearest_guide,
     neighbours,
+    render_guided,
+    samples_at,
     select_samples,
     spread_weights,
 )
@@ -115,6 +117,52 @@ def test_pixels_that_disagree_with_their_neighbours_are_rendered_again_worst_fir
     assert disagreeing(verifying(0.01, 0.75), gap).tolist() == [True, True, True, False]
     plain = GuidedPolicy(step=4, samples=(4, 4), verify_tolerance=None, verify_share=None)
     assert not disagreeing(plain, gap).any()
+
+
+def test_pixels_on_an_edge_run_at_more_samples():
+    """The server's case (guided.rs): a grey opaque 5 x 5 frame but for a bright pixel (0, 2) on
+    the grid of 2; at spacing 1 the five pixels beside it see their neighbours span 0.4 and run
+    at the edge's 4 samples, the other 11 at the level's 2."""
+    unverified = {"verify_tolerance": None, "verify_share": None}
+    edges = GuidedPolicy(step=4, samples=(2, 2), smooth_max_step=0, edge_span=0.3, edge_samples=4, **unverified)
+    np.testing.assert_array_equal(samples_at(edges, 2, np.float32([0.4, 0.3, 0.0])), [4, 2, 2])
+    assert samples_at(edges, 8, np.float32([1.0])).tolist() == [8]
+    plain = GuidedPolicy(step=4, samples=(2, 2), smooth_max_step=0, edge_span=None, edge_samples=None)
+    assert samples_at(plain, 2, np.float32([1.0])).tolist() == [2]
+    with pytest.raises(ValueError):
+        GuidedPolicy(edge_samples=None)
+
+    width = height = 5
+    grey = np.float32([0.5, 0.5, 0.5])
+
+    def colour(origins):
+        rgb = np.tile(grey, (len(origins), 1))
+        rgb[(origins[:, 0] == 0) & (origins[:, 1] == 2)] = 0.9
+        return rgb
+
+    def outputs(origins, samples):
+        n = len(origins)
+        weights = np.full((n, samples), 1.0 / samples, np.float32)
+        ones = np.ones(n, np.float32)
+        return {"rgb": colour(origins), "depth": ones, "opacity": ones, "weights": weights}
+
+    fine_runs = []
+
+    def fine(origins, directions, index, multiplicity, guide_rows):
+        fine_runs.append((index.shape[1], sorted(map(tuple, origins[:, :2].astype(int).tolist()))))
+        return outputs(origins, index.shape[1])
+
+    # Each ray's origin is its pixel (v, u, 0): the fakes see which pixel they render.
+    v, u = np.meshgrid(np.arange(height), np.arange(width), indexing="ij")
+    origins = np.stack([v.ravel(), u.ravel(), np.zeros(25)], axis=1).astype(np.float32)
+    directions = np.tile(np.float32([0, 0, 1]), (25, 1))
+    full = guide = lambda o, d: outputs(o, 8)  # noqa: E731
+    view = render_guided(edges, width, height, 8, origins, directions, np.zeros(3, np.float32), guide, fine, full)
+    coarser, *finest = fine_runs
+    assert coarser == (2, [(0, 2), (2, 0), (2, 2), (2, 4), (4, 2)])
+    beside = [(0, 1), (0, 3), (1, 1), (1, 2), (1, 3)]
+    assert finest == [(2, [p for p in map(tuple, level_pixels(5, 5, 1).tolist()) if p not in beside]), (4, beside)]
+    assert view.network_samples == 4 * 8 + 5 * 2 + 11 * 2 + 5 * 4
 
 
 def test_policy_fits_the_model():

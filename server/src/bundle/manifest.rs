@@ -114,6 +114,14 @@ pub struct GuidedPolicy {
     /// view's work when most of its pixels disagree.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub verify_share: Option<f64>,
+    /// A pixel whose neighbours' composited colours span more than this in a channel lies on an
+    /// edge, where a few samples miss the surface one side saw: it runs at `edge_samples` samples
+    /// when its level's count is lower. Absent: every pixel runs at its level's count.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub edge_span: Option<f32>,
+    /// Samples per pixel on an edge.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub edge_samples: Option<usize>,
 }
 
 impl GuidedPolicy {
@@ -135,7 +143,23 @@ impl GuidedPolicy {
         match (self.verify_tolerance, self.verify_share) {
             (None, None) => Ok(()),
             (Some(t), Some(share)) if t.is_finite() && t >= 0.0 && (0.0..=1.0).contains(&share) => Ok(()),
-            _ => Err("guided.verify_tolerance (finite, >= 0) and guided.verify_share (0 to 1) come together".into()),
+            _ => Err(String::from(
+                "guided.verify_tolerance (finite, >= 0) and guided.verify_share (0 to 1) come together",
+            )),
+        }?;
+        match (self.edge_span, self.edge_samples) {
+            (None, None) => Ok(()),
+            (Some(span), Some(k)) if span.is_finite() && span >= 0.0 && (1..=samples).contains(&k) => Ok(()),
+            _ => Err(format!("guided.edge_span (finite, >= 0) and guided.edge_samples (1..={samples}) come together")),
+        }
+    }
+
+    /// Samples per pixel of a pixel of a level of `count` samples whose neighbours' colours span
+    /// `span`.
+    pub fn samples_at(&self, count: usize, span: f32) -> usize {
+        match (self.edge_span, self.edge_samples) {
+            (Some(edge), Some(k)) if span > edge => count.max(k),
+            _ => count,
         }
     }
 

@@ -330,6 +330,17 @@ async fn a_view_goes_to_the_renderers_of_its_sampling() {
     assert_eq!(stages(&timings), ["renderer", "assemble", "renderer", "assemble"]);
 }
 
+/// A 9 x 7 view rendered by guided sampling under `policy`: its samples per pixel, and the guide
+/// renderer's runs.
+async fn guided_work(policy: GuidedPolicy) -> (f64, usize) {
+    let (p, calls) = pipeline(testing::guided_bundle_with("scnerf", policy));
+    let ticket = ticket(&p);
+    let scene = scene(&p, &ticket).await;
+    let (target, mut timings) = (camera(9, 7), Timings::default());
+    let view = p.render_view(&ticket, &scene, &target, [1.0; 3], Sampling::Guided, Some(10), &mut timings).await;
+    (view.unwrap().sampling.samples_per_ray, runs(&calls, GraphKind::RendererGuide))
+}
+
 /// Pixels that disagree with their neighbours are rendered again at all samples, through the
 /// guide renderer: none with verification off, none when none disagrees by more than the
 /// tolerance or the share allows none; some when every disagreement counts (the fake renderers'
@@ -338,28 +349,32 @@ async fn a_view_goes_to_the_renderers_of_its_sampling() {
 #[tokio::test]
 async fn pixels_that_disagree_are_rendered_again_at_all_samples() {
     let plain = testing::guided_bundle("scnerf").guided().cloned().expect("a guided policy");
-    let samples = |policy: GuidedPolicy| async move {
-        let (p, calls) = pipeline(testing::guided_bundle_with("scnerf", policy));
-        let ticket = ticket(&p);
-        let scene = scene(&p, &ticket).await;
-        let (target, mut timings) = (camera(9, 7), Timings::default());
-        let view = p.render_view(&ticket, &scene, &target, [1.0; 3], Sampling::Guided, Some(10), &mut timings).await;
-        (view.unwrap().sampling.samples_per_ray, runs(&calls, GraphKind::RendererGuide))
-    };
     let verifying = |tolerance, share| GuidedPolicy {
         verify_tolerance: Some(tolerance),
         verify_share: Some(share),
         smooth_max_step: 0,
         ..plain.clone()
     };
-    let unverified = samples(GuidedPolicy { smooth_max_step: 0, ..plain.clone() }).await;
-    assert_eq!(samples(verifying(1e9, 1.0)).await, unverified);
-    assert_eq!(samples(verifying(0.0, 0.0)).await, unverified);
-    let (verified, guide_runs) = samples(verifying(0.0, 1.0)).await;
+    let unverified = guided_work(GuidedPolicy { smooth_max_step: 0, ..plain.clone() }).await;
+    assert_eq!(guided_work(verifying(1e9, 1.0)).await, unverified);
+    assert_eq!(guided_work(verifying(0.0, 0.0)).await, unverified);
+    let (verified, guide_runs) = guided_work(verifying(0.0, 1.0)).await;
     assert!(verified > unverified.0 && guide_runs > unverified.1, "{verified} vs {unverified:?}");
     // Each pixel rendered again adds all 16 samples to the view's 63 pixels.
     let again = (verified - unverified.0) * 63.0 / 16.0;
     assert!((again - again.round()).abs() < 1e-9 && again >= 1.0, "{again}");
+}
+
+/// Pixels whose neighbours' colours span more than `edge_span` run at `edge_samples`: more samples
+/// when every neighbourhood with any spread counts as an edge, the same when none does.
+#[tokio::test]
+async fn pixels_on_an_edge_run_at_their_samples() {
+    let plain = testing::guided_bundle("scnerf").guided().cloned().expect("a guided policy");
+    let edges =
+        |span| GuidedPolicy { edge_span: Some(span), edge_samples: Some(16), smooth_max_step: 0, ..plain.clone() };
+    let (without, _) = guided_work(GuidedPolicy { smooth_max_step: 0, ..plain.clone() }).await;
+    assert_eq!(guided_work(edges(1e9)).await.0, without);
+    assert!(guided_work(edges(0.0)).await.0 > without);
 }
 
 /// A full view runs the renderer once per chunk of rays and pass: 48 rays in chunks of 10 are

@@ -60,11 +60,12 @@ impl GuidedPolicy {
 
     /// The rays of a `width` x `height` view run at all S samples (the guide rays and, at most,
     /// the pixels rendered again), and its fine rays' samples at most (when no pixel takes its
-    /// neighbours' mean): for admission, before the view is rendered.
+    /// neighbours' mean and every pixel lies on an edge): for admission, before the view is rendered.
     pub fn most_work(&self, width: usize, height: usize) -> (usize, usize) {
         let guide_rays = self.guide_rays(width, height);
         let levels = self.levels().map(|(spacing, k)| (level_pixels(width, height, spacing).len(), k));
-        let (reruns, fine) = levels.fold((0, 0), |(r, f), (n, k)| (r + self.most_reruns(n), f + n * k));
+        let most_samples = |k| self.samples_at(k, f32::INFINITY);
+        let (reruns, fine) = levels.fold((0, 0), |(r, f), (n, k)| (r + self.most_reruns(n), f + n * most_samples(k)));
         (guide_rays + reruns, fine)
     }
 }

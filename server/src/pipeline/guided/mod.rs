@@ -13,7 +13,9 @@
 //!   mean and the network does not run. Otherwise its samples come from the neighbours' weights
 //!   ([`select_samples`]): the K (the level's `samples`) uniform samples where the neighbours
 //!   composite most, each standing for the nearby samples where a neighbour saw matter, run
-//!   through `renderer_fine.onnx` with the rectifier heads of the nearest level-0 ray;
+//!   through `renderer_fine.onnx` with the rectifier heads of the nearest level-0 ray. Where the
+//!   neighbours' colours span more than `edge_span`, the pixel lies on an edge, where K samples
+//!   miss what one side saw, and runs at `edge_samples` samples instead;
 //! * after each level, its K-sample pixels whose colour or opacity their neighbours disagree
 //!   with by more than `verify_tolerance` ([`disagreeing`]) are rendered again at all S samples
 //!   (`renderer_guide.onnx`), at most `verify_share` of them, before the next level reads them.

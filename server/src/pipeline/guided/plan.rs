@@ -1,6 +1,7 @@
 //! A view being rendered level by level: its canvas, the weights later levels read, and what each
 //! level runs.
 
+use std::collections::BTreeMap;
 use std::ops::Range;
 
 use ndarray::{ArcArray1, ArcArray2, Array1, Array2, ArrayView1};
@@ -81,16 +82,14 @@ impl Canvas {
         std::array::from_fn(|c| self.rgb[[i, c]] + clear * background[c])
     }
 
-    /// Whether at least two neighbours' composited colours agree within `tolerance` per channel.
-    pub fn neighbours_agree(&self, near: &[Pixel], background: [f32; 3], tolerance: f32) -> bool {
-        if near.len() < 2 {
-            return false;
-        }
+    /// The largest spread of the neighbours' composited colours in a channel (0 for fewer than
+    /// two).
+    pub fn colour_span(&self, near: &[Pixel], background: [f32; 3]) -> f32 {
         let colours: Vec<[f32; 3]> = near.iter().map(|&p| self.composited(p, background)).collect();
-        (0..3).all(|c| {
+        (0..3).fold(0f32, |span, c| {
             let (lo, hi) =
                 colours.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), x| (lo.min(x[c]), hi.max(x[c])));
-            hi - lo <= tolerance
+            span.max(hi - lo)
         })
     }
 
@@ -149,19 +148,42 @@ pub struct Frame {
     pub background: [f32; 3],
 }
 
+impl FineRays {
+    /// The rays of `pixels`, each with its `selection` of `k` samples.
+    fn new(
+        policy: &GuidedPolicy,
+        grid: (usize, usize),
+        k: usize,
+        pixels: Vec<Pixel>,
+        selections: Vec<Selection>,
+    ) -> Self {
+        let rows = pixels.len();
+        let mut index = Array2::zeros((rows, k));
+        let mut multiplicity = Array2::zeros((rows, k));
+        for (r, sel) in selections.iter().enumerate() {
+            index.row_mut(r).assign(&Array1::from_iter(sel.index.iter().map(|&i| i as f32)));
+            multiplicity.row_mut(r).assign(&ArrayView1::from(&sel.multiplicity));
+        }
+        let guide = pixels.iter().map(|&p| nearest_guide(p, grid.0, grid.1, policy.step) as f32).collect();
+        FineRays { pixels, selections, index, multiplicity, guide }
+    }
+}
+
 /// One level: pixels whose neighbours agree take their mean (in the frame); the others get their
-/// samples, returned.
-pub fn plan_level(policy: &GuidedPolicy, frame: &mut Frame, spacing: usize, count: usize) -> FineRays {
+/// samples, returned in runs of one sample count each: the level's `count`, then edge pixels'
+/// (where the policy gives them more).
+pub fn plan_level(policy: &GuidedPolicy, frame: &mut Frame, spacing: usize, count: usize) -> Vec<FineRays> {
     let Frame { canvas, guidance, height, background } = frame;
     let (width, height, background) = (canvas.width, *height, *background);
     let samples = guidance.weights.ncols();
     let keeps_guidance = spacing > 1;
-    let (grid_w, grid_h) = (grid_len(width, policy.step), grid_len(height, policy.step));
-    let mut run = Vec::new();
-    let mut selections = Vec::new();
+    let grid = (grid_len(width, policy.step), grid_len(height, policy.step));
+    // Sample count -> (pixels, selections), in increasing count.
+    let mut runs: BTreeMap<usize, (Vec<Pixel>, Vec<Selection>)> = BTreeMap::new();
     for p in level_pixels(width, height, spacing) {
         let near = neighbours(p, width, height, spacing);
-        if spacing <= policy.smooth_max_step && canvas.neighbours_agree(&near, background, policy.smooth_tolerance) {
+        let span = canvas.colour_span(&near, background);
+        if spacing <= policy.smooth_max_step && near.len() >= 2 && span <= policy.smooth_tolerance {
             canvas.take_mean(p, &near);
             if keeps_guidance {
                 let score = neighbour_score(guidance, &near, samples);
@@ -170,37 +192,29 @@ pub fn plan_level(policy: &GuidedPolicy, frame: &mut Frame, spacing: usize, coun
             continue;
         }
         let score = neighbour_score(guidance, &near, samples);
-        selections.push(select_samples(score.view(), count, policy.support_threshold));
-        run.push(p);
+        let k = policy.samples_at(count, span).min(samples);
+        let (pixels, selections) = runs.entry(k).or_default();
+        selections.push(select_samples(score.view(), k, policy.support_threshold));
+        pixels.push(p);
     }
-    let k = count.min(samples);
-    let rows = run.len();
-    let mut index = Array2::zeros((rows, k));
-    let mut multiplicity = Array2::zeros((rows, k));
-    for (r, sel) in selections.iter().enumerate() {
-        index.row_mut(r).assign(&Array1::from_iter(sel.index.iter().map(|&i| i as f32)));
-        multiplicity.row_mut(r).assign(&ArrayView1::from(&sel.multiplicity));
-    }
-    let guide = run.iter().map(|&p| nearest_guide(p, grid_w, grid_h, policy.step) as f32).collect();
-    FineRays { pixels: run, selections, index, multiplicity, guide }
+    runs.into_iter().map(|(k, (pixels, selections))| FineRays::new(policy, grid, k, pixels, selections)).collect()
 }
 
-/// The pixels of a level rendered at K samples (`fine`) whose outputs disagree with their
-/// neighbours' by more than the policy's `verify_tolerance` ([`Canvas::disagreement`]): the
+/// The pixels of a level rendered at K samples (`fine`, row by row) whose outputs disagree with
+/// their neighbours' by more than the policy's `verify_tolerance` ([`Canvas::disagreement`]): the
 /// worst, at most [`GuidedPolicy::most_reruns`] of them (ties: the earlier pixel), row by row.
 /// Where their K samples missed matter the neighbours found, or found matter that is not there,
 /// they are rendered again at all S samples.
-pub fn disagreeing(policy: &GuidedPolicy, frame: &Frame, fine: &FineRays, spacing: usize) -> Vec<Pixel> {
+pub fn disagreeing(policy: &GuidedPolicy, frame: &Frame, fine: &[Pixel], spacing: usize) -> Vec<Pixel> {
     let Some(tolerance) = policy.verify_tolerance else { return Vec::new() };
     let (width, height) = (frame.canvas.width, frame.height);
     let mut worst: Vec<(f32, Pixel)> = fine
-        .pixels
         .iter()
         .map(|&p| (frame.canvas.disagreement(p, &neighbours(p, width, height, spacing), frame.background), p))
         .filter(|&(gap, _)| gap > tolerance)
         .collect();
     worst.sort_by(|a, b| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1)));
-    worst.truncate(policy.most_reruns(fine.pixels.len()));
+    worst.truncate(policy.most_reruns(fine.len()));
     let mut pixels: Vec<Pixel> = worst.into_iter().map(|(_, p)| p).collect();
     pixels.sort_unstable();
     pixels

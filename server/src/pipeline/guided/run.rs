@@ -48,12 +48,16 @@ pub async fn render(
     run_all_samples(ticket, bundle, chunking, scene, &rays, all, &mut frame, !guide_runs_again).await?;
     let mut network_samples = first.len() * samples;
     for (level, &(spacing, count)) in levels.iter().enumerate() {
-        let fine;
-        (frame, fine) = plan_level_blocking(policy.clone(), frame, spacing, count).await?;
+        let runs;
+        (frame, runs) = plan_level_blocking(policy.clone(), frame, spacing, count).await?;
         let last = level + 1 == levels.len();
-        network_samples +=
-            run_fine(ticket, bundle, chunking, scene, &rays, &heads, &fine, &mut frame, spacing, last).await?;
-        let again = disagreeing(policy, &frame, &fine, spacing);
+        for (i, fine) in runs.iter().enumerate() {
+            let last_run = last && i + 1 == runs.len();
+            network_samples +=
+                run_fine(ticket, bundle, chunking, scene, &rays, &heads, fine, &mut frame, spacing, last_run).await?;
+        }
+        let fine_pixels: Vec<Pixel> = runs.into_iter().flat_map(|fine| fine.pixels).collect();
+        let again = disagreeing(policy, &frame, &fine_pixels, spacing);
         let all = AllSamples { pixels: &again, heads: None };
         run_all_samples(ticket, bundle, chunking, scene, &rays, all, &mut frame, last).await?;
         network_samples += again.len() * samples;
@@ -175,7 +179,7 @@ async fn plan_level_blocking(
     mut frame: Frame,
     spacing: usize,
     count: usize,
-) -> Result<(Frame, FineRays), BackendError> {
+) -> Result<(Frame, Vec<FineRays>), BackendError> {
     tokio::task::spawn_blocking(move || {
         let fine = plan_level(&policy, &mut frame, spacing, count);
         (frame, fine)

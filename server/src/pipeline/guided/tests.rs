@@ -1,4 +1,4 @@
-use ndarray::{arr1, Array1, Array2};
+use ndarray::{arr1, Array1};
 
 use super::*;
 use crate::bundle::GuidedPolicy;
@@ -96,16 +96,8 @@ fn verifying(tolerance: f32, share: f64) -> GuidedPolicy {
         smooth_max_step: 1,
         verify_tolerance: Some(tolerance),
         verify_share: Some(share),
-    }
-}
-
-fn fine_at(pixels: Vec<Pixel>) -> FineRays {
-    FineRays {
-        pixels,
-        selections: Vec::new(),
-        index: Array2::zeros((0, 0)),
-        multiplicity: Array2::zeros((0, 0)),
-        guide: Array1::zeros(0),
+        edge_span: None,
+        edge_samples: None,
     }
 }
 
@@ -120,7 +112,7 @@ fn pixels_that_disagree_with_their_neighbours_are_rendered_again_worst_first() {
     frame.canvas.rgb.row_mut(dark).fill(0.15);
     frame.canvas.rgb.row_mut(bright).fill(0.9);
     frame.canvas.rgb.row_mut(slight).fill(0.55);
-    let fine = fine_at(vec![(1, 1), (1, 3), (3, 1), (3, 3)]);
+    let fine = [(1, 1), (1, 3), (3, 1), (3, 3)];
     let near = neighbours((1, 1), 5, 5, 1);
     assert!((frame.canvas.disagreement((1, 1), &near, [0.0; 3]) - 0.7).abs() < 1e-6);
     assert_eq!(disagreeing(&verifying(0.1, 1.0), &frame, &fine, 1), vec![(1, 1), (1, 3)]);
@@ -155,10 +147,51 @@ fn policy_checks() {
         smooth_max_step: 2,
         verify_tolerance: None,
         verify_share: None,
+        edge_span: None,
+        edge_samples: None,
     };
     assert!(policy.validate(128).is_ok());
     assert!(policy.validate(16).unwrap_err().contains("32"));
     assert!(GuidedPolicy { step: 6, ..policy.clone() }.validate(128).is_err());
     assert!(GuidedPolicy { samples: vec![8], ..policy.clone() }.validate(128).is_err());
     assert_eq!(policy.levels().collect::<Vec<_>>(), vec![(4, 32), (2, 16), (1, 8)]);
+}
+
+#[test]
+fn pixels_on_an_edge_run_at_more_samples() {
+    let mut frame = grey_frame();
+    // A bright pixel of the grid of 2: the finest level's pixels beside it see their
+    // neighbours' colours span 0.4.
+    let bright = frame.canvas.index((0, 2));
+    frame.canvas.rgb.row_mut(bright).fill(0.9);
+    let policy = |span| GuidedPolicy {
+        samples: vec![2, 2],
+        smooth_max_step: 0,
+        edge_span: Some(span),
+        edge_samples: Some(4),
+        ..verifying(0.1, 1.0)
+    };
+    let runs = plan_level(&policy(0.3), &mut frame, 1, 2);
+    let counts: Vec<(usize, usize)> = runs.iter().map(|r| (r.index.ncols(), r.pixels.len())).collect();
+    assert_eq!(counts, vec![(2, 16 - 5), (4, 5)]);
+    assert_eq!(runs[1].pixels, vec![(0, 1), (0, 3), (1, 1), (1, 2), (1, 3)]);
+    assert!(runs[1].selections.iter().all(|s| s.index.len() == 4));
+    // Below the span, every pixel runs at the level's count.
+    let runs = plan_level(&policy(0.5), &mut frame, 1, 2);
+    assert_eq!(runs.iter().map(|r| (r.index.ncols(), r.pixels.len())).collect::<Vec<_>>(), vec![(2, 16)]);
+    assert_eq!(policy(0.3).samples_at(8, 1.0), 8, "a level that runs more keeps its count");
+}
+
+#[test]
+fn edge_samples_count_in_the_most_work_and_come_with_their_span() {
+    let plain = GuidedPolicy { verify_tolerance: None, verify_share: None, ..verifying(0.0, 1.0) };
+    let edges = GuidedPolicy { edge_span: Some(0.3), edge_samples: Some(16), ..plain.clone() };
+    let (w, h) = (9, 9);
+    let fine: usize = plain.levels().map(|(spacing, _)| level_pixels(w, h, spacing).len()).sum();
+    assert_eq!(edges.most_work(w, h).1, fine * 16);
+    assert_eq!(edges.most_work(w, h).0, plain.most_work(w, h).0);
+    assert!(edges.validate(16).is_ok());
+    assert!(edges.validate(8).unwrap_err().contains("edge_samples"));
+    assert!(GuidedPolicy { edge_samples: None, ..edges.clone() }.validate(128).is_err());
+    assert!(GuidedPolicy { edge_span: Some(f32::NAN), ..edges }.validate(128).is_err());
 }
