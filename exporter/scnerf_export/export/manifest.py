@@ -209,7 +209,7 @@ class GuidedPolicy:
         values, _ = _keys(cls, data, where, open_keys=False)
         samples = _list(values["samples"], f"{where}.samples")
 
-        def optional(key: str, kind=(int, float)) -> float | None:
+        def optional(key: str, kind=(int, float)) -> int | float | None:
             return None if values.get(key) is None else _typed(values[key], kind, f"{where}.{key}")
 
         try:

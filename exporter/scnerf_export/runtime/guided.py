@@ -134,9 +134,7 @@ def disagreement(own: np.ndarray, near: np.ndarray, valid: np.ndarray) -> np.nda
     """How far each pixel's outputs lie outside its neighbours': ``own`` (N,4) and ``near``
     (N,4,4) composited colour and opacity; the largest distance of the colour outside the
     neighbours' range in a channel, or of the opacity below their lowest (N), float32."""
-    colours = near[..., :3]
-    high = np.where(valid[..., None], colours, -np.inf).max(axis=1)
-    low = np.where(valid[..., None], colours, np.inf).min(axis=1)
+    low, high = _range(near[..., :3], valid)
     colour = np.maximum(np.maximum(low - own[:, :3], own[:, :3] - high).max(axis=1), np.float32(0.0))
     lowest = np.where(valid, near[..., 3], np.inf).min(axis=1)
     return np.maximum(colour, lowest - own[:, 3]).astype(np.float32)
@@ -230,8 +228,9 @@ def render_guided(
         if not run.any():
             continue
         counts = np.minimum(samples_at(policy, count, span[run]), samples)
+        running = np.nonzero(run)[0]
         for k in np.unique(counts):
-            ray = np.nonzero(run)[0][counts == k]
+            ray = running[counts == k]
             score = _masked_max(guidance[near_rows[ray]], valid[ray])
             index, multiplicity, owner = select_samples(score, int(k), policy.support_threshold)
             guide_rows = nearest_guide(pixels[ray], grid_w, grid_h, policy.step)
@@ -254,10 +253,16 @@ def render_guided(
     return GuidedView(rgb, depth, opacity, run_samples, interpolated)
 
 
-def _span(colours: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """The largest spread of the valid neighbours' colours in a channel (N), float32."""
+def _range(colours: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The lowest and highest of the valid neighbours' colours (N,4,C), per channel (N,C)."""
     high = np.where(valid[..., None], colours, -np.inf).max(axis=1)
     low = np.where(valid[..., None], colours, np.inf).min(axis=1)
+    return low, high
+
+
+def _span(colours: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """The largest spread of the valid neighbours' colours in a channel (N), float32."""
+    low, high = _range(colours, valid)
     return (high - low).max(axis=1).astype(np.float32)
 
 

@@ -82,27 +82,26 @@ impl Canvas {
         std::array::from_fn(|c| self.rgb[[i, c]] + clear * background[c])
     }
 
+    /// The lowest and highest of the neighbours' composited colours, per channel.
+    fn colour_range(&self, near: &[Pixel], background: [f32; 3]) -> [(f32, f32); 3] {
+        let colours: Vec<[f32; 3]> = near.iter().map(|&p| self.composited(p, background)).collect();
+        std::array::from_fn(|c| {
+            colours.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), x| (lo.min(x[c]), hi.max(x[c])))
+        })
+    }
+
     /// The largest spread of the neighbours' composited colours in a channel (0 for fewer than
     /// two).
     pub fn colour_span(&self, near: &[Pixel], background: [f32; 3]) -> f32 {
-        let colours: Vec<[f32; 3]> = near.iter().map(|&p| self.composited(p, background)).collect();
-        (0..3).fold(0f32, |span, c| {
-            let (lo, hi) =
-                colours.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), x| (lo.min(x[c]), hi.max(x[c])));
-            span.max(hi - lo)
-        })
+        self.colour_range(near, background).iter().fold(0f32, |span, (lo, hi)| span.max(hi - lo))
     }
 
     /// How far the pixel's outputs lie outside its neighbours': the largest distance of its
     /// composited colour outside their range in a channel, or of its opacity below their lowest.
     pub fn disagreement(&self, p: Pixel, near: &[Pixel], background: [f32; 3]) -> f32 {
         let own = self.composited(p, background);
-        let colours: Vec<[f32; 3]> = near.iter().map(|&q| self.composited(q, background)).collect();
-        let colour = (0..3).fold(0f32, |gap, c| {
-            let (lo, hi) =
-                colours.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), x| (lo.min(x[c]), hi.max(x[c])));
-            gap.max(lo - own[c]).max(own[c] - hi)
-        });
+        let range = self.colour_range(near, background);
+        let colour = own.iter().zip(range).fold(0f32, |gap, (&x, (lo, hi))| gap.max(lo - x).max(x - hi));
         let lowest = near.iter().map(|&q| self.opacity[self.index(q)]).fold(f32::INFINITY, f32::min);
         colour.max(lowest - self.opacity[self.index(p)])
     }
