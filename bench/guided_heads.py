@@ -198,13 +198,7 @@ def fine_levels(renderer, scene, near_far, policy, camera, background, full: dic
         levels.append({"rows": rows, "samples": index.shape[1], "variants": shaded})
         return shaded["guide"]
 
-    def again(_, dirs):
-        # A pixel rendered again at all S samples is what the full render has there.
-        return full_at(rows_of(dirs))
-
-    view = render_guided(
-        policy, camera.width, camera.height, samples, origins, directions, background, guide, fine, again
-    )
+    view = render_guided(policy, camera.width, camera.height, samples, origins, directions, background, guide, fine)
     return levels, view
 
 

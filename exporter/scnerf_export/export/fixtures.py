@@ -91,8 +91,10 @@ def write_case(
             "depth_guided": [parsed_target.height, parsed_target.width],
             "opacity_guided": [parsed_target.height, parsed_target.width],
         },
-        # Guided sampling (the bundle's policy): the same view, and its network samples per pixel.
+        # Guided sampling (the bundle's policy): the same view, its network samples per pixel and
+        # how many pixels took each path (what the case exercises).
         "guided_samples_per_ray": guided.samples_per_ray,
+        "guided_paths": guided.paths,
         "tolerances": {
             "rgb_max_abs": 1e-3,
             "depth_max_rel": 1e-3,

@@ -170,7 +170,7 @@ class GuidedPolicy:
     step: int = 8
     samples: tuple[int, ...] = (32, 16, 12)
     support_threshold: float = 1e-3
-    smooth_tolerance: float = 0.03
+    smooth_tolerance: float = 0.015
     smooth_max_step: int = 1
     # A K-sample pixel that disagrees with its neighbours by more than this is rendered again at
     # all S samples, at most ``verify_share`` of a level's, the worst first (None: never).

@@ -17,10 +17,10 @@ nested grids:
   level-0 ray (:func:`nearest_guide`). Where the neighbours' colours span more than
   ``edge_span``, the pixel lies on an edge and runs at ``edge_samples`` instead (:func:`samples_at`).
   Where the policy has ``verify_tolerance``, a level's K-sample pixels whose outputs disagree with
-  their neighbours' (:func:`disagreeing`) are rendered again at all S samples before the next
-  level reads them.
+  their neighbours' (:func:`disagreeing`) are rendered again at all S samples
+  (:func:`all_samples`, through ``renderer_fine.onnx``) before the next level reads them.
 
-A level-0 pixel, and a pixel rendered again, is rendered exactly as with full sampling.
+A level-0 pixel is rendered exactly as with full sampling.
 """
 
 from __future__ import annotations
@@ -38,9 +38,6 @@ from .view import Rendering, renderer_passes
 # What a guide run returns per ray: rgb (R,3), depth (R), opacity (R), weights (R,S), and per
 # rectifier name its heads (R, h*d_k, C).
 GuideRun = Callable[[np.ndarray, np.ndarray], dict[str, np.ndarray]]
-# The full network at all S samples without the heads (pixels rendered again): rgb, depth,
-# opacity, weights (R,S).
-FullRun = Callable[[np.ndarray, np.ndarray], dict[str, np.ndarray]]
 # What a fine run takes: origins, directions, sample_index (R,K), multiplicity (R,K), each ray's
 # guide ray (R) (the guide rays' heads are the caller's); returns rgb, depth, opacity, weights (R,K).
 FineRun = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray], dict[str, np.ndarray]]
@@ -106,6 +103,13 @@ def select_samples(score: np.ndarray, count: int, threshold: float) -> tuple[np.
     multiplicity = np.zeros((n, count), np.float32)
     np.add.at(multiplicity, (np.nonzero(owner >= 0)[0], owner[owner >= 0]), 1.0)
     return index, multiplicity, owner
+
+
+def all_samples(rays: int, samples: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What a pixel rendered again runs: every one of the S uniform samples, each standing for
+    itself, as :func:`select_samples` returns it for ``rays`` rays."""
+    index = np.broadcast_to(np.arange(samples), (rays, samples))
+    return index, np.ones((rays, samples), np.float32), index
 
 
 def nearest_taken(index: np.ndarray, samples: int) -> np.ndarray:
@@ -178,6 +182,8 @@ class GuidedView:
     opacity: np.ndarray  # (H*W)
     network_samples: int  # samples the network ran at, over all pixels
     interpolated: int  # pixels that took their neighbours' mean
+    on_edge: int  # pixels that ran at more samples than their level's, on an edge
+    rendered_again: int  # pixels rendered again at all S samples
 
 
 def render_guided(
@@ -190,10 +196,8 @@ def render_guided(
     background: np.ndarray,
     guide: GuideRun,
     fine: FineRun,
-    full: FullRun,
 ) -> GuidedView:
-    """Every pixel of a ``width`` x ``height`` view (rays row by row) by the policy; ``full``
-    renders the pixels rendered again."""
+    """Every pixel of a ``width`` x ``height`` view (rays row by row) by the policy."""
     n = width * height
     rgb, depth, opacity = np.zeros((n, 3), np.float32), np.zeros(n, np.float32), np.zeros(n, np.float32)
     # The weights over all S samples of the pixels later levels read (every second row and column).
@@ -205,7 +209,21 @@ def render_guided(
     if guidance is not None:
         guidance[rows] = out["weights"]
     grid_h, grid_w = (height - 1) // policy.step + 1, (width - 1) // policy.step + 1
-    run_samples, interpolated = len(rows) * samples, 0
+    run_samples, interpolated, on_edge, rendered_again = len(rows) * samples, 0, 0, 0
+
+    def run_fine(at: np.ndarray, selected: tuple, keeps_guidance: bool) -> int:
+        """Pixels ``at`` (N,2) at their ``selected`` samples; returns the samples run."""
+        if len(at) == 0:
+            return 0
+        index, multiplicity, owner = selected
+        rows = at[:, 0] * width + at[:, 1]
+        guide_rows = nearest_guide(at, grid_w, grid_h, policy.step)
+        out = fine(origins[rows], directions[rows], index.astype(np.float32), multiplicity, guide_rows)
+        rgb[rows], depth[rows], opacity[rows] = out["rgb"], out["depth"], out["opacity"]
+        if keeps_guidance:
+            guidance[rows] = spread_weights(out["weights"], multiplicity, owner)
+        return len(rows) * index.shape[1]
+
     for spacing, count in policy.levels():
         pixels = level_pixels(width, height, spacing)
         near, valid = neighbours(pixels, width, height, spacing)
@@ -228,29 +246,19 @@ def render_guided(
         if not run.any():
             continue
         counts = np.minimum(samples_at(policy, count, span[run]), samples)
+        on_edge += int((counts > count).sum())
         running = np.nonzero(run)[0]
         for k in np.unique(counts):
             ray = running[counts == k]
             score = _masked_max(guidance[near_rows[ray]], valid[ray])
-            index, multiplicity, owner = select_samples(score, int(k), policy.support_threshold)
-            guide_rows = nearest_guide(pixels[ray], grid_w, grid_h, policy.step)
-            rows = here[ray]
-            out = fine(origins[rows], directions[rows], index.astype(np.float32), multiplicity, guide_rows)
-            rgb[rows], depth[rows], opacity[rows] = out["rgb"], out["depth"], out["opacity"]
-            if keeps_guidance:
-                guidance[rows] = spread_weights(out["weights"], multiplicity, owner)
-            run_samples += len(rows) * int(k)
+            selected = select_samples(score, int(k), policy.support_threshold)
+            run_samples += run_fine(pixels[ray], selected, keeps_guidance)
         rows = here[run]
         outputs = np.concatenate([rgb + (1.0 - opacity)[:, None] * background, opacity[:, None]], axis=1)
         again = disagreeing(policy, disagreement(outputs[rows], outputs[near_rows[run]], valid[run]))
-        if again.any():
-            rows = rows[again]
-            out = full(origins[rows], directions[rows])
-            rgb[rows], depth[rows], opacity[rows] = out["rgb"], out["depth"], out["opacity"]
-            if keeps_guidance:
-                guidance[rows] = out["weights"]
-            run_samples += len(rows) * samples
-    return GuidedView(rgb, depth, opacity, run_samples, interpolated)
+        run_samples += run_fine(pixels[running[again]], all_samples(int(again.sum()), samples), keeps_guidance)
+        rendered_again += int(again.sum())
+    return GuidedView(rgb, depth, opacity, run_samples, interpolated, on_edge, rendered_again)
 
 
 def _range(colours: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -277,7 +285,7 @@ def _masked_max(values: np.ndarray, valid: np.ndarray) -> np.ndarray:
 
 
 def guided_rendering(
-    policy: GuidedPolicy, cfg, target: Camera, background, guide: GuideRun, fine: FineRun, full: FullRun
+    policy: GuidedPolicy, cfg, target: Camera, background, guide: GuideRun, fine: FineRun
 ) -> Rendering:
     """A target view by guided sampling, composited on ``background``: what both Python runtimes
     return."""
@@ -285,8 +293,11 @@ def guided_rendering(
         raise ValueError("guided sampling needs depth_norm near_far (not a depth range from the whole image)")
     origins, directions = cams.target_rays(target)
     bg = np.asarray(background, dtype=np.float32)
-    view = render_guided(policy, target.width, target.height, cfg.samples, origins, directions, bg, guide, fine, full)
+    view = render_guided(policy, target.width, target.height, cfg.samples, origins, directions, bg, guide, fine)
     rgb = view.rgb + (1.0 - view.opacity[:, None]) * bg
     shape = (target.height, target.width)
     samples_per_ray = view.network_samples / (target.width * target.height)
-    return Rendering(rgb.reshape(*shape, 3), view.depth.reshape(shape), view.opacity.reshape(shape), samples_per_ray)
+    paths = {"interpolated": view.interpolated, "on_edge": view.on_edge, "rendered_again": view.rendered_again}
+    return Rendering(
+        rgb.reshape(*shape, 3), view.depth.reshape(shape), view.opacity.reshape(shape), samples_per_ray, paths
+    )

@@ -158,7 +158,7 @@ class OnnxBundle:
         guide_outputs = [o.name for o in self.sessions["renderer_guide"].get_outputs()]
         heads: dict[str, np.ndarray] = {}
 
-        def full(origins, directions):
+        def guide(origins, directions):
             outs = []
             step = rays_per_run(self.cfg.samples)
             for start in range(0, origins.shape[0], step):
@@ -166,12 +166,8 @@ class OnnxBundle:
                 feeds = self.renderer_feeds(scene, origins[rays], directions[rays], near, far, depth_range)
                 outs.append(self._timed("renderer", "renderer_guide", {n: feeds[n] for n in guide_inputs}))
             out = {name: np.concatenate([o[i] for o in outs]) for i, name in enumerate(guide_outputs)}
-            return {"weights": out["sample_weights"], **out}
-
-        def guide(origins, directions):
-            out = full(origins, directions)
             heads.update({k: v for k, v in out.items() if k.endswith("_heads")})
-            return out
+            return {"weights": out["sample_weights"], **out}
 
         def fine(origins, directions, index, multiplicity, guide_rows):
             step = fine_rays_per_run(index.shape[1], self.cfg.samples)
@@ -188,4 +184,4 @@ class OnnxBundle:
             names = ("rgb", "depth", "opacity", "weights")
             return {name: np.concatenate([o[i] for o in outs]) for i, name in enumerate(names)}
 
-        return guided_rendering(self.policy, self.cfg, target, background, guide, fine, full)
+        return guided_rendering(self.policy, self.cfg, target, background, guide, fine)

@@ -129,21 +129,13 @@ def render_guided_target(
     tensors = (scene.volume, scene.images, scene.features, scene.intrinsics, scene.extrinsics)
     heads: dict[str, torch.Tensor] = {}
 
-    def guide_parts(origins, directions):
+    def guide(origins, directions):
         parts = []
         for start in range(0, origins.shape[0], chunk):
             o, d = (torch.from_numpy(np.ascontiguousarray(a[start : start + chunk])) for a in (origins, directions))
             parts.append(r.guide(o, d, near_far, near_far, *tensors))
-        out = {k: torch.cat([getattr(p, k) for p in parts]).numpy() for k in ("rgb", "depth", "opacity", "weights")}
-        return parts, out
-
-    def guide(origins, directions):
-        parts, out = guide_parts(origins, directions)
         heads.update({name: torch.cat([p.heads[name] for p in parts]) for name in r.rectifiers()})
-        return out
-
-    def full(origins, directions):
-        return guide_parts(origins, directions)[1]
+        return {k: torch.cat([getattr(p, k) for p in parts]).numpy() for k in ("rgb", "depth", "opacity", "weights")}
 
     def fine(origins, directions, index, multiplicity, guide_rows):
         parts = []
@@ -157,4 +149,4 @@ def render_guided_target(
             parts.append(r.render_samples(o, d, i, m, near_far, near_far, *tensors, given))
         return {k: torch.cat([getattr(p, k) for p in parts]).numpy() for k in ("rgb", "depth", "opacity", "weights")}
 
-    return guided_rendering(GuidedPolicy.for_model(model.cfg), model.cfg, target, background, guide, fine, full)
+    return guided_rendering(GuidedPolicy.for_model(model.cfg), model.cfg, target, background, guide, fine)

@@ -25,6 +25,8 @@ class Rendering:
     depth: np.ndarray  # (H,W)
     opacity: np.ndarray  # (H,W)
     samples_per_ray: float | None = None  # network samples per pixel (None: the model's S)
+    # Guided sampling: how many pixels took each of its paths (runtime/guided.py), else None.
+    paths: dict[str, int] | None = None
 
 
 def pad_images(images: np.ndarray, multiple: int, background) -> np.ndarray:

@@ -104,23 +104,37 @@ def test_committed_fixtures_match_the_committed_bundle(parity_fixtures):
                 for i in range(len(request["sources"]))
             ]
         )
-        got = bundle.render_view(
-            images,
-            [camera_from_json(s["camera"]) for s in request["sources"]],
-            camera_from_json(request["target"]),
-            request["near"],
-            request["far"],
-            tuple(request["background"]),
-            chunk=1000,
-        )
-        want = {
-            n: np.fromfile(case / expected["files"][n], dtype="<f4").reshape(expected["shapes"][n])
-            for n in ("rgb", "depth", "opacity")
-        }
+        cameras = [camera_from_json(s["camera"]) for s in request["sources"]]
+        target = camera_from_json(request["target"])
+        near, far, background = request["near"], request["far"], tuple(request["background"])
+        scene = bundle.encode_scene(images, cameras, near, far, background)
         tolerances = expected["tolerances"]
-        assert np.abs(got.rgb - want["rgb"]).max() <= tolerances["rgb_max_abs"]
-        assert np.abs(got.depth - want["depth"]).max() <= tolerances["depth_max_rel"] * np.abs(want["depth"]).max()
-        assert np.abs(got.opacity - want["opacity"]).max() <= tolerances["opacity_max_abs"]
+        for sampling, suffix in (("full", ""), ("guided", "_guided")):
+            got = bundle.render_target(scene, target, near, far, background, chunk=1000, sampling=sampling)
+            want = {
+                n: np.fromfile(case / expected["files"][n + suffix], dtype="<f4").reshape(
+                    expected["shapes"][n + suffix]
+                )
+                for n in ("rgb", "depth", "opacity")
+            }
+            assert np.abs(got.rgb - want["rgb"]).max() <= tolerances["rgb_max_abs"], sampling
+            depth_error = np.abs(got.depth - want["depth"]).max()
+            assert depth_error <= tolerances["depth_max_rel"] * np.abs(want["depth"]).max(), sampling
+            assert np.abs(got.opacity - want["opacity"]).max() <= tolerances["opacity_max_abs"], sampling
+        # The same pixels took the same paths of guided sampling as in PyTorch.
+        assert got.samples_per_ray == expected["guided_samples_per_ray"]
+        assert got.paths == expected["guided_paths"]
+
+
+def test_committed_fixtures_exercise_every_path_of_guided_sampling(parity_fixtures):
+    """Some pixel of the cases takes the neighbours' mean, runs at an edge's samples and is
+    rendered again: the Rust parity test holds each path to PyTorch's."""
+    paths = [
+        json.loads((case / "expected.json").read_text())["guided_paths"]
+        for case in sorted((parity_fixtures / "cases").iterdir())
+    ]
+    for path in ("interpolated", "on_edge", "rendered_again"):
+        assert any(p[path] > 0 for p in paths), path
 
 
 def test_the_renderer_runs_its_attention_cores_in_ray_groups(exported):

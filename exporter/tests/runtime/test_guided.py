@@ -156,8 +156,9 @@ def test_pixels_on_an_edge_run_at_more_samples():
     v, u = np.meshgrid(np.arange(height), np.arange(width), indexing="ij")
     origins = np.stack([v.ravel(), u.ravel(), np.zeros(25)], axis=1).astype(np.float32)
     directions = np.tile(np.float32([0, 0, 1]), (25, 1))
-    full = guide = lambda o, d: outputs(o, 8)  # noqa: E731
-    view = render_guided(edges, width, height, 8, origins, directions, np.zeros(3, np.float32), guide, fine, full)
+    view = render_guided(
+        edges, width, height, 8, origins, directions, np.zeros(3, np.float32), lambda o, d: outputs(o, 8), fine
+    )
     coarser, *finest = fine_runs
     assert coarser == (2, [(0, 2), (2, 0), (2, 2), (2, 4), (4, 2)])
     beside = [(0, 1), (0, 3), (1, 1), (1, 2), (1, 3)]

@@ -102,12 +102,12 @@ impl Pipeline {
     }
 
     /// The work of rendering `target`: its rays, once per renderer pass; by guided sampling its
-    /// guide rays and at most its fine rays' samples.
+    /// guide rays and at most its fine rays' samples (the pixels rendered again among them).
     pub fn view_work(&self, target: &CanonicalCamera, sampling: Sampling) -> Work {
         let (width, height) = (target.width as usize, target.height as usize);
         match (sampling, self.bundle.guided()) {
             (Sampling::Guided, Some(policy)) => {
-                let (guide_rays, fine_samples) = policy.most_work(width, height);
+                let (guide_rays, fine_samples) = policy.most_work(width, height, self.bundle.config.samples);
                 Work::of(GraphKind::RendererGuide, guide_rays as f64)
                     .plus(Work::of(GraphKind::RendererFine, fine_samples as f64))
             }

@@ -331,18 +331,19 @@ async fn a_view_goes_to_the_renderers_of_its_sampling() {
 }
 
 /// A 9 x 7 view rendered by guided sampling under `policy`: its samples per pixel, and the guide
-/// renderer's runs.
-async fn guided_work(policy: GuidedPolicy) -> (f64, usize) {
+/// and fine renderers' runs.
+async fn guided_work(policy: GuidedPolicy) -> (f64, [usize; 2]) {
     let (p, calls) = pipeline(testing::guided_bundle_with("scnerf", policy));
     let ticket = ticket(&p);
     let scene = scene(&p, &ticket).await;
     let (target, mut timings) = (camera(9, 7), Timings::default());
     let view = p.render_view(&ticket, &scene, &target, [1.0; 3], Sampling::Guided, Some(10), &mut timings).await;
-    (view.unwrap().sampling.samples_per_ray, runs(&calls, GraphKind::RendererGuide))
+    let renderers = [GraphKind::RendererGuide, GraphKind::RendererFine].map(|g| runs(&calls, g));
+    (view.unwrap().sampling.samples_per_ray, renderers)
 }
 
 /// Pixels that disagree with their neighbours are rendered again at all samples, through the
-/// guide renderer: none with verification off, none when none disagrees by more than the
+/// fine renderer (the guide renderer runs level 0 alone): none with verification off, none when none disagrees by more than the
 /// tolerance or the share allows none; some when every disagreement counts (the fake renderers'
 /// pixels fold where a ray's direction crosses the axis, so some pixel lies outside its
 /// neighbours' range).
@@ -358,8 +359,10 @@ async fn pixels_that_disagree_are_rendered_again_at_all_samples() {
     let unverified = guided_work(GuidedPolicy { smooth_max_step: 0, ..plain.clone() }).await;
     assert_eq!(guided_work(verifying(1e9, 1.0)).await, unverified);
     assert_eq!(guided_work(verifying(0.0, 0.0)).await, unverified);
-    let (verified, guide_runs) = guided_work(verifying(0.0, 1.0)).await;
-    assert!(verified > unverified.0 && guide_runs > unverified.1, "{verified} vs {unverified:?}");
+    let (verified, [guide_runs, fine_runs]) = guided_work(verifying(0.0, 1.0)).await;
+    assert!(verified > unverified.0, "{verified} vs {unverified:?}");
+    assert_eq!(guide_runs, unverified.1[0], "pixels rendered again through the guide renderer");
+    assert!(fine_runs > unverified.1[1], "{fine_runs} fine runs vs {unverified:?}");
     // Each pixel rendered again adds all 16 samples to the view's 63 pixels.
     let again = (verified - unverified.0) * 63.0 / 16.0;
     assert!((again - again.round()).abs() < 1e-9 && again >= 1.0, "{again}");

@@ -58,14 +58,17 @@ impl GuidedPolicy {
         grid_len(width, self.step) * grid_len(height, self.step)
     }
 
-    /// The rays of a `width` x `height` view run at all S samples (the guide rays and, at most,
-    /// the pixels rendered again), and its fine rays' samples at most (when no pixel takes its
-    /// neighbours' mean and every pixel lies on an edge): for admission, before the view is rendered.
-    pub fn most_work(&self, width: usize, height: usize) -> (usize, usize) {
-        let guide_rays = self.guide_rays(width, height);
-        let levels = self.levels().map(|(spacing, k)| (level_pixels(width, height, spacing).len(), k));
-        let most_samples = |k| self.samples_at(k, f32::INFINITY);
-        let (reruns, fine) = levels.fold((0, 0), |(r, f), (n, k)| (r + self.most_reruns(n), f + n * most_samples(k)));
-        (guide_rays + reruns, fine)
+    /// The guide rays of a `width` x `height` view, and its fine rays' samples at most (when no
+    /// pixel takes its neighbours' mean, every pixel lies on an edge and the most pixels are
+    /// rendered again, at all `samples`): for admission, before the view is rendered.
+    pub fn most_work(&self, width: usize, height: usize, samples: usize) -> (usize, usize) {
+        let fine = self
+            .levels()
+            .map(|(spacing, k)| {
+                let n = level_pixels(width, height, spacing).len();
+                n * self.samples_at(k, f32::INFINITY) + self.most_reruns(n) * samples
+            })
+            .sum();
+        (self.guide_rays(width, height), fine)
     }
 }

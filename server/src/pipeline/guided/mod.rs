@@ -18,7 +18,8 @@
 //!   miss what one side saw, and runs at `edge_samples` samples instead;
 //! * after each level, its K-sample pixels whose colour or opacity their neighbours disagree
 //!   with by more than `verify_tolerance` ([`disagreeing`]) are rendered again at all S samples
-//!   (`renderer_guide.onnx`), at most `verify_share` of them, before the next level reads them.
+//!   (`renderer_fine.onnx`, [`all_samples`]), at most `verify_share` of them, before the next
+//!   level reads them.
 //!
 //! A pixel is rendered once, or twice where it disagrees. The counts and thresholds are the
 //! bundle's (`guided` in the manifest), so the exporter that measured them and the server agree.
@@ -31,6 +32,8 @@ mod samples;
 mod tests;
 
 pub use grid::{first_level_pixels, grid_len, level_pixels, nearest_guide, neighbours, Pixel};
-pub use plan::{disagreeing, neighbour_score, plan_level, put_fine, Canvas, FineOutputs, FineRays, Frame, Guidance};
+pub use plan::{
+    all_samples, disagreeing, neighbour_score, plan_level, put_fine, Canvas, FineOutputs, FineRays, Frame, Guidance,
+};
 pub use run::render;
 pub use samples::{select_samples, spread_weights, Selection};

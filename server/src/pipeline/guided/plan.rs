@@ -203,7 +203,7 @@ pub fn plan_level(policy: &GuidedPolicy, frame: &mut Frame, spacing: usize, coun
 /// their neighbours' by more than the policy's `verify_tolerance` ([`Canvas::disagreement`]): the
 /// worst, at most [`GuidedPolicy::most_reruns`] of them (ties: the earlier pixel), row by row.
 /// Where their K samples missed matter the neighbours found, or found matter that is not there,
-/// they are rendered again at all S samples.
+/// they are rendered again at all S samples ([`all_samples`]).
 pub fn disagreeing(policy: &GuidedPolicy, frame: &Frame, fine: &[Pixel], spacing: usize) -> Vec<Pixel> {
     let Some(tolerance) = policy.verify_tolerance else { return Vec::new() };
     let (width, height) = (frame.canvas.width, frame.height);
@@ -217,6 +217,15 @@ pub fn disagreeing(policy: &GuidedPolicy, frame: &Frame, fine: &[Pixel], spacing
     let mut pixels: Vec<Pixel> = worst.into_iter().map(|(_, p)| p).collect();
     pixels.sort_unstable();
     pixels
+}
+
+/// The pixels rendered again: fine rays at every one of the S samples, with the nearest guide
+/// ray's heads like every fine ray (rendering them through the guide renderer, with their own
+/// heads, runs the rectifiers' attention again and scored the same).
+pub fn all_samples(policy: &GuidedPolicy, frame: &Frame, samples: usize, pixels: Vec<Pixel>) -> FineRays {
+    let grid = (grid_len(frame.canvas.width, policy.step), grid_len(frame.height, policy.step));
+    let selections = vec![Selection::all(samples); pixels.len()];
+    FineRays::new(policy, grid, samples, pixels, selections)
 }
 
 /// A fine run's outputs (rays `range` of the level) into the canvas, and its rays' weights into

@@ -5,7 +5,7 @@ use std::ops::Range;
 use ndarray::{s, Array2, Array3, Ix2, Ix3};
 
 use super::grid::{first_level_pixels, Pixel};
-use super::plan::{disagreeing, plan_level, put_fine, Canvas, FineRays, Frame, Guidance};
+use super::plan::{all_samples, disagreeing, plan_level, put_fine, Canvas, FineRays, Frame, Guidance};
 use crate::backend::{BackendError, Tensor, Ticket};
 use crate::bundle::{Bundle, GraphKind, GuidedPolicy};
 use crate::camera::CanonicalCamera;
@@ -39,28 +39,25 @@ pub async fn render(
     };
     let levels: Vec<(usize, usize)> = policy.levels().collect();
     let first = first_level_pixels(width, height, policy.step);
-    let mut heads = Heads::new();
-    let all = AllSamples { pixels: &first, heads: Some(&mut heads) };
-    // Each renderer's last run of the request may release its arena, where its session keeps
-    // one (`Ticket::run_last`): the guide renderer's is level 0's unless pixels may be rendered
-    // again, then the last level's pixels rendered again (none: its arena stays held).
-    let guide_runs_again = policy.verify_tolerance.is_some() && !levels.is_empty();
-    run_all_samples(ticket, bundle, chunking, scene, &rays, all, &mut frame, !guide_runs_again).await?;
+    let heads = run_guide(ticket, bundle, chunking, scene, &rays, &first, &mut frame).await?;
     let mut network_samples = first.len() * samples;
+    // The fine renderer's last run of the request may release its arena, where its session keeps
+    // one (`Ticket::run_last`): the last level's pixels rendered again where the policy verifies
+    // (none: its arena stays held), else the last level's last run.
+    let verifies = policy.verify_tolerance.is_some();
     for (level, &(spacing, count)) in levels.iter().enumerate() {
         let runs;
         (frame, runs) = plan_level_blocking(policy.clone(), frame, spacing, count).await?;
         let last = level + 1 == levels.len();
         for (i, fine) in runs.iter().enumerate() {
-            let last_run = last && i + 1 == runs.len();
+            let last_run = last && !verifies && i + 1 == runs.len();
             network_samples +=
                 run_fine(ticket, bundle, chunking, scene, &rays, &heads, fine, &mut frame, spacing, last_run).await?;
         }
         let fine_pixels: Vec<Pixel> = runs.into_iter().flat_map(|fine| fine.pixels).collect();
-        let again = disagreeing(policy, &frame, &fine_pixels, spacing);
-        let all = AllSamples { pixels: &again, heads: None };
-        run_all_samples(ticket, bundle, chunking, scene, &rays, all, &mut frame, last).await?;
-        network_samples += again.len() * samples;
+        let again = all_samples(policy, &frame, samples, disagreeing(policy, &frame, &fine_pixels, spacing));
+        network_samples +=
+            run_fine(ticket, bundle, chunking, scene, &rays, &heads, &again, &mut frame, spacing, last).await?;
     }
     let Canvas { rgb, depth, opacity, .. } = frame.canvas;
     let samples_per_ray = network_samples as f64 / (width * height) as f64;
@@ -110,47 +107,34 @@ async fn run_fine(
     Ok(n * k)
 }
 
-/// Pixels run through the full network (`renderer_guide.onnx`) at all S samples, and where
-/// their rectifier heads go: level 0's are kept for the fine rays, a pixel rendered again needs
-/// none.
-struct AllSamples<'a> {
-    pixels: &'a [Pixel],
-    heads: Option<&'a mut Heads>,
-}
-
-/// Level 0, or the pixels of a level rendered again: their outputs into the canvas, their weights
-/// into the guidance (for the pixels later levels read), their heads where asked.
-#[allow(clippy::too_many_arguments)]
-async fn run_all_samples(
+/// Level 0 through the full network (`renderer_guide.onnx`) at all S samples: its outputs into
+/// the canvas, its weights into the guidance; returns its rectifiers' heads, which every fine ray
+/// reads.
+async fn run_guide(
     ticket: &Ticket,
     bundle: &Bundle,
     chunking: &ChunkPolicy,
     scene: &Scene,
     all_rays: &Rays,
-    AllSamples { pixels, heads }: AllSamples<'_>,
+    pixels: &[Pixel],
     frame: &mut Frame,
-    last: bool,
-) -> Result<(), BackendError> {
+) -> Result<Heads, BackendError> {
     let n = pixels.len();
-    if n == 0 {
-        return Ok(());
-    }
     let spec = bundle.graph(GraphKind::RendererGuide);
     let rays = &all_rays.select(&pixels.iter().map(|&p| frame.canvas.index(p)).collect::<Vec<_>>());
     let samples = bundle.config.samples;
     let near_far = [scene.near as f32, scene.far as f32];
-    let keeps_heads = heads.is_some();
     let mut kept: Vec<(String, Array3<f32>)> = spec
         .outputs
         .iter()
-        .filter(|t| keeps_heads && t.name.ends_with("_heads"))
+        .filter(|t| t.name.ends_with("_heads"))
         .map(|t| {
             (t.name.clone(), Array3::zeros((n, bundle.config.heads * bundle.config.head_dim, bundle.config.width)))
         })
         .collect();
     let build = |range: Range<usize>| chunk_inputs(scene, &spec.inputs, rays, range, near_far, &|_, _| None);
     let chunk = chunking.rays_per_chunk(samples);
-    run_chunks(ticket, GraphKind::RendererGuide, n, chunk, 1.0, last, build, |range, mut outputs| {
+    run_chunks(ticket, GraphKind::RendererGuide, n, chunk, 1.0, true, build, |range, mut outputs| {
         let (rgb, depth, opacity) = take_pixels(&mut outputs, range.len())?;
         frame.canvas.put(&pixels[range.clone()], &rgb, &depth, &opacity);
         let weights = outputs.take::<Ix2>("sample_weights", &[Some(range.len()), Some(samples)])?;
@@ -167,10 +151,7 @@ async fn run_all_samples(
         Ok(())
     })
     .await?;
-    if let Some(heads) = heads {
-        *heads = kept.into_iter().map(|(name, a)| (name, a.into_shared().into_dyn())).collect();
-    }
-    Ok(())
+    Ok(kept.into_iter().map(|(name, a)| (name, a.into_shared().into_dyn())).collect())
 }
 
 /// [`plan_level`] off the async runtime (it sorts samples for every pixel of the level).

@@ -15,6 +15,14 @@ pub struct Selection {
     pub owner: Vec<i32>,
 }
 
+impl Selection {
+    /// Every one of the `samples` uniform samples, each standing for itself: a pixel rendered again.
+    pub fn all(samples: usize) -> Selection {
+        let index = (0..samples as u32).collect();
+        Selection { index, multiplicity: vec![1.0; samples], owner: (0..samples as i32).collect() }
+    }
+}
+
 /// The `count` samples of a ray from its neighbours' weights `score` (S): see the Python twin,
 /// `select_samples`. The score is dilated by one sample (half a neighbour's score); the samples
 /// with the highest dilated scores are taken (ties: the nearer to the best sample, then the

@@ -125,14 +125,14 @@ fn pixels_that_disagree_with_their_neighbours_are_rendered_again_worst_first() {
 }
 
 #[test]
-fn reruns_count_in_the_most_work() {
+fn reruns_count_in_the_most_work_at_all_samples() {
     let policy = verifying(0.1, 0.5);
     let plain = GuidedPolicy { verify_tolerance: None, verify_share: None, ..policy.clone() };
-    let (w, h) = (9, 9);
+    let (w, h, samples) = (9, 9, 64);
     let fine: Vec<usize> = policy.levels().map(|(spacing, _)| level_pixels(w, h, spacing).len()).collect();
     let reruns: usize = fine.iter().map(|&n| n / 2).sum();
-    assert_eq!(policy.most_work(w, h).0, plain.most_work(w, h).0 + reruns);
-    assert_eq!(policy.most_work(w, h).1, plain.most_work(w, h).1);
+    assert_eq!(policy.most_work(w, h, samples).0, plain.most_work(w, h, samples).0);
+    assert_eq!(policy.most_work(w, h, samples).1, plain.most_work(w, h, samples).1 + reruns * samples);
     assert!(GuidedPolicy { verify_share: None, ..policy.clone() }.validate(128).is_err());
     assert!(GuidedPolicy { verify_share: Some(1.5), ..policy }.validate(128).is_err());
 }
@@ -188,8 +188,8 @@ fn edge_samples_count_in_the_most_work_and_come_with_their_span() {
     let edges = GuidedPolicy { edge_span: Some(0.3), edge_samples: Some(16), ..plain.clone() };
     let (w, h) = (9, 9);
     let fine: usize = plain.levels().map(|(spacing, _)| level_pixels(w, h, spacing).len()).sum();
-    assert_eq!(edges.most_work(w, h).1, fine * 16);
-    assert_eq!(edges.most_work(w, h).0, plain.most_work(w, h).0);
+    assert_eq!(edges.most_work(w, h, 16).1, fine * 16);
+    assert_eq!(edges.most_work(w, h, 16).0, plain.most_work(w, h, 16).0);
     assert!(edges.validate(16).is_ok());
     assert!(edges.validate(8).unwrap_err().contains("edge_samples"));
     assert!(GuidedPolicy { edge_samples: None, ..edges.clone() }.validate(128).is_err());
