@@ -168,7 +168,7 @@ class GuidedPolicy:
     runtime/guided.py)."""
 
     step: int = 8
-    samples: tuple[int, ...] = (32, 16, 12)
+    samples: tuple[int, ...] = (32, 16, 16)
     support_threshold: float = 1e-3
     smooth_tolerance: float = 0.015
     smooth_max_step: int = 1

@@ -43,7 +43,7 @@ def test_the_typed_fields_hold_the_files_values():
     assert renderer.file == "renderer.onnx" and renderer.sha256 == data["graphs"]["renderer"]["sha256"]
     assert renderer.input_names() == [t["name"] for t in data["graphs"]["renderer"]["inputs"]]
     assert renderer.inputs[0].shape == ["R", 3]
-    assert manifest.guided == GuidedPolicy.from_json(data["guided"]) and manifest.guided.samples == (32, 16, 12)
+    assert manifest.guided == GuidedPolicy.from_json(data["guided"]) and manifest.guided.samples == (32, 16, 16)
     assert manifest.provenance.source_kind == "random-weights" and manifest.provenance.metrics is None
     assert manifest.precision == "fp32" and "precision" not in data
 

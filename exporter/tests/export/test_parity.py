@@ -89,6 +89,11 @@ def test_manifest_describes_the_graphs(exported):
         assert graph.input_names() == [i.name for i in proto.graph.input]
 
 
+def pixels_beyond(errors: np.ndarray, tolerance: float) -> int:
+    """Pixels of an (H, W[, C]) error image with some value beyond ``tolerance``."""
+    return int((errors.reshape(errors.shape[0], errors.shape[1], -1).max(axis=2) > tolerance).sum())
+
+
 def test_committed_fixtures_match_the_committed_bundle(parity_fixtures):
     """The Python twin of the Rust parity test: decode each case as the server does, run the
     committed bundle in ONNX Runtime, compare with the committed PyTorch outputs."""
@@ -117,10 +122,15 @@ def test_committed_fixtures_match_the_committed_bundle(parity_fixtures):
                 )
                 for n in ("rgb", "depth", "opacity")
             }
-            assert np.abs(got.rgb - want["rgb"]).max() <= tolerances["rgb_max_abs"], sampling
-            depth_error = np.abs(got.depth - want["depth"]).max()
-            assert depth_error <= tolerances["depth_max_rel"] * np.abs(want["depth"]).max(), sampling
-            assert np.abs(got.opacity - want["opacity"]).max() <= tolerances["opacity_max_abs"], sampling
+            # Guided sampling spares the pixels whose samples the runtimes may rank apart on a
+            # near-tie (the Rust test's guided_spared): one in a thousand, rounded up.
+            spared = -(-want["depth"].size // 1000) if sampling == "guided" else 0
+            rel_depth = np.abs(got.depth - want["depth"]) / np.maximum(np.abs(want["depth"]), 1e-3)
+            assert pixels_beyond(np.abs(got.rgb - want["rgb"]), tolerances["rgb_max_abs"]) <= spared, sampling
+            assert pixels_beyond(rel_depth, tolerances["depth_max_rel"]) <= spared, sampling
+            assert pixels_beyond(np.abs(got.opacity - want["opacity"]), tolerances["opacity_max_abs"]) <= spared, (
+                sampling
+            )
         # The same pixels took the same paths of guided sampling as in PyTorch.
         assert got.samples_per_ray == expected["guided_samples_per_ray"]
         assert got.paths == expected["guided_paths"]

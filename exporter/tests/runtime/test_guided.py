@@ -167,7 +167,7 @@ def test_pixels_on_an_edge_run_at_more_samples():
 
 
 def test_policy_fits_the_model():
-    assert GuidedPolicy.for_model(small_config("scnerf")).samples == (32, 16, 12)
+    assert GuidedPolicy.for_model(small_config("scnerf")).samples == (32, 16, 16)
     with pytest.raises(ValueError):
         GuidedPolicy(step=6)
     with pytest.raises(ValueError):
