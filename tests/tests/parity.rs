@@ -119,9 +119,7 @@ fn max_error<'a>(
     b: impl IntoIterator<Item = &'a f32, IntoIter: ExactSizeIterator>,
     error: impl Fn(f32, f32) -> f64,
 ) -> f64 {
-    let (a, b) = (a.into_iter(), b.into_iter());
-    assert_eq!(a.len(), b.len());
-    a.zip(b).map(|(x, y)| error(*x, *y)).fold(0.0, f64::max)
+    error_sparing(a, b, 1, 0, error)
 }
 
 fn max_abs<'a>(

@@ -343,10 +343,10 @@ async fn guided_work(policy: GuidedPolicy) -> (f64, [usize; 2]) {
 }
 
 /// Pixels that disagree with their neighbours are rendered again at all samples, through the
-/// fine renderer (the guide renderer runs level 0 alone): none with verification off, none when none disagrees by more than the
-/// tolerance or the share allows none; some when every disagreement counts (the fake renderers'
-/// pixels fold where a ray's direction crosses the axis, so some pixel lies outside its
-/// neighbours' range).
+/// fine renderer (the guide renderer runs level 0 alone): none with verification off, none when
+/// none disagrees by more than the tolerance or the share allows none; some when every
+/// disagreement counts (the fake renderers' pixels fold where a ray's direction crosses the axis,
+/// so some pixel lies outside its neighbours' range).
 #[tokio::test]
 async fn pixels_that_disagree_are_rendered_again_at_all_samples() {
     let plain = testing::guided_bundle("scnerf").guided().cloned().expect("a guided policy");
