@@ -12,7 +12,8 @@ scene's fixed triple. Writes one
 
 A column may be one bundle with another sampling than the server's default (``--sampling
 NAME=full|guided``): ``full=bundles/default guided=bundles/default --sampling full=full
---sampling guided=guided`` puts the two side by side.
+--sampling guided=guided`` puts the two side by side; ``--band NAME=network`` likewise gives a
+column the server's ``--band network`` (the network's own colour where a source misses the surface).
 """
 
 from __future__ import annotations
@@ -46,13 +47,19 @@ def measure(
     protocols: list[str],
     threads: int | None,
     sampling: str | None,
+    band: str | None,
     scenes: list[str],
 ) -> None:
     binary = find_server_binary()
     if binary is None:
         sys.exit("no target/release/scnerf-server: cargo build --release -p scnerf-server")
     # Paper-size views take minutes on a few cores: a deadline far beyond the default 900 s.
-    extra = ("--request-timeout-secs", "7200", *(("--sampling", sampling) if sampling else ()))
+    extra = (
+        "--request-timeout-secs",
+        "7200",
+        *(("--sampling", sampling) if sampling else ()),
+        *(("--band", band) if band else ()),
+    )
     with ServerProcess(binary, bundle, threads=threads, extra=extra) as server:
         for scene in scenes:
             folder, fmt, scale, _ = SCENES[scene]
@@ -126,17 +133,20 @@ def main(argv=None) -> int:
     p.add_argument(
         "--sampling", action="append", default=[], metavar="NAME=MODE", help="a column's sampling (full or guided)"
     )
+    p.add_argument(
+        "--band", action="append", default=[], metavar="NAME=FILL", help="a column's --band (sources or network)"
+    )
     args = p.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     pairs = [item.partition("=")[::2] for item in args.bundles]
     views = per_scene(args.views, lambda names: names.split(","))
     scales = per_scene(args.scale, float)
     target_scales = per_scene(args.target_scale, float)
-    samplings = per_scene(args.sampling, str)
+    samplings, bands = per_scene(args.sampling, str), per_scene(args.band, str)
     for name, bundle in pairs:
-        sampling = samplings.get(name)
+        sampling, band = samplings.get(name), bands.get(name)
         protocols, scenes = args.protocols, args.scenes
-        measure(name, bundle, args.out, scales, target_scales, views, protocols, args.threads, sampling, scenes)
+        measure(name, bundle, args.out, scales, target_scales, views, protocols, args.threads, sampling, band, scenes)
     print(table([name for name, _ in pairs], args.out, args.protocols, args.scenes))
     return 0
 

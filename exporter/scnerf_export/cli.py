@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 from .model.checkpoint import CheckpointError
+from .runtime.band import FILLS
 from .train.finetune import Recipe
 
 
@@ -63,6 +64,7 @@ def cmd_eval(args) -> None:
         args.save_renders,
         args.target_scale,
         args.server,
+        args.band,
     )
     if "lpips_unavailable" in summary:
         print(f"LPIPS not computed: {summary['lpips_unavailable']}")
@@ -289,6 +291,13 @@ def parser() -> argparse.ArgumentParser:
     v.add_argument("--far", type=float)
     v.add_argument("--threads", type=int)
     v.add_argument("--chunk", type=int, help="rays per renderer call (default: the server's for the bundle)")
+    v.add_argument(
+        "--band",
+        choices=FILLS,
+        default="sources",
+        help="with --bundle: the colour of pixels whose surface a source does not see, as the server's --band "
+        "(network: the paper's output); a server uses its own",
+    )
     v.add_argument("--json", type=Path, help="write the results here")
     v.add_argument("--save-renders", type=Path, help="write rendered PNGs here")
     v.set_defaults(func=cmd_eval)

@@ -18,6 +18,7 @@ use crate::http::body::UploadPolicy;
 use crate::http::serve::ServeOptions;
 use crate::http::ServiceOptions;
 use crate::models::ModelSettings;
+use crate::pipeline::band::BandFill;
 use crate::pipeline::chunks::ChunkPolicy;
 use crate::pipeline::volume::SlabPolicy;
 use crate::request::Limits;
@@ -102,6 +103,13 @@ pub struct Config {
     /// uniform samples on every ray). A bundle without guided-sampling graphs renders full.
     #[arg(long, env = "SCNERF_SAMPLING", value_enum, default_value_t = Sampling::Guided)]
     pub sampling: Sampling,
+
+    /// What colours the pixels whose surface some of the sources do not see: `sources` (where
+    /// the network renders them too dark, the dark band along the edges of forward-facing views,
+    /// the mean colour of the sources that see them) or `network` (the model's own colour, as the
+    /// paper renders it: for parity with the reference code). docs/design.md, "The band".
+    #[arg(long, env = "SCNERF_BAND", value_enum, default_value_t = BandFill::Sources)]
+    pub band: BandFill,
 
     /// Upper bound on rays per renderer run. Small runs keep the activations in cache: 512 rays
     /// rendered the default bundle faster than 4096 with a fifth to three fifths of the memory
@@ -318,7 +326,13 @@ impl Config {
 
     /// What every model's pipeline is built with.
     pub fn model_settings(&self) -> ModelSettings {
-        ModelSettings { chunking: self.chunking(), slabs: self.slabs(), limits: self.limits(), sampling: self.sampling }
+        ModelSettings {
+            chunking: self.chunking(),
+            slabs: self.slabs(),
+            limits: self.limits(),
+            sampling: self.sampling,
+            band: self.band,
+        }
     }
 
     pub fn intra_threads(&self) -> usize {

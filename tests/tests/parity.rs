@@ -14,7 +14,8 @@ use http_body_util::BodyExt;
 use scnerf_e2e::{split_request, Case};
 use scnerf_server::bundle::{Bundle, DepthNorm, GraphKind};
 use scnerf_server::http::{router, AppState, ServiceOptions};
-use scnerf_server::pipeline::chunks::{self, ChunkPolicy};
+use scnerf_server::pipeline::band::{self, BandFill};
+use scnerf_server::pipeline::chunks::{self, ChunkPolicy, RawView};
 use scnerf_server::pipeline::scene::Timings;
 use scnerf_server::pipeline::volume::SlabPolicy;
 use scnerf_server::pipeline::{assemble, rays, Pipeline};
@@ -42,7 +43,9 @@ fn pipeline() -> Pipeline {
                 "parity fixtures missing: {} (they are committed; run `scnerf-export fixtures`)",
                 dir.display()
             );
-            ort_pipeline(&dir, Limits::default(), 16)
+            // The PyTorch reference renders the network's colour everywhere; the band's own
+            // fixture is `band.json` (`band_fill_matches_python`).
+            ort_pipeline(&dir, Limits::default(), 16).with_band(BandFill::Network)
         })
         .clone()
 }
@@ -283,6 +286,7 @@ fn image_minmax_pipeline() -> Pipeline {
         SlabPolicy::default(),
         Limits::default(),
     )
+    .with_band(BandFill::Network)
 }
 
 /// The two-pass `image_minmax` render through the real graphs. The committed fixtures hold no
@@ -468,4 +472,58 @@ async fn capture_scene_render_is_bit_identical_to_one_shot_of_its_triple() {
         }
         eprintln!("capture scene rendered from views {chosen:?} = case sources {triple:?}");
     }
+}
+
+/// A (possibly nested) JSON list of numbers as an array of its shape.
+fn json_array(value: &serde_json::Value) -> ndarray::ArrayD<f32> {
+    fn walk(value: &serde_json::Value, depth: usize, shape: &mut Vec<usize>, flat: &mut Vec<f32>) {
+        match value.as_array() {
+            Some(items) => {
+                if shape.len() == depth {
+                    shape.push(items.len());
+                }
+                items.iter().for_each(|item| walk(item, depth + 1, shape, flat));
+            }
+            None => flat.push(value.as_f64().expect("a number") as f32),
+        }
+    }
+    let (mut shape, mut flat) = (Vec::new(), Vec::new());
+    walk(value, 0, &mut shape, &mut flat);
+    ndarray::ArrayD::from_shape_vec(shape, flat).expect("a rectangular list")
+}
+
+/// The band's recolouring (pipeline::band) against its Python twin (runtime/band.py) on
+/// `band.json`: the rig's target rays from the server's own camera conversion, random depths
+/// and opacities, three sources padded below their images.
+#[test]
+fn band_fill_matches_python() {
+    let case: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(fixtures_dir().join("band.json")).expect("band.json is committed"))
+            .unwrap();
+    let wire: scnerf_capture::wire::WireCamera = serde_json::from_value(case["target"].clone()).unwrap();
+    let target = scnerf_server::request::cameras::CameraSpec::from_wire(&wire, "target")
+        .unwrap()
+        .canonicalize("target")
+        .unwrap();
+    let images = json_array(&case["images"]).into_dimensionality::<ndarray::Ix4>().unwrap();
+    let intrinsics = json_array(&case["intrinsics"]).into_dimensionality::<ndarray::Ix3>().unwrap();
+    let extrinsics = json_array(&case["extrinsics"]).into_dimensionality::<ndarray::Ix3>().unwrap();
+    let sizes: Vec<(usize, usize)> = serde_json::from_value(case["source_sizes"].clone()).unwrap();
+    let sources = band::Sources {
+        images: images.view(),
+        sizes: &sizes,
+        intrinsics: intrinsics.view(),
+        extrinsics: extrinsics.view(),
+    };
+    let raw = &case["raw"];
+    let mut view = RawView {
+        rgb: json_array(&raw["rgb"]).into_dimensionality().unwrap(),
+        depth: json_array(&raw["depth"]).into_dimensionality().unwrap(),
+        opacity: json_array(&raw["opacity"]).into_dimensionality().unwrap(),
+    };
+    let filled = band::fill_from_sources(&mut view, &rays::generate(&target), &sources);
+    assert_eq!(filled as u64, case["band_pixels"].as_u64().unwrap(), "pixels in the band");
+    assert!(filled > 0 && filled < view.depth.len(), "the case has pixels in and out of the band");
+    let expected = json_array(&case["expected_rgb"]);
+    check("band", "rgb", max_abs(view.rgb.iter(), expected.iter()), 1e-6);
 }

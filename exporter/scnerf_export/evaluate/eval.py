@@ -34,12 +34,14 @@ def evaluate(
     save_dir: str | Path | None = None,
     target_scale: float = 1.0,
     server: str | None = None,
+    band: str = "sources",
 ) -> dict:
     """Render every target, through ONNX Runtime in this process or through the server at ``server``
     (its scene API, PNG output), and score it. Sources: ``sources`` for every target (``["fixed"]``: the
     scene's own fixed triple, MVSNeRF's r_6/r_43/r_33 or 25/21/33), or by default the paper's
     protocol: per target, the 3 views of the source pool (:func:`source_pool`) nearest to it by
-    camera-centre distance. Each source triple is encoded once."""
+    camera-centre distance. Each source triple is encoded once. ``band``: the colour of the pixels
+    whose surface a source does not see, in this process (runtime/band.py); a server uses its own."""
     scene = datasets.load_scene(scene_dir, fmt, scale=scale, near=near, far=far)
     targets = targets or scene.default_targets
     if not targets:
@@ -60,7 +62,10 @@ def evaluate(
         if target_scale != 1.0:
             view = downscale_target(view, target_scale)
         start = time.perf_counter()
-        result = bundle.render_target(scene_tensors, view.camera, scene.near, scene.far, scene.background, chunk)
+        in_process = {} if server else {"band": band}
+        result = bundle.render_target(
+            scene_tensors, view.camera, scene.near, scene.far, scene.background, chunk, **in_process
+        )
         seconds = time.perf_counter() - start
         row = {
             "view": view.name,

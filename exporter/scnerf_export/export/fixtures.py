@@ -10,10 +10,12 @@ import numpy as np
 import torch
 from PIL import Image
 
-from ..cameras import camera_from_json, camera_json
+from .. import cameras as cams
+from ..cameras import Camera, camera_from_json, camera_json
 from ..config import small_config
 from ..model.network import SCNeRF
 from ..rigs import random_model, rig_cameras, smooth_pattern
+from ..runtime.band import Sources, fill_from_sources, sightings, surface_points
 from ..runtime.reference import encode_scene, render_target, render_view
 from .bundle import export_bundle
 
@@ -107,6 +109,46 @@ def write_case(
     (case / "expected.json").write_text(json.dumps(expected, indent=2) + "\n")
 
 
+def write_band_case(out: Path, seed: int) -> None:
+    """``band.json``: the band's recolouring (runtime/band.py) of a random raw view of the rig's
+    target (its field of view widened, so that some pixels lie outside every source), its band at
+    half the brightness of the rest, from its three sources padded to 32 rows, for
+    server/src/pipeline/band.rs."""
+    rng = np.random.default_rng(seed)
+    sources, target, near, far = rig_cameras(24, 32)
+    target = target.scaled(0.5)
+    target = Camera(target.K @ np.diag([0.6, 0.6, 1.0]), target.w2c, target.width, target.height)
+    images = np.stack([smooth_pattern(rng, 24, 32) for _ in sources]).transpose(0, 3, 1, 2)
+    padded = np.zeros((3, 3, 32, 32), np.float32)
+    padded[:, :, :24] = images
+    n = target.width * target.height
+    opacity = rng.uniform(0, 1, n).astype(np.float32)
+    raw = {
+        "rgb": (rng.uniform(0, 1, (n, 3)) * opacity[:, None]).astype(np.float32),
+        "depth": rng.uniform(near - 0.5, far + 2.0, n).astype(np.float32),
+        "opacity": opacity,
+    }
+    scene = {
+        "images": padded,
+        "source_sizes": [(c.width, c.height) for c in sources],
+        "intrinsics": cams.stack_intrinsics(sources),
+        "extrinsics": cams.stack_extrinsics(sources),
+    }
+    origins, directions = cams.target_rays(target)
+    views, *_ = sightings(surface_points(raw["depth"], origins, directions), Sources.of(scene))
+    raw["rgb"][(views > 0) & (views < 3)] *= 0.5
+    filled, band = fill_from_sources(raw["rgb"], raw["depth"], opacity, origins, directions, Sources.of(scene))
+    case = {
+        "seed": seed,
+        "target": camera_json(target),
+        **{k: np.asarray(v).tolist() for k, v in scene.items()},
+        "raw": {k: v.tolist() for k, v in raw.items()},
+        "expected_rgb": filled.tolist(),
+        "band_pixels": int(band.sum()),
+    }
+    (out / "band.json").write_text(json.dumps(case) + "\n")
+
+
 def write_fixtures(out_dir: str | Path, variant: str = "scnerf", seed: int = 7) -> Path:
     out = Path(out_dir)
     model = random_model(small_config(variant), seed)
@@ -122,5 +164,6 @@ def write_fixtures(out_dir: str | Path, variant: str = "scnerf", seed: int = 7) 
     cases = out / "cases"
     write_case(cases, model, "opencv_64x96", 64, 96, 1.0, "opencv_w2c", (0.0, 0.0, 0.0), seed + 1)
     write_case(cases, model, "opengl_96x64_white", 96, 64, 0.75, "opengl_c2w", (1.0, 1.0, 1.0), seed + 2)
+    write_band_case(out, seed + 3)
     (out / "READY").write_text("fixtures complete\n")
     return out

@@ -12,6 +12,7 @@ import onnxruntime as ort
 from .. import cameras as cams
 from ..cameras import Camera
 from ..export.manifest import Manifest
+from .band import FILLS, fill_rendering
 from .chunks import fine_rays_per_run, rays_per_run
 from .guided import guided_rendering
 from .view import Rendering, pad_images, render_in_passes
@@ -74,6 +75,7 @@ class OnnxBundle:
             "volume": volume,
             "intrinsics": cams.stack_intrinsics(cameras),
             "extrinsics": cams.stack_extrinsics(cameras),
+            "source_sizes": [(c.width, c.height) for c in cameras],
         }
 
     def renderer_feeds(
@@ -123,10 +125,11 @@ class OnnxBundle:
         far: float,
         background=(0.0, 0.0, 0.0),
         chunk: int | None = None,
+        band: str = "sources",
     ) -> Rendering:
         self.timings = {}
         scene = self.encode_scene(images, cameras, near, far, background)
-        return self.render_target(scene, target, near, far, background, chunk)
+        return self.render_target(scene, target, near, far, background, chunk, band=band)
 
     def render_target(
         self,
@@ -137,16 +140,24 @@ class OnnxBundle:
         background=(0.0, 0.0, 0.0),
         chunk: int | None = None,
         sampling: str = "full",
+        band: str = "sources",
     ) -> Rendering:
         """One target view of an encoded scene (what a cached scene costs per view), with the
-        paper's S samples per ray (``full``) or guided sampling (``guided``, runtime/guided.py)."""
+        paper's S samples per ray (``full``) or guided sampling (``guided``, runtime/guided.py);
+        the band's pixels coloured as the server's ``--band`` does (runtime/band.py)."""
         if sampling == "guided":
-            return self.render_guided(scene, target, near, far, background)
+            rendering = self.render_guided(scene, target, near, far, background)
+        else:
 
-        def rays(origins, directions, depth_range):
-            return self.render_rays(scene, origins, directions, near, far, depth_range, chunk)
+            def rays(origins, directions, depth_range):
+                return self.render_rays(scene, origins, directions, near, far, depth_range, chunk)
 
-        return render_in_passes(self.cfg, target, near, far, background, rays)
+            rendering = render_in_passes(self.cfg, target, near, far, background, rays)
+        if band == "sources":
+            rendering = fill_rendering(rendering, target, scene, background)
+        elif band != "network":
+            raise ValueError(f"band must be one of {', '.join(FILLS)}, got {band!r}")
+        return rendering
 
     def render_guided(self, scene: dict, target: Camera, near: float, far: float, background) -> Rendering:
         """A view by guided sampling, run as the server runs it."""

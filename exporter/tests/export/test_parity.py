@@ -68,7 +68,9 @@ def test_full_render_matches_pytorch(exported, height, width):
     images = np.stack([smooth_pattern(rng, height, width) for _ in sources])
     target = target.scaled(0.5)
     want = render_view(model, images, sources, target, near, far, background=(0.2, 0.4, 0.6))
-    got = OnnxBundle(out).render_view(images, sources, target, near, far, background=(0.2, 0.4, 0.6), chunk=333)
+    got = OnnxBundle(out).render_view(
+        images, sources, target, near, far, background=(0.2, 0.4, 0.6), chunk=333, band="network"
+    )
     assert want.opacity.std() > 0.01
     assert np.abs(got.rgb - want.rgb).max() <= 1e-3
     assert np.abs(got.depth - want.depth).max() <= 1e-3 * np.abs(want.depth).max()
@@ -115,7 +117,9 @@ def test_committed_fixtures_match_the_committed_bundle(parity_fixtures):
         scene = bundle.encode_scene(images, cameras, near, far, background)
         tolerances = expected["tolerances"]
         for sampling, suffix in (("full", ""), ("guided", "_guided")):
-            got = bundle.render_target(scene, target, near, far, background, chunk=1000, sampling=sampling)
+            got = bundle.render_target(
+                scene, target, near, far, background, chunk=1000, sampling=sampling, band="network"
+            )
             want = {
                 n: np.fromfile(case / expected["files"][n + suffix], dtype="<f4").reshape(
                     expected["shapes"][n + suffix]

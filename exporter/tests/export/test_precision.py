@@ -42,10 +42,11 @@ def fp32_render(fp32_bundle, case):
 
 
 def render(bundle_dir, case):
+    """The network's own colours: the band's recolouring (a per-view decision) would amplify a
+    precision's small differences into whole recoloured pixels."""
     bundle = OnnxBundle(bundle_dir, threads=2)
-    return bundle.render_view(
-        case["images"], case["cameras"], case["target"], case["near"], case["far"], case["background"], chunk=1024
-    )
+    args = (case["images"], case["cameras"], case["target"], case["near"], case["far"], case["background"])
+    return bundle.render_view(*args, chunk=1024, band="network")
 
 
 def io_signature(path):

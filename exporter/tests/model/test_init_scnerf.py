@@ -77,7 +77,7 @@ def test_onnx_bundles_of_both_render_the_same(small_pair, tmp_path):
         sources, target, near, far = rig_cameras(64, 96)
         rig = synthetic_rig(model.cfg, 64, 96, seed=3)
         images = rig["images"].numpy().transpose(0, 2, 3, 1)
-        r = bundle.render_view(images, sources, target, near, far)
+        r = bundle.render_view(images, sources, target, near, far, band="network")
         renders.append((r.rgb, r.depth, r.opacity))
     assert_same_renders(*renders)
 
@@ -127,7 +127,12 @@ def test_public_weights_render_the_same_through_onnx_runtime(public_checkpoint, 
         export_bundle(model, tmp_path / model.cfg.variant, provenance)
         assert (tmp_path / model.cfg.variant / "LICENSE.mvsnerf").is_file()
         r = OnnxBundle(tmp_path / model.cfg.variant).render_view(
-            np.stack([v.image for v in sources]), [v.camera for v in sources], target.camera, scene.near, scene.far
+            np.stack([v.image for v in sources]),
+            [v.camera for v in sources],
+            target.camera,
+            scene.near,
+            scene.far,
+            band="network",
         )
         renders.append((r.rgb, r.depth, r.opacity))
     assert_same_renders(*renders)

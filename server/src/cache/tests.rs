@@ -20,6 +20,7 @@ fn volume(floats: usize) -> Scene {
         volume: zeros((1, 1, 1, 1, floats)),
         intrinsics: zeros((1, 3, 3)),
         extrinsics: zeros((1, 4, 4)),
+        source_sizes: vec![(1, 1); 3],
         near: 1.0,
         far: 2.0,
     }

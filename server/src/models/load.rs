@@ -11,6 +11,7 @@ use serde::Serialize;
 use super::{duplicate_name, model_name, same_folder, scan, warm_up, Model, ModelInfo};
 use crate::backend::{BackendHandle, GraphRunner};
 use crate::bundle::Bundle;
+use crate::pipeline::band::BandFill;
 use crate::pipeline::chunks::ChunkPolicy;
 use crate::pipeline::volume::SlabPolicy;
 use crate::pipeline::Pipeline;
@@ -28,12 +29,15 @@ pub struct ModelSettings {
     pub limits: Limits,
     /// `--sampling`: each model's default where its bundle can.
     pub sampling: Sampling,
+    /// `--band`.
+    pub band: BandFill,
 }
 
 impl ModelSettings {
     pub fn pipeline(&self, backend: BackendHandle, bundle: Bundle) -> Pipeline {
         Pipeline::new(backend, bundle, self.chunking, self.slabs, self.limits.clone())
             .with_default_sampling(self.sampling)
+            .with_band(self.band)
     }
 }
 

@@ -72,7 +72,9 @@ pub const RENDERER_BYTES_PER_SAMPLE: u64 = 6656;
 /// channels of f32).
 const VOLUME_BYTES_PER_CELL: u64 = 32;
 
-/// Bytes per target pixel: rays, the raw outputs and the encoded response.
+/// Bytes per target pixel: rays, the raw outputs and the encoded response. The band stage's
+/// rays and sightings of the sources (56 bytes, `band.rs`) are held after the renderer's rays are
+/// freed and before the response is encoded.
 const TARGET_BYTES_PER_PIXEL: u64 = 128;
 
 /// Per request whatever its size: bookkeeping, the response being encoded, allocator slack.

@@ -2,7 +2,8 @@
 //!
 //! validated request -> [`sources`] images decoded and padded -> ([`views`]: a scene's views,
 //! and the three a target is rendered from) -> [`encoder`] features -> [`volume`] cost volume
-//! and encoding volume -> [`rays`] target rays -> [`chunks`] renderer runs -> [`assemble`] image.
+//! and encoding volume -> [`rays`] target rays -> [`chunks`] renderer runs -> [`band`] the
+//! pixels a source does not see -> [`assemble`] image.
 //!
 //! A request is admitted to the inference executor with its deadline and its estimated work
 //! (`scene_work`, `view_work`) before any graph runs. `build_scene` (sources only) and
@@ -11,6 +12,7 @@
 
 mod admit;
 pub mod assemble;
+pub mod band;
 pub mod chunks;
 pub mod encoder;
 pub mod estimate;
@@ -30,6 +32,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use admit::refusal;
+use band::BandFill;
 use ndarray::{ArcArray4, Array1, Array4};
 use views::Views;
 
@@ -54,6 +57,8 @@ pub struct Pipeline {
     limits: Limits,
     /// How a view is sampled when its request does not say.
     sampling: Sampling,
+    /// What colours the pixels whose surface a source does not see (`band`).
+    band: BandFill,
 }
 
 /// Work units of an encoder or volume run over `images` (V, 3, H, W): its pixels.
@@ -99,13 +104,19 @@ impl Pipeline {
     ) -> Pipeline {
         let sampling = if bundle.guided().is_some() { Sampling::Guided } else { Sampling::Full };
         let volume = Arc::new(VolumeBuilder::new(bundle.volume_build(), bundle.volume_tail(), slabs));
-        Pipeline { backend, bundle: Arc::new(bundle), chunking, volume, limits, sampling }
+        Pipeline { backend, bundle: Arc::new(bundle), chunking, volume, limits, sampling, band: BandFill::default() }
     }
 
     /// The sampling of views whose request does not name one (`--sampling`); guided only when
     /// the bundle can, else full.
     pub fn with_default_sampling(mut self, sampling: Sampling) -> Pipeline {
         self.sampling = if self.bundle.guided().is_some() { sampling } else { Sampling::Full };
+        self
+    }
+
+    /// What colours the pixels whose surface a source does not see (`--band`).
+    pub fn with_band(mut self, band: BandFill) -> Pipeline {
+        self.band = band;
         self
     }
 
@@ -264,6 +275,7 @@ impl Pipeline {
         let features = timings.time("encoder", encoder::run(ticket, config, &images)).await?;
         let inputs = volume::VolumeInputs::new(config, &features, &images, cameras, near, far);
         let volume = timings.time("volume", self.volume.run(ticket, config, inputs)).await?;
+        let source_sizes = cameras.iter().map(|c| (c.width as usize, c.height as usize)).collect();
         let intrinsics: Vec<_> = cameras.iter().map(|c| c.k).collect();
         let extrinsics: Vec<_> = cameras.iter().map(|c| c.w2c).collect();
         Ok(Scene {
@@ -272,6 +284,7 @@ impl Pipeline {
             volume,
             intrinsics: stack_rows(&intrinsics).into_shared(),
             extrinsics: stack_rows(&extrinsics).into_shared(),
+            source_sizes,
             near,
             far,
         })
@@ -291,13 +304,18 @@ impl Pipeline {
         timings: &mut Timings,
     ) -> Result<View, BackendError> {
         let start = Instant::now();
-        let (raw, report) = match (sampling, self.bundle.guided()) {
+        let (mut raw, report) = match (sampling, self.bundle.guided()) {
             (Sampling::Guided, Some(policy)) => {
                 guided::render(ticket, &self.bundle, policy, &self.chunking, scene, target, background).await?
             }
             _ => self.render_full(ticket, scene, target, chunk).await?,
         };
         timings.add("renderer", start.elapsed());
+        if self.band == BandFill::Sources {
+            let start = Instant::now();
+            band::fill_from_sources(&mut raw, &rays::generate(target), &band::Sources::of(scene));
+            timings.add("band", start.elapsed());
+        }
         let start = Instant::now();
         let view = assemble_view(target, raw, background, report);
         timings.add("assemble", start.elapsed());

@@ -43,6 +43,8 @@ pub struct Scene {
     pub intrinsics: ArcArray3<f32>,
     /// (V, 4, 4) OpenCV world-to-camera per view.
     pub extrinsics: ArcArray3<f32>,
+    /// Each view's (width, height) before padding.
+    pub source_sizes: Vec<(usize, usize)>,
     pub near: f64,
     pub far: f64,
 }

@@ -255,8 +255,20 @@ async fn a_render_runs_and_times_every_stage_in_order() {
     let (p, _) = pipeline(near_far());
     let mut timings = Timings::default();
     let view = p.render(&valid_request(camera(12, 5)), deadline(), &mut timings).await.expect("view");
-    assert_eq!(stages(&timings), ["decode", "encoder", "volume", "renderer", "assemble"]);
+    assert_eq!(stages(&timings), ["decode", "encoder", "volume", "renderer", "band", "assemble"]);
     assert_eq!((view.width(), view.height(), view.rgb.dim()), (12, 5, (5, 12, 3)));
+}
+
+/// `--band network` keeps the network's colours: the band stage does not run.
+#[tokio::test]
+async fn the_networks_band_skips_the_band_stage() {
+    let (p, _) = pipeline(near_far());
+    let mut timings = Timings::default();
+    p.with_band(super::band::BandFill::Network)
+        .render(&valid_request(camera(12, 5)), deadline(), &mut timings)
+        .await
+        .expect("view");
+    assert_eq!(stages(&timings), ["decode", "encoder", "volume", "renderer", "assemble"]);
 }
 
 /// A scene of the model's view count is built on upload; a larger one (a capture) is only
@@ -327,7 +339,7 @@ async fn a_view_goes_to_the_renderers_of_its_sampling() {
     assert_eq!(full_runs, 1, "guided sampling ran the full renderer");
     assert!(guide_runs > 0 && fine_runs > 0);
     assert_eq!((guided.width(), guided.height()), (8, 6));
-    assert_eq!(stages(&timings), ["renderer", "assemble", "renderer", "assemble"]);
+    assert_eq!(stages(&timings), ["renderer", "band", "assemble", "renderer", "band", "assemble"]);
 }
 
 /// A 9 x 7 view rendered by guided sampling under `policy`: its samples per pixel, and the guide

@@ -9,6 +9,7 @@ use crate::backend::{BackendHandle, ExecutorOptions, GraphRunner};
 use crate::bundle::{sha256_file, Bundle, Manifest};
 use crate::http::{AppState, ServiceOptions};
 use crate::models::{Loader, Model, ModelSettings, Models};
+use crate::pipeline::band::BandFill;
 use crate::pipeline::chunks::ChunkPolicy;
 use crate::pipeline::volume::SlabPolicy;
 use crate::request::{Limits, Sampling};
@@ -61,6 +62,7 @@ pub fn models_state_with(
         slabs: SlabPolicy::default(),
         limits: Limits::default(),
         sampling: Sampling::Guided,
+        band: BandFill::default(),
     };
     let mut served = Vec::new();
     let mut executor: Option<BackendHandle> = None;
