@@ -135,9 +135,10 @@ def write_band_case(out: Path, seed: int) -> None:
         "extrinsics": cams.stack_extrinsics(sources),
     }
     origins, directions = cams.target_rays(target)
-    views, *_ = sightings(surface_points(raw["depth"], origins, directions), Sources.of(scene))
+    band_sources = Sources.of(scene)
+    views, *_ = sightings(surface_points(raw["depth"], origins, directions), band_sources)
     raw["rgb"][(views > 0) & (views < 3)] *= 0.5
-    filled, band = fill_from_sources(raw["rgb"], raw["depth"], opacity, origins, directions, Sources.of(scene))
+    filled, band = fill_from_sources(raw["rgb"], raw["depth"], opacity, origins, directions, band_sources)
     case = {
         "seed": seed,
         "target": camera_json(target),

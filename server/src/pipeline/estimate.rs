@@ -73,8 +73,8 @@ pub const RENDERER_BYTES_PER_SAMPLE: u64 = 6656;
 const VOLUME_BYTES_PER_CELL: u64 = 32;
 
 /// Bytes per target pixel: rays, the raw outputs and the encoded response. The band stage's
-/// rays and sightings of the sources (56 bytes, `band.rs`) are held after the renderer's rays are
-/// freed and before the response is encoded.
+/// sightings of the sources (32 bytes, `band.rs`) are held after the renderer's runs and before
+/// the response is encoded.
 const TARGET_BYTES_PER_PIXEL: u64 = 128;
 
 /// Per request whatever its size: bookkeeping, the response being encoded, allocator slack.

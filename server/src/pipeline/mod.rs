@@ -43,6 +43,7 @@ use crate::error::ApiError;
 use crate::request::{Limits, Sampling, ValidRequest, ValidScene};
 use crate::sysmem::MemoryProbe;
 use chunks::{ChunkPolicy, RawView};
+use rays::Rays;
 use scene::{SamplingReport, Scene, Timings, View};
 use volume::{SlabPolicy, VolumeBuilder};
 
@@ -304,16 +305,18 @@ impl Pipeline {
         timings: &mut Timings,
     ) -> Result<View, BackendError> {
         let start = Instant::now();
+        let rays = rays::generate(target);
         let (mut raw, report) = match (sampling, self.bundle.guided()) {
             (Sampling::Guided, Some(policy)) => {
-                guided::render(ticket, &self.bundle, policy, &self.chunking, scene, target, background).await?
+                let (bundle, chunking) = (&self.bundle, &self.chunking);
+                guided::render(ticket, bundle, policy, chunking, scene, target, &rays, background).await?
             }
-            _ => self.render_full(ticket, scene, target, chunk).await?,
+            _ => self.render_full(ticket, scene, &rays, chunk).await?,
         };
         timings.add("renderer", start.elapsed());
         if self.band == BandFill::Sources {
             let start = Instant::now();
-            band::fill_from_sources(&mut raw, &rays::generate(target), &band::Sources::of(scene));
+            band::fill_from_sources(&mut raw, &rays, &band::Sources::of(scene));
             timings.add("band", start.elapsed());
         }
         let start = Instant::now();
@@ -322,24 +325,23 @@ impl Pipeline {
         Ok(view)
     }
 
-    /// Every ray of `target` at the S uniform samples, `chunk` rays per renderer run (`None`:
-    /// from the memory budget).
+    /// Every one of the target's `rays` at the S uniform samples, `chunk` rays per renderer run
+    /// (`None`: from the memory budget).
     async fn render_full(
         &self,
         ticket: &Ticket,
         scene: &Scene,
-        target: &CanonicalCamera,
+        rays: &Rays,
         chunk: Option<usize>,
     ) -> Result<(RawView, SamplingReport), BackendError> {
-        let rays = rays::generate(target);
         let chunk = chunk.unwrap_or_else(|| self.chunking.rays_per_chunk(self.bundle.config.samples)).max(1);
         let inputs = &self.bundle.graph(GraphKind::Renderer).inputs;
         let near_far = [scene.near as f32, scene.far as f32];
         let two_passes = DepthRange::of(&self.bundle) == DepthRange::FirstPass;
-        let mut raw = chunks::render_rays(ticket, scene, inputs, &rays, near_far, chunk, !two_passes).await?;
+        let mut raw = chunks::render_rays(ticket, scene, inputs, rays, near_far, chunk, !two_passes).await?;
         if two_passes {
             let range = min_max(&raw.depth).unwrap_or(near_far);
-            raw = chunks::render_rays(ticket, scene, inputs, &rays, range, chunk, true).await?;
+            raw = chunks::render_rays(ticket, scene, inputs, rays, range, chunk, true).await?;
         }
         let samples_per_ray = self.bundle.config.samples as f64;
         Ok((raw, SamplingReport { mode: Sampling::Full, samples_per_ray }))

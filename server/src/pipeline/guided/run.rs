@@ -10,14 +10,14 @@ use crate::backend::{BackendError, Tensor, Ticket};
 use crate::bundle::{Bundle, GraphKind, GuidedPolicy};
 use crate::camera::CanonicalCamera;
 use crate::pipeline::chunks::{chunk_inputs, run_chunks, take_pixels, ChunkPolicy, RawView};
-use crate::pipeline::rays::{self, Rays};
+use crate::pipeline::rays::Rays;
 use crate::pipeline::scene::{SamplingReport, Scene};
 use crate::request::Sampling;
 
 /// The rectifiers' heads of the guide rays, by graph name (`geometry_heads`, ...): (G, h·d_k, C).
 type Heads = Vec<(String, Tensor)>;
 
-/// Renders every pixel of `target` by guided sampling: see the module doc.
+/// Renders every pixel of `target` (its `rays`) by guided sampling: see the module doc.
 #[allow(clippy::too_many_arguments)]
 pub async fn render(
     ticket: &Ticket,
@@ -26,11 +26,11 @@ pub async fn render(
     chunking: &ChunkPolicy,
     scene: &Scene,
     target: &CanonicalCamera,
+    rays: &Rays,
     background: [f32; 3],
 ) -> Result<(RawView, SamplingReport), BackendError> {
     let (width, height) = (target.width as usize, target.height as usize);
     let samples = bundle.config.samples;
-    let rays = rays::generate(target);
     let mut frame = Frame {
         canvas: Canvas::new(width, height),
         guidance: Guidance::new(width, height, samples),
@@ -39,7 +39,7 @@ pub async fn render(
     };
     let levels: Vec<(usize, usize)> = policy.levels().collect();
     let first = first_level_pixels(width, height, policy.step);
-    let heads = run_guide(ticket, bundle, chunking, scene, &rays, &first, &mut frame).await?;
+    let heads = run_guide(ticket, bundle, chunking, scene, rays, &first, &mut frame).await?;
     let mut network_samples = first.len() * samples;
     // The fine renderer's last run of the request may release its arena, where its session keeps
     // one (`Ticket::run_last`): the last level's pixels rendered again where the policy verifies
@@ -52,12 +52,12 @@ pub async fn render(
         for (i, fine) in runs.iter().enumerate() {
             let last_run = last && !verifies && i + 1 == runs.len();
             network_samples +=
-                run_fine(ticket, bundle, chunking, scene, &rays, &heads, fine, &mut frame, spacing, last_run).await?;
+                run_fine(ticket, bundle, chunking, scene, rays, &heads, fine, &mut frame, spacing, last_run).await?;
         }
         let fine_pixels: Vec<Pixel> = runs.into_iter().flat_map(|fine| fine.pixels).collect();
         let again = all_samples(policy, &frame, samples, disagreeing(policy, &frame, &fine_pixels, spacing));
         network_samples +=
-            run_fine(ticket, bundle, chunking, scene, &rays, &heads, &again, &mut frame, spacing, last).await?;
+            run_fine(ticket, bundle, chunking, scene, rays, &heads, &again, &mut frame, spacing, last).await?;
     }
     let Canvas { rgb, depth, opacity, .. } = frame.canvas;
     let samples_per_ray = network_samples as f64 / (width * height) as f64;
