@@ -180,9 +180,14 @@ class GuidedPolicy:
     # ``edge_samples`` samples where its level's count is lower (None: at the level's count).
     edge_span: float | None = 0.2
     edge_samples: int | None = 32
+    # Off an edge, a pixel runs at its neighbours' support rounded up to a multiple of
+    # ``SAMPLE_QUANTUM``, at least this, at most its level's count (None: at the level's count).
+    min_samples: int | None = 8
+    # Samples of a pixel rendered again: its neighbours' support and the rest spread (None: all S).
+    verify_samples: int | None = 64
 
     # Keys a manifest may leave out (bundles written before them): the server reads them as absent.
-    OPTIONAL = ("verify_tolerance", "verify_share", "edge_span", "edge_samples")
+    OPTIONAL = ("verify_tolerance", "verify_share", "edge_span", "edge_samples", "min_samples", "verify_samples")
 
     def __post_init__(self) -> None:
         if self.step < 1 or self.step & (self.step - 1):
@@ -193,13 +198,24 @@ class GuidedPolicy:
             raise ValueError("guided.verify_tolerance and guided.verify_share come together")
         if (self.edge_span is None) != (self.edge_samples is None):
             raise ValueError("guided.edge_span and guided.edge_samples come together")
+        if any(k is not None and k < 1 for k in (self.min_samples, self.verify_samples)):
+            raise ValueError("guided.min_samples and guided.verify_samples must be at least 1")
 
     @staticmethod
     def for_model(cfg: ModelConfig) -> GuidedPolicy:
-        """The default policy for a model of ``cfg.samples`` samples per ray."""
+        """The default policy for a model of ``cfg.samples`` samples per ray: no count above S,
+        and a pixel rendered again at no more than half of them."""
         default = GuidedPolicy()
-        edge_samples = None if default.edge_samples is None else min(default.edge_samples, cfg.samples)
-        return GuidedPolicy(samples=tuple(min(k, cfg.samples) for k in default.samples), edge_samples=edge_samples)
+
+        def at_most(k: int | None, most: int) -> int | None:
+            return None if k is None else max(1, min(k, most))
+
+        return GuidedPolicy(
+            samples=tuple(min(k, cfg.samples) for k in default.samples),
+            edge_samples=at_most(default.edge_samples, cfg.samples),
+            min_samples=at_most(default.min_samples, cfg.samples),
+            verify_samples=at_most(default.verify_samples, cfg.samples // 2),
+        )
 
     @classmethod
     def from_json(cls, data: Any, where: str = "guided") -> GuidedPolicy:
@@ -223,6 +239,8 @@ class GuidedPolicy:
                 verify_share=optional("verify_share"),
                 edge_span=optional("edge_span"),
                 edge_samples=optional("edge_samples", int),
+                min_samples=optional("min_samples", int),
+                verify_samples=optional("verify_samples", int),
             )
         except ValueError as exc:
             raise ManifestError(str(exc)) from None
@@ -235,6 +253,11 @@ class GuidedPolicy:
         """The most pixels of a level of ``fine`` K-sample pixels rendered again (the server's
         ``GuidedPolicy::most_reruns``)."""
         return 0 if self.verify_share is None else math.floor(self.verify_share * fine)
+
+    def rerun_samples(self, samples: int) -> int:
+        """Samples of a pixel rendered again, of a model of ``samples`` per ray (the server's
+        ``GuidedPolicy::rerun_samples``)."""
+        return samples if self.verify_samples is None else min(self.verify_samples, samples)
 
     def levels(self) -> list[tuple[int, int]]:
         """(grid spacing, samples per pixel) of every level after the first, coarse to fine."""

@@ -15,10 +15,13 @@ nested grids:
   neighbours composite most, each standing for the nearby samples where a neighbour saw matter
   (its multiplicity), run through ``renderer_fine.onnx`` with the rectifier heads of the nearest
   level-0 ray (:func:`nearest_guide`). Where the neighbours' colours span more than
-  ``edge_span``, the pixel lies on an edge and runs at ``edge_samples`` instead (:func:`samples_at`).
+  ``edge_span``, the pixel lies on an edge and runs at ``edge_samples`` instead. With
+  ``min_samples``, a pixel whose neighbours' support spans fewer samples runs at fewer
+  (:func:`samples_at`).
   Where the policy has ``verify_tolerance``, a level's K-sample pixels whose outputs disagree with
-  their neighbours' (:func:`disagreeing`) are rendered again at all S samples
-  (:func:`all_samples`, through ``renderer_fine.onnx``) before the next level reads them.
+  their neighbours' (:func:`disagreeing`) are rendered again at ``verify_samples`` (all S without
+  it) spread over the ray (:func:`spread_samples`, through ``renderer_fine.onnx``) before the next
+  level reads them.
 
 A level-0 pixel is rendered exactly as with full sampling.
 """
@@ -77,6 +80,23 @@ def neighbours(pixels: np.ndarray, width: int, height: int, spacing: int) -> tup
     return np.stack(found, axis=1), np.stack(valid, axis=1)
 
 
+# Fitted sample counts are multiples of this, so a level runs a few counts, not dozens (the
+# server's ``SAMPLE_QUANTUM``).
+SAMPLE_QUANTUM = 4
+
+
+def dilate(score: np.ndarray) -> np.ndarray:
+    """The neighbours' weights (N,S) dilated by one sample (half a neighbour's score): a surface
+    between two samples is seen by both."""
+    shifted = np.pad(score, ((0, 0), (1, 1)))
+    return np.maximum(score, np.float32(0.5) * np.maximum(shifted[:, :-2], shifted[:, 2:]))
+
+
+def support(score: np.ndarray, threshold: float) -> np.ndarray:
+    """How many samples of each ray the neighbours' (dilated) weights (N,S) count as matter (N)."""
+    return (dilate(score) >= np.float32(threshold)).sum(axis=1)
+
+
 def select_samples(score: np.ndarray, count: int, threshold: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The ``count`` samples of each ray to run, from its neighbours' weights ``score`` (N,S).
 
@@ -88,9 +108,7 @@ def select_samples(score: np.ndarray, count: int, threshold: float) -> tuple[np.
     Returns sample indices (N,K) increasing, multiplicities (N,K) and, per uniform sample, the
     position of the taken sample that stands for it, or -1 (N,S)."""
     n, s = score.shape
-    shifted = np.zeros((n, s + 2), score.dtype)
-    shifted[:, 1:-1] = score
-    dilated = np.maximum(score, np.float32(0.5) * np.maximum(shifted[:, :-2], shifted[:, 2:]))
+    dilated = dilate(score)
     best = np.argmax(dilated, axis=1)
     distance = np.abs(np.arange(s)[None, :] - best[:, None])
     # lexsort: the last key is the primary one.
@@ -105,11 +123,29 @@ def select_samples(score: np.ndarray, count: int, threshold: float) -> tuple[np.
     return index, multiplicity, owner
 
 
-def all_samples(rays: int, samples: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """What a pixel rendered again runs: every one of the S uniform samples, each standing for
-    itself, as :func:`select_samples` returns it for ``rays`` rays."""
-    index = np.broadcast_to(np.arange(samples), (rays, samples))
-    return index, np.ones((rays, samples), np.float32), index
+def spread_samples(score: np.ndarray, count: int, threshold: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What a pixel rendered again runs, from its neighbours' weights ``score`` (N,S): their
+    support (the samples whose dilated score reaches ``threshold``; where those are more than half
+    of ``count``, the heaviest half, ties: the lower index) and the rest spread evenly over the
+    samples left (the i-th of the m left of r to take: left[i*m // r]). Every sample is stood for
+    by the nearest taken one (ties: the lower): the pixel disagreed with its neighbours, so matter
+    may lie where they saw none. ``count`` = S: every sample. Returned as :func:`select_samples`
+    returns its selection."""
+    dilated = dilate(score)
+    n, s = score.shape
+    count = min(count, s)
+    index = np.zeros((n, count), np.int64)
+    for r in range(n):
+        kept = np.nonzero(dilated[r] >= np.float32(threshold))[0]
+        if len(kept) > count // 2:
+            kept = kept[np.lexsort((kept, -dilated[r, kept]))][: count // 2]
+        left = np.setdiff1d(np.arange(s), kept)
+        rest = count - len(kept)
+        index[r] = np.sort(np.concatenate([kept, left[np.arange(rest) * len(left) // max(rest, 1)]]))
+    owner = nearest_taken(index, s)
+    multiplicity = np.zeros((n, count), np.float32)
+    np.add.at(multiplicity, (np.repeat(np.arange(n), s), owner.ravel()), 1.0)
+    return index, multiplicity, owner
 
 
 def nearest_taken(index: np.ndarray, samples: int) -> np.ndarray:
@@ -157,12 +193,18 @@ def disagreeing(policy: GuidedPolicy, gap: np.ndarray) -> np.ndarray:
     return again
 
 
-def samples_at(policy: GuidedPolicy, count: int, span: np.ndarray) -> np.ndarray:
-    """Samples per pixel of a level of ``count`` samples, from its neighbours' colour ``span``:
-    more on an edge, where the policy says so (the server's ``GuidedPolicy::samples_at``)."""
-    if policy.edge_span is None:
-        return np.full(span.shape, count)
-    return np.where(span > np.float32(policy.edge_span), max(count, policy.edge_samples), count)
+def samples_at(policy: GuidedPolicy, count: int, span: np.ndarray, support: np.ndarray) -> np.ndarray:
+    """Samples per pixel of a level of ``count`` samples, from its neighbours' colour ``span`` and
+    the samples their weights count as matter (``support``): more on an edge, where the policy
+    says so; with ``min_samples``, the support rounded up to ``SAMPLE_QUANTUM``, at least
+    ``min_samples``, at most that count (the server's ``GuidedPolicy::samples_at``)."""
+    counts = np.full(span.shape, count)
+    if policy.edge_span is not None:
+        counts = np.where(span > np.float32(policy.edge_span), max(count, policy.edge_samples), counts)
+    if policy.min_samples is None:
+        return counts
+    fitted = -(-np.minimum(support, counts) // SAMPLE_QUANTUM) * SAMPLE_QUANTUM
+    return np.minimum(np.maximum(fitted, policy.min_samples), counts)
 
 
 def nearest_guide(pixels: np.ndarray, grid_width: int, grid_height: int, step: int) -> np.ndarray:
@@ -245,18 +287,21 @@ def render_guided(
         run = ~smooth
         if not run.any():
             continue
-        counts = np.minimum(samples_at(policy, count, span[run]), samples)
-        on_edge += int((counts > count).sum())
         running = np.nonzero(run)[0]
+        score = _masked_max(guidance[near_rows[running]], valid[running])
+        counts = samples_at(policy, count, span[run], support(score, policy.support_threshold))
+        counts = np.minimum(counts, samples)
+        on_edge += int((counts > count).sum())
         for k in np.unique(counts):
-            ray = running[counts == k]
-            score = _masked_max(guidance[near_rows[ray]], valid[ray])
-            selected = select_samples(score, int(k), policy.support_threshold)
-            run_samples += run_fine(pixels[ray], selected, keeps_guidance)
+            ray = counts == k
+            selected = select_samples(score[ray], int(k), policy.support_threshold)
+            run_samples += run_fine(pixels[running[ray]], selected, keeps_guidance)
         rows = here[run]
         outputs = np.concatenate([rgb + (1.0 - opacity)[:, None] * background, opacity[:, None]], axis=1)
         again = disagreeing(policy, disagreement(outputs[rows], outputs[near_rows[run]], valid[run]))
-        run_samples += run_fine(pixels[running[again]], all_samples(int(again.sum()), samples), keeps_guidance)
+        if again.any():
+            spread = spread_samples(score[again], policy.rerun_samples(samples), policy.support_threshold)
+            run_samples += run_fine(pixels[running[again]], spread, keeps_guidance)
         rendered_again += int(again.sum())
     return GuidedView(rgb, depth, opacity, run_samples, interpolated, on_edge, rendered_again)
 

@@ -26,7 +26,9 @@ from scnerf_export.runtime.guided import (
     render_guided,
     samples_at,
     select_samples,
+    spread_samples,
     spread_weights,
+    support,
 )
 from scnerf_export.runtime.onnx_pipeline import OnnxBundle
 from scnerf_export.runtime.reference import encode_scene, render_target
@@ -92,6 +94,40 @@ def test_ties_go_to_the_samples_nearest_the_best():
     assert index.tolist() == [[3, 4, 5, 6, 7]]
 
 
+def test_the_support_counts_the_dilated_samples_that_reach_the_threshold():
+    score = np.array([[0.0, 0.0, 0.4, 0.0, 0.0, 0.0, 0.1, 0.1, 0.0, 0.0]], np.float32)
+    assert support(score, 1e-3).tolist() == [7]
+    assert support(score, 0.1).tolist() == [5]  # the dilated 0.05s (5 and 8) fall short
+    assert support(np.zeros((1, 8), np.float32), 1e-3).tolist() == [0]
+
+
+def test_a_pixel_rendered_again_keeps_its_support_and_spreads_the_rest():
+    """The server's case (guided/tests.rs)."""
+    score = np.zeros((1, 16), np.float32)
+    score[0, 9] = 0.5
+    index, multiplicity, owner = spread_samples(score, 8, 1e-3)
+    assert index.tolist() == [[0, 2, 5, 7, 8, 9, 10, 13]]
+    assert (owner >= 0).all()
+    assert multiplicity.tolist() == [[2.0, 2.0, 3.0, 1.0, 1.0, 1.0, 2.0, 4.0]]
+    wide = np.array([[0.2, 0.2, 0.2, 0.9, 0.2, 0.2, 0.2, 0.2]], np.float32)
+    assert spread_samples(wide, 4, 1e-3)[0].tolist() == [[0, 2, 3, 5]]
+    index, multiplicity, _ = spread_samples(score, 16, 1e-3)
+    assert index.tolist() == [list(range(16))] and multiplicity.tolist() == [[1.0] * 16]
+
+
+def test_a_thin_surface_runs_at_fewer_samples():
+    """The server's case (guided/tests.rs): the support rounded up to a multiple of 4, at least
+    ``min_samples``, at most the level's (or the edge's) count."""
+    fitted = GuidedPolicy(step=4, samples=(4, 4), min_samples=8, edge_span=0.3, edge_samples=32)
+    spans, supports = np.float32([0.0, 0.0, 0.0, 0.5, 0.5]), np.array([3, 9, 40, 3, 30])
+    assert samples_at(fitted, 16, spans, supports).tolist() == [8, 12, 16, 8, 32]
+    assert samples_at(fitted, 4, spans[:1], supports[:1]).tolist() == [4]
+    plain = GuidedPolicy(step=4, samples=(4, 4), min_samples=None, edge_span=0.3, edge_samples=32)
+    assert samples_at(plain, 16, spans, supports).tolist() == [16, 16, 16, 32, 32]
+    with pytest.raises(ValueError):
+        GuidedPolicy(min_samples=0)
+
+
 def test_the_nearest_guide_ray_rounds_half_way_up():
     pixels = np.array([[4, 2], [3, 12], [0, 23]])
     assert nearest_guide(pixels, 3, 3, 8).tolist() == [3, 2, 2]
@@ -125,10 +161,10 @@ def test_pixels_on_an_edge_run_at_more_samples():
     at the edge's 4 samples, the other 11 at the level's 2."""
     unverified = {"verify_tolerance": None, "verify_share": None}
     edges = GuidedPolicy(step=4, samples=(2, 2), smooth_max_step=0, edge_span=0.3, edge_samples=4, **unverified)
-    np.testing.assert_array_equal(samples_at(edges, 2, np.float32([0.4, 0.3, 0.0])), [4, 2, 2])
-    assert samples_at(edges, 8, np.float32([1.0])).tolist() == [8]
+    np.testing.assert_array_equal(samples_at(edges, 2, np.float32([0.4, 0.3, 0.0]), np.array([8, 8, 8])), [4, 2, 2])
+    assert samples_at(edges, 8, np.float32([1.0]), np.array([8])).tolist() == [8]
     plain = GuidedPolicy(step=4, samples=(2, 2), smooth_max_step=0, edge_span=None, edge_samples=None)
-    assert samples_at(plain, 2, np.float32([1.0])).tolist() == [2]
+    assert samples_at(plain, 2, np.float32([1.0]), np.array([8])).tolist() == [2]
     with pytest.raises(ValueError):
         GuidedPolicy(edge_samples=None)
 
@@ -167,7 +203,10 @@ def test_pixels_on_an_edge_run_at_more_samples():
 
 
 def test_policy_fits_the_model():
-    assert GuidedPolicy.for_model(small_config("scnerf")).samples == (32, 16, 16)
+    small = GuidedPolicy.for_model(small_config("scnerf"))
+    assert small.samples == (32, 16, 16)
+    # A pixel rendered again at no more than half the model's 32 samples.
+    assert small.verify_samples == 16 and GuidedPolicy().verify_samples == 64
     with pytest.raises(ValueError):
         GuidedPolicy(step=6)
     with pytest.raises(ValueError):
@@ -277,7 +316,7 @@ def test_add_guided_writes_graphs_that_agree_with_the_renderer(exported_scene, t
     assert again.model_id == manifest.model_id
     assert again.provenance.guided_graphs["guide_max_abs_difference_from_renderer"] <= 1e-4
     assert set(GUIDED_GRAPHS) <= set(again.graphs)
-    assert Manifest.load(tmp_path / "guided").guided == again.guided == GuidedPolicy()
+    assert Manifest.load(tmp_path / "guided").guided == again.guided == GuidedPolicy.for_model(manifest.config)
 
 
 def test_the_default_bundles_renderer_weights_read_back_render_what_it_renders():

@@ -107,7 +107,7 @@ pub struct GuidedPolicy {
     pub smooth_max_step: usize,
     /// A pixel rendered at K samples whose composited colour lies further than this outside its
     /// neighbours' range in a channel, or whose opacity lies this far below theirs, is rendered
-    /// again at all S samples ([`disagreeing`]). Absent: no pixel is rendered again.
+    /// again at `verify_samples` ([`disagreeing`]). Absent: no pixel is rendered again.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub verify_tolerance: Option<f32>,
     /// The largest share of a level's K-sample pixels rendered again, the worst first: bounds a
@@ -122,7 +122,20 @@ pub struct GuidedPolicy {
     /// Samples per pixel on an edge.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub edge_samples: Option<usize>,
+    /// A pixel runs at as many samples as its neighbours' support spans, rounded up to a multiple
+    /// of [`SAMPLE_QUANTUM`], at least this many and at most its level's (or its edge's) count: K
+    /// samples that cover the whole support miss nothing a neighbour saw. Absent: every pixel runs
+    /// at its level's (or its edge's) count.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub min_samples: Option<usize>,
+    /// Samples of a pixel rendered again: its neighbours' support and the rest spread over the
+    /// ray ([`spread_samples`](crate::pipeline::guided::spread_samples)). Absent: all S.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub verify_samples: Option<usize>,
 }
+
+/// Fitted sample counts are multiples of this, so a level runs a few counts, not dozens.
+pub const SAMPLE_QUANTUM: usize = 4;
 
 impl GuidedPolicy {
     /// Checks the policy against a model of `samples` samples per ray.
@@ -151,16 +164,27 @@ impl GuidedPolicy {
             (None, None) => Ok(()),
             (Some(span), Some(k)) if span.is_finite() && span >= 0.0 && (1..=samples).contains(&k) => Ok(()),
             _ => Err(format!("guided.edge_span (finite, >= 0) and guided.edge_samples (1..={samples}) come together")),
+        }?;
+        let within = |k: Option<usize>| k.is_none_or(|k| (1..=samples).contains(&k));
+        if !within(self.min_samples) || !within(self.verify_samples) {
+            return Err(format!("guided.min_samples and guided.verify_samples must be within 1..={samples}"));
         }
+        Ok(())
     }
 
     /// Samples per pixel of a pixel of a level of `count` samples whose neighbours' colours span
-    /// `span`.
-    pub fn samples_at(&self, count: usize, span: f32) -> usize {
-        match (self.edge_span, self.edge_samples) {
+    /// `span` and whose neighbours' weights count `support` samples as matter.
+    pub fn samples_at(&self, count: usize, span: f32, support: usize) -> usize {
+        let most = match (self.edge_span, self.edge_samples) {
             (Some(edge), Some(k)) if span > edge => count.max(k),
             _ => count,
-        }
+        };
+        self.min_samples.map_or(most, |least| support.min(most).next_multiple_of(SAMPLE_QUANTUM).max(least).min(most))
+    }
+
+    /// Samples of a pixel rendered again, of a model of `samples` per ray.
+    pub fn rerun_samples(&self, samples: usize) -> usize {
+        self.verify_samples.unwrap_or(samples).min(samples)
     }
 
     /// The most pixels of a level of `fine` K-sample pixels that are rendered again.

@@ -378,6 +378,9 @@ async fn pixels_that_disagree_are_rendered_again_at_all_samples() {
     // Each pixel rendered again adds all 16 samples to the view's 63 pixels.
     let again = (verified - unverified.0) * 63.0 / 16.0;
     assert!((again - again.round()).abs() < 1e-9 && again >= 1.0, "{again}");
+    // With `verify_samples`, the same pixels at 4 samples each.
+    let (fewer, _) = guided_work(GuidedPolicy { verify_samples: Some(4), ..verifying(0.0, 1.0) }).await;
+    assert!(((fewer - unverified.0) * 63.0 / 4.0 - again).abs() < 1e-9, "{fewer} vs {verified}");
 }
 
 /// Pixels whose neighbours' colours span more than `edge_span` run at `edge_samples`: more samples

@@ -66,7 +66,7 @@ impl GuidedPolicy {
             .levels()
             .map(|(spacing, k)| {
                 let n = level_pixels(width, height, spacing).len();
-                n * self.samples_at(k, f32::INFINITY) + self.most_reruns(n) * samples
+                n * self.samples_at(k, f32::INFINITY, usize::MAX) + self.most_reruns(n) * self.rerun_samples(samples)
             })
             .sum();
         (self.guide_rays(width, height), fine)

@@ -15,11 +15,13 @@
 //!   composite most, each standing for the nearby samples where a neighbour saw matter, run
 //!   through `renderer_fine.onnx` with the rectifier heads of the nearest level-0 ray. Where the
 //!   neighbours' colours span more than `edge_span`, the pixel lies on an edge, where K samples
-//!   miss what one side saw, and runs at `edge_samples` samples instead;
+//!   miss what one side saw, and runs at `edge_samples` samples instead. With `min_samples`, a
+//!   pixel whose neighbours saw matter on fewer samples runs at fewer ([`support`],
+//!   [`GuidedPolicy::samples_at`](crate::bundle::GuidedPolicy::samples_at));
 //! * after each level, its K-sample pixels whose colour or opacity their neighbours disagree
-//!   with by more than `verify_tolerance` ([`disagreeing`]) are rendered again at all S samples
-//!   (`renderer_fine.onnx`, [`all_samples`]), at most `verify_share` of them, before the next
-//!   level reads them.
+//!   with by more than `verify_tolerance` ([`disagreeing`]) are rendered again at
+//!   `verify_samples` spread over the whole ray (all S without it; `renderer_fine.onnx`,
+//!   [`again_samples`]), at most `verify_share` of them, before the next level reads them.
 //!
 //! A pixel is rendered once, or twice where it disagrees. The counts and thresholds are the
 //! bundle's (`guided` in the manifest), so the exporter that measured them and the server agree.
@@ -33,7 +35,7 @@ mod tests;
 
 pub use grid::{first_level_pixels, grid_len, level_pixels, nearest_guide, neighbours, Pixel};
 pub use plan::{
-    all_samples, disagreeing, neighbour_score, plan_level, put_fine, Canvas, FineOutputs, FineRays, Frame, Guidance,
+    again_samples, disagreeing, neighbour_score, plan_level, put_fine, Canvas, FineOutputs, FineRays, Frame, Guidance,
 };
 pub use run::render;
-pub use samples::{select_samples, spread_weights, Selection};
+pub use samples::{select_samples, spread_samples, spread_weights, support, Selection};

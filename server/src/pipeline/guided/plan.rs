@@ -7,7 +7,7 @@ use std::ops::Range;
 use ndarray::{ArcArray1, ArcArray2, Array1, Array2, ArrayView1};
 
 use super::grid::{grid_len, level_pixels, nearest_guide, neighbours, Pixel};
-use super::samples::{select_samples, spread_weights, Selection};
+use super::samples::{select_samples, spread_samples, spread_weights, support, Selection};
 use crate::bundle::GuidedPolicy;
 
 /// The weights over all S samples of the pixels later levels read: those on the grid of every
@@ -191,7 +191,7 @@ pub fn plan_level(policy: &GuidedPolicy, frame: &mut Frame, spacing: usize, coun
             continue;
         }
         let score = neighbour_score(guidance, &near, samples);
-        let k = policy.samples_at(count, span).min(samples);
+        let k = policy.samples_at(count, span, support(score.view(), policy.support_threshold)).min(samples);
         let (pixels, selections) = runs.entry(k).or_default();
         selections.push(select_samples(score.view(), k, policy.support_threshold));
         pixels.push(p);
@@ -203,7 +203,7 @@ pub fn plan_level(policy: &GuidedPolicy, frame: &mut Frame, spacing: usize, coun
 /// their neighbours' by more than the policy's `verify_tolerance` ([`Canvas::disagreement`]): the
 /// worst, at most [`GuidedPolicy::most_reruns`] of them (ties: the earlier pixel), row by row.
 /// Where their K samples missed matter the neighbours found, or found matter that is not there,
-/// they are rendered again at all S samples ([`all_samples`]).
+/// they are rendered again at the policy's `verify_samples` ([`again_samples`]).
 pub fn disagreeing(policy: &GuidedPolicy, frame: &Frame, fine: &[Pixel], spacing: usize) -> Vec<Pixel> {
     let Some(tolerance) = policy.verify_tolerance else { return Vec::new() };
     let (width, height) = (frame.canvas.width, frame.height);
@@ -219,13 +219,23 @@ pub fn disagreeing(policy: &GuidedPolicy, frame: &Frame, fine: &[Pixel], spacing
     pixels
 }
 
-/// The pixels rendered again: fine rays at every one of the S samples, with the nearest guide
-/// ray's heads like every fine ray (rendering them through the guide renderer, with their own
-/// heads, runs the rectifiers' attention again and scored the same).
-pub fn all_samples(policy: &GuidedPolicy, frame: &Frame, samples: usize, pixels: Vec<Pixel>) -> FineRays {
-    let grid = (grid_len(frame.canvas.width, policy.step), grid_len(frame.height, policy.step));
-    let selections = vec![Selection::all(samples); pixels.len()];
-    FineRays::new(policy, grid, samples, pixels, selections)
+/// The pixels rendered again: fine rays at the policy's [`GuidedPolicy::rerun_samples`] samples,
+/// their neighbours' support and the rest spread over the ray ([`spread_samples`]), with the
+/// nearest guide ray's heads like every fine ray (rendering them through the guide renderer, with
+/// their own heads, runs the rectifiers' attention again and scored the same).
+pub fn again_samples(policy: &GuidedPolicy, frame: &Frame, spacing: usize, pixels: Vec<Pixel>) -> FineRays {
+    let (width, height) = (frame.canvas.width, frame.height);
+    let samples = frame.guidance.weights.ncols();
+    let count = policy.rerun_samples(samples);
+    let selections = pixels
+        .iter()
+        .map(|&p| {
+            let score = neighbour_score(&frame.guidance, &neighbours(p, width, height, spacing), samples);
+            spread_samples(score.view(), count, policy.support_threshold)
+        })
+        .collect();
+    let grid = (grid_len(width, policy.step), grid_len(height, policy.step));
+    FineRays::new(policy, grid, count, pixels, selections)
 }
 
 /// A fine run's outputs (rays `range` of the level) into the canvas, and its rays' weights into

@@ -5,7 +5,7 @@ use std::ops::Range;
 use ndarray::{s, Array2, Array3, Ix2, Ix3};
 
 use super::grid::{first_level_pixels, Pixel};
-use super::plan::{all_samples, disagreeing, plan_level, put_fine, Canvas, FineRays, Frame, Guidance};
+use super::plan::{again_samples, disagreeing, plan_level, put_fine, Canvas, FineRays, Frame, Guidance};
 use crate::backend::{BackendError, Tensor, Ticket};
 use crate::bundle::{Bundle, GraphKind, GuidedPolicy};
 use crate::camera::CanonicalCamera;
@@ -55,7 +55,7 @@ pub async fn render(
                 run_fine(ticket, bundle, chunking, scene, rays, &heads, fine, &mut frame, spacing, last_run).await?;
         }
         let fine_pixels: Vec<Pixel> = runs.into_iter().flat_map(|fine| fine.pixels).collect();
-        let again = all_samples(policy, &frame, samples, disagreeing(policy, &frame, &fine_pixels, spacing));
+        let again = again_samples(policy, &frame, spacing, disagreeing(policy, &frame, &fine_pixels, spacing));
         network_samples +=
             run_fine(ticket, bundle, chunking, scene, rays, &heads, &again, &mut frame, spacing, last).await?;
     }

@@ -15,23 +15,27 @@ pub struct Selection {
     pub owner: Vec<i32>,
 }
 
-impl Selection {
-    /// Every one of the `samples` uniform samples, each standing for itself: a pixel rendered again.
-    pub fn all(samples: usize) -> Selection {
-        let index = (0..samples as u32).collect();
-        Selection { index, multiplicity: vec![1.0; samples], owner: (0..samples as i32).collect() }
-    }
+/// The neighbours' weights dilated by one sample (half a neighbour's score): a surface between
+/// two samples is seen by both.
+fn dilate(score: ArrayView1<f32>) -> Vec<f32> {
+    let s = score.len();
+    let at = |k: isize| if k < 0 || k as usize >= s { 0.0 } else { score[k as usize] };
+    (0..s as isize).map(|k| at(k).max(0.5 * at(k - 1).max(at(k + 1)))).collect()
+}
+
+/// How many samples the neighbours' (dilated) weights `score` count as matter: reach `threshold`.
+pub fn support(score: ArrayView1<f32>, threshold: f32) -> usize {
+    dilate(score).iter().filter(|&&d| d >= threshold).count()
 }
 
 /// The `count` samples of a ray from its neighbours' weights `score` (S): see the Python twin,
-/// `select_samples`. The score is dilated by one sample (half a neighbour's score); the samples
-/// with the highest dilated scores are taken (ties: the nearer to the best sample, then the
-/// lower index); every sample whose dilated score reaches `threshold` and is not taken is stood
-/// for by the nearest taken one (ties: the lower).
+/// `select_samples`. The score is dilated by one sample; the samples with the highest dilated
+/// scores are taken (ties: the nearer to the best sample, then the lower index); every sample
+/// whose dilated score reaches `threshold` and is not taken is stood for by the nearest taken one
+/// (ties: the lower).
 pub fn select_samples(score: ArrayView1<f32>, count: usize, threshold: f32) -> Selection {
-    let s = score.len();
-    let at = |k: isize| if k < 0 || k as usize >= s { 0.0 } else { score[k as usize] };
-    let dilated: Vec<f32> = (0..s as isize).map(|k| at(k).max(0.5 * at(k - 1).max(at(k + 1)))).collect();
+    let dilated = dilate(score);
+    let s = dilated.len();
     let best = dilated.iter().enumerate().fold(0, |b, (k, &d)| if d > dilated[b] { k } else { b });
     let rank = |a: &usize, b: &usize| {
         dilated[*b]
@@ -47,15 +51,46 @@ pub fn select_samples(score: ArrayView1<f32>, count: usize, threshold: f32) -> S
     }
     let mut index: Vec<usize> = order[..count].to_vec();
     index.sort_unstable();
+    standing_for(index, s, |k| dilated[k] >= threshold)
+}
+
+/// The `count` samples of a pixel rendered again (`spread_samples` in the Python twin): its
+/// neighbours' support (the samples whose dilated score reaches `threshold`; where those are more
+/// than half of `count`, the heaviest half, ties: the lower index), and the rest spread evenly
+/// over the samples left (the i-th of the m left of r to take: left[i·m / r]). Every sample of
+/// the ray is stood for by the nearest taken one (ties: the lower): the pixel disagreed with
+/// its neighbours, so matter may lie where they saw none. `count` = S: every sample.
+pub fn spread_samples(score: ArrayView1<f32>, count: usize, threshold: f32) -> Selection {
+    let dilated = dilate(score);
+    let s = dilated.len();
+    let count = count.min(s);
+    let mut kept: Vec<usize> = (0..s).filter(|&k| dilated[k] >= threshold).collect();
+    if kept.len() > count / 2 {
+        kept.sort_by(|&a, &b| dilated[b].total_cmp(&dilated[a]).then(a.cmp(&b)));
+        kept.truncate(count / 2);
+    }
+    let mut taken = vec![false; s];
+    kept.iter().for_each(|&k| taken[k] = true);
+    let left: Vec<usize> = (0..s).filter(|&k| !taken[k]).collect();
+    let rest = count - kept.len();
+    let mut index: Vec<usize> = kept.into_iter().chain((0..rest).map(|i| left[i * left.len() / rest])).collect();
+    index.sort_unstable();
+    standing_for(index, s, |_| true)
+}
+
+/// A selection of the taken samples `index` (increasing) of a ray of `s`: every sample taken or
+/// `stood_for` is stood for by the nearest taken one (ties: the lower).
+fn standing_for(index: Vec<usize>, s: usize, stood_for: impl Fn(usize) -> bool) -> Selection {
+    let count = index.len();
     let mut owner = vec![-1i32; s];
     let mut multiplicity = vec![0f32; count];
     let mut next = 0; // first taken index >= k
-    for k in 0..s {
+    for (k, owned) in owner.iter_mut().enumerate() {
         while next < count && index[next] < k {
             next += 1;
         }
         let taken = next < count && index[next] == k;
-        if !taken && dilated[k] < threshold {
+        if !taken && !stood_for(k) {
             continue;
         }
         let lower = next.checked_sub(1);
@@ -65,7 +100,7 @@ pub fn select_samples(score: ArrayView1<f32>, count: usize, threshold: f32) -> S
             (Some(l), None) => l,
             (None, None) => continue,
         };
-        owner[k] = nearest as i32;
+        *owned = nearest as i32;
         multiplicity[nearest] += 1.0;
     }
     Selection { index: index.into_iter().map(|k| k as u32).collect(), multiplicity, owner }

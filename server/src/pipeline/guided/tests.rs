@@ -71,6 +71,53 @@ fn ties_go_to_the_samples_nearest_the_best() {
 }
 
 #[test]
+fn the_support_counts_the_dilated_samples_that_reach_the_threshold() {
+    let score = arr1(&[0.0, 0.0, 0.4, 0.0, 0.0, 0.0, 0.1, 0.1, 0.0, 0.0]);
+    // 2 and its dilation 1, 3; 6, 7 and theirs 5, 8.
+    assert_eq!(support(score.view(), 1e-3), 7);
+    assert_eq!(support(score.view(), 0.1), 5, "the dilated 0.05s (5 and 8) fall short");
+    assert_eq!(support(Array1::<f32>::zeros(8).view(), 1e-3), 0);
+}
+
+#[test]
+fn a_pixel_rendered_again_keeps_its_support_and_spreads_the_rest() {
+    let mut score = Array1::<f32>::zeros(16);
+    score[9] = 0.5;
+    let sel = spread_samples(score.view(), 8, 1e-3);
+    // The support 8, 9, 10 and 5 more of the 13 samples left, evenly from the first.
+    assert_eq!(sel.index, vec![0, 2, 5, 7, 8, 9, 10, 13]);
+    // Every sample is stood for: the nearest taken one (ties: the lower).
+    assert!(sel.owner.iter().all(|&o| o >= 0));
+    assert_eq!(sel.multiplicity.iter().sum::<f32>(), 16.0);
+    assert_eq!(sel.multiplicity, vec![2.0, 2.0, 3.0, 1.0, 1.0, 1.0, 2.0, 4.0]);
+    // A support wider than half the count keeps its heaviest half: 3, then 2 and 4 tie at the
+    // dilated 0.45 (the lower); the other two spread over 0, 1, 4, 5, 6, 7.
+    let wide = arr1(&[0.2, 0.2, 0.2, 0.9, 0.2, 0.2, 0.2, 0.2]);
+    assert_eq!(spread_samples(wide.view(), 4, 1e-3).index, vec![0, 2, 3, 5]);
+    // At S samples: every sample, each for itself.
+    let all = spread_samples(score.view(), 16, 1e-3);
+    assert_eq!(all.index, (0..16).collect::<Vec<u32>>());
+    assert_eq!(all.multiplicity, vec![1.0; 16]);
+}
+
+#[test]
+fn a_thin_surface_runs_at_fewer_samples() {
+    let fitted =
+        GuidedPolicy { min_samples: Some(8), edge_span: Some(0.3), edge_samples: Some(32), ..verifying(0.1, 1.0) };
+    // The support rounded up to a multiple of 4, at least 8, at most the level's (or the edge's)
+    // count.
+    assert_eq!(fitted.samples_at(16, 0.0, 3), 8);
+    assert_eq!(fitted.samples_at(16, 0.0, 9), 12);
+    assert_eq!(fitted.samples_at(16, 0.0, 40), 16);
+    assert_eq!(fitted.samples_at(4, 0.0, 3), 4, "never more than the level's count");
+    assert_eq!(fitted.samples_at(16, 0.5, 3), 8, "an edge's too");
+    assert_eq!(fitted.samples_at(16, 0.5, 30), 32);
+    assert_eq!(GuidedPolicy { min_samples: None, ..fitted.clone() }.samples_at(16, 0.0, 3), 16);
+    assert!(GuidedPolicy { min_samples: Some(0), ..fitted.clone() }.validate(128).is_err());
+    assert!(GuidedPolicy { verify_samples: Some(129), ..fitted }.validate(128).unwrap_err().contains("verify_samples"));
+}
+
+#[test]
 fn the_nearest_guide_ray_rounds_half_way_up() {
     // A 3 x 3 level-0 grid at step 8 (pixels 0, 8, 16).
     assert_eq!(nearest_guide((4, 2), 3, 3, 8), 3);
@@ -98,6 +145,8 @@ fn verifying(tolerance: f32, share: f64) -> GuidedPolicy {
         verify_share: Some(share),
         edge_span: None,
         edge_samples: None,
+        min_samples: None,
+        verify_samples: None,
     }
 }
 
@@ -133,6 +182,8 @@ fn reruns_count_in_the_most_work_at_all_samples() {
     let reruns: usize = fine.iter().map(|&n| n / 2).sum();
     assert_eq!(policy.most_work(w, h, samples).0, plain.most_work(w, h, samples).0);
     assert_eq!(policy.most_work(w, h, samples).1, plain.most_work(w, h, samples).1 + reruns * samples);
+    let fewer = GuidedPolicy { verify_samples: Some(16), ..policy.clone() };
+    assert_eq!(fewer.most_work(w, h, samples).1, plain.most_work(w, h, samples).1 + reruns * 16);
     assert!(GuidedPolicy { verify_share: None, ..policy.clone() }.validate(128).is_err());
     assert!(GuidedPolicy { verify_share: Some(1.5), ..policy }.validate(128).is_err());
 }
@@ -149,6 +200,8 @@ fn policy_checks() {
         verify_share: None,
         edge_span: None,
         edge_samples: None,
+        min_samples: None,
+        verify_samples: None,
     };
     assert!(policy.validate(128).is_ok());
     assert!(policy.validate(16).unwrap_err().contains("32"));
@@ -179,7 +232,28 @@ fn pixels_on_an_edge_run_at_more_samples() {
     // Below the span, every pixel runs at the level's count.
     let runs = plan_level(&policy(0.5), &mut frame, 1, 2);
     assert_eq!(runs.iter().map(|r| (r.index.ncols(), r.pixels.len())).collect::<Vec<_>>(), vec![(2, 16)]);
-    assert_eq!(policy(0.3).samples_at(8, 1.0), 8, "a level that runs more keeps its count");
+    assert_eq!(policy(0.3).samples_at(8, 1.0, 8), 8, "a level that runs more keeps its count");
+}
+
+#[test]
+fn a_level_runs_pixels_between_thin_surfaces_at_fewer_samples() {
+    let mut frame = grey_frame();
+    frame.guidance = Guidance::new(5, 5, 16);
+    let thin = Array1::from_iter((0..16).map(|k| if k == 5 { 0.9 } else { 0.0 }));
+    for v in (0..5).step_by(2) {
+        for u in (0..5).step_by(2) {
+            frame.guidance.set((v, u), Array1::from_elem(16, 0.1).view());
+        }
+    }
+    frame.guidance.set((0, 0), thin.view());
+    frame.guidance.set((0, 2), thin.view());
+    let policy = GuidedPolicy { samples: vec![8, 8], smooth_max_step: 0, min_samples: Some(4), ..verifying(0.1, 1.0) };
+    // (0, 1) lies between two thin surfaces (support 3: sample 5 and its dilation): 4 samples.
+    let runs = plan_level(&policy, &mut frame, 1, 8);
+    let counts: Vec<(usize, usize)> = runs.iter().map(|r| (r.index.ncols(), r.pixels.len())).collect();
+    assert_eq!(counts, vec![(4, 1), (8, 15)]);
+    assert_eq!(runs[0].pixels, vec![(0, 1)]);
+    assert_eq!(runs[0].selections[0].index, vec![3, 4, 5, 6]);
 }
 
 #[test]
