@@ -16,7 +16,7 @@
 //!   through `renderer_fine.onnx` with the rectifier heads of the nearest level-0 ray. Where the
 //!   neighbours' colours span more than `edge_span`, the pixel lies on an edge, where K samples
 //!   miss what one side saw, and runs at `edge_samples` samples instead. With `min_samples`, a
-//!   pixel whose neighbours saw matter on fewer samples runs at fewer ([`support`],
+//!   pixel whose neighbours saw matter on fewer samples runs at fewer ([`Score::support`],
 //!   [`GuidedPolicy::samples_at`](crate::bundle::GuidedPolicy::samples_at));
 //! * after each level, its K-sample pixels whose colour or opacity their neighbours disagree
 //!   with by more than `verify_tolerance` ([`disagreeing`]) are rendered again at
@@ -38,4 +38,4 @@ pub use plan::{
     again_samples, disagreeing, neighbour_score, plan_level, put_fine, Canvas, FineOutputs, FineRays, Frame, Guidance,
 };
 pub use run::render;
-pub use samples::{select_samples, spread_samples, spread_weights, support, Selection};
+pub use samples::{select_samples, spread_samples, spread_weights, Score, Selection};

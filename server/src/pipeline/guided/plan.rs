@@ -7,7 +7,7 @@ use std::ops::Range;
 use ndarray::{ArcArray1, ArcArray2, Array1, Array2, ArrayView1};
 
 use super::grid::{grid_len, level_pixels, nearest_guide, neighbours, Pixel};
-use super::samples::{select_samples, spread_samples, spread_weights, support, Selection};
+use super::samples::{select_samples, spread_samples, spread_weights, Score, Selection};
 use crate::bundle::GuidedPolicy;
 
 /// The weights over all S samples of the pixels later levels read: those on the grid of every
@@ -190,10 +190,10 @@ pub fn plan_level(policy: &GuidedPolicy, frame: &mut Frame, spacing: usize, coun
             }
             continue;
         }
-        let score = neighbour_score(guidance, &near, samples);
-        let k = policy.samples_at(count, span, support(score.view(), policy.support_threshold)).min(samples);
+        let score = Score::of(neighbour_score(guidance, &near, samples).view());
+        let k = policy.samples_at(count, span, score.support(policy.support_threshold)).min(samples);
         let (pixels, selections) = runs.entry(k).or_default();
-        selections.push(select_samples(score.view(), k, policy.support_threshold));
+        selections.push(select_samples(&score, k, policy.support_threshold));
         pixels.push(p);
     }
     runs.into_iter().map(|(k, (pixels, selections))| FineRays::new(policy, grid, k, pixels, selections)).collect()
@@ -230,8 +230,8 @@ pub fn again_samples(policy: &GuidedPolicy, frame: &Frame, spacing: usize, pixel
     let selections = pixels
         .iter()
         .map(|&p| {
-            let score = neighbour_score(&frame.guidance, &neighbours(p, width, height, spacing), samples);
-            spread_samples(score.view(), count, policy.support_threshold)
+            let weights = neighbour_score(&frame.guidance, &neighbours(p, width, height, spacing), samples);
+            spread_samples(&Score::of(weights.view()), count, policy.support_threshold)
         })
         .collect();
     let grid = (grid_len(width, policy.step), grid_len(height, policy.step));

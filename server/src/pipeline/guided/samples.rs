@@ -15,26 +15,30 @@ pub struct Selection {
     pub owner: Vec<i32>,
 }
 
-/// The neighbours' weights dilated by one sample (half a neighbour's score): a surface between
-/// two samples is seen by both.
-fn dilate(score: ArrayView1<f32>) -> Vec<f32> {
-    let s = score.len();
-    let at = |k: isize| if k < 0 || k as usize >= s { 0.0 } else { score[k as usize] };
-    (0..s as isize).map(|k| at(k).max(0.5 * at(k - 1).max(at(k + 1)))).collect()
+/// A fine ray's score: its neighbours' weights (S) dilated by one sample (half a neighbour's
+/// weight), since a surface between two samples is seen by both. Computed once per ray, for its
+/// sample count ([`Score::support`]) and its samples ([`select_samples`], [`spread_samples`]).
+pub struct Score(Vec<f32>);
+
+impl Score {
+    pub fn of(weights: ArrayView1<f32>) -> Score {
+        let s = weights.len();
+        let at = |k: isize| if k < 0 || k as usize >= s { 0.0 } else { weights[k as usize] };
+        Score((0..s as isize).map(|k| at(k).max(0.5 * at(k - 1).max(at(k + 1)))).collect())
+    }
+
+    /// How many samples the score counts as matter: reach `threshold`.
+    pub fn support(&self, threshold: f32) -> usize {
+        self.0.iter().filter(|&&d| d >= threshold).count()
+    }
 }
 
-/// How many samples the neighbours' (dilated) weights `score` count as matter: reach `threshold`.
-pub fn support(score: ArrayView1<f32>, threshold: f32) -> usize {
-    dilate(score).iter().filter(|&&d| d >= threshold).count()
-}
-
-/// The `count` samples of a ray from its neighbours' weights `score` (S): see the Python twin,
-/// `select_samples`. The score is dilated by one sample; the samples with the highest dilated
-/// scores are taken (ties: the nearer to the best sample, then the lower index); every sample
-/// whose dilated score reaches `threshold` and is not taken is stood for by the nearest taken one
-/// (ties: the lower).
-pub fn select_samples(score: ArrayView1<f32>, count: usize, threshold: f32) -> Selection {
-    let dilated = dilate(score);
+/// The `count` samples of a ray from its `score`: see the Python twin, `select_samples`. The
+/// samples with the highest scores are taken (ties: the nearer to the best sample, then the lower
+/// index); every sample whose score reaches `threshold` and is not taken is stood for by the
+/// nearest taken one (ties: the lower).
+pub fn select_samples(score: &Score, count: usize, threshold: f32) -> Selection {
+    let dilated = &score.0;
     let s = dilated.len();
     let best = dilated.iter().enumerate().fold(0, |b, (k, &d)| if d > dilated[b] { k } else { b });
     let rank = |a: &usize, b: &usize| {
@@ -55,13 +59,13 @@ pub fn select_samples(score: ArrayView1<f32>, count: usize, threshold: f32) -> S
 }
 
 /// The `count` samples of a pixel rendered again (`spread_samples` in the Python twin): its
-/// neighbours' support (the samples whose dilated score reaches `threshold`; where those are more
-/// than half of `count`, the heaviest half, ties: the lower index), and the rest spread evenly
+/// neighbours' support (the samples whose score reaches `threshold`; where those are more than
+/// half of `count`, the heaviest half, ties: the lower index), and the rest spread evenly
 /// over the samples left (the i-th of the m left of r to take: left[i·m / r]). Every sample of
 /// the ray is stood for by the nearest taken one (ties: the lower): the pixel disagreed with
 /// its neighbours, so matter may lie where they saw none. `count` = S: every sample.
-pub fn spread_samples(score: ArrayView1<f32>, count: usize, threshold: f32) -> Selection {
-    let dilated = dilate(score);
+pub fn spread_samples(score: &Score, count: usize, threshold: f32) -> Selection {
+    let dilated = &score.0;
     let s = dilated.len();
     let count = count.min(s);
     let mut kept: Vec<usize> = (0..s).filter(|&k| dilated[k] >= threshold).collect();

@@ -37,7 +37,7 @@ fn a_narrow_surface_is_sampled_exactly() {
     let mut score = Array1::<f32>::zeros(16);
     score[7] = 0.6;
     score[8] = 0.3;
-    let sel = select_samples(score.view(), 4, 1e-3);
+    let sel = select_samples(&Score::of(score.view()), 4, 1e-3);
     // The two samples with weight, their dilation (6 and 9), nothing else stands for more.
     assert_eq!(sel.index, vec![6, 7, 8, 9]);
     assert_eq!(sel.multiplicity, vec![1.0; 4]);
@@ -47,7 +47,7 @@ fn a_narrow_surface_is_sampled_exactly() {
 #[test]
 fn a_wide_surface_is_stood_for_by_its_samples() {
     let score = arr1(&[0.0, 0.1, 0.1, 0.1, 0.1, 0.5, 0.1, 0.1, 0.1, 0.0, 0.0, 0.0]);
-    let sel = select_samples(score.view(), 3, 1e-3);
+    let sel = select_samples(&Score::of(score.view()), 3, 1e-3);
     assert_eq!(sel.index, vec![4, 5, 6]);
     // Support: samples 0..=9 (0 and 9 by dilation); 0..=4 go to 4, 6..=9 to 6.
     assert_eq!(sel.multiplicity, vec![5.0, 1.0, 4.0]);
@@ -62,11 +62,11 @@ fn a_wide_surface_is_stood_for_by_its_samples() {
 
 #[test]
 fn ties_go_to_the_samples_nearest_the_best() {
-    let sel = select_samples(Array1::<f32>::zeros(10).view(), 3, 1e-3);
+    let sel = select_samples(&Score::of(Array1::<f32>::zeros(10).view()), 3, 1e-3);
     assert_eq!(sel.index, vec![0, 1, 2]);
     let mut score = Array1::<f32>::zeros(10);
     score[5] = 1.0;
-    let sel = select_samples(score.view(), 5, 0.6);
+    let sel = select_samples(&Score::of(score.view()), 5, 0.6);
     assert_eq!(sel.index, vec![3, 4, 5, 6, 7]);
 }
 
@@ -74,16 +74,16 @@ fn ties_go_to_the_samples_nearest_the_best() {
 fn the_support_counts_the_dilated_samples_that_reach_the_threshold() {
     let score = arr1(&[0.0, 0.0, 0.4, 0.0, 0.0, 0.0, 0.1, 0.1, 0.0, 0.0]);
     // 2 and its dilation 1, 3; 6, 7 and theirs 5, 8.
-    assert_eq!(support(score.view(), 1e-3), 7);
-    assert_eq!(support(score.view(), 0.1), 5, "the dilated 0.05s (5 and 8) fall short");
-    assert_eq!(support(Array1::<f32>::zeros(8).view(), 1e-3), 0);
+    assert_eq!(Score::of(score.view()).support(1e-3), 7);
+    assert_eq!(Score::of(score.view()).support(0.1), 5, "the dilated 0.05s (5 and 8) fall short");
+    assert_eq!(Score::of(Array1::<f32>::zeros(8).view()).support(1e-3), 0);
 }
 
 #[test]
 fn a_pixel_rendered_again_keeps_its_support_and_spreads_the_rest() {
     let mut score = Array1::<f32>::zeros(16);
     score[9] = 0.5;
-    let sel = spread_samples(score.view(), 8, 1e-3);
+    let sel = spread_samples(&Score::of(score.view()), 8, 1e-3);
     // The support 8, 9, 10 and 5 more of the 13 samples left, evenly from the first.
     assert_eq!(sel.index, vec![0, 2, 5, 7, 8, 9, 10, 13]);
     // Every sample is stood for: the nearest taken one (ties: the lower).
@@ -93,9 +93,9 @@ fn a_pixel_rendered_again_keeps_its_support_and_spreads_the_rest() {
     // A support wider than half the count keeps its heaviest half: 3, then 2 and 4 tie at the
     // dilated 0.45 (the lower); the other two spread over 0, 1, 4, 5, 6, 7.
     let wide = arr1(&[0.2, 0.2, 0.2, 0.9, 0.2, 0.2, 0.2, 0.2]);
-    assert_eq!(spread_samples(wide.view(), 4, 1e-3).index, vec![0, 2, 3, 5]);
+    assert_eq!(spread_samples(&Score::of(wide.view()), 4, 1e-3).index, vec![0, 2, 3, 5]);
     // At S samples: every sample, each for itself.
-    let all = spread_samples(score.view(), 16, 1e-3);
+    let all = spread_samples(&Score::of(score.view()), 16, 1e-3);
     assert_eq!(all.index, (0..16).collect::<Vec<u32>>());
     assert_eq!(all.multiplicity, vec![1.0; 16]);
 }
