@@ -130,8 +130,9 @@ def cmd_blend_heads(args) -> None:
 
 def cmd_refine(args) -> None:
     from .train.refine import Recipe as RefineRecipe
-    from .train.refine import refine
+    from .train.refine import keep_freed_memory, refine
 
+    keep_freed_memory()
     recipe = RefineRecipe(
         minutes=args.minutes,
         train=tuple(t.strip() for t in args.train.split(",") if t.strip()),

@@ -7,7 +7,8 @@ serde's rules from there, so that the two accept the same files:
 * keys serde ignores (unknown keys of the manifest, a graph or a tensor) are kept in ``extra`` and
   written back, so a tool that rewrites a manifest (quantize, add-guided, split-volume) never drops
   what another wrote;
-* ``guided`` denies unknown keys (``deny_unknown_fields``), and every key of it is required;
+* ``guided`` and ``band`` deny unknown keys (``deny_unknown_fields``), and every key of them is
+  required;
 * ``provenance`` is free JSON to the server; the keys the exporter reads are typed here, the rest
   kept in ``Provenance.extra``.
 
@@ -32,6 +33,10 @@ from ..config import ModelConfig
 
 FORMAT_VERSION = 1
 FLOAT32 = "fp32"
+# ``band.fill``: which views' bands take their sources' colour (runtime/band.py). Views the network
+# renders dark (the default when ``band`` is absent), or every view: a network refined on a capture
+# renders its band brighter than the default does, yet further from the photos than its sources.
+BAND_RULES = ("when_dark", "always")
 
 
 class ManifestError(ValueError):
@@ -318,6 +323,7 @@ class Manifest:
     graphs: dict[str, GraphEntry]
     provenance: Provenance
     guided: GuidedPolicy | None = None
+    band: str = BAND_RULES[0]  # band.fill
     precision: str = FLOAT32
     extra: dict[str, Any] = field(default_factory=dict)
 
@@ -341,6 +347,7 @@ class Manifest:
             raise ManifestError(f"format_version is {version}, this exporter reads format_version {FORMAT_VERSION}")
         graphs = _object(values["graphs"], "graphs")
         guided = values.get("guided")
+        band = values.get("band")
         return cls(
             format_version=version,
             model_id=_typed(values["model_id"], str, "model_id"),
@@ -349,6 +356,7 @@ class Manifest:
             graphs={name: GraphEntry.from_json(g, f"graphs.{name}") for name, g in graphs.items()},
             provenance=Provenance.from_json(values["provenance"]),
             guided=None if guided is None else GuidedPolicy.from_json(guided),
+            band=BAND_RULES[0] if band is None else band_rule(band),
             precision=_typed(values.get("precision", FLOAT32), str, "precision"),
             extra=extra,
         )
@@ -364,6 +372,8 @@ class Manifest:
         }
         if self.guided is not None:
             out["guided"] = self.guided.to_json()
+        if self.band != BAND_RULES[0]:
+            out["band"] = {"fill": self.band}
         if self.precision != FLOAT32:
             out["precision"] = self.precision
         return {**out, **self.extra}
@@ -381,6 +391,18 @@ class Manifest:
     def renderer_model_id(self) -> str:
         """The id this manifest's variant and renderer graph give (what ``model_id`` must say)."""
         return model_id(self.variant, self.graphs["renderer"].sha256)
+
+
+def band_rule(data: Any, where: str = "band") -> str:
+    """The manifest's ``band``: ``{"fill": rule}``, one of BAND_RULES."""
+    _require(_object(data, where), ["fill"], where)
+    unknown = sorted(set(data) - {"fill"})
+    if unknown:
+        raise ManifestError(f"{where}: unknown key {unknown[0]!r}")
+    fill = _typed(data["fill"], str, _at(where, "fill"))
+    if fill not in BAND_RULES:
+        raise ManifestError(f"{_at(where, 'fill')}: {fill!r} is not one of {', '.join(BAND_RULES)}")
+    return fill
 
 
 def model_config(data: Any, where: str = "config") -> ModelConfig:

@@ -118,16 +118,19 @@ def fill_from_sources(
     origins: np.ndarray,
     directions: np.ndarray,
     sources: Sources,
+    rule: str = "when_dark",
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The renderer's raw colours (N,3) with the band's pixels recoloured when the band is dark (and with
-    them the pixels no source sees, which keeps the band's edge at the image's edge continuous), and
-    which pixels were."""
+    """The renderer's raw colours (N,3) with the band's pixels recoloured when the band is dark or the
+    ``rule`` (the manifest's ``band.fill``, ``export.manifest.BAND_RULES``) is "always" (and with
+    them the pixels no source sees, which keeps the band's edge at the image's edge continuous),
+    and which pixels were."""
     views, colour, coloured = sightings(surface_points(depth, origins, directions), sources)
     seen = opacity[:, None].astype(np.float64) * colour
     every = len(sources.sizes)
     ratio = colour_ratio(rgb, seen, (views > 0) & (views < every))
     everywhere = colour_ratio(rgb, seen, views == every)
-    if ratio is None or everywhere is None or not ratio < DARKER * everywhere:
+    dark = ratio is not None and everywhere is not None and ratio < DARKER * everywhere
+    if not (dark or rule == "always"):
         return rgb, np.zeros(len(rgb), bool)
     recoloured = coloured & (views < every)
     filled = rgb.copy()
@@ -135,14 +138,15 @@ def fill_from_sources(
     return filled, recoloured
 
 
-def fill_rendering(rendering: Rendering, target: Camera, scene: dict, background) -> Rendering:
-    """A composited view with its band recoloured from the encoded ``scene``'s sources, as the server
-    does between its renderer and the composite."""
+def fill_rendering(rendering: Rendering, target: Camera, scene: dict, background, rule: str = "when_dark") -> Rendering:
+    """A composited view with its band recoloured from the encoded ``scene``'s sources by ``rule``, as
+    the server does between its renderer and the composite."""
     bg = np.asarray(background, np.float32)
     opacity = rendering.opacity.reshape(-1)
     transparency = (1.0 - opacity)[:, None] * bg
     raw = rendering.rgb.reshape(-1, 3) - transparency
     origins, directions = cams.target_rays(target)
-    filled, band = fill_from_sources(raw, rendering.depth.reshape(-1), opacity, origins, directions, Sources.of(scene))
+    depth = rendering.depth.reshape(-1)
+    filled, band = fill_from_sources(raw, depth, opacity, origins, directions, Sources.of(scene), rule)
     rgb = np.where(band[:, None], filled + transparency, rendering.rgb.reshape(-1, 3))
     return replace(rendering, rgb=rgb.reshape(rendering.rgb.shape).astype(rendering.rgb.dtype))

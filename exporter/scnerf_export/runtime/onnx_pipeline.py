@@ -15,8 +15,9 @@ from ..export.manifest import Manifest
 from .band import FILLS, fill_rendering
 from .chunks import fine_rays_per_run, rays_per_run
 from .guided import guided_rendering
+from .plane_sweep import sweep
 from .view import Rendering, pad_images, render_in_passes
-from .volume_slabs import build_volume
+from .volume_slabs import Sweep, build_volume
 
 
 def session_options(threads: int | None) -> ort.SessionOptions:
@@ -28,8 +29,11 @@ def session_options(threads: int | None) -> ort.SessionOptions:
 
 
 class OnnxBundle:
-    def __init__(self, bundle_dir: str | Path, threads: int | None = None):
+    def __init__(self, bundle_dir: str | Path, threads: int | None = None, plane_sweep: Sweep = sweep):
+        """``plane_sweep``: how a bundle that leaves the plane sweep to the server computes it
+        (default: the server's arithmetic, in numpy)."""
         self.path = Path(bundle_dir)
+        self.plane_sweep = plane_sweep
         self.manifest = Manifest.load(self.path)
         self.cfg = self.manifest.config
         options = session_options(threads)
@@ -67,7 +71,7 @@ class OnnxBundle:
             "depth_planes": cams.depth_planes(near, far, self.cfg.depth_planes),
         }
         start = time.perf_counter()
-        volume = build_volume(self.sessions, feeds, self.cfg)
+        volume = build_volume(self.sessions, feeds, self.cfg, plane_sweep=self.plane_sweep)
         self.timings["volume"] = self.timings.get("volume", 0.0) + time.perf_counter() - start
         return {
             "images": imgs,
@@ -154,7 +158,7 @@ class OnnxBundle:
 
             rendering = render_in_passes(self.cfg, target, near, far, background, rays)
         if band == "sources":
-            rendering = fill_rendering(rendering, target, scene, background)
+            rendering = fill_rendering(rendering, target, scene, background, self.manifest.band)
         elif band != "network":
             raise ValueError(f"band must be one of {', '.join(FILLS)}, got {band!r}")
         return rendering

@@ -10,6 +10,7 @@ runs whichever the bundle has.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import onnxruntime as ort
@@ -27,6 +28,9 @@ from .plane_sweep import sweep
 SLAB_BYTES_PER_CELL = {"slabs": 1024, "sweep": 512}
 SLAB_BUDGET_BYTES = 512 << 20
 
+# A plane sweep: (features, images, projections, depth_planes, plane_inside, pad) -> the cost.
+Sweep = Callable[..., np.ndarray]
+
 
 def volume_build(graphs) -> str:
     """How a bundle with ``graphs`` (names) builds the volume: "whole", "slabs" or "sweep"."""
@@ -40,14 +44,16 @@ def planes_per_slab(build: str, depth_planes: int, cells_per_plane: int, budget:
     return int(np.clip(budget // per_plane - 2, 1, depth_planes))
 
 
-def slab_feeds(build: str, inputs: dict[str, np.ndarray], start: int, stop: int, pad: int) -> dict[str, np.ndarray]:
+def slab_feeds(
+    build: str, inputs: dict[str, np.ndarray], start: int, stop: int, pad: int, plane_sweep: Sweep = sweep
+) -> dict[str, np.ndarray]:
     """The slab graph's inputs for planes ``start..stop`` of the volume's ``inputs`` (features,
-    images, projections, depth_planes): their cost (the plane sweep) for ``cost_conv``, the
+    images, projections, depth_planes): their cost (``plane_sweep``) for ``cost_conv``, the
     volume's inputs with the slab's planes for ``cost_slab``."""
     index, inside = slab_halo(inputs["depth_planes"].shape[0], start, stop)
     planes = inputs["depth_planes"][index]
     if build == "sweep":
-        return {"cost": sweep(inputs["features"], inputs["images"], inputs["projections"], planes, inside, pad)}
+        return {"cost": plane_sweep(inputs["features"], inputs["images"], inputs["projections"], planes, inside, pad)}
     return {**inputs, "depth_planes": planes, "plane_inside": inside}
 
 
@@ -55,14 +61,19 @@ def volume_from_tail(conv0: np.ndarray, outputs: dict[str, np.ndarray], slope: f
     """G2's last step from what ``volume_net.onnx`` returns in place of the volume, as the server
     computes it (docs/bundle.md): ``σ(conv0·skip_affine) + σ(interleave(phases)·phases_affine)``,
     σ the leaky ReLU of ``slope``, each affine map [scale; shift] per channel."""
+    if not 0.0 <= slope < 1.0:
+        raise ValueError(f"a leaky ReLU's slope is in [0, 1), got {slope}")
     phases = outputs["phases"]
     c = conv0.shape[1]
     _, _, d, h, w = phases.shape
     up = phases.reshape(c, 2, 2, 2, d, h, w).transpose(0, 4, 1, 5, 2, 6, 3).reshape(1, c, 2 * d, 2 * h, 2 * w)
 
     def activated(x: np.ndarray, affine: np.ndarray) -> np.ndarray:
-        y = x * affine[0].reshape(1, c, 1, 1, 1) + affine[1].reshape(1, c, 1, 1, 1)
-        return np.where(y > 0, y, y * np.float32(slope))
+        # In place, and the leaky ReLU as max(y, slope·y): the same bits as
+        # where(y > 0, y, slope·y), over ten times faster.
+        y = x * affine[0].reshape(1, c, 1, 1, 1)
+        y += affine[1].reshape(1, c, 1, 1, 1)
+        return np.maximum(y, y * np.float32(slope), out=y)
 
     return activated(conv0, outputs["skip_affine"]) + activated(up, outputs["phases_affine"])
 
@@ -76,13 +87,17 @@ def run_volume_net(session: ort.InferenceSession, conv0: np.ndarray, slope: floa
 
 
 def volume_by_slabs(
-    sessions: dict[str, ort.InferenceSession], inputs: dict[str, np.ndarray], step: int, cfg: ModelConfig
+    sessions: dict[str, ort.InferenceSession],
+    inputs: dict[str, np.ndarray],
+    step: int,
+    cfg: ModelConfig,
+    plane_sweep: Sweep = sweep,
 ) -> np.ndarray:
     """The encoding volume from the volume's ``inputs``, ``step`` planes per slab run."""
     build = volume_build(sessions)
     slab = sessions["cost_conv" if build == "sweep" else "cost_slab"]
     d = inputs["depth_planes"].shape[0]
-    feeds = (slab_feeds(build, inputs, a, min(a + step, d), cfg.pad) for a in range(0, d, step))
+    feeds = (slab_feeds(build, inputs, a, min(a + step, d), cfg.pad, plane_sweep) for a in range(0, d, step))
     conv0 = np.concatenate([slab.run(None, f)[0] for f in feeds], axis=2)
     return run_volume_net(sessions["volume_net"], conv0, cfg.activation_slope)
 
@@ -109,12 +124,14 @@ def build_volume(
     inputs: dict[str, np.ndarray],
     cfg: ModelConfig,
     budget: int = SLAB_BUDGET_BYTES,
+    plane_sweep: Sweep = sweep,
 ) -> np.ndarray:
     """The encoding volume from the volume's ``inputs``, by the bundle's own graphs (``sessions``
-    by graph name), slabs of what ``budget`` allows."""
+    by graph name), slabs of what ``budget`` allows, the cost by ``plane_sweep`` (default: the
+    server's arithmetic)."""
     build = volume_build(sessions)
     if build == "whole":
         return sessions["volume"].run(None, inputs)[0]
     _, _, h, w = inputs["features"].shape
     step = planes_per_slab(build, inputs["depth_planes"].shape[0], (h + 2 * cfg.pad) * (w + 2 * cfg.pad), budget)
-    return volume_by_slabs(sessions, inputs, step, cfg)
+    return volume_by_slabs(sessions, inputs, step, cfg, plane_sweep)

@@ -24,6 +24,7 @@ command run again resumes until the budget is spent.
 
 from __future__ import annotations
 
+import ctypes
 import hashlib
 import json
 import os
@@ -39,9 +40,10 @@ import torch
 from tqdm import tqdm
 
 from .. import __version__
+from ..runtime.band import Sources
 from ..runtime.onnx_pipeline import OnnxBundle
 from .from_scratch import hardware
-from .refine_bank import Encoded, PointBank, bank_view, score, shade
+from .refine_bank import Encoded, PointBank, bank_view, score, shade, sweep_in_torch
 from .refine_bundle import base_model, write_bundle
 from .refine_capture import MAX_SOURCE_PIXELS, Capture, Split, read_capture, split_views, spread_order
 
@@ -58,7 +60,7 @@ def default_bundle() -> Path:
 class Recipe:
     minutes: float = 15.0
     train: tuple[str, ...] = ("trunk", "heads")
-    lr: float = 1e-4
+    lr: float = 1e-3
     rays: int = 256  # per step
     rays_per_view: int = 4096  # banked per training view, at most
     bank_rays: int = 1 << 17  # banked over all training views, at most (~16 KB each)
@@ -139,6 +141,7 @@ class Refinement:
         self.banked: list[str] = []
         self.train_bank: PointBank | None = None
         self.held_bank: PointBank | None = None
+        self.held_sources: list[Sources] = []
         self.clock = time.perf_counter()
         self.since_bank = self.since_score = self.bank_seconds = self.score_seconds = 0.0
         self.loss = float("nan")
@@ -163,7 +166,8 @@ class Refinement:
     def _bank(self, name: str, index: int, count: int) -> PointBank:
         """The banked rays of view ``name``: read from the work folder, or built and written there."""
         pick = self._pixels(name, count)
-        path = self.work / "banks" / f"{hashlib.sha256(name.encode()).hexdigest()[:16]}-{len(pick)}.pt"
+        key = hashlib.sha256(name.encode()).hexdigest()[:16]
+        path = self.work / "banks" / f"{key}-{len(pick)}-v{PointBank.FORMAT}.pt"
         if path.is_file():
             bank = PointBank(**torch.load(path, weights_only=True))
             bank.view.fill_(index)
@@ -185,6 +189,12 @@ class Refinement:
         held = self.split.held_out
         count = max(self.recipe.min_held_out_rays, self.recipe.held_out_rays // len(held))
         self.held_bank = PointBank.concat([self._bank(name, i, count) for i, name in enumerate(held)])
+        views = self.capture.scene.views
+        for name in held:
+            sources = [views[s] for s in self.split.sources[name]]
+            self.held_sources.append(
+                Sources.of_views(np.stack([v.image for v in sources]), [v.camera for v in sources])
+            )
 
     def bank_next(self) -> None:
         """Banks the next training view and adds it to the rays steps draw from."""
@@ -218,11 +228,15 @@ class Refinement:
         return self.loss
 
     def score(self) -> dict:
-        """Scores the held-out views; keeps the weights when they beat every scored step before."""
+        """Scores the held-out views as the server renders them: the base by its bundle's band rule,
+        a step by the rule that scores it best. Keeps the weights when they beat every scored step
+        before."""
         start = self.elapsed()
-        result = score(self.renderer, self.held_bank, self.split.held_out)
+        by_rule = score(self.renderer, self.held_bank, self.split.held_out, self.held_sources)
         self.score_seconds = self.elapsed() - start
         p = self.progress
+        rule = self.onnx.manifest.band if p.initial is None else max(by_rule, key=lambda r: by_rule[r]["psnr"])
+        result = {**by_rule[rule], "band": rule, "psnr_by_band": {r: s["psnr"] for r, s in by_rule.items()}}
         p.history.append({"step": p.step, "seconds": self.elapsed(), **result})
         if p.initial is None:
             p.initial = p.best = result
@@ -275,7 +289,7 @@ def report(run: Refinement, result: dict) -> str:
     line = f"step {p.step} ({run.elapsed() / 60:.1f} min): held-out PSNR {result['psnr']:.2f} dB ({gain:+.2f})"
     if "psnr_masked" in result:
         line += f", masked {result['psnr_masked']:.2f} dB ({result['psnr_masked'] - p.initial['psnr_masked']:+.2f})"
-    return line + f"; best step {p.best_step}"
+    return line + f", band filled {result['band'].replace('_', ' ')}; best step {p.best_step}"
 
 
 def train_to(run: Refinement, deadline: float, bar: tqdm, log) -> None:
@@ -382,6 +396,7 @@ def refinement_record(run: Refinement, about: dict, interrupted: bool) -> dict:
         "trained": sorted(m for g in recipe.train for m in MODULES[g] if getattr(run.renderer, m, None) is not None),
         "recipe": {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(recipe).items()},
         "sampling": f"{run.renderer.cfg.samples} uniform samples per ray on the capture's [near, far]",
+        "band": p.best["band"],
         "steps": p.best_step,
         "steps_run": p.step,
         "minutes": round(run.elapsed() / 60.0, 2),
@@ -391,6 +406,21 @@ def refinement_record(run: Refinement, about: dict, interrupted: bool) -> dict:
         "hardware": hardware(),
         "interrupted": interrupted,
     }
+
+
+def keep_freed_memory() -> None:
+    """Large blocks from the heap, and freed memory kept there for the next block. glibc otherwise
+    maps every block above its threshold anew and returns it when freed, and the page faults of
+    each step's activations and each bank's volume made a step 1.5x and a bank 2-3x as long on the
+    development machine (PyTorch's CPU tuning guide recommends an allocator that keeps memory, for
+    the same reason). Process-wide, so the command sets it, not the library; nothing off glibc."""
+    m_trim_threshold, m_mmap_max = -1, -4
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        libc.mallopt(m_mmap_max, 0)
+        libc.mallopt(m_trim_threshold, 1 << 30)
+    except (OSError, AttributeError):
+        pass
 
 
 def refine(
@@ -417,7 +447,8 @@ def refine(
     model, manifest, about = base_model(base, checkpoint)
     identity = identity_of(about, capture, split, recipe)
     state = check_out(out, base, identity)
-    run = Refinement(model, capture, split, OnnxBundle(base, threads=threads), recipe, out / ".refine")
+    onnx = OnnxBundle(base, threads=threads, plane_sweep=sweep_in_torch)
+    run = Refinement(model, capture, split, onnx, recipe, out / ".refine")
     run.identity = identity
     if state is not None:
         run.load(state)
@@ -471,9 +502,9 @@ def write(run: Refinement, manifest, base: Path, out: Path, about: dict, identit
             raise KeyboardInterrupt
         raise RefineError(f"the budget of {run.recipe.minutes:g} minutes ended before the held-out views were scored")
     record = refinement_record(run, about, interrupted)
-    model = None
-    if run.progress.best_step > 0:
+    p, model = run.progress, None
+    if p.best_step > 0:
         restore(run.params, run.best_params)
         model = run.model
-    written = write_bundle(base, manifest, model, out, record, run.work / "staging")
+    written = write_bundle(base, manifest, model, out, record, run.work / "staging", band=p.best["band"])
     return Result(out, written.model_id, record, interrupted)

@@ -133,6 +133,24 @@ def test_the_guided_policy_denies_unknown_keys_as_the_server_does(tmp_path):
         write_changed(tmp_path, extend)
 
 
+def test_the_band_rule_reads_and_writes_back_and_is_absent_for_the_default(tmp_path):
+    assert Manifest.load(REPO / "bundles" / "default").band == "when_dark"
+
+    def always(data):
+        data["band"] = {"fill": "always"}
+
+    manifest = write_changed(tmp_path, always)
+    assert manifest.band == "always" and manifest.to_json()["band"] == {"fill": "always"}
+    assert manifest.text() == (tmp_path / "manifest.json").read_text()
+
+    for band, message in (
+        ({"fill": "sometimes"}, "band.fill: 'sometimes'"),
+        ({"fill": "always", "x": 1}, "band: unknown key"),
+    ):
+        with pytest.raises(ManifestError, match=message):
+            write_changed(tmp_path, lambda data, band=band: data.update(band=band))
+
+
 def test_a_config_the_network_does_not_have_is_refused(tmp_path):
     def extend(data):
         data["config"]["dropout"] = 0.1

@@ -18,7 +18,7 @@ from scnerf_export.export.volume_tail import PHASES, PHASES_AFFINE, SKIP_AFFINE,
 from scnerf_export.model.checkpoint import sha256_file
 from scnerf_export.model.layers import BatchStatNorm
 from scnerf_export.rigs import random_model
-from scnerf_export.runtime.volume_slabs import run_volume_net
+from scnerf_export.runtime.volume_slabs import run_volume_net, volume_from_tail
 
 from conftest import REPO
 
@@ -64,6 +64,11 @@ def test_the_server_step_gives_the_volume_of_the_graph_it_was_cut_from(g2_ending
         got = run_volume_net(session(cut), conv0, slope)
         assert got.shape == want.shape
         np.testing.assert_allclose(got, want, atol=1e-5 * np.abs(want).max())
+
+
+def test_the_server_step_refuses_a_slope_that_is_not_a_leaky_relus():
+    with pytest.raises(ValueError, match="slope is in"):
+        volume_from_tail(np.zeros((1, 8, 2, 2, 2), np.float32), {}, 1.5)
 
 
 def test_a_graph_that_does_not_end_as_g2_is_refused(g2_ending_in_the_graph):

@@ -29,7 +29,7 @@ def ramp_sources(padding: float = 0.0) -> Sources:
     return Sources(images, [(4, 3), (2, 3)], intrinsics, np.tile(np.eye(4, dtype=np.float32), (2, 1, 1)))
 
 
-def fill(sources: Sources, network, rays=RAYS, depth=(2.0, 2.0)):
+def fill(sources: Sources, network, rays=RAYS, depth=(2.0, 2.0), rule="when_dark"):
     n = len(rays)
     return fill_from_sources(
         np.array(network, np.float32),
@@ -38,6 +38,7 @@ def fill(sources: Sources, network, rays=RAYS, depth=(2.0, 2.0)):
         np.zeros((n, 3), np.float32),
         np.array([[x, 0.0, 1.0] for x in rays], np.float32),
         sources,
+        rule,
     )
 
 
@@ -52,6 +53,12 @@ def test_a_band_within_the_ratio_of_the_rest_keeps_the_networks_colour():
     rgb, recoloured = fill(ramp_sources(), network)
     assert not recoloured.any()
     np.testing.assert_array_equal(rgb, network)
+
+
+def test_a_bundle_that_always_fills_recolours_a_band_that_is_not_dark():
+    rgb, recoloured = fill(ramp_sources(), np.array([EVERY, 0.95 * SEEN_BY_ONE], np.float32), rule="always")
+    assert recoloured.tolist() == [False, True]
+    np.testing.assert_allclose(rgb, [EVERY, SEEN_BY_ONE], atol=1e-6)
 
 
 def test_without_pixels_every_source_sees_nothing_is_recoloured():

@@ -10,6 +10,7 @@ from scnerf_export.model.cost_volume import build_cost_volume, slab_halo
 from scnerf_export.model.layers import normalise_imagenet
 from scnerf_export.rigs import random_model, synthetic_rig
 from scnerf_export.runtime.plane_sweep import quarter_images, sweep
+from scnerf_export.train.refine_bank import sweep_in_torch
 
 
 def rig_and_features(seed=1):
@@ -40,3 +41,12 @@ def test_the_sweep_is_the_cost_volume_and_zero_beyond_the_volume():
     # The homographies' float32 rounding differs from PyTorch's matrix products: ~1e-5 px.
     assert np.abs(got[:, :, 1:] - want[:, :, 1:]).max() < 1e-4
     assert np.abs(want[:, 9:]).max() > 1.0, "a cost volume worth comparing"
+
+
+def test_the_sweep_refine_banks_with_is_the_servers():
+    cfg, rig, features = rig_and_features(seed=2)
+    index, inside = slab_halo(cfg.depth_planes, cfg.depth_planes - 5, cfg.depth_planes)  # a last slab
+    args = (features.numpy(), rig["images"].numpy(), rig["projections"].numpy(), rig["depth_planes"].numpy()[index])
+    want, got = sweep(*args, inside, cfg.pad), sweep_in_torch(*args, inside, cfg.pad)
+    assert not got[:, :, -1].any() and inside[-1] == 0
+    assert np.abs(got - want).max() < 1e-4

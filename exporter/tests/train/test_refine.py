@@ -27,14 +27,14 @@ from scnerf_export.cameras import target_rays
 from scnerf_export.config import small_config
 from scnerf_export.data.procedural import make_scene
 from scnerf_export.data.scene import SceneData, View
-from scnerf_export.export.manifest import Manifest
+from scnerf_export.export.manifest import BAND_RULES, Manifest
 from scnerf_export.model.checkpoint import save_checkpoint
 from scnerf_export.rigs import random_model
 from scnerf_export.runtime.onnx_pipeline import OnnxBundle
 from scnerf_export.runtime.reference import encode_scene, render_rays
 from scnerf_export.train import refine as refine_module
 from scnerf_export.train.refine import Recipe, RefineError, Refinement, refine, snapshot
-from scnerf_export.train.refine_bank import Encoded, bank_view, score, shade
+from scnerf_export.train.refine_bank import Encoded, bank_view, composite, render_raw, score_colours, shade
 from scnerf_export.train.refine_bundle import base_model
 from scnerf_export.train.refine_capture import (
     CaptureError,
@@ -176,13 +176,17 @@ def banked(run: Refinement) -> Refinement:
     return run
 
 
+def training_views_psnr(run: Refinement) -> float:
+    rgb, _, opacity = render_raw(run.renderer, run.train_bank)
+    return score_colours(run.train_bank, composite(run.train_bank, rgb, opacity), run.banked)["psnr"]
+
+
 def test_steps_make_the_training_views_score_better(loaded, tmp_path):
     run = banked(fresh_run(loaded, tmp_path))
-    names = run.banked
-    before = score(run.renderer, run.train_bank, names)["psnr"]
+    before = training_views_psnr(run)
     for _ in range(25):
         run.step()
-    after = score(run.renderer, run.train_bank, names)["psnr"]
+    after = training_views_psnr(run)
     assert after > before + 0.5, (before, after)
 
 
@@ -225,6 +229,16 @@ def test_held_out_views_never_reach_the_optimiser(loaded, tmp_path, monkeypatch)
         assert {run.banked[i] for i in bank.view[idx].tolist()} <= set(split.training)
     assert len(gradients) == 10 and all(gradients) and all(math.isfinite(x) for x in losses)
     assert math.isnan(run.score()["psnr"])  # the held-out views are the poisoned ones
+
+
+def test_the_base_scores_by_its_band_rule_and_a_step_by_the_rule_that_serves_it_best(loaded, tmp_path):
+    run = banked(fresh_run(loaded, tmp_path))
+    base = run.score()
+    assert base["band"] == run.onnx.manifest.band and base["psnr"] == base["psnr_by_band"][base["band"]]
+    run.step()
+    step = run.score()
+    assert set(step["psnr_by_band"]) == set(BAND_RULES)
+    assert step["psnr"] == max(step["psnr_by_band"].values()) == step["psnr_by_band"][step["band"]]
 
 
 def test_a_resumed_run_continues_as_the_uninterrupted_one(loaded, tmp_path):

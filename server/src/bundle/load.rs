@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use sha2::{Digest, Sha256};
 
 use super::graphs::{GraphKind, VolumeBuild, VolumeTail, GUIDED_GRAPHS};
-use super::manifest::{DepthNorm, GraphEntry, GuidedPolicy, Manifest, ModelConfig};
+use super::manifest::{BandRule, DepthNorm, GraphEntry, GuidedPolicy, Manifest, ModelConfig};
 use super::validate::validate_manifest;
 
 #[derive(Debug, thiserror::Error)]
@@ -71,6 +71,11 @@ impl Bundle {
             .guided
             .as_ref()
             .filter(|_| !self.renderer_takes("depth_range") || self.config.depth_norm == DepthNorm::NearFar)
+    }
+
+    /// Which views' bands the band stage recolours.
+    pub fn band_rule(&self) -> BandRule {
+        self.manifest.band.map(|b| b.fill).unwrap_or_default()
     }
 
     /// A graph of the bundle (one of `graphs()`).

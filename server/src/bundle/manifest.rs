@@ -88,7 +88,31 @@ pub struct Manifest {
     /// Guided sampling's policy, with its graphs.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub guided: Option<GuidedPolicy>,
+    /// When the band stage recolours a view's band from its sources; absent: where it is dark.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub band: Option<BandPolicy>,
     pub provenance: serde_json::Value,
+}
+
+/// The manifest's `band` object (docs/bundle.md).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BandPolicy {
+    pub fill: BandRule,
+}
+
+/// Which views' bands take their sources' colour.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum BandRule {
+    /// Views whose band the network renders darker than its sources
+    /// ([`DARKER`](crate::pipeline::band::DARKER)): the default model's dark band.
+    #[default]
+    WhenDark,
+    /// Every view: a network refined on a capture renders its band brighter than the default
+    /// does, yet further from the photos than the sources' colours (`scnerf-export refine`
+    /// measures both on the held-out views and writes this when the sources' win).
+    Always,
 }
 
 /// The manifest's `guided` object (docs/bundle.md).

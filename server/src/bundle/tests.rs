@@ -54,6 +54,17 @@ fn refuses_wrong_format_version() {
 }
 
 #[test]
+fn the_band_rule_is_the_manifests_when_it_names_one() {
+    let mut json = serde_json::to_value(sample_manifest()).unwrap();
+    let rule = |json: &serde_json::Value| serde_json::from_value::<Manifest>(json.clone()).map(|m| m.band);
+    assert_eq!(rule(&json).unwrap(), None);
+    json["band"] = serde_json::json!({"fill": "always"});
+    assert_eq!(rule(&json).unwrap(), Some(BandPolicy { fill: BandRule::Always }));
+    json["band"] = serde_json::json!({"fill": "sometimes"});
+    assert!(rule(&json).unwrap_err().to_string().contains("sometimes"));
+}
+
+#[test]
 fn refuses_unknown_variant() {
     let mut m = sample_manifest();
     m.variant = "nerf".into();

@@ -15,6 +15,7 @@
 use ndarray::{ArrayView2, ArrayView3, ArrayView4, Axis};
 
 use super::chunks::RawView;
+use crate::bundle::BandRule;
 use super::rays::Rays;
 use super::scene::Scene;
 
@@ -128,17 +129,19 @@ impl Mean {
     }
 }
 
-/// Recolours the band's pixels of `raw` (rays `rays`) from `sources` when the band is dark, and
-/// with them the pixels no source sees (from the nearest pixels of the sources, which keeps the
-/// band's edge at the image's edge continuous); returns how many it recoloured.
-pub fn fill_from_sources(raw: &mut RawView, rays: &Rays, sources: &Sources) -> usize {
+/// Recolours the band's pixels of `raw` (rays `rays`) from `sources` when the band is dark (or
+/// always, by the bundle's `rule`), and with them the pixels no source sees (from the nearest
+/// pixels of the sources, which keeps the band's edge at the image's edge continuous); returns
+/// how many it recoloured.
+pub fn fill_from_sources(raw: &mut RawView, rays: &Rays, sources: &Sources, rule: BandRule) -> usize {
     let views = sources.sizes.len();
     let sightings: Vec<Sighting> = (0..raw.depth.len())
         .map(|i| sources.sight(surface_point(rays.origins.view(), rays.directions.view(), i, raw.depth[i])))
         .collect();
     let band = colour_ratio(raw, &sightings, |s| s.views > 0 && s.views < views);
     let everywhere = colour_ratio(raw, &sightings, |s| s.views == views);
-    if !matches!((band, everywhere), (Some(band), Some(everywhere)) if band < DARKER * everywhere) {
+    let dark = matches!((band, everywhere), (Some(band), Some(everywhere)) if band < DARKER * everywhere);
+    if !(dark || rule == BandRule::Always) {
         return 0;
     }
     let mut filled = 0;
@@ -244,7 +247,7 @@ mod tests {
         let rig = ramp_rig();
         // The pixel both sources see as they show it; the other at half its source's colour.
         let mut raw = view([EVERY, SEEN_BY_ONE.map(|c| 0.5 * c)]);
-        assert_eq!(fill_from_sources(&mut raw, &rays(&RAYS), &rig.sources()), 1);
+        assert_eq!(fill_from_sources(&mut raw, &rays(&RAYS), &rig.sources(), BandRule::WhenDark), 1);
         assert_close(&raw, [EVERY, SEEN_BY_ONE]);
     }
 
@@ -253,8 +256,16 @@ mod tests {
         let rig = ramp_rig();
         let network = [EVERY, SEEN_BY_ONE.map(|c| 0.95 * c)];
         let mut raw = view(network);
-        assert_eq!(fill_from_sources(&mut raw, &rays(&RAYS), &rig.sources()), 0);
+        assert_eq!(fill_from_sources(&mut raw, &rays(&RAYS), &rig.sources(), BandRule::WhenDark), 0);
         assert_close(&raw, network);
+    }
+
+    #[test]
+    fn a_bundle_that_always_fills_recolours_a_band_that_is_not_dark() {
+        let rig = ramp_rig();
+        let mut raw = view([EVERY, SEEN_BY_ONE.map(|c| 0.95 * c)]);
+        assert_eq!(fill_from_sources(&mut raw, &rays(&RAYS), &rig.sources(), BandRule::Always), 1);
+        assert_close(&raw, [EVERY, SEEN_BY_ONE]);
     }
 
     #[test]
@@ -263,7 +274,7 @@ mod tests {
         let network = [[0.0; 3], SEEN_BY_ONE.map(|c| 0.5 * c)];
         // Pixel 0 behind both cameras: no source sees it, and no pixel is seen by all.
         let mut raw = RawView { depth: arr1(&[-1.0, 2.0]), ..view(network) };
-        assert_eq!(fill_from_sources(&mut raw, &rays(&RAYS), &rig.sources()), 0);
+        assert_eq!(fill_from_sources(&mut raw, &rays(&RAYS), &rig.sources(), BandRule::WhenDark), 0);
         assert_close(&raw, network);
     }
 
@@ -277,7 +288,7 @@ mod tests {
             depth: arr1(&[2.0, 2.0, 2.0]),
             opacity: arr1(&[0.5, 0.5, 0.5]),
         };
-        assert_eq!(fill_from_sources(&mut raw, &rays(&[-0.5, 0.25, 2.0]), &rig.sources()), 2);
+        assert_eq!(fill_from_sources(&mut raw, &rays(&[-0.5, 0.25, 2.0]), &rig.sources(), BandRule::WhenDark), 2);
         let nearest = [0.5 * 0.625, 0.5 * 0.7, 0.5 * 0.7];
         for (got, want) in raw.rgb.iter().zip([EVERY, SEEN_BY_ONE, nearest].iter().flatten()) {
             assert!((got - want).abs() < 1e-6, "{:?}", raw.rgb);
@@ -290,7 +301,7 @@ mod tests {
         let mut rig = ramp_rig();
         rig.images.slice_mut(s![1, .., .., 2..]).fill(1.0);
         let mut raw = view([EVERY, [0.0; 3]]);
-        assert_eq!(fill_from_sources(&mut raw, &rays(&[-0.5, 0.5]), &rig.sources()), 1);
+        assert_eq!(fill_from_sources(&mut raw, &rays(&[-0.5, 0.5]), &rig.sources(), BandRule::WhenDark), 1);
         assert_close(&raw, [EVERY, [0.5 * 0.5, 0.5 * 0.9, 0.5 * 0.9]]);
     }
 }

@@ -316,7 +316,7 @@ impl Pipeline {
         timings.add("renderer", start.elapsed());
         if self.band == BandFill::Sources {
             let start = Instant::now();
-            band::fill_from_sources(&mut raw, &rays, &band::Sources::of(scene));
+            band::fill_from_sources(&mut raw, &rays, &band::Sources::of(scene), self.bundle.band_rule());
             timings.add("band", start.elapsed());
         }
         let start = Instant::now();
