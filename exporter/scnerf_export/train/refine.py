@@ -67,6 +67,7 @@ class Recipe:
     held_out_rays: int = 8192  # scored over all held-out views
     min_held_out_rays: int = 512  # scored per held-out view, at least
     score_every_s: float = 90.0  # seconds of training between scorings
+    backoff: float = 3.0  # a scoring below the best: the best weights back, the learning rate divided by this
     write_reserve_s: float = 60.0  # kept for writing the bundle at the end of the budget
     seed: int = 0
 
@@ -76,6 +77,8 @@ class Recipe:
             raise ValueError(f"train: {', '.join(unknown) or 'nothing'}; choose from {', '.join(MODULES)}")
         if not self.minutes > 0:
             raise ValueError(f"minutes must be positive, got {self.minutes}")
+        if not self.backoff >= 1:
+            raise ValueError(f"backoff must be at least 1, got {self.backoff}")
 
 
 class RefineError(ValueError):
@@ -237,13 +240,26 @@ class Refinement:
         p = self.progress
         rule = self.onnx.manifest.band if p.initial is None else max(by_rule, key=lambda r: by_rule[r]["psnr"])
         result = {**by_rule[rule], "band": rule, "psnr_by_band": {r: s["psnr"] for r, s in by_rule.items()}}
-        p.history.append({"step": p.step, "seconds": self.elapsed(), **result})
+        p.history.append({"step": p.step, "seconds": self.elapsed(), "lr": self.learning_rate(), **result})
         if p.initial is None:
             p.initial = p.best = result
         elif result["psnr"] > p.best["psnr"]:
             p.best, p.best_step, self.best_params = result, p.step, snapshot(self.params)
+        else:
+            self.back_off()
         self.since_score = 0.0
         return result
+
+    def learning_rate(self) -> float:
+        return self.optimiser.param_groups[0]["lr"]
+
+    def back_off(self) -> None:
+        """The best step's weights again, a smaller learning rate and fresh moments: the steps since
+        the best went the wrong way for the held-out views. A capture the base already fits (DTU's,
+        which MVSNeRF trained on) needs a far smaller rate than one it does not (LLFF's)."""
+        restore(self.params, self.best_params)
+        lr = self.learning_rate() / self.recipe.backoff
+        self.optimiser = torch.optim.Adam(self.params.values(), lr=lr)
 
     # ------------------------------------------------------------------ state
 

@@ -241,6 +241,19 @@ def test_the_base_scores_by_its_band_rule_and_a_step_by_the_rule_that_serves_it_
     assert step["psnr"] == max(step["psnr_by_band"].values()) == step["psnr_by_band"][step["band"]]
 
 
+def test_a_scoring_below_the_best_goes_back_to_the_best_at_a_smaller_learning_rate(loaded, tmp_path):
+    run = banked(fresh_run(loaded, tmp_path))
+    run.score()
+    generator = torch.Generator().manual_seed(0)
+    with torch.no_grad():  # steps that went the wrong way
+        for p in run.params.values():
+            p.add_(torch.randn(p.shape, generator=generator))
+    assert run.score()["psnr"] < run.progress.best["psnr"]
+    assert run.learning_rate() == pytest.approx(QUICK.lr / QUICK.backoff)
+    for name, p in run.params.items():
+        assert torch.equal(p, run.best_params[name]), name
+
+
 def test_a_resumed_run_continues_as_the_uninterrupted_one(loaded, tmp_path):
     whole = banked(fresh_run(loaded, tmp_path / "whole"))
     whole.score()
