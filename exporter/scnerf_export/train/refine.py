@@ -8,11 +8,13 @@ graphs; the renderer's trunk M1 and its heads (M2, the geometry and appearance r
 train on banked rays (``refine_bank``): each training view rendered as the server renders it,
 from the 3 training views nearest to it (``cameras.rank_sources``), at the S uniform samples of
 the capture's [near, far]. Which of those train is the recipe's ``train`` (docs/results.md,
-"Refining a capture", measures the choices).
+"Refining a capture", says what the recipe's choices gave).
 
 Held-out views are never sources and never drawn for a step; a fixed sample of their pixels is
-scored before training, every ``score_every_s`` seconds of training and at the end, and the scored
-step with the best mean PSNR is what the bundle keeps (the base itself if no step beats it).
+scored as the server renders them (the band stage by each of its rules) before training, every
+``score_every_s`` seconds of training and at the end, and the scored step with the best mean PSNR,
+with its band rule, is what the bundle keeps (the base itself if no step beats it). A scoring below
+the best sends training back to the best weights at a smaller learning rate (``back_off``).
 
 The run keeps to a time budget (``minutes``: banking, training, scoring and writing the bundle).
 Views are banked in an order that spreads over the capture (``spread_order``), between stretches
@@ -417,8 +419,8 @@ def refinement_record(run: Refinement, about: dict, interrupted: bool) -> dict:
         "steps_run": p.step,
         "minutes": round(run.elapsed() / 60.0, 2),
         "held_out_psnr": held,
-        "selection": "the scored step with the best mean held-out PSNR, the base included (held-out views are "
-        "never sources and never in a step)",
+        "selection": "the scored step with the best mean held-out PSNR, the base included, with the band rule "
+        "that scores it best (held-out views are never sources and never in a step)",
         "hardware": hardware(),
         "interrupted": interrupted,
     }
