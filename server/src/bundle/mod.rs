@@ -18,6 +18,7 @@ pub use contract::{check_signature, ActualTensor};
 pub use graphs::{GraphKind, VolumeBuild, VolumeTail, GUIDED_GRAPHS};
 pub use load::{sha256_file, Bundle, BundleError};
 pub use manifest::{
-    BandPolicy, BandRule, DepthNorm, Dim, GraphEntry, GuidedPolicy, Manifest, ModelConfig, TensorSpec, FORMAT_VERSION, VARIANTS,
+    BandPolicy, BandRule, DepthNorm, Dim, GraphEntry, GuidedPolicy, Manifest, ModelConfig, TensorSpec, FORMAT_VERSION,
+    VARIANTS,
 };
 pub use validate::validate_manifest;

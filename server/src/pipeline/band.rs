@@ -15,9 +15,9 @@
 use ndarray::{ArrayView2, ArrayView3, ArrayView4, Axis};
 
 use super::chunks::RawView;
-use crate::bundle::BandRule;
 use super::rays::Rays;
 use super::scene::Scene;
+use crate::bundle::BandRule;
 
 /// What colours the band's pixels (`--band`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]
