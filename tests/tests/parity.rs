@@ -12,7 +12,7 @@ use axum::http::Request;
 use base64::Engine;
 use http_body_util::BodyExt;
 use scnerf_e2e::{split_request, Case};
-use scnerf_server::bundle::{Bundle, DepthNorm, GraphKind};
+use scnerf_server::bundle::{BandRule, Bundle, DepthNorm, GraphKind};
 use scnerf_server::http::{router, AppState, ServiceOptions};
 use scnerf_server::pipeline::band::{self, BandFill};
 use scnerf_server::pipeline::chunks::{self, ChunkPolicy, RawView};
@@ -521,7 +521,7 @@ fn band_fill_matches_python() {
         depth: json_array(&raw["depth"]).into_dimensionality().unwrap(),
         opacity: json_array(&raw["opacity"]).into_dimensionality().unwrap(),
     };
-    let filled = band::fill_from_sources(&mut view, &rays::generate(&target), &sources);
+    let filled = band::fill_from_sources(&mut view, &rays::generate(&target), &sources, BandRule::WhenDark);
     assert_eq!(filled as u64, case["band_pixels"].as_u64().unwrap(), "pixels in the band");
     assert!(filled > 0 && filled < view.depth.len(), "the case has pixels in and out of the band");
     let expected = json_array(&case["expected_rgb"]);
