@@ -249,18 +249,21 @@ fn one_address_cannot_take_every_connection_and_probes_are_answered_at_the_cap()
     let (status, head) = response_within(&mut ninth, Duration::from_secs(1)).expect("an answer at once");
     assert_eq!(status, 429, "{head}");
     assert!(head.contains("retry-after: 1") && head.contains("connection: close"), "{head}");
+    // A probe closes its connection, so that its slot is back soon after its answer.
     let probe = |ip: &str, path: &str| {
         let mut s = connect_from(ip, server.addr);
-        s.write_all(format!("GET {path} HTTP/1.1\r\nHost: test\r\n\r\n").as_bytes()).unwrap();
+        s.write_all(format!("GET {path} HTTP/1.1\r\nHost: test\r\nConnection: close\r\n\r\n").as_bytes()).unwrap();
         let started = Instant::now();
         let status = response_within(&mut s, Duration::from_secs(5)).map(|(code, _)| code);
         (status, started.elapsed())
     };
-    let (status, took) = probe("127.0.0.3", "/healthz");
+    let (status, took) = probe("127.0.0.5", "/healthz");
     assert_eq!(status, Some(200));
     assert!(took < Duration::from_secs(1), "/healthz took {took:?}");
     // Two more addresses fill every connection: the probes still get theirs, from the reserve,
-    // and only the probes.
+    // and only the probes. Filled once the probe's slot is back: a fill that found it still taken
+    // would sit in the reserve, and leave an ordinary slot free when the probe's came back.
+    std::thread::sleep(Duration::from_millis(200));
     held.extend((0..8).map(|_| connect_from("127.0.0.3", server.addr)));
     std::thread::sleep(Duration::from_millis(200));
     for path in ["/healthz", "/readyz", "/metrics"] {
