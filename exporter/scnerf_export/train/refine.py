@@ -520,9 +520,9 @@ def write(run: Refinement, manifest, base: Path, out: Path, about: dict, identit
             raise KeyboardInterrupt
         raise RefineError(f"the budget of {run.recipe.minutes:g} minutes ended before the held-out views were scored")
     record = refinement_record(run, about, interrupted)
-    p, model = run.progress, None
-    if p.best_step > 0:
+    model = None
+    if run.progress.best_step > 0:
         restore(run.params, run.best_params)
         model = run.model
-    written = write_bundle(base, manifest, model, out, record, run.work / "staging", band=p.best["band"])
+    written = write_bundle(base, manifest, model, out, record, run.work / "staging", run.progress.best["band"])
     return Result(out, written.model_id, record, interrupted)

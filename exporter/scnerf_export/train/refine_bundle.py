@@ -115,13 +115,13 @@ def write_bundle(
     out: str | Path,
     record: dict,
     staging: Path,
-    band: str | None = None,
+    band: str,
 ) -> Manifest:
     """The refined bundle in ``out``: the base's encoder and volume graphs, ``model``'s renderer
     graphs (the base's own when ``model`` is None: nothing improved on it), and the manifest with
-    ``provenance.refinement = record`` and the band rule ``band`` (default: the base's). The graphs
-    are written into ``staging`` first and the manifest last, so ``out`` holds a complete bundle
-    except while files move."""
+    ``provenance.refinement = record`` and the band rule ``band``. The graphs are written into
+    ``staging`` first and the manifest last, so ``out`` holds a complete bundle except while files
+    move."""
     base, out = Path(base), Path(out)
     if staging.exists():
         shutil.rmtree(staging)
@@ -142,7 +142,7 @@ def write_bundle(
     refined.model_id = refined.renderer_model_id()
     refined.provenance.created = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
     refined.provenance.refinement = record
-    refined.band = band or manifest.band
+    refined.band = band
     (out / "manifest.json.tmp").write_text(refined.text())
     os.replace(out / "manifest.json.tmp", out / "manifest.json")
     shutil.rmtree(staging)

@@ -48,15 +48,12 @@ def test_a_dark_band_takes_the_colour_of_the_sources_that_see_it_times_opacity()
     np.testing.assert_allclose(rgb, [EVERY, SEEN_BY_ONE], atol=1e-6)
 
 
-def test_a_band_within_the_ratio_of_the_rest_keeps_the_networks_colour():
+def test_a_band_within_the_ratio_of_the_rest_keeps_the_networks_colour_unless_the_bundle_always_fills():
     network = np.array([EVERY, 0.95 * SEEN_BY_ONE], np.float32)
     rgb, recoloured = fill(ramp_sources(), network)
     assert not recoloured.any()
     np.testing.assert_array_equal(rgb, network)
-
-
-def test_a_bundle_that_always_fills_recolours_a_band_that_is_not_dark():
-    rgb, recoloured = fill(ramp_sources(), np.array([EVERY, 0.95 * SEEN_BY_ONE], np.float32), rule="always")
+    rgb, recoloured = fill(ramp_sources(), network, rule="always")
     assert recoloured.tolist() == [False, True]
     np.testing.assert_allclose(rgb, [EVERY, SEEN_BY_ONE], atol=1e-6)
 

@@ -252,18 +252,12 @@ mod tests {
     }
 
     #[test]
-    fn a_band_within_the_ratio_of_the_rest_keeps_the_networks_colour() {
+    fn a_band_within_the_ratio_of_the_rest_keeps_the_networks_colour_unless_the_bundle_always_fills() {
         let rig = ramp_rig();
         let network = [EVERY, SEEN_BY_ONE.map(|c| 0.95 * c)];
         let mut raw = view(network);
         assert_eq!(fill_from_sources(&mut raw, &rays(&RAYS), &rig.sources(), BandRule::WhenDark), 0);
         assert_close(&raw, network);
-    }
-
-    #[test]
-    fn a_bundle_that_always_fills_recolours_a_band_that_is_not_dark() {
-        let rig = ramp_rig();
-        let mut raw = view([EVERY, SEEN_BY_ONE.map(|c| 0.95 * c)]);
         assert_eq!(fill_from_sources(&mut raw, &rays(&RAYS), &rig.sources(), BandRule::Always), 1);
         assert_close(&raw, [EVERY, SEEN_BY_ONE]);
     }
