@@ -154,6 +154,8 @@ def cmd_refine(args) -> None:
             targets=split_list(args.targets),
             threads=args.threads,
             keep_banks=args.keep_banks,
+            near=args.near,
+            far=args.far,
         )
     except KeyboardInterrupt:
         print("scnerf-export refine: interrupted before the base was scored: nothing written", file=sys.stderr)
@@ -453,6 +455,8 @@ def add_refine_parser(sub) -> None:
         help="read images_N (default: the largest set within --max-source-pixels, as the server picks)",
     )
     r.add_argument("--max-source-pixels", type=int, default=MAX_SOURCE_PIXELS, help="the server's source limit")
+    r.add_argument("--near", type=float, help="depth range (default: the capture's files', else from its poses)")
+    r.add_argument("--far", type=float)
     r.add_argument("--train", default=",".join(defaults.train), help="what trains: trunk, heads or trunk,heads")
     r.add_argument("--lr", type=float, default=defaults.lr)
     r.add_argument("--rays", type=int, default=defaults.rays, help="rays per step")

@@ -25,8 +25,8 @@ FORMATS = tuple(PARSERS)
 def load_scene(path, format: str, scale: float = 1.0, background=None, near=None, far=None) -> SceneData:
     """Load a scene folder in one of FORMATS. ``scale`` resizes every image (and its intrinsics);
     ``background`` (RGB in [0,1]) is what alpha is composited on (default white for blender, black
-    otherwise); ``near``/``far`` override the format's own depth range (required for nerfstudio
-    files without one and COLMAP models without points3D.txt)."""
+    otherwise); ``near``/``far`` override the format's own depth range (nerfstudio files without
+    one and COLMAP models without points3D.txt take it from the poses, ``depth_range``)."""
     fmt = str(format).lower()
     if fmt not in PARSERS:
         raise ValueError(f"unknown scene format {format!r}; expected one of {', '.join(FORMATS)}")

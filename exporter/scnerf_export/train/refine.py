@@ -454,13 +454,16 @@ def refine(
     targets: list[str] | None = None,
     threads: int | None = None,
     keep_banks: bool = False,
+    near: float | None = None,
+    far: float | None = None,
 ) -> Result:
     """Refine ``base`` (default :func:`default_bundle`) on the capture ``data``; write the bundle to
-    ``out``. The banks are removed once the budget is spent, unless ``keep_banks``."""
+    ``out``. The banks are removed once the budget is spent, unless ``keep_banks``. ``near``/``far``
+    override the capture's depth range (its files', else its poses')."""
     if threads:
         torch.set_num_threads(threads)
     out, base = Path(out), Path(base) if base else default_bundle()
-    capture = read_capture(data, fmt, downscale, max_pixels)
+    capture = read_capture(data, fmt, downscale, max_pixels, near, far)
     split = split_views(capture.scene, holdout, targets)
     model, manifest, about = base_model(base, checkpoint)
     identity = identity_of(about, capture, split, recipe)

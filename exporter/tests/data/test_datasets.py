@@ -16,6 +16,7 @@ from scnerf_export.cameras import Camera, look_at, opencv_w2c_to_opengl_c2w, ope
 from scnerf_export.data import datasets as D
 from scnerf_export.data.dataparsers.dtu import DTU_SCALE
 from scnerf_export.data.datasets import load_scene
+from scnerf_export.data.depth_range import from_poses
 from scnerf_export.data.scene import View, crop_view, resize_view
 
 from conftest import REPO
@@ -262,14 +263,22 @@ def test_nerfstudio_round_trip(tmp_path):
         np.testing.assert_allclose(v.image, ims[i] / 255.0, atol=1e-6)
 
 
-def test_nerfstudio_needs_near_far(tmp_path):
-    cams = make_cameras(2)
-    write_nerfstudio(tmp_path, cams, rand_images(2))
-    with pytest.raises(ValueError, match="near/far"):
-        load_scene(tmp_path, "nerfstudio")
+def test_nerfstudio_without_near_far_takes_the_poses_and_the_arguments_win(tmp_path):
+    cams = make_cameras(4)
+    write_nerfstudio(tmp_path, cams, rand_images(4))
+    scene = load_scene(tmp_path, "nerfstudio")
+    assert (scene.near, scene.far) == pytest.approx(from_poses(cams))
     scene = load_scene(tmp_path, "nerfstudio", near=1.0, far=5.0)
     assert (scene.near, scene.far) == (1.0, 5.0)
     assert_cam_equal(scene.views["frame_00001"].camera, cams[1])
+
+
+def test_nerfstudio_with_parallel_cameras_needs_near_far(tmp_path):
+    K = np.array([[F, 0, W / 2], [0, F, H / 2], [0, 0, 1.0]])
+    cams = [Camera(K, look_at((x, 0.0, 0.0), target=(x, 5.0, 0.0)), W, H) for x in (0.0, 1.0, 2.0)]
+    write_nerfstudio(tmp_path, cams, rand_images(3))
+    with pytest.raises(ValueError, match="near/far"):
+        load_scene(tmp_path, "nerfstudio")
 
 
 def test_nerfstudio_intrinsics_follow_the_image_size(tmp_path):
@@ -336,11 +345,11 @@ def test_colmap_round_trip(tmp_path, model):
     assert 0 < scene.near < zs.min() and scene.far > zs.max()
 
 
-def test_colmap_needs_points_or_near_far(tmp_path):
-    cams = make_cameras(2)
-    write_colmap(tmp_path, cams, rand_images(2), sub=".")
-    with pytest.raises(ValueError, match="near/far"):
-        load_scene(tmp_path, "colmap")
+def test_colmap_without_points_takes_the_poses_and_the_arguments_win(tmp_path):
+    cams = make_cameras(4)
+    write_colmap(tmp_path, cams, rand_images(4), sub=".")
+    scene = load_scene(tmp_path, "colmap")
+    assert (scene.near, scene.far) == pytest.approx(from_poses(cams))
     scene = load_scene(tmp_path, "colmap", near=0.5, far=9)
     assert (scene.near, scene.far) == (0.5, 9.0)
 

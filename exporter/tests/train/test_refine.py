@@ -13,6 +13,7 @@ writes the best bundle so far and the same command resumes into an ordinary bund
 from __future__ import annotations
 
 import copy
+import json
 import math
 import shutil
 from dataclasses import replace
@@ -25,6 +26,7 @@ import torch
 from scnerf_export import cli
 from scnerf_export.cameras import target_rays
 from scnerf_export.config import small_config
+from scnerf_export.data.depth_range import from_poses
 from scnerf_export.data.procedural import make_scene
 from scnerf_export.data.scene import SceneData, View
 from scnerf_export.export.manifest import BAND_RULES, Manifest
@@ -117,6 +119,21 @@ def test_views_over_the_limit_shrink_as_the_server_shrinks_them():
     assert fit_to_limit(scene, 16 * 16) is None
     fit_to_limit(scene, 100)  # sqrt(100/256) = 0.625 of 16, rounded down
     assert {(v.camera.width, v.camera.height, v.image.shape[:2]) for v in scene.views.values()} == {(10, 10, (10, 10))}
+
+
+def test_a_capture_without_a_depth_range_takes_its_poses_and_the_flags_win(capture_dir, tmp_path):
+    """An instant-ngp or nerfstudio file carries no near/far: refine reads the range the server
+    derives from the poses (data/depth_range.py), and --near/--far override it."""
+    bare = tmp_path / "bare"
+    shutil.copytree(capture_dir, bare)
+    transforms = json.loads((bare / "transforms.json").read_text())
+    near, far = transforms.pop("near"), transforms.pop("far")
+    (bare / "transforms.json").write_text(json.dumps(transforms))
+    scene = read_capture(bare).scene
+    assert 0 < scene.near < near and far < scene.far  # the procedural object's range, with margins
+    assert (scene.near, scene.far) == pytest.approx(from_poses([v.camera for v in scene.views.values()]))
+    flagged = read_capture(bare, near=1.5, far=7.0).scene
+    assert (flagged.near, flagged.far) == (1.5, 7.0)
 
 
 def test_held_out_views_are_never_sources():

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import depth_range
 from ..scene import SceneData, View, check_near_far, check_scale, make_view, natural_key, resolve_background
 from .base import DataParser
 
@@ -172,7 +173,7 @@ class ColmapParser(DataParser):
         -0.5 (COLMAP's first pixel centre is at (0.5, 0.5)); radial/OpenCV distortion is ignored with a
         warning; intrinsics are rescaled if the image on disk has another size than cameras.txt says.
         near/far: the arguments, else from the points3D.txt depths (see _colmap_points_near_far),
-        else a ValueError. View names are the image names without extension.
+        else from the poses (``depth_range``). View names are the image names without extension.
         """
         root = Path(path)
         if not root.is_dir():
@@ -209,15 +210,12 @@ class ColmapParser(DataParser):
             views[vname] = make_view(vname, img_path, K, w2c, bg, scale, declared_size=(w, h))
         if not views:
             raise FileNotFoundError(f"none of the images listed in {model_dir / 'images.txt'} exists in {img_dir}")
-        n, f = near, far
-        if n is None or f is None:
+        from_points = (None, None)
+        if near is None or far is None:
             pts = model_dir / "points3D.txt"
-            nf = _colmap_points_near_far(pts, {iid: w2c for iid, _, w2c, _ in imgs}) if pts.exists() else None
-            if nf is None:
-                raise ValueError(
-                    f"{model_dir}: no usable points3D.txt to derive near/far from; pass them explicitly (--near/--far)"
-                )
-            n = nf[0] if n is None else n
-            f = nf[1] if f is None else f
-        n, f = check_near_far(n, f, str(model_dir))
+            from_points = (
+                _colmap_points_near_far(pts, {iid: w2c for iid, _, w2c, _ in imgs}) if pts.exists() else None
+            ) or from_points
+        cameras = [v.camera for v in views.values()]
+        n, f = check_near_far(*depth_range.resolve(near, far, from_points, cameras, str(model_dir)), str(model_dir))
         return SceneData(views, n, f, bg, None, None)

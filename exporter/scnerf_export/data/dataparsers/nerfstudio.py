@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import depth_range
 from ..scene import SceneData, check_near_far, check_scale, make_view, resolve_background
 from .base import DataParser
 from .transforms import frame_pose, frames_with_images, read_json
@@ -25,7 +26,7 @@ class NerfstudioParser(DataParser):
         nerfstudio puts the first pixel's centre at (0.5, 0.5): cx, cy are shifted by -0.5. If the
         image on disk has another size than w x h, the intrinsics are rescaled to it. Distortion
         coefficients are ignored (with a warning). near/far come from the arguments, else from
-        'near'/'far' (or 'near_far') keys in the file, else a ValueError.
+        'near'/'far' (or 'near_far') keys in the file, else from the poses (``depth_range``).
         """
         p = Path(path)
         jf = p / "transforms.json" if p.is_dir() else p
@@ -72,14 +73,9 @@ class NerfstudioParser(DataParser):
             n: make_view(n, img, K, w2c, bg, scale, declared_size=size)
             for n, (_, img, K, w2c, size) in zip(names, entries)
         }
-        n, f = near, far
-        if n is None or f is None:
-            nf = data.get("near_far")
-            fn = data.get("near", nf[0] if isinstance(nf, (list, tuple)) and len(nf) == 2 else None)
-            ff = data.get("far", nf[1] if isinstance(nf, (list, tuple)) and len(nf) == 2 else None)
-            n = fn if n is None else n
-            f = ff if f is None else f
-        if n is None or f is None:
-            raise ValueError(f"{jf}: no near/far in the file; pass them explicitly (--near/--far)")
-        n, f = check_near_far(n, f, str(jf))
+        nf = data.get("near_far")
+        fn = data.get("near", nf[0] if isinstance(nf, (list, tuple)) and len(nf) == 2 else None)
+        ff = data.get("far", nf[1] if isinstance(nf, (list, tuple)) and len(nf) == 2 else None)
+        cameras = [v.camera for v in views.values()]
+        n, f = check_near_far(*depth_range.resolve(near, far, (fn, ff), cameras, str(jf)), str(jf))
         return SceneData(views, n, f, bg, None, None)
