@@ -210,12 +210,11 @@ class ColmapParser(DataParser):
             views[vname] = make_view(vname, img_path, K, w2c, bg, scale, declared_size=(w, h))
         if not views:
             raise FileNotFoundError(f"none of the images listed in {model_dir / 'images.txt'} exists in {img_dir}")
-        from_points = (None, None)
-        if near is None or far is None:
-            pts = model_dir / "points3D.txt"
-            from_points = (
-                _colmap_points_near_far(pts, {iid: w2c for iid, _, w2c, _ in imgs}) if pts.exists() else None
-            ) or from_points
+        pts = model_dir / "points3D.txt"
+        from_points = None
+        if (near is None or far is None) and pts.exists():
+            from_points = _colmap_points_near_far(pts, {iid: w2c for iid, _, w2c, _ in imgs})
         cameras = [v.camera for v in views.values()]
-        n, f = check_near_far(*depth_range.resolve(near, far, from_points, cameras, str(model_dir)), str(model_dir))
+        n, f = depth_range.resolve(near, far, from_points or (None, None), cameras, str(model_dir))
+        n, f = check_near_far(n, f, str(model_dir))
         return SceneData(views, n, f, bg, None, None)
