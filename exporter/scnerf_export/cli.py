@@ -6,6 +6,8 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import warnings
+from contextlib import contextmanager
 from pathlib import Path
 
 from .model.checkpoint import CheckpointError
@@ -466,10 +468,27 @@ def add_refine_parser(sub) -> None:
     r.set_defaults(func=cmd_refine)
 
 
+@contextmanager
+def warnings_as_lines(command: str):
+    """Each warning printed as one line of the command's own, like its errors, without Python's
+    file, line number and source excerpt, which tell a user nothing."""
+    shown = warnings.showwarning
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        print(f"scnerf-export {command}: warning: {message}", file=sys.stderr)
+
+    warnings.showwarning = show
+    try:
+        yield
+    finally:
+        warnings.showwarning = shown
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parser().parse_args(argv)
     try:
-        args.func(args)
+        with warnings_as_lines(args.command):
+            args.func(args)
     except (CheckpointError, FileNotFoundError, ValueError, KeyError) as exc:
         message = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         print(f"scnerf-export {args.command}: error: {message}", file=sys.stderr)
