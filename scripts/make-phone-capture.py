@@ -8,9 +8,9 @@ Each photo is what a camera with that lens, at the scene's pose, would have take
 portrait crop of the scene's view, scaled to --size, distorted by the lens (for every photo pixel,
 the undistorted ray by OpenCV's model, inverted by fixed-point steps, then the scene's image
 sampled bilinearly there). The scene's field of view is narrower than a phone's (DTU's focal
-length is 2.8 times its image height, LLFF's 1.1; a phone's main camera about 0.8 times the long side), so the
-lens's coefficients are scaled to move pixels as far as the phone lens moves them on a phone's
-field of view: k1 s^2, k2 s^4, p s, with s the ratio of the two focal lengths.
+length is 2.8 times its image height, LLFF's 1.1; a phone's main camera about 0.8 times the long
+side), so the lens's coefficients are scaled to move pixels as far as the phone lens moves them on
+a phone's field of view: k1 s^2, k2 s^4, p s, with s the ratio of the two focal lengths.
 
     scnerf info ../shared/data/llff_horns --json > /tmp/horns.json
     python scripts/make-phone-capture.py /tmp/horns.json /tmp/phone --layout instant-ngp
