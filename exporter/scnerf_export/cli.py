@@ -472,16 +472,13 @@ def add_refine_parser(sub) -> None:
 def warnings_as_lines(command: str):
     """Each warning printed as one line of the command's own, like its errors, without Python's
     file, line number and source excerpt, which tell a user nothing."""
-    shown = warnings.showwarning
 
     def show(message, category, filename, lineno, file=None, line=None):
         print(f"scnerf-export {command}: warning: {message}", file=sys.stderr)
 
-    warnings.showwarning = show
-    try:
+    with warnings.catch_warnings():  # puts the display back afterwards
+        warnings.showwarning = show
         yield
-    finally:
-        warnings.showwarning = shown
 
 
 def main(argv: list[str] | None = None) -> int:
