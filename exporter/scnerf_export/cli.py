@@ -158,6 +158,7 @@ def cmd_refine(args) -> None:
             keep_banks=args.keep_banks,
             near=args.near,
             far=args.far,
+            ignore_distortion=args.ignore_distortion,
         )
     except KeyboardInterrupt:
         print("scnerf-export refine: interrupted before the base was scored: nothing written", file=sys.stderr)
@@ -459,6 +460,11 @@ def add_refine_parser(sub) -> None:
     r.add_argument("--max-source-pixels", type=int, default=MAX_SOURCE_PIXELS, help="the server's source limit")
     r.add_argument("--near", type=float, help="depth range (default: the capture's files', else from its poses)")
     r.add_argument("--far", type=float)
+    r.add_argument(
+        "--ignore-distortion",
+        action="store_true",
+        help="use photos with lens distortion as pinhole (default: undistorted, as the server sends them)",
+    )
     r.add_argument("--train", default=",".join(defaults.train), help="what trains: trunk, heads or trunk,heads")
     r.add_argument("--lr", type=float, default=defaults.lr)
     r.add_argument("--rays", type=int, default=defaults.rays, help="rays per step")

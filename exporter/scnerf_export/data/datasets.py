@@ -22,15 +22,20 @@ from .scene import SceneData, View, natural_key
 FORMATS = tuple(PARSERS)
 
 
-def load_scene(path, format: str, scale: float = 1.0, background=None, near=None, far=None) -> SceneData:
+def load_scene(
+    path, format: str, scale: float = 1.0, background=None, near=None, far=None, ignore_distortion: bool = False
+) -> SceneData:
     """Load a scene folder in one of FORMATS. ``scale`` resizes every image (and its intrinsics);
     ``background`` (RGB in [0,1]) is what alpha is composited on (default white for blender, black
     otherwise); ``near``/``far`` override the format's own depth range (nerfstudio files without
-    one and COLMAP models without points3D.txt take it from the poses, ``depth_range``)."""
+    one and COLMAP models without points3D.txt take it from the poses, ``depth_range``); photos with
+    lens distortion are undistorted unless ``ignore_distortion`` (:class:`.dataparsers.base.DataParser`)."""
     fmt = str(format).lower()
     if fmt not in PARSERS:
         raise ValueError(f"unknown scene format {format!r}; expected one of {', '.join(FORMATS)}")
-    return PARSERS[fmt].load(path, scale=scale, background=background, near=near, far=far)
+    return PARSERS[fmt].load(
+        path, scale=scale, background=background, near=near, far=far, ignore_distortion=ignore_distortion
+    )
 
 
 def nearest_sources(scene: SceneData, target: str, pool: list[str], count: int = 3) -> list[str]:

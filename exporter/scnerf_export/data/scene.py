@@ -17,6 +17,7 @@ import numpy as np
 from PIL import Image
 
 from ..cameras import Camera, scaled_size
+from . import lens
 
 # Extensions of the images the parsers use, in any case (IMG_0001.JPG, a.Png): the Rust readers'
 # rule too (capture/src/readers/names.rs), held together by tests/fixtures/rules/image_files.json.
@@ -153,14 +154,23 @@ def make_view(
     declared_size: tuple[int, int] | None = None,
     depth=None,
     mask=None,
+    distortion: lens.Distortion | None = None,
 ) -> View:
-    """Read the image, fit K to its real size (if the file declares another), apply ``scale``."""
+    """Read the image, fit K to its real size (if the file declares another), resample it to a
+    pinhole camera if its lens has a ``distortion`` (:mod:`.lens`), apply
+    ``scale``."""
     image = read_image(image_path, background)
     h, w = image.shape[:2]
     cam = Camera(np.asarray(K, dtype=np.float64), np.asarray(w2c, dtype=np.float64), w, h)
     if declared_size is not None and tuple(declared_size) != (w, h):
         # intrinsics given for another resolution of the same image: rescale them
         cam = Camera(cam.K, cam.w2c, int(declared_size[0]), int(declared_size[1])).resized(w, h)
+    if distortion is not None:
+        try:
+            image, pinhole = lens.undistort(image, cam.K, distortion, background)
+        except ValueError as exc:
+            raise ValueError(f"{image_path}: {exc}, or ignore the distortion") from None
+        cam = Camera(pinhole, cam.w2c, w, h)
     view = View(name, image, cam, depth, mask)
     return apply_scale(view, scale)
 

@@ -456,14 +456,16 @@ def refine(
     keep_banks: bool = False,
     near: float | None = None,
     far: float | None = None,
+    ignore_distortion: bool = False,
 ) -> Result:
     """Refine ``base`` (default :func:`default_bundle`) on the capture ``data``; write the bundle to
     ``out``. The banks are removed once the budget is spent, unless ``keep_banks``. ``near``/``far``
-    override the capture's depth range (its files', else its poses')."""
+    override the capture's depth range (its files', else its poses'); ``ignore_distortion`` uses
+    distorted photos as pinhole (:func:`.refine_capture.read_capture`)."""
     if threads:
         torch.set_num_threads(threads)
     out, base = Path(out), Path(base) if base else default_bundle()
-    capture = read_capture(data, fmt, downscale, max_pixels, near, far)
+    capture = read_capture(data, fmt, downscale, max_pixels, near, far, ignore_distortion)
     split = split_views(capture.scene, holdout, targets)
     model, manifest, about = base_model(base, checkpoint)
     identity = identity_of(about, capture, split, recipe)

@@ -5,8 +5,8 @@ three sources (the server's rule: the nearest by camera centre, ``cameras.rank_s
 hash that names what was read.
 
 The views are read by the exporter's parsers (:mod:`scnerf_export.data.dataparsers`), the ones
-``scnerf-export eval`` reads. They differ from the Rust readers in two ways a user may meet: lens
-distortion is ignored (the server undistorts), and COLMAP models are read in their text form only.
+``scnerf-export eval`` reads. They undistort photos as the Rust readers do (``data.lens``), and
+differ from them in one way a user may meet: COLMAP models are read in their text form only.
 """
 
 from __future__ import annotations
@@ -198,14 +198,16 @@ def read_capture(
     max_pixels: int = MAX_SOURCE_PIXELS,
     near: float | None = None,
     far: float | None = None,
+    ignore_distortion: bool = False,
 ) -> Capture:
     """The capture at ``path`` read as the server reads an uploaded one: its format, the image set
-    ``pick_image_set`` chooses, views over ``max_pixels`` shrunk to fit."""
+    ``pick_image_set`` chooses, photos undistorted (unless ``ignore_distortion``, the client's
+    ``--ignore-distortion``), views over ``max_pixels`` shrunk to fit."""
     root = Path(path)
     fmt = fmt or detect_format(root)
     chosen = pick_image_set(image_sets(root, fmt), downscale, max_pixels)
     scale = 1.0 / chosen.factor if chosen else 1.0
-    scene = datasets.load_scene(root, fmt, scale=scale, near=near, far=far)
+    scene = datasets.load_scene(root, fmt, scale=scale, near=near, far=far, ignore_distortion=ignore_distortion)
     resized = fit_to_limit(scene, max_pixels)
     if resized:
         warnings.warn(f"{root}: {resized} (the server's source limit)", stacklevel=2)

@@ -15,6 +15,10 @@ class DataParser(ABC):
     format: ClassVar[str]  # the name --format takes
 
     @abstractmethod
-    def load(self, path, scale: float = 1.0, background=None, near=None, far=None) -> SceneData:
+    def load(
+        self, path, scale: float = 1.0, background=None, near=None, far=None, ignore_distortion: bool = False
+    ) -> SceneData:
         """``scale`` resizes every image (and its intrinsics); ``background`` (RGB in [0,1]) is what
-        alpha is composited on; ``near``/``far`` override the format's own depth range."""
+        alpha is composited on; ``near``/``far`` override the format's own depth range. Photos with lens
+        distortion are resampled to a pinhole camera (:mod:`..lens`), as the server sends them,
+        unless ``ignore_distortion`` (then used as pinhole, with a warning)."""

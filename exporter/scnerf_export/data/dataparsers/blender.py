@@ -41,7 +41,9 @@ def _unique_names(items: list[tuple[str, str]]) -> list[str]:
 class BlenderParser(DataParser):
     format = "blender"
 
-    def load(self, path, scale: float = 1.0, background=None, near=None, far=None) -> SceneData:
+    def load(
+        self, path, scale: float = 1.0, background=None, near=None, far=None, ignore_distortion: bool = False
+    ) -> SceneData:
         """NeRF-synthetic ("Blender") scene: transforms_{train,val,test}.json (or one given json file).
 
         camera_angle_x -> fx = fy = 0.5 W / tan(0.5 camera_angle_x), cx = W/2, cy = H/2 (MVSNeRF's

@@ -9,18 +9,21 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import depth_range
+from .. import depth_range, lens
 from ..scene import SceneData, View, check_near_far, check_scale, make_view, natural_key, resolve_background
 from .base import DataParser
 
 _COLMAP_MODELS = {
-    # model: number of parameters (f or fx fy, cx, cy, then distortion, which is ignored)
+    # model: number of parameters (f or fx fy, cx, cy, then distortion in OpenCV's order)
     "SIMPLE_PINHOLE": 3,
     "PINHOLE": 4,
     "SIMPLE_RADIAL": 4,
     "RADIAL": 5,
     "OPENCV": 8,
     "FULL_OPENCV": 12,
+    "OPENCV_FISHEYE": 8,
+    "SIMPLE_RADIAL_FISHEYE": 4,
+    "RADIAL_FISHEYE": 5,
 }
 
 
@@ -39,7 +42,11 @@ def _colmap_rows(path: Path) -> Iterator[tuple[int, str, list[str]]]:
             yield ln, s, s.split()
 
 
-def _parse_colmap_cameras(path: Path) -> dict[int, tuple[np.ndarray, int, int]]:
+def _parse_colmap_cameras(
+    path: Path, ignore_distortion: bool
+) -> dict[int, tuple[np.ndarray, int, int, lens.Distortion | None]]:
+    """Per camera id: K, width, height and the lens's distortion (None when it has none, or it is
+    ignored)."""
     cams = {}
     warned = set()
     for ln, s, t in _colmap_rows(path):
@@ -54,23 +61,24 @@ def _parse_colmap_cameras(path: Path) -> dict[int, tuple[np.ndarray, int, int]]:
             )
         if len(params) != _COLMAP_MODELS[model]:
             raise ValueError(f"{path}:{ln}: {model} needs {_COLMAP_MODELS[model]} parameters, got {len(params)}")
-        if model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL"):
+        if model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL", "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE"):
             fx = fy = params[0]
             cx, cy = params[1], params[2]
             dist = params[3:]
         else:
             fx, fy, cx, cy = params[:4]
             dist = params[4:]
-        if any(abs(d) > 0 for d in dist) and model not in warned:
-            warnings.warn(
-                f"{path}: {model} distortion parameters are ignored (images are used as pinhole)", stacklevel=2
-            )
+        distortion = (lens.fisheye if "FISHEYE" in model else lens.perspective)(*dist)
+        if distortion is not None and ignore_distortion:
+            if model not in warned:
+                warnings.warn(f"{path}: {model} lens distortion ignored (images used as pinhole)", stacklevel=2)
             warned.add(model)
+            distortion = None
         if fx <= 0 or fy <= 0 or w <= 0 or h <= 0:
             raise ValueError(f"{path}:{ln}: non-positive focal length or image size")
         # COLMAP: first pixel centre at (0.5, 0.5) -> shift to integer pixel centres
         K = np.array([[fx, 0.0, cx - 0.5], [0.0, fy, cy - 0.5], [0.0, 0.0, 1.0]])
-        cams[cid] = (K, w, h)
+        cams[cid] = (K, w, h, distortion)
     if not cams:
         raise ValueError(f"{path}: no cameras")
     return cams
@@ -165,15 +173,18 @@ def _colmap_points_near_far(path: Path, images: dict[int, np.ndarray]) -> tuple[
 class ColmapParser(DataParser):
     format = "colmap"
 
-    def load(self, path, scale: float = 1.0, background=None, near=None, far=None) -> SceneData:
+    def load(
+        self, path, scale: float = 1.0, background=None, near=None, far=None, ignore_distortion: bool = False
+    ) -> SceneData:
         """COLMAP text model: cameras.txt, images.txt (qw qx qy qz tx ty tz = world-to-camera, OpenCV
         axes), optional points3D.txt, with the images in <scene>/images/.
 
         The model is looked for in <scene>, <scene>/sparse/0, <scene>/sparse. cx, cy are shifted by
-        -0.5 (COLMAP's first pixel centre is at (0.5, 0.5)); radial/OpenCV distortion is ignored with a
-        warning; intrinsics are rescaled if the image on disk has another size than cameras.txt says.
-        near/far: the arguments, else from the points3D.txt depths (see _colmap_points_near_far),
-        else from the poses (``depth_range``). View names are the image names without extension.
+        -0.5 (COLMAP's first pixel centre is at (0.5, 0.5)); photos of a radial, OpenCV or fisheye
+        camera are undistorted (:mod:`..lens`) unless ``ignore_distortion``; intrinsics are rescaled if the image
+        on disk has another size than cameras.txt says (before the photo is undistorted). near/far:
+        the arguments, else from the points3D.txt depths (see _colmap_points_near_far), else from
+        the poses (``depth_range``). View names are the image names without extension.
         """
         root = Path(path)
         if not root.is_dir():
@@ -190,7 +201,7 @@ class ColmapParser(DataParser):
             raise FileNotFoundError(
                 f"no COLMAP text model (cameras.txt + images.txt) in {root}, {root / 'sparse/0'} or {root / 'sparse'}"
             )
-        cams = _parse_colmap_cameras(model_dir / "cameras.txt")
+        cams = _parse_colmap_cameras(model_dir / "cameras.txt", ignore_distortion)
         imgs = _parse_colmap_images(model_dir / "images.txt")
         img_dir = root / "images"
         if not img_dir.is_dir():
@@ -201,13 +212,13 @@ class ColmapParser(DataParser):
         for _, name, w2c, cid in sorted(imgs, key=lambda e: natural_key(e[1])):
             if cid not in cams:
                 raise ValueError(f"{model_dir / 'images.txt'}: image {name} uses unknown camera {cid}")
-            K, w, h = cams[cid]
+            K, w, h, distortion = cams[cid]
             img_path = img_dir / name
             if not img_path.exists():
                 warnings.warn(f"COLMAP image {img_path} is missing; skipped", stacklevel=2)
                 continue
             vname = os.path.splitext(name)[0]
-            views[vname] = make_view(vname, img_path, K, w2c, bg, scale, declared_size=(w, h))
+            views[vname] = make_view(vname, img_path, K, w2c, bg, scale, declared_size=(w, h), distortion=distortion)
         if not views:
             raise FileNotFoundError(f"none of the images listed in {model_dir / 'images.txt'} exists in {img_dir}")
         pts = model_dir / "points3D.txt"

@@ -112,7 +112,9 @@ def _dtu_depth(path: Path) -> np.ndarray:
 class DtuParser(DataParser):
     format = "dtu"
 
-    def load(self, path, scale: float = 1.0, background=None, near=None, far=None) -> SceneData:
+    def load(
+        self, path, scale: float = 1.0, background=None, near=None, far=None, ignore_distortion: bool = False
+    ) -> SceneData:
         """A DTU scan in MVSNeRF's layout (see module docstring of the project data README).
 
         Cameras/train/000000NN_cam.txt (or Cameras/000000NN_cam.txt): MVSNet layout, world-to-camera

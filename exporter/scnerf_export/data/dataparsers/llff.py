@@ -26,7 +26,9 @@ LLFF_HOLDOUT = 8
 class LlffParser(DataParser):
     format = "llff"
 
-    def load(self, path, scale: float = 1.0, background=None, near=None, far=None) -> SceneData:
+    def load(
+        self, path, scale: float = 1.0, background=None, near=None, far=None, ignore_distortion: bool = False
+    ) -> SceneData:
         """LLFF scene: poses_bounds.npy (N x 17) + images/ (sorted file names, one per row).
 
         Each row is a 3x5 matrix [R | t | hwf] (camera-to-world, rotation columns in LLFF's
