@@ -1,17 +1,17 @@
 //! COLMAP sparse models, text (`cameras.txt`, `images.txt`, `points3D.txt`) or binary (`.bin`),
 //! with the images in `<scene>/images/`.
 //!
-//! Convention (`exporter/scnerf_export/data/dataparsers/colmap.py::ColmapParser`; Python reads the
-//! text form only, the binary form here gives the same cameras): the model is looked for in
-//! `<scene>`, `<scene>/sparse/0`, `<scene>/sparse` (text first, then binary). Poses are
-//! world-to-camera in OpenCV axes already (qw qx qy qz tx ty tz). COLMAP's first pixel centre is at
-//! (0.5, 0.5): cx, cy are shifted by -0.5. PINHOLE and SIMPLE_PINHOLE are used as they are;
-//! SIMPLE_RADIAL, RADIAL, OPENCV and FULL_OPENCV only when their distortion is zero (or with
-//! `--ignore-distortion`); fisheye models are refused. Intrinsics are rescaled when the image on
-//! disk has another size than the camera, which is how a downscaled set beside `images/`
-//! (`images_N`, `--downscale N`) is read. near/far: 0.9 x the 1st and 1.1 x the 99th percentile of
-//! the z-depths of the 3D points in the views that observe them (every view for a point without a
-//! track). Views are in natural order of their image names; names drop the extension.
+//! Convention (`exporter/scnerf_export/data/dataparsers/colmap.py::ColmapParser`, which reads both
+//! forms too): the model is looked for in `<scene>`, `<scene>/sparse/0`, `<scene>/sparse` (text
+//! first, then binary). Poses are world-to-camera in OpenCV axes already (qw qx qy qz tx ty tz).
+//! COLMAP's first pixel centre is at (0.5, 0.5): cx, cy are shifted by -0.5. PINHOLE and
+//! SIMPLE_PINHOLE are used as they are; the photos of the radial, OpenCV and fisheye models are
+//! undistorted (`crate::undistort`; with `--ignore-distortion`, used as pinhole); FOV and
+//! THIN_PRISM_FISHEYE are refused. Intrinsics are rescaled when the image on disk has another size
+//! than the camera, which is how a downscaled set beside `images/` (`images_N`, `--downscale N`) is
+//! read. near/far: 0.9 x the 1st and 1.1 x the 99th percentile of the z-depths of the 3D points in
+//! the views that observe them (every view for a point without a track). Views are in natural
+//! order of their image names; names drop the extension.
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -220,7 +220,7 @@ pub const MAX_DEPTHS: usize = 1 << 22;
 
 /// near = 0.9 x the 1st, far = 1.1 x the 99th percentile of the positive z-depths of each point
 /// in the images that observe it (in every image for a point without a track);
-/// `colmap.py::_colmap_points_near_far`. Images whose file is missing still count.
+/// `colmap.py::_points_near_far`. Images whose file is missing still count.
 fn points_near_far(points: &Points, images: &[ImageRecord], file: &Path) -> Result<Option<(f64, f64)>> {
     // Python keeps the last record of a repeated image id
     let poses: HashMap<i64, &Pose> = images.iter().map(|i| (i.id, &i.w2c)).collect();

@@ -5,8 +5,8 @@ three sources (the server's rule: the nearest by camera centre, ``cameras.rank_s
 hash that names what was read.
 
 The views are read by the exporter's parsers (:mod:`scnerf_export.data.dataparsers`), the ones
-``scnerf-export eval`` reads. They undistort photos as the Rust readers do (``data.lens``), and
-differ from them in one way a user may meet: COLMAP models are read in their text form only.
+``scnerf-export eval`` reads. Like the Rust readers, they read COLMAP's text and binary models and
+undistort photos (``data.lens``).
 """
 
 from __future__ import annotations

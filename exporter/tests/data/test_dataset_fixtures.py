@@ -7,6 +7,8 @@ regenerated and the Rust reader changed to match."""
 from __future__ import annotations
 
 import json
+import shutil
+import struct
 
 import numpy as np
 import pytest
@@ -24,10 +26,23 @@ def test_every_format_has_a_fixture():
     assert FOLDERS == ["blender", "colmap", "dtu", "llff", "nerfstudio"]
 
 
+def expected_of(folder: str) -> dict:
+    return json.loads((FIXTURES / folder / "expected.json").read_text())
+
+
 @pytest.mark.filterwarnings("ignore:.*(missing|no image).*:UserWarning")
 @pytest.mark.parametrize("folder", FOLDERS)
 def test_loader_matches_expected(folder):
-    expected = json.loads((FIXTURES / folder / "expected.json").read_text())
+    assert_loads_as(folder, expected_of(folder))
+
+
+@pytest.mark.filterwarnings("ignore:.*(missing|no image).*:UserWarning")
+def test_the_binary_colmap_model_gives_the_text_models_cameras():
+    assert not list((FIXTURES / "colmap_binary").rglob("*.txt")), "the binary fixture must hold no text model"
+    assert_loads_as("colmap_binary", expected_of("colmap"))
+
+
+def assert_loads_as(folder: str, expected: dict):
     scene = load_scene(FIXTURES / folder, expected["format"])
     assert scene.near == pytest.approx(expected["near"], rel=1e-12)
     assert scene.far == pytest.approx(expected["far"], rel=1e-12)
@@ -47,3 +62,16 @@ def test_metrics_fixture_matches_metrics_py():
     pred = np.array(data["pred"]).reshape(data["shape"])
     assert metrics.psnr(pred, gt) == pytest.approx(data["psnr"], rel=1e-12)
     assert metrics.ssim(pred, gt) == pytest.approx(data["ssim"], rel=1e-12)
+
+
+def test_a_truncated_binary_colmap_model_is_refused_naming_the_file(tmp_path):
+    capture = tmp_path / "capture"
+    shutil.copytree(FIXTURES / "colmap_binary", capture)
+    images = capture / "sparse" / "0" / "images.bin"
+    whole = images.read_bytes()
+    images.write_bytes(whole[:-5])
+    with pytest.raises(ValueError, match="images.bin: truncated binary model"):
+        load_scene(capture, "colmap")
+    images.write_bytes(struct.pack("<Q", 10**12) + whole[8:])
+    with pytest.raises(ValueError, match=r"images.bin: truncated binary model \(record count 1000000000000"):
+        load_scene(capture, "colmap")

@@ -12,7 +12,7 @@ import pytest
 from PIL import Image
 
 from scnerf_export.data import lens
-from scnerf_export.data.dataparsers.colmap import _parse_colmap_cameras
+from scnerf_export.data.dataparsers.colmap import _camera
 from scnerf_export.data.datasets import load_scene
 
 from conftest import REPO
@@ -61,17 +61,15 @@ def photo_position(K: np.ndarray, coefficients: np.ndarray, pinhole: np.ndarray,
     return K[0, 0] * xd + K[0, 2], K[1, 1] * yd + K[1, 2]
 
 
-def colmap_lens(tmp_path, case):
+def colmap_lens(case):
     """K, size and distortion of a fixture case's camera as the COLMAP reader reads them."""
-    (tmp_path / "cameras.txt").write_text(
-        f"1 {case['model']} {case['width']} {case['height']} " + " ".join(map(repr, case["params"])) + "\n"
-    )
-    return _parse_colmap_cameras(tmp_path / "cameras.txt", ignore_distortion=False)[1]
+    record = (1, case["model"], case["width"], case["height"], case["params"], "fixture")
+    return _camera(record, ignore_distortion=False, warned=set())
 
 
 @pytest.mark.parametrize("case", FIXTURE["cases"], ids=[c["model"] for c in FIXTURE["cases"]])
-def test_the_undistortion_maps_are_opencvs_for_every_colmap_lens(tmp_path, case):
-    K, width, height, distortion = colmap_lens(tmp_path, case)
+def test_the_undistortion_maps_are_opencvs_for_every_colmap_lens(case):
+    K, width, height, distortion = colmap_lens(case)
     assert distortion.fisheye == ("FISHEYE" in case["model"])
     map_x, map_y = distortion.maps(K, np.array(case["map_k"]), width, height)
     u, v, x, y = np.array(case["map"]).T
@@ -97,7 +95,7 @@ def test_a_distorted_colmap_camera_loads_as_the_largest_rectangle_opencv_gives(t
 @pytest.mark.parametrize("model", ["OPENCV", "OPENCV_FISHEYE"])
 def test_every_pixel_of_the_pinhole_image_sees_the_photo_and_the_rectangle_is_the_largest(tmp_path, model):
     case = next(c for c in FIXTURE["cases"] if c["model"] == model)
-    K, width, height, distortion = colmap_lens(tmp_path, case)
+    K, width, height, distortion = colmap_lens(case)
     map_x, map_y = distortion.maps(K, lens.pinhole_for(K, distortion, width, height), width, height)
     margin = np.minimum.reduce([map_x + 0.5, width - 0.5 - map_x, map_y + 0.5, height - 0.5 - map_y])
     assert margin.min() >= -1e-3, "a pixel of the pinhole image lies outside the photo"
