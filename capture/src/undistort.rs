@@ -261,7 +261,7 @@ fn bilinear(photo: &RgbaImage, x: f64, y: f64) -> Option<Rgba<u8>> {
 
 /// A view's camera and lens from its photo's camera (at the photo's size) and the lens's
 /// distortion: no distortion, the camera as it is; with `ignore` (`--ignore-distortion`), the same with a
-/// warning (what the Python loaders do); else the pinhole camera `fit` gives
+/// warning (the Python loaders' `ignore_distortion` too); else the pinhole camera `fit` gives
 /// that the photo is undistorted to when sent. `what` names the camera in messages.
 pub fn lens_of(
     photo: Camera,

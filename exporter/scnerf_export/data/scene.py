@@ -157,8 +157,7 @@ def make_view(
     distortion: lens.Distortion | None = None,
 ) -> View:
     """Read the image, fit K to its real size (if the file declares another), resample it to a
-    pinhole camera if its lens has a ``distortion`` (:mod:`.lens`), apply
-    ``scale``."""
+    pinhole camera if its lens has a ``distortion`` (:mod:`.lens`), apply ``scale``."""
     image = read_image(image_path, background)
     h, w = image.shape[:2]
     cam = Camera(np.asarray(K, dtype=np.float64), np.asarray(w2c, dtype=np.float64), w, h)

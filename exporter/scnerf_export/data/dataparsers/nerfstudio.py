@@ -30,9 +30,8 @@ class NerfstudioParser(DataParser):
         image on disk has another size than w x h, the intrinsics are rescaled to it. Photos with
         distortion coefficients (OPENCV's k1, k2, k3, p1, p2; OPENCV_FISHEYE's k1..k4) are
         undistorted (:mod:`..lens`) unless ``ignore_distortion``; OPENCV's k4 (a term in r^8) is
-        refused. near/far come from the
-        arguments, else from 'near'/'far' (or 'near_far') keys in the file, else from the poses
-        (``depth_range``).
+        refused. near/far come from the arguments, else from 'near'/'far' (or 'near_far') keys in
+        the file, else from the poses (``depth_range``).
         """
         p = Path(path)
         jf = p / "transforms.json" if p.is_dir() else p
