@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ..data import datasets
+from ..data.dataparsers.colmap import find_model
 from ..data.scene import SceneData, image_size, list_images, resize_view
 
 # The server's --max-source-pixels (server/src/request/mod.rs, Limits::default).
@@ -47,11 +48,6 @@ def _is_blender_json(path: Path) -> bool:
     return isinstance(data, dict) and "camera_angle_x" in data and "fl_x" not in data
 
 
-def _has_colmap_model(root: Path) -> bool:
-    dirs = (root, root / "sparse" / "0", root / "sparse")
-    return any((d / f"cameras.{e}").is_file() and (d / f"images.{e}").is_file() for d in dirs for e in ("txt", "bin"))
-
-
 def detect_format(path: Path) -> str:
     """The capture's format, by the files it has (the Rust readers' ``detect``)."""
     if path.is_file():
@@ -68,7 +64,7 @@ def detect_format(path: Path) -> str:
         return "blender"
     if (path / "transforms.json").is_file():
         return "blender" if _is_blender_json(path / "transforms.json") else "nerfstudio"
-    if _has_colmap_model(path):
+    if find_model(path) is not None:
         return "colmap"
     raise CaptureError(
         f"{path}: cannot tell the capture format: expected poses_bounds.npy (LLFF), Cameras/ (DTU), "

@@ -7,12 +7,14 @@ regenerated and the Rust reader changed to match."""
 from __future__ import annotations
 
 import json
+import re
 import shutil
 import struct
 
 import numpy as np
 import pytest
 
+from scnerf_export.data.dataparsers import colmap_binary
 from scnerf_export.data.datasets import load_scene
 from scnerf_export.evaluate import metrics
 
@@ -75,3 +77,12 @@ def test_a_truncated_binary_colmap_model_is_refused_naming_the_file(tmp_path):
     images.write_bytes(struct.pack("<Q", 10**12) + whole[8:])
     with pytest.raises(ValueError, match=r"images.bin: truncated binary model \(record count 1000000000000"):
         load_scene(capture, "colmap")
+
+
+def test_the_binary_model_ids_are_the_rust_readers():
+    """Both readers index COLMAP's model table by the binary model id."""
+    rust = (REPO / "capture" / "src" / "readers" / "colmap.rs").read_text()
+    table = re.search(r"const MODELS: \[\(&str, usize\); \d+\] = \[(.*?)\];", rust, re.S)
+    assert table, "MODELS is not in capture/src/readers/colmap.rs"
+    rows = re.findall(r'\("([A-Z_]+)", (\d+)\)', table.group(1))
+    assert tuple((model, int(n)) for model, n in rows) == colmap_binary.MODELS

@@ -105,6 +105,10 @@ def test_formats_are_detected_as_the_rust_readers_detect_them(fmt):
     assert detect_format(DATASETS / fmt) == fmt
 
 
+def test_a_binary_colmap_model_is_detected_as_colmap():
+    assert detect_format(DATASETS / "colmap_binary") == "colmap"
+
+
 def test_the_image_set_is_the_largest_within_the_source_limit():
     sets = [ImageSet(1, 4032, 3024), ImageSet(4, 1008, 756), ImageSet(8, 504, 378)]
     assert pick_image_set(sets, None, 1 << 20).factor == 4
