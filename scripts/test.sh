@@ -1,28 +1,78 @@
 #!/usr/bin/env bash
-# Every test of the project: the lint gate (ruff, clippy, rustfmt), the Rust workspace (unit, HTTP,
-# parity against the committed fixtures, end-to-end), scenes across two replicas behind Debian's
-# nginx (scripts/proxy-test.sh), the hostile clients' short form (loadtest/attacks.sh), the
-# exporter's pytest suite, the benchmark's, the Python client installed into a fresh venv against
-# the real server (scripts/python-client-test.sh), the viewer in headless Chromium
-# (scripts/viewer-test.sh) and the container files' static checks (docker/lint.sh). The scripts
-# install what they miss with apt-get (nginx, Chromium), npm and pip, and fail when they cannot
-# (SCNERF_ALLOW_SKIP=1 lets the proxy test skip on a machine without nginx). Needs crates.io, PyPI,
-# npm and Debian's packages on the first run only.
+# The project's tests, in two tiers.
+#
+#   scripts/test.sh          the fast tier, which CI runs: the lint gate (module rules, ruff,
+#                            clippy, rustfmt), the Rust workspace (unit, HTTP, parity against the
+#                            committed fixtures, end-to-end on small bundles, the default bundle on
+#                            the committed example), scenes across two replicas behind Debian's nginx
+#                            (scripts/proxy-test.sh), the hostile clients' short form
+#                            (loadtest/attacks.sh), the exporter's pytest suite less its `slow`
+#                            tests, the benchmark's, the Python client installed into its own venv
+#                            against the real server (scripts/python-client-test.sh), the viewer in
+#                            headless Chromium (scripts/viewer-test.sh) and the container files'
+#                            static checks (docker/lint.sh).
+#   scripts/test.sh --full   all of that, plus the paper-size and long checks: pytest's `slow`
+#                            tests (real scenes at the paper's protocol, refine for minutes) and the
+#                            Rust tests built with `cfg(full_tier)` (lego through the server, the
+#                            lego orbit through `scnerf render`). A change to the model, sampling or
+#                            the bundle format needs this tier to pass.
+#
+# Each stage prints how long it took; a table of all of them closes the run, and pytest lists its
+# 15 slowest tests. The scripts install what they miss with apt-get (nginx, Chromium), npm and pip,
+# and fail when they cannot (SCNERF_ALLOW_SKIP=1 lets the proxy test skip on a machine without
+# nginx). Needs crates.io, PyPI, npm and Debian's packages on the first run only. Tests that need
+# the scenes of ../shared skip, saying so, without it.
 set -euo pipefail
 repo=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
 cd "${repo}"
-scripts/fetch-onnxruntime.sh
-scripts/setup-python.sh
-python3 scripts/check-modules.py
-.venv/bin/ruff check exporter bench scripts loadtest client-python
-.venv/bin/ruff format --check exporter bench scripts loadtest client-python
-cargo test -j2 --workspace --locked
-cargo clippy --workspace --all-targets --locked -- -D warnings
-cargo fmt --all --check
-scripts/proxy-test.sh
-loadtest/attacks.sh
-.venv/bin/python -m pytest -q -p no:cacheprovider exporter/tests
-.venv/bin/python -m pytest -q -p no:cacheprovider bench/tests
-scripts/python-client-test.sh
-scripts/viewer-test.sh
-docker/lint.sh
+
+tier=fast
+case ${1:-} in
+  "") ;;
+  --full) tier=full ;;
+  *) echo "usage: scripts/test.sh [--full]" >&2; exit 2 ;;
+esac
+# Read by the build scripts of the crates with full-tier tests (tests/test_cfg.rs).
+export SCNERF_TEST_TIER=${tier}
+pytest_tier=(-m "not slow")
+[[ ${tier} == full ]] && pytest_tier=()
+
+timings=()
+suite_started=${SECONDS}
+stage() {
+  local name=$1 started=${SECONDS}
+  shift
+  echo "==> ${name}"
+  "$@"
+  timings+=("$(printf '%5d s  %s' $((SECONDS - started)) "${name}")")
+  echo "<== ${name}: $((SECONDS - started)) s"
+}
+report() {
+  local status=$?
+  echo "== scripts/test.sh (${tier} tier): stage times"
+  printf '%s\n' "${timings[@]}"
+  printf '%5d s  in all%s\n' $((SECONDS - suite_started)) "$([[ ${status} -eq 0 ]] || echo ", failed with status ${status}")"
+}
+trap report EXIT
+
+pytest() {
+  .venv/bin/python -m pytest -q -p no:cacheprovider --durations=15 "$@"
+}
+lint() {
+  python3 scripts/check-modules.py
+  .venv/bin/ruff check exporter bench scripts loadtest client-python
+  .venv/bin/ruff format --check exporter bench scripts loadtest client-python
+  cargo fmt --all --check
+}
+
+stage "setup (ONNX Runtime, Python environment)" bash -c 'scripts/fetch-onnxruntime.sh && scripts/setup-python.sh'
+stage "lint (modules, ruff, rustfmt)" lint
+stage "rust workspace: build and test" cargo test -j2 --workspace --locked
+stage "clippy" cargo clippy -j2 --workspace --all-targets --locked -- -D warnings
+stage "replicas behind nginx" scripts/proxy-test.sh
+stage "hostile clients (short)" loadtest/attacks.sh
+stage "exporter pytest" pytest "${pytest_tier[@]}" exporter/tests
+stage "bench pytest" pytest bench/tests
+stage "python client" scripts/python-client-test.sh
+stage "viewer in chromium" scripts/viewer-test.sh
+stage "container files" docker/lint.sh

@@ -84,6 +84,7 @@ fn uploads_again_under_the_same_id_when_the_server_lost_the_scene() {
 /// a paper-size volume from 800x800 sources: about a minute on 2 cores).
 #[test]
 #[cfg_attr(not(shared_data), ignore = "../shared/data is absent: the lego capture cannot be rendered")]
+#[cfg_attr(all(shared_data, not(full_tier)), ignore = "full tier (scripts/test.sh --full): a paper-size volume from 800x800 sources")]
 fn render_lego_orbit_to_frames_and_video() {
     const FRAMES: usize = 4;
     let lego = repo_root().join("../shared/data/nerf_synthetic_lego");

@@ -16,7 +16,8 @@ scored as the server renders them (the band stage by each of its rules) before t
 with its band rule, is what the bundle keeps (the base itself if no step beats it). A scoring below
 the best sends training back to the best weights at a smaller learning rate (``back_off``).
 
-The run keeps to a time budget (``minutes``: banking, training, scoring and writing the bundle).
+The run keeps to a time budget (``minutes``: banking, training, scoring and writing the bundle),
+and to a budget of ``steps`` where the recipe sets one.
 Views are banked in an order that spreads over the capture (``spread_order``), between stretches
 of training as long as the banking took, so a short budget trains on views from all around. The
 work folder (``OUT/.refine``) holds the state (weights, optimiser, best step, time spent) and the
@@ -69,6 +70,10 @@ class Recipe:
     held_out_rays: int = 8192  # scored over all held-out views
     min_held_out_rays: int = 512  # scored per held-out view, at least
     score_every_s: float = 90.0  # seconds of training between scorings
+    # A budget of steps besides the minutes, and scorings every so many steps instead of seconds:
+    # a run that does the same work on any machine (tests, comparisons of recipes).
+    steps: int | None = None
+    score_every_steps: int | None = None
     backoff: float = 3.0  # a scoring below the best: the best weights back, the learning rate divided by this
     write_reserve_s: float = 60.0  # kept for writing the bundle at the end of the budget
     seed: int = 0
@@ -81,6 +86,9 @@ class Recipe:
             raise ValueError(f"minutes must be positive, got {self.minutes}")
         if not self.backoff >= 1:
             raise ValueError(f"backoff must be at least 1, got {self.backoff}")
+        for name in ("steps", "score_every_steps"):
+            if getattr(self, name) is not None and getattr(self, name) < 1:
+                raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
 
 
 class RefineError(ValueError):
@@ -211,6 +219,17 @@ class Refinement:
         self.train_bank = bank if self.train_bank is None else PointBank.concat([self.train_bank, bank])
         self.bank_seconds, self.since_bank = self.elapsed() - start, 0.0
 
+    def wants_score(self) -> bool:
+        """A scoring is due: every ``score_every_steps`` steps where the recipe counts steps, else
+        after ``score_every_s`` seconds of training."""
+        every = self.recipe.score_every_steps
+        if every is not None:
+            return self.progress.step % every == 0
+        return self.since_score >= self.recipe.score_every_s
+
+    def steps_spent(self) -> bool:
+        return self.recipe.steps is not None and self.progress.step >= self.recipe.steps
+
     def wants_bank(self) -> bool:
         """Bank the next view when none is banked, or after training as long as the last banking took."""
         return bool(self.pending) and (self.train_bank is None or self.since_bank >= self.bank_seconds)
@@ -311,8 +330,9 @@ def report(run: Refinement, result: dict) -> str:
 
 
 def train_to(run: Refinement, deadline: float, bar: tqdm, log) -> None:
-    """Banks views and trains until ``deadline`` (seconds of the run's clock), scoring as it goes."""
-    while run.elapsed() < deadline:
+    """Banks views and trains until ``deadline`` (seconds of the run's clock) or the recipe's steps,
+    scoring as it goes."""
+    while run.elapsed() < deadline and not run.steps_spent():
         if run.wants_bank():
             bar.set_description(f"refine (banking {run.pending[0]})")
             run.bank_next()
@@ -322,7 +342,7 @@ def train_to(run: Refinement, deadline: float, bar: tqdm, log) -> None:
         else:
             loss = run.step()
             log.write(json.dumps({"step": run.progress.step, "loss": loss, "seconds": run.elapsed()}) + "\n")
-            if run.since_score >= run.recipe.score_every_s:
+            if run.wants_score():
                 tqdm.write(report(run, run.score()))
                 run.save()  # a run killed outright resumes from here
         bar.n = min(int(run.elapsed()), bar.total)

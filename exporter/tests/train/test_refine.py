@@ -6,8 +6,8 @@ What is checked: the capture's format, image set and split (held-out views are n
 capture too small is refused), the banked rays shade as the renderer renders, steps on the
 training views make them score better, held-out views never reach the optimiser (instrumented: no
 encoding sees them, every step's rays are training rays, their poisoned pixels never make a
-gradient), a resumed run continues exactly as an uninterrupted one, and, end to end (slow), Ctrl-C
-writes the best bundle so far and the same command resumes into an ordinary bundle.
+gradient), a resumed run continues exactly as an uninterrupted one, and, end to end on a budget of
+steps, Ctrl-C writes the best bundle so far and the same command resumes into an ordinary bundle.
 """
 
 from __future__ import annotations
@@ -324,10 +324,10 @@ def test_another_capture_into_the_same_out_is_refused(loaded, base, tmp_path):
 # ------------------------------------------------------------------------------------- end to end
 
 
-@pytest.mark.slow
 def test_interrupted_then_resumed_into_an_ordinary_bundle(capture_dir, base, tmp_path, monkeypatch):
     out = tmp_path / "refined"
-    recipe = replace(QUICK, minutes=1.0, write_reserve_s=0.0, score_every_s=3.0)
+    # A budget of steps, scored every 4: the same run on any machine, however loaded.
+    recipe = replace(QUICK, minutes=30.0, write_reserve_s=0.0, steps=16, score_every_steps=4)
     steps = {"n": 0}
     original_step = Refinement.step
 
@@ -344,7 +344,7 @@ def test_interrupted_then_resumed_into_an_ordinary_bundle(capture_dir, base, tmp
 
     second = refine(capture_dir, out, recipe, base=base[0], checkpoint=base[1], holdout=3, threads=1)
     record = second.record
-    assert not second.interrupted and record["steps_run"] > 7
+    assert not second.interrupted and record["steps_run"] == 16
     assert record["minutes"] >= first.record["minutes"]
     assert not (out / ".refine" / "banks").exists()  # removed once the budget is spent
     manifest = Manifest.load(out)
@@ -353,8 +353,15 @@ def test_interrupted_then_resumed_into_an_ordinary_bundle(capture_dir, base, tmp
     assert refinement["base_model_id"] == Manifest.load(base[0]).model_id
     assert refinement["capture"]["folder"] == capture_dir.name and len(refinement["capture"]["sha256"]) == 64
     assert refinement["held_out"] == ["v0", "v3", "v6"]
+    # The record is the scorings': the base's first, the kept step's the best of them (every 4th
+    # step; the interruption at step 8 is not scored), and the kept step one of those.
+    history = torch.load(out / ".refine" / "state.pt", weights_only=False)["progress"]["history"]
+    scored = {h["step"]: h["psnr"] for h in history}
+    assert set(scored) == {0, 4, 8, 12, 16}
     held = refinement["held_out_psnr"]
-    assert held["after"] >= held["before"] and refinement["steps"] <= refinement["steps_run"]
+    assert held["before"] == scored[0]
+    assert refinement["steps"] in scored and held["after"] == scored[refinement["steps"]] == max(scored.values())
+    assert refinement["steps"] <= refinement["steps_run"]
     if refinement["steps"] > 0:
         assert manifest.model_id != Manifest.load(base[0]).model_id
     # The bundle runs as the server runs it (ONNX Runtime, guided sampling included).
