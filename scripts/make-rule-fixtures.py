@@ -35,7 +35,8 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from scnerf_export.cameras import OPENGL_TO_OPENCV, Camera, canonical_w2c, look_at
+from scnerf_export.cameras import OPENGL_TO_OPENCV, Camera, canonical_w2c, look_at, rank_sources
+from scnerf_export.data import depth_range
 from scnerf_export.data.dataparsers.llff import LlffParser
 from scnerf_export.data.scene import is_image, list_images
 from scnerf_export.export.bundle import graph_contract
@@ -287,12 +288,123 @@ def resized(camera: tuple, size: tuple[int, int]) -> dict:
     return {"camera": before, "resized": after}
 
 
+def cameras_looking_at(eyes, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0)) -> list[Camera]:
+    return [Camera(np.eye(3), look_at(eye, target, up), 8, 6) for eye in eyes]
+
+
+def placed(rotation, centre) -> Camera:
+    """A camera of rotation ``rotation`` (world-to-camera) whose centre is ``centre``."""
+    w2c = np.eye(4)
+    w2c[:3, :3] = rotation
+    w2c[:3, 3] = -np.asarray(rotation, dtype=np.float64) @ np.asarray(centre, dtype=np.float64)
+    return Camera(np.eye(3), w2c, 8, 6)
+
+
+def forward_grid(half_width: float, distance: float = 10.0) -> list[Camera]:
+    """3 x 3 cameras on a plane at ``distance`` from the origin, all looking at it: the wider the
+    grid, the more the axes spread (about (half_width / distance)^2)."""
+    eyes = [(x * half_width, distance, z * half_width) for x in (-1, 0, 1) for z in (-1, 0, 1)]
+    return cameras_looking_at(eyes)
+
+
+def depth_rigs() -> list[tuple[str, list[Camera]]]:
+    elevation = 0.5
+    ring = [
+        4 * np.array([np.cos(a) * np.cos(elevation), np.sin(a) * np.cos(elevation), np.sin(elevation)])
+        for a in np.arange(8) * np.pi / 4
+    ]
+    arc = [(3 * np.sin(a), -3 * np.cos(a), 0.8) for a in np.radians([-25, -12, 0, 12, 25])]
+    # Each on the line from the origin to its ring position, looking away from the origin.
+    outwards = [placed(look_at((0, 0, 0), eye)[:3, :3], 0.5 * eye) for eye in ring[:4]]
+    inwards = cameras_looking_at(ring[:3])
+    away = placed(look_at((0, 0, 0), ring[5])[:3, :3], ring[5])  # on a line through the point, facing out
+    return [
+        ("an object seen from around it (lego)", cameras_looking_at(ring)),
+        ("an object seen from one side (DTU)", cameras_looking_at(arc, target=(0.0, 0.0, 0.2))),
+        ("forward-facing (LLFF)", forward_grid(1.5)),
+        ("forward-facing, just below the object spread", forward_grid(1.9)),
+        ("forward-facing, just above the object spread: an object", forward_grid(2.05)),
+        ("forward-facing, just above the least spread", forward_grid(0.92)),
+        ("forward-facing, just below the least spread: no range", forward_grid(0.84)),
+        ("parallel axes: no point", [placed(np.eye(3), (x, y, 0.0)) for x in (-1, 0, 1) for y in (-1, 0, 1)]),
+        ("looking outwards: the point is behind them all", outwards),
+        ("one of four faces away: its depth is left out", inwards + [away]),
+        ("two of four face away: the point is in front of no more than half", inwards[:2] + [away, away]),
+        ("one camera", cameras_looking_at(ring[:1])),
+        ("no camera", []),
+    ]
+
+
+def depth_ranges() -> dict:
+    rigs = []
+    for name, cameras in depth_rigs():
+        meet = depth_range.convergence(cameras)
+        poses = depth_range.from_poses(cameras)
+        rigs.append(
+            {
+                "name": name,
+                "w2c": [c.w2c.tolist() for c in cameras],
+                "convergence": None if meet is None else {"point": meet[0].tolist(), "spread": meet[1]},
+                "range": None if poses is None else list(poses),
+            }
+        )
+    return {
+        "what": "the depth range from the poses: the point nearest to every optical axis and the axes' spread "
+        "(none when they spread by 0.01 or less, or the point is in front of no more than half the cameras); "
+        "near = 0.4 x the least depth of the point in front of a camera, far = 1.6 x the largest (spread over "
+        "0.05: an object seen from around it) or 8 x (a forward-facing capture)",
+        "rigs": rigs,
+    }
+
+
+def source_rankings() -> dict:
+    identity = np.eye(3)
+    back = np.diag([1.0, -1.0, -1.0])  # looks along -z
+    side = np.array([[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])  # looks along +x: 90 degrees
+    rolled = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # still along +z
+    rig = [
+        placed(identity, (2, 0, 0)),
+        placed(identity, (0, 2, 0)),
+        placed(back, (1, 0, 0)),
+        placed(side, (0, 0, 1)),
+        placed(identity, (0, 0, -3)),
+        placed(identity, (-1, 1, 0)),
+        placed(rolled, (1, -1, 0)),
+        placed(identity, (0, -2, 0)),
+        placed(back, (0.5, 0, 0)),
+    ]
+    grid = [placed(identity, (x, y, 0)) for y in (-1, 0, 1) for x in (-1, 0, 1)]
+    eyes = [(4 * np.cos(a), 4 * np.sin(a), 1.0 + 0.1 * i) for i, a in enumerate(np.arange(12) * 0.5)]
+    ring = cameras_looking_at(eyes)
+    cases = [
+        ("ties, views facing away and one at 90 degrees", placed(identity, (0, 0, 0)), rig),
+        ("a grid: ties go to the lower index", placed(identity, (0, 0, 0)), grid),
+        ("a ring around an object: the far side is left out", ring[0], ring[1:]),
+        ("no candidates", ring[0], []),
+    ]
+    return {
+        "what": "source ranking: candidates by the distance of their centre to the target's, nearest first, "
+        "ties to the lower index; those whose optical axis makes 90 degrees or more with the target's are left out",
+        "cases": [
+            {
+                "name": name,
+                "target": target.w2c.tolist(),
+                "candidates": [c.w2c.tolist() for c in candidates],
+                "ranked": rank_sources(target, candidates),
+            }
+            for name, target, candidates in cases
+        ],
+    }
+
+
 def main() -> int:
     ROOT.mkdir(parents=True, exist_ok=True)
     write("chunks.json", chunks())
     write("graph_contract.json", graph_contracts())
     write("image_files.json", image_files())
     write("cameras.json", cameras())
+    write("depth_range.json", depth_ranges())
+    write("source_ranking.json", source_rankings())
     print(f"wrote {ROOT}")
     return 0
 

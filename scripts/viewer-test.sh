@@ -1,12 +1,13 @@
 #!/usr/bin/env bash
-# The browser viewer (GET /) in a real browser: builds the server, serves a bundle with
+# The viewer's camera conventions against the rules' fixtures (scripts/browser-test/camera.test.mjs,
+# node --test), then the browser viewer (GET /) in a real browser: builds the server, serves a bundle with
 # a bearer token on a free port, and drives Debian's Chromium headless through
 # scripts/browser-test/viewer-test.mjs (Node's playwright-core): the token prompt, the first
 # render and its finer sizes, depth/opacity, the PNG download, a mouse drag to a new pose, a
 # second drag that aborts a render in flight (checked in the server's log: its remaining chunks
 # never run), keyboard snapping, captures, the model picker (a copy of the bundle is served as a
 # second model), and that every request stays on the server. Installs Chromium (apt) and the npm package when they are missing. Exits non-zero on
-# failure. Needs Node.js >= 20.
+# failure. Needs Node.js >= 20.19.
 #
 #   OUT=DIR          screenshots, the server's log (default target/viewer-test)
 #   CHROMIUM=PATH    the browser (default /usr/bin/chromium)
@@ -28,7 +29,8 @@ if [[ ! -x ${CHROMIUM} ]]; then
   apt-get update -qq
   DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium > /dev/null
 fi
-command -v node > /dev/null || { echo "viewer-test: Node.js >= 20 is needed (node not found)" >&2; exit 1; }
+command -v node > /dev/null || { echo "viewer-test: Node.js >= 20.19 is needed (node not found)" >&2; exit 1; }
+node --test scripts/browser-test/camera.test.mjs
 (cd scripts/browser-test && npm ci --no-audit --no-fund --loglevel=error)
 
 # shellcheck source=scripts/_server.sh

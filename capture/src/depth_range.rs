@@ -9,6 +9,9 @@
 //! margins are set so that the range contains the known one, and is at most twice as wide, on
 //! the scenes of `tests/depth_range.rs`: lego (2 to 6; depths 4.03), DTU scan37 (2.125 to 4.525;
 //! depths 3.04) and LLFF horns (11.2 to 169; depths 26.3 to 29.0).
+//!
+//! The exporter computes the same range (`data/depth_range.py`); both are held to
+//! `tests/fixtures/rules/depth_range.json` (`tests/rules.rs`).
 
 use std::path::Path;
 

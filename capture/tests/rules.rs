@@ -1,13 +1,15 @@
 //! The rules this crate shares with the Python side, against tests/fixtures/rules/ (written by
 //! scripts/make-rule-fixtures.py from the Python code; exporter/tests/data/test_rule_fixtures.py
 //! holds the Python side to the same files): which files are images and which image set a capture
-//! is read from (image_files.json), and the API's pose conventions, look_at and resized cameras
-//! (cameras.json). A rule changed on one side alone fails that side's tests.
+//! is read from (image_files.json), the API's pose conventions, look_at and resized cameras
+//! (cameras.json), the depth range from the poses (depth_range.json) and source ranking
+//! (source_ranking.json). A rule changed on one side alone fails that side's tests.
 
 use std::path::Path;
 
 use nalgebra::{Matrix4, Point3, Vector3};
-use scnerf_capture::camera::{self, Axes, Camera, Intrinsics, PoseKind};
+use scnerf_capture::camera::{self, Axes, Camera, Intrinsics, PoseKind, Viewpoint};
+use scnerf_capture::depth_range;
 use scnerf_capture::files::MemoryFiles;
 use scnerf_capture::image_sets::{self, Pick};
 use scnerf_capture::readers::{has_image_extension, list_images, Format};
@@ -151,5 +153,58 @@ fn resized_cameras_are_the_fixtures() {
             got.intrinsics.cy - want.cy,
         ];
         assert!(diff.iter().all(|d| d.abs() < 1e-9), "{case}: {:?}", got.intrinsics);
+    }
+}
+
+/// A camera of the fixture's world-to-camera matrix (the intrinsics play no part in the rules).
+fn camera_of(w2c: &Value) -> Camera {
+    let pose = camera::pose_from_matrix(&matrix(w2c)).unwrap_or_else(|| panic!("not a pose: {w2c}"));
+    Camera { width: 8, height: 6, intrinsics: Intrinsics { fx: 10.0, fy: 10.0, cx: 4.0, cy: 3.0 }, w2c: pose }
+}
+
+fn close(got: f64, want: &Value) -> bool {
+    let want = want.as_f64().unwrap();
+    (got - want).abs() <= 1e-9 * want.abs().max(1.0)
+}
+
+#[test]
+fn the_depth_range_of_each_rig_is_the_fixtures() {
+    let f = fixture("depth_range.json");
+    for rig in f["rigs"].as_array().unwrap() {
+        let what = rig["name"].as_str().unwrap();
+        let cameras: Vec<Camera> = rig["w2c"].as_array().unwrap().iter().map(camera_of).collect();
+        let meet = camera::convergence(&cameras);
+        assert_eq!(meet.is_some(), !rig["convergence"].is_null(), "{what}: {meet:?}");
+        if let Some(meet) = meet {
+            let want = &rig["convergence"];
+            assert!((meet.point - Point3::from(point(&want["point"]))).norm() < 1e-9, "{what}: {meet:?}");
+            assert!(close(meet.spread, &want["spread"]), "{what}: {meet:?}");
+        }
+        let refs: Vec<&Camera> = cameras.iter().collect();
+        let range = depth_range::from_poses(&refs);
+        match (range, rig["range"].as_array()) {
+            (None, None) => {}
+            (Some((near, far)), Some(want)) => {
+                assert!(close(near, &want[0]) && close(far, &want[1]), "{what}: {near}..{far} vs {want:?}")
+            }
+            (got, _) => panic!("{what}: {got:?} vs {}", rig["range"]),
+        }
+    }
+}
+
+#[test]
+fn source_ranking_is_the_fixtures() {
+    let f = fixture("source_ranking.json");
+    for case in f["cases"].as_array().unwrap() {
+        let what = case["name"].as_str().unwrap();
+        let want: Vec<usize> = serde_json::from_value(case["ranked"].clone()).unwrap();
+        let candidates = case["candidates"].as_array().unwrap();
+        // The server ranks its requests' matrices, the client's evaluation the cameras it read.
+        let of_matrices: Vec<Viewpoint> = candidates.iter().map(|m| Viewpoint::of_w2c(&matrix(m))).collect();
+        let target = Viewpoint::of_w2c(&matrix(&case["target"]));
+        assert_eq!(camera::rank_sources(&target, &of_matrices), want, "{what}");
+        let of_cameras: Vec<Viewpoint> = candidates.iter().map(|m| camera_of(m).viewpoint()).collect();
+        let target = camera_of(&case["target"]).viewpoint();
+        assert_eq!(camera::rank_sources(&target, &of_cameras), want, "{what}");
     }
 }

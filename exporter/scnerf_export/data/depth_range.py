@@ -6,7 +6,8 @@ range the server renders the capture with.
 The point the optical axes converge on (least squares), and its depth in each camera: near =
 ``NEAR_MARGIN`` x the smallest; far = ``OBJECT_FAR_MARGIN`` x the largest when the axes spread by
 more than ``OBJECT_SPREAD`` (an object seen from around it), else ``FORWARD_FAR_MARGIN`` x the
-largest (a forward-facing capture, whose scene reaches far behind the point looked at).
+largest (a forward-facing capture, whose scene reaches far behind the point looked at). Both
+sides are held to tests/fixtures/rules/depth_range.json.
 """
 
 from __future__ import annotations

@@ -1,17 +1,23 @@
 """The depth range from the poses (data/depth_range.py), the twin of the capture crate's
-(capture/src/depth_range.rs): on the real scenes whose range is known it contains that range and
-is at most twice as wide, as the Rust tests hold theirs; its margins are the Rust ones."""
+(capture/src/depth_range.rs): on the rigs of tests/fixtures/rules/depth_range.json (written by
+scripts/make-rule-fixtures.py; capture/tests/rules.rs holds the Rust side to the same file) it
+gives the fixture's point, spread and range, and on the real scenes whose range is known it
+contains that range and is at most twice as wide, as the Rust tests hold theirs."""
 
 from __future__ import annotations
 
-import re
+import json
 
+import numpy as np
 import pytest
 
+from scnerf_export.cameras import Camera
 from scnerf_export.data import depth_range
 from scnerf_export.train.refine_capture import MAX_SOURCE_PIXELS, read_capture
 
 from conftest import REPO
+
+RIGS = json.loads((REPO / "tests" / "fixtures" / "rules" / "depth_range.json").read_text())["rigs"]
 
 SHARED = REPO.parent / "shared" / "data"
 needs_shared = pytest.mark.skipif(not SHARED.is_dir(), reason="../shared/data is absent: no scene of known depth range")
@@ -30,9 +36,13 @@ def test_the_poses_give_a_range_that_contains_the_known_one_and_is_at_most_twice
     assert (far - near) / (data.far - data.near) <= 2.0, (near, far)
 
 
-def test_the_margins_are_the_servers():
-    rust = (REPO / "capture" / "src" / "depth_range.rs").read_text()
-    for name in ("NEAR_MARGIN", "OBJECT_FAR_MARGIN", "FORWARD_FAR_MARGIN", "OBJECT_SPREAD"):
-        value = re.search(rf"pub const {name}: f64 = ([0-9.]+);", rust)
-        assert value, f"{name} is not in capture/src/depth_range.rs"
-        assert getattr(depth_range, name) == float(value.group(1)), name
+@pytest.mark.parametrize("rig", RIGS, ids=lambda r: r["name"])
+def test_the_rigs_give_the_fixtures_point_spread_and_range(rig):
+    cameras = [Camera(np.eye(3), np.array(w2c), 8, 6) for w2c in rig["w2c"]]
+    meet, want = depth_range.convergence(cameras), rig["convergence"]
+    assert (meet is None) == (want is None), meet
+    if want is not None:
+        np.testing.assert_allclose(meet[0], want["point"], rtol=0, atol=1e-9)
+        assert meet[1] == pytest.approx(want["spread"], rel=1e-9)
+    got = depth_range.from_poses(cameras)
+    assert got == (None if rig["range"] is None else pytest.approx(tuple(rig["range"]), rel=1e-9))

@@ -2,8 +2,9 @@
 (written by scripts/make-rule-fixtures.py; capture/tests/rules.rs holds the Rust side to the same
 files): which files are images and which image set a capture is read from (image_files.json:
 the parsers' ``is_image`` and LLFF's listing and ``images_N``; the Python client asks the server,
-POST /v1/captures/plan), the API's pose conventions, look_at and resized cameras (cameras.json). A rule changed on
-one side alone fails that side's tests."""
+POST /v1/captures/plan), the API's pose conventions, look_at and resized cameras (cameras.json),
+source ranking (source_ranking.json). The depth range's fixture is test_depth_range.py's. A rule
+changed on one side alone fails that side's tests."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from scnerf_export.cameras import Camera, canonical_w2c, look_at
+from scnerf_export.cameras import Camera, canonical_w2c, look_at, rank_sources
 from scnerf_export.data.dataparsers.llff import LlffParser
 from scnerf_export.data.scene import is_image, list_images
 from scnerf_export.train.refine_capture import MAX_SOURCE_PIXELS, CaptureError, image_sets, pick_image_set
@@ -24,6 +25,7 @@ from conftest import REPO
 RULES = REPO / "tests" / "fixtures" / "rules"
 IMAGE_FILES = json.loads((RULES / "image_files.json").read_text())
 CAMERAS = json.loads((RULES / "cameras.json").read_text())
+RANKING = json.loads((RULES / "source_ranking.json").read_text())
 
 
 def build(root: Path, files: dict) -> None:
@@ -95,3 +97,12 @@ def test_resized_cameras_are_the_fixtures():
         np.testing.assert_allclose(
             [got.K[0, 0], got.K[1, 1], got.K[0, 2], got.K[1, 2]], [r["fx"], r["fy"], r["cx"], r["cy"]], atol=1e-9
         )
+
+
+@pytest.mark.parametrize("case", RANKING["cases"], ids=lambda c: c["name"])
+def test_source_ranking_is_the_fixtures(case):
+    def camera(w2c):
+        return Camera(np.eye(3), np.array(w2c), 8, 6)
+
+    ranked = rank_sources(camera(case["target"]), [camera(m) for m in case["candidates"]])
+    assert ranked == case["ranked"]
