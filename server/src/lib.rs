@@ -27,5 +27,6 @@ pub mod pipeline;
 pub mod request;
 pub mod server;
 pub mod sysmem;
+#[cfg(any(test, feature = "testing"))]
 #[doc(hidden)]
 pub mod testing;
