@@ -81,8 +81,8 @@ def test_a_truncated_binary_colmap_model_is_refused_naming_the_file(tmp_path):
 
 def test_the_binary_model_ids_are_the_rust_readers():
     """Both readers index COLMAP's model table by the binary model id."""
-    rust = (REPO / "capture" / "src" / "readers" / "colmap.rs").read_text()
+    rust = (REPO / "capture" / "src" / "readers" / "colmap" / "lens.rs").read_text()
     table = re.search(r"const MODELS: \[\(&str, usize\); \d+\] = \[(.*?)\];", rust, re.S)
-    assert table, "MODELS is not in capture/src/readers/colmap.rs"
+    assert table, "MODELS is not in capture/src/readers/colmap/lens.rs"
     rows = re.findall(r'\("([A-Z_]+)", (\d+)\)', table.group(1))
     assert tuple((model, int(n)) for model, n in rows) == colmap_binary.MODELS

@@ -108,7 +108,7 @@ pub async fn record_metrics(State(state): State<AppState>, req: Request, next: N
 /// A request answered before its body was read to the end (refused, past its deadline, or a
 /// client that sends more than it said) is answered at once with `connection: close`, and the
 /// rest of its body is not read: the slot and the memory are freed with the answer. The
-/// connection then closes the way `serve` closes one with unread data (see `serve::linger`).
+/// connection then closes the way `serve` closes one with unread data (see `connections::linger`).
 pub async fn limit_in_flight(State(state): State<AppState>, req: Request, next: Next) -> Response {
     if req.method() != Method::POST && req.method() != Method::PUT {
         return next.run(req).await;

@@ -6,6 +6,7 @@
 pub mod body;
 mod capture_plan;
 mod captures;
+pub mod connections;
 mod deadline;
 pub mod middleware;
 mod models;

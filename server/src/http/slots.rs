@@ -5,7 +5,7 @@ use std::sync::Arc;
 
 use tokio::sync::{OwnedSemaphorePermit, Semaphore};
 
-use super::serve::{AddressGuard, PerAddress};
+use super::connections::{AddressGuard, PerAddress};
 use crate::error::ApiError;
 
 /// Slots for requests being handled: `total` in all, `per_client` (0: any) per peer address.

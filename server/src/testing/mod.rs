@@ -1,5 +1,6 @@
-//! Test support (not part of the API): a fake graph runner with the bundle contract's shapes,
-//! a manifest for it, and request builders. Lets the HTTP layer be tested without ONNX Runtime.
+//! Test support (not part of the API, and compiled only for tests: the unit tests, or the `testing`
+//! feature the test crates turn on): a fake graph runner with the bundle contract's shapes, a
+//! manifest for it, and request builders. Lets the HTTP layer be tested without ONNX Runtime.
 //! `models.rs`: servers of several models over fakes, and bundle folders on disk.
 
 mod models;

@@ -151,7 +151,7 @@ _ENCODINGS = {
 
 def find_model(root: Path) -> tuple[Path, str] | None:
     """The model's folder and encoding: <scene>, <scene>/sparse/0 or <scene>/sparse, text in any
-    of them first, then binary (the Rust reader's rule, capture/src/readers/colmap.rs)."""
+    of them first, then binary (the Rust reader's rule, capture/src/readers/colmap/)."""
     for ext in _ENCODINGS:
         for d in (root, root / "sparse" / "0", root / "sparse"):
             if (d / f"cameras.{ext}").is_file() and (d / f"images.{ext}").is_file():

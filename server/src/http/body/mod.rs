@@ -9,8 +9,10 @@
 //!
 //! The handler then reads the body in the form its Content-Type names (`negotiate`): JSON and
 //! protobuf whole, within the route's limit (`read`), and parsed off the async workers; multipart
-//! part by part (`multipart`: the request's JSON, then its images).
+//! part by part (`multipart`: the request's JSON, then its images; `capture`: a capture folder's
+//! files).
 
+mod capture;
 mod held;
 mod multipart;
 mod rate;
@@ -23,8 +25,8 @@ use crate::error::ApiError;
 use crate::request::{HasSources, ImageMode, Limits, RenderRequest, SceneRequest, TargetRequest};
 use multipart::read_multipart;
 
+pub use capture::read_capture_files;
 pub use held::BodyUse;
-pub(super) use multipart::multipart_error;
 pub use rate::UploadPolicy;
 pub use read::{body_limit, read_bytes, refuse_declared_length, CAPTURES_PATH, CAPTURE_PLAN_PATH};
 

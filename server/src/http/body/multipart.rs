@@ -83,11 +83,7 @@ fn too_many_views(part: &str, max: usize) -> ApiError {
 }
 
 /// `field`: the part being read, or `body` between parts.
-pub(in crate::http) fn multipart_error(
-    e: axum::extract::multipart::MultipartError,
-    field: &str,
-    limit: usize,
-) -> ApiError {
+pub(super) fn multipart_error(e: axum::extract::multipart::MultipartError, field: &str, limit: usize) -> ApiError {
     if e.status() == StatusCode::PAYLOAD_TOO_LARGE {
         return too_large(field, limit);
     }
