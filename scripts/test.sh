@@ -49,6 +49,7 @@ stage() {
 }
 report() {
   local status=$?
+  [[ -n ${python_setup_pid:-} ]] && kill "${python_setup_pid}" 2> /dev/null
   echo "== scripts/test.sh (${tier} tier): stage times"
   printf '%s\n' "${timings[@]}"
   printf '%5d s  in all%s\n' $((SECONDS - suite_started)) "$([[ ${status} -eq 0 ]] || echo ", failed with status ${status}")"
@@ -58,17 +59,31 @@ trap report EXIT
 pytest() {
   .venv/bin/python -m pytest -q -p no:cacheprovider --durations=15 "$@"
 }
-lint() {
+python_lint() {
   python3 scripts/check-modules.py
   .venv/bin/ruff check exporter bench scripts loadtest client-python
   .venv/bin/ruff format --check exporter bench scripts loadtest client-python
-  cargo fmt --all --check
+}
+# The Python environment installs (from pip's cache, after the first run: mostly unpacking torch)
+# while the Rust workspace builds, which keeps both cores busy.
+python_setup_log=target/test-logs/setup-python.log
+start_python_setup() {
+  mkdir -p target/test-logs
+  scripts/setup-python.sh > "${python_setup_log}" 2>&1 &
+  python_setup_pid=$!
+}
+wait_for_python_setup() {
+  wait "${python_setup_pid}" || { cat "${python_setup_log}" >&2; return 1; }
+  tail -n 1 "${python_setup_log}"
 }
 
-stage "setup (ONNX Runtime, Python environment)" bash -c 'scripts/fetch-onnxruntime.sh && scripts/setup-python.sh'
-stage "lint (modules, ruff, rustfmt)" lint
+stage "ONNX Runtime" scripts/fetch-onnxruntime.sh
+start_python_setup
+stage "rustfmt" cargo fmt --all --check
 stage "rust workspace: build and test" cargo test -j2 --workspace --locked
 stage "clippy" cargo clippy -j2 --workspace --all-targets --locked -- -D warnings
+stage "python environment (installed during the Rust stages)" wait_for_python_setup
+stage "module rules, ruff" python_lint
 stage "replicas behind nginx" scripts/proxy-test.sh
 stage "hostile clients (short)" loadtest/attacks.sh
 stage "exporter pytest" pytest "${pytest_tier[@]}" exporter/tests

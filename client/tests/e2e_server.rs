@@ -34,6 +34,24 @@ fn assert_not_blank(frame: &Path, background: [f64; 3]) {
     assert!(share < 0.99, "{}: {:.1} % of the pixels are the background", frame.display(), 100.0 * share);
 }
 
+/// The orbit looks at the object's centre: the pixels that are not the background (the object's
+/// silhouette) have their centroid in the middle third of the frame.
+fn assert_object_centred(frame: &Path, background: [f64; 3]) {
+    let img = image::open(frame).unwrap().into_rgb8();
+    let bg = background.map(|c| (255.0 * c).round() as i32);
+    let object: Vec<(u32, u32)> = img
+        .enumerate_pixels()
+        .filter(|(_, _, p)| p.0.iter().zip(bg).any(|(&c, b)| (i32::from(c) - b).abs() > 8))
+        .map(|(x, y, _)| (x, y))
+        .collect();
+    assert!(!object.is_empty(), "{}: no object", frame.display());
+    let n = object.len() as f64;
+    let (cx, cy) = object.iter().fold((0.0, 0.0), |(sx, sy), &(x, y)| (sx + f64::from(x) / n, sy + f64::from(y) / n));
+    let (w, h) = (f64::from(img.width()), f64::from(img.height()));
+    let middle = |c: f64, size: f64| (size / 3.0..=2.0 * size / 3.0).contains(&c);
+    assert!(middle(cx, w) && middle(cy, h), "{}: the object's centroid is at ({cx:.1}, {cy:.1})", frame.display());
+}
+
 /// The value of an unlabelled sample (`name value`) of the server's /metrics.
 fn metric(server: &ServerProcess, name: &str) -> f64 {
     let r = http_request(server.addr, "GET", "/metrics", &[], b"", Duration::from_secs(10)).unwrap();
@@ -80,11 +98,15 @@ fn uploads_again_under_the_same_id_when_the_server_lost_the_scene() {
 }
 
 /// The acceptance command, `scnerf render` of the lego capture (20 views) around an orbit with the
-/// default bundle, at a size that fits CI: 4 frames of 40x40 (each new source triple still builds
-/// a paper-size volume from 800x800 sources: about a minute on 2 cores).
+/// default bundle, at a small size: 4 frames of 40x40 (each new source triple still builds a
+/// paper-size volume from 800x800 sources: about a minute on 2 cores; full tier). Each frame shows
+/// the object in its middle, from another side than the frame before.
 #[test]
 #[cfg_attr(not(shared_data), ignore = "../shared/data is absent: the lego capture cannot be rendered")]
-#[cfg_attr(all(shared_data, not(full_tier)), ignore = "full tier (scripts/test.sh --full): a paper-size volume from 800x800 sources")]
+#[cfg_attr(
+    all(shared_data, not(full_tier)),
+    ignore = "full tier (scripts/test.sh --full): a paper-size volume from 800x800 sources"
+)]
 fn render_lego_orbit_to_frames_and_video() {
     const FRAMES: usize = 4;
     let lego = repo_root().join("../shared/data/nerf_synthetic_lego");
@@ -112,11 +134,19 @@ fn render_lego_orbit_to_frames_and_video() {
     let stdout = String::from_utf8_lossy(&run.stdout);
     assert!(run.status.success(), "{stdout}\n{}", String::from_utf8_lossy(&run.stderr));
     let background = readers::load(&lego, None, ReadOptions::default()).unwrap().background;
+    let mut frames = Vec::new();
     for i in 0..FRAMES {
         let frame = out.path().join(format!("frames/frame_{i:04}.png"));
         assert_eq!(image::image_dimensions(&frame).unwrap(), (40, 40));
         assert_not_blank(&frame, background);
+        assert_object_centred(&frame, background);
         assert!(out.path().join(format!("depth/frame_{i:04}.npy")).is_file());
+        frames.push(image::open(&frame).unwrap().into_rgb8());
+    }
+    // The camera goes round the object: each frame shows it from another side.
+    for (i, pair) in frames.windows(2).enumerate() {
+        let moved = pair[0].pixels().zip(pair[1].pixels()).filter(|(a, b)| a != b).count();
+        assert!(moved * 10 > 40 * 40, "frames {i} and {} differ in only {moved} pixels", i + 1);
     }
     assert!(out.path().join("video.mp4").is_file() || out.path().join("video.gif").is_file(), "{stdout}");
 }

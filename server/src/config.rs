@@ -13,7 +13,7 @@ use crate::auth::Auth;
 use crate::backend::device::{Device, GraphOptLevel};
 use crate::backend::ort::{ExecOptions, OrtOptions};
 use crate::backend::{ExecutorOptions, MemoryBudget};
-use crate::cache::CacheConfig;
+use crate::cache::{CacheConfig, Clock};
 use crate::http::body::UploadPolicy;
 use crate::http::serve::ServeOptions;
 use crate::http::ServiceOptions;
@@ -382,6 +382,7 @@ impl Config {
                 stall: Duration::from_secs(self.body_stall_secs.max(1)),
             },
             auth: Auth::from_config(&self.auth_tokens, self.auth_token_file.as_deref())?,
+            clock: Clock::System,
         })
     }
 

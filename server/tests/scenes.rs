@@ -10,16 +10,19 @@ use axum::body::Body;
 use axum::http::Request;
 use axum::Router;
 use common::*;
-use scnerf_server::cache::CacheConfig;
+use scnerf_server::cache::{CacheConfig, ManualClock};
 use scnerf_server::http::{router, ServiceOptions};
 use scnerf_server::request::Limits;
 use scnerf_server::testing::{bundle, fake_state, request_json, state_with_options, FakeRunner};
 use serde_json::{json, Value};
 
 fn app_with_cache(cache: CacheConfig) -> Router {
+    app_with(ServiceOptions { cache, ..Default::default() })
+}
+
+fn app_with(options: ServiceOptions) -> Router {
     let b = bundle("scnerf", "near_far");
     let runner = FakeRunner::new(&b);
-    let options = ServiceOptions { cache, ..Default::default() };
     router(state_with_options(b, runner, Limits::default(), options, 8))
 }
 
@@ -230,22 +233,25 @@ async fn a_scene_larger_than_the_cache_is_refused() {
 
 #[tokio::test]
 async fn idle_scenes_expire_and_renders_extend_their_life() {
-    let app =
-        app_with_cache(CacheConfig { max_bytes: 1 << 30, ttl: Duration::from_millis(600), per_owner_bytes: None });
+    let (clock, time) = ManualClock::new();
+    let cache = CacheConfig { max_bytes: 1 << 30, ttl: Duration::from_secs(600), per_owner_bytes: None };
+    let app = app_with(ServiceOptions { cache, clock: time, ..Default::default() });
     let kept = create(&app, 32).await;
     let idle = create(&app, 32).await;
     for _ in 0..3 {
-        tokio::time::sleep(Duration::from_millis(300)).await;
+        clock.advance(Duration::from_secs(300));
         assert_eq!(send(app.clone(), render_req(&kept, &target_json(32), None)).await.0, 200);
     }
-    // 900 ms after creation: `idle` is gone, `kept` was used 300 ms ago.
+    // 900 s after creation: `idle` is gone, `kept` was used 300 s ago.
     assert_error(
         &send(app.clone(), render_req(&idle, &target_json(32), None)).await,
         404,
         "scene_not_found",
         Some("scene_id"),
     );
-    tokio::time::sleep(Duration::from_millis(700)).await;
+    clock.advance(Duration::from_secs(599));
+    assert_eq!(send(app.clone(), render_req(&kept, &target_json(32), None)).await.0, 200);
+    clock.advance(Duration::from_secs(600));
     assert_error(&send(app, render_req(&kept, &target_json(32), None)).await, 404, "scene_not_found", Some("scene_id"));
 }
 

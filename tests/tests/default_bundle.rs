@@ -1,7 +1,8 @@
 //! Regression: the real binary with no `--bundle` serves the committed default bundle, and its
 //! render of the committed example (a photo-like procedural tabletop scene from a validation
-//! seed) stays above the PSNR floor in examples/tabletop/regression.json (shared with the
-//! exporter's pytest twin).
+//! seed), with the server's default sampling, scores within `tolerance_db` of `psnr_guided` in
+//! examples/tabletop/regression.json (the exporter's pytest twin holds full sampling to
+//! `psnr_full`).
 
 use std::time::Duration;
 
@@ -35,7 +36,7 @@ fn default_bundle_renders_the_example_above_its_floor() {
     assert_eq!(rendered.dimensions(), truth.dimensions());
     let to_f32 = |img: &image::RgbImage| img.as_raw().iter().map(|&b| f32::from(b) / 255.0).collect::<Vec<f32>>();
     let score = psnr(&to_f32(&rendered), &to_f32(&truth));
-    let floor = expected["psnr_floor"].as_f64().unwrap();
-    eprintln!("default bundle on the example: PSNR {score:.3} dB (floor {floor})");
-    assert!(score >= floor, "PSNR {score:.3} dB below the floor {floor} dB");
+    let (measured, tolerance) = (expected["psnr_guided"].as_f64().unwrap(), expected["tolerance_db"].as_f64().unwrap());
+    eprintln!("default bundle on the example: PSNR {score:.3} dB (measured {measured}, tolerance {tolerance})");
+    assert!((score - measured).abs() <= tolerance, "PSNR {score:.3} dB, {measured} dB measured");
 }

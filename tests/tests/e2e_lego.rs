@@ -97,7 +97,10 @@ fn reference(bundle: &Path) -> (Vec<String>, f64) {
 
 #[test]
 #[cfg_attr(not(shared_data), ignore = "../shared/data is absent: the real-scene test cannot run")]
-#[cfg_attr(all(shared_data, not(full_tier)), ignore = "full tier (scripts/test.sh --full): a paper-size volume from 800x800 sources")]
+#[cfg_attr(
+    all(shared_data, not(full_tier)),
+    ignore = "full tier (scripts/test.sh --full): a paper-size volume from 800x800 sources"
+)]
 fn lego_r28_from_its_nearest_views() {
     let lego = lego_dir();
     let bundle = bundle_dir();

@@ -11,9 +11,8 @@ import torch
 from PIL import Image
 
 from scnerf_export.cameras import camera_from_json
-from scnerf_export.config import small_config
-from scnerf_export.export.bundle import EncoderGraph, RendererGraph, VolumeGraph, export_bundle, renderer_input_names
-from scnerf_export.rigs import random_model, synthetic_rig
+from scnerf_export.export.bundle import EncoderGraph, RendererGraph, VolumeGraph, renderer_input_names
+from scnerf_export.rigs import synthetic_rig
 from scnerf_export.runtime.onnx_pipeline import OnnxBundle
 from scnerf_export.runtime.reference import render_view
 
@@ -21,11 +20,8 @@ SIZES = [(64, 96), (128, 64)]
 
 
 @pytest.fixture(scope="module", params=["mvsnerf", "scnerf"])
-def exported(request, tmp_path_factory):
-    model = random_model(small_config(request.param), seed=11)
-    out = tmp_path_factory.mktemp(request.param)
-    manifest = export_bundle(model, out, {"source_checkpoint": None})
-    return model, out, manifest
+def exported(request, small_bundle):
+    return small_bundle(request.param)
 
 
 def subgraph_inputs(model, height, width):

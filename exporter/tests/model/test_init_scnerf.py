@@ -62,13 +62,14 @@ def test_initialised_scnerf_renders_what_mvsnerf_renders(small_pair):
 
 def test_rectifiers_start_silent_but_receive_gradients(small_pair):
     scnerf = scnerf_from_mvsnerf(small_pair[0])
-    rgb, _, _ = render_rig(scnerf, grad=True)
+    rgb, _, _ = render_rig(scnerf, height=32, width=64, grad=True)
     rgb.sum().backward()
     for rectifier in (scnerf.renderer.geometry, scnerf.renderer.appearance):
         assert not rectifier.w_o.weight.detach().any()
         assert float(rectifier.w_o.weight.grad.abs().max()) > 0.0, "W_o must receive a gradient"
 
 
+@pytest.mark.slow
 def test_onnx_bundles_of_both_render_the_same(small_pair, tmp_path):
     renders = []
     for model in small_pair:

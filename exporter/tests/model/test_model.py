@@ -25,7 +25,7 @@ def scene(height=64, width=96, seed=0):
 def test_render_does_not_depend_on_chunk_size(variant):
     model = random_model(small_config(variant), seed=1)
     images, sources, target, near, far = scene()
-    target = target.scaled(0.5)
+    target = target.scaled(0.25)
     a = render_view(model, images, sources, target, near, far, chunk=7)
     b = render_view(model, images, sources, target, near, far, chunk=target.width * target.height)
     assert a.opacity.std() > 0.01, "degenerate render: the test would not see chunk effects"

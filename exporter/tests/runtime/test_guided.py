@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from scnerf_export.config import small_config
-from scnerf_export.export.bundle import GUIDED_GRAPHS, RendererGraph, example_inputs, export_bundle
+from scnerf_export.export.bundle import GUIDED_GRAPHS, RendererGraph, example_inputs
 from scnerf_export.export.guided import add_guided
 from scnerf_export.export.manifest import GuidedPolicy, Manifest
 from scnerf_export.export.reexport import renderer_state_from_current_graph
@@ -272,10 +272,8 @@ def test_multiplicity_is_the_quadrature_of_the_samples_stood_for():
 
 
 @pytest.fixture(scope="module")
-def exported_scene(tmp_path_factory):
-    model = random_model(small_config("scnerf"), seed=9)
-    out = tmp_path_factory.mktemp("guided")
-    export_bundle(model, out, {"source_checkpoint": None})
+def exported_scene(small_bundle):
+    model, out, _ = small_bundle("scnerf")
     rng = np.random.default_rng(4)
     sources, target, near, far = rig_cameras(64, 96)
     images = np.stack([smooth_pattern(rng, 64, 96) for _ in sources])

@@ -7,7 +7,8 @@ capture too small is refused), the banked rays shade as the renderer renders, st
 training views make them score better, held-out views never reach the optimiser (instrumented: no
 encoding sees them, every step's rays are training rays, their poisoned pixels never make a
 gradient), a resumed run continues exactly as an uninterrupted one, and, end to end on a budget of
-steps, Ctrl-C writes the best bundle so far and the same command resumes into an ordinary bundle.
+steps (slow: it exports the refined renderer twice), Ctrl-C writes the best bundle so far and the
+same command resumes into an ordinary bundle.
 """
 
 from __future__ import annotations
@@ -324,6 +325,7 @@ def test_another_capture_into_the_same_out_is_refused(loaded, base, tmp_path):
 # ------------------------------------------------------------------------------------- end to end
 
 
+@pytest.mark.slow
 def test_interrupted_then_resumed_into_an_ordinary_bundle(capture_dir, base, tmp_path, monkeypatch):
     out = tmp_path / "refined"
     # A budget of steps, scored every 4: the same run on any machine, however loaded.

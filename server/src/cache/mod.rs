@@ -22,8 +22,10 @@
 //! of the id with another model replaces it. Volumes are keyed by their scene's serial, so by
 //! its model too.
 //!
-//! Time is passed in (`now`) rather than read here, so tests can drive expiry without sleeping.
+//! Time is passed in (`now`, from a `Clock`) rather than read here, so tests can drive expiry
+//! without sleeping.
 
+mod clock;
 mod ids;
 pub mod shares;
 
@@ -31,6 +33,9 @@ use std::collections::{BTreeMap, HashMap};
 use std::sync::{Arc, Mutex};
 use std::time::{Instant, SystemTime};
 
+pub use clock::Clock;
+#[cfg(any(test, feature = "testing"))]
+pub use clock::ManualClock;
 pub use ids::{is_valid_id, random_id, ID_PATTERN, MAX_ID_LEN};
 pub use shares::{CacheConfig, NoRoom, Owner};
 

@@ -3,7 +3,6 @@
 //! it: the renderer alone once its sources' volume is cached) and `DELETE /v1/scenes/{id}`.
 
 use std::sync::Arc;
-use std::time::Instant;
 
 use axum::extract::rejection::PathRejection;
 use axum::extract::{Path, Request, State};
@@ -117,7 +116,7 @@ pub(super) async fn store_scene(
     state.scenes.check_fits(model.pipeline.scene_bytes(&valid))?;
     let (views, volume) = model.pipeline.encode_scene(&valid, deadline.due(), timings).await?;
     let new = NewScene { views, volume, background: valid.background, model: model.name.clone() };
-    let stored = state.scenes.insert(id, owner, new, Instant::now())?;
+    let stored = state.scenes.insert(id, owner, new, state.clock.now())?;
     timings.add("total", deadline.started().elapsed());
     tracing::info!(scene_id = %stored.id, model = %model.name, replaced = stored.replaced,
                    views = valid.sources.len(), timings = ?timings.millis(), "scene cached");
@@ -257,7 +256,7 @@ async fn render_within(state: AppState, deadline: Deadline, id: String, req: Req
     let valid = parsed.validate(state.pipeline().limits())?;
     let out_format = response_format(&headers, valid.outputs)?;
     let hit =
-        state.scenes.get(&id, &owner, Instant::now()).ok_or_else(|| ApiError::SceneNotFound { id: id.clone() })?;
+        state.scenes.get(&id, &owner, state.clock.now()).ok_or_else(|| ApiError::SceneNotFound { id: id.clone() })?;
     let scene = &hit.scene;
     let model = scene_model(&state, &id, &scene.model, requested)?;
     let pipeline = &model.pipeline;
@@ -317,7 +316,7 @@ pub async fn delete(
     req: Request,
 ) -> Result<StatusCode, ApiError> {
     let id = scene_id(path)?;
-    if state.scenes.remove(&id, &owner_of(&req), Instant::now()) {
+    if state.scenes.remove(&id, &owner_of(&req), state.clock.now()) {
         Ok(StatusCode::NO_CONTENT)
     } else {
         Err(ApiError::SceneNotFound { id })

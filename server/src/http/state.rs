@@ -7,7 +7,7 @@ use std::time::Duration;
 use super::body::UploadPolicy;
 use super::slots::Slots;
 use crate::auth::Auth;
-use crate::cache::{CacheConfig, SceneCache};
+use crate::cache::{CacheConfig, Clock, SceneCache};
 use crate::error::ApiError;
 use crate::metrics::Metrics;
 use crate::models::Models;
@@ -28,6 +28,8 @@ pub struct AppState {
     pub(super) in_flight: Arc<Slots>,
     /// How slowly a request body may arrive.
     pub(super) uploads: UploadPolicy,
+    /// The time scenes expire by.
+    pub(super) clock: Clock,
 }
 
 /// Service settings besides the pipeline (from the command line, or set by tests).
@@ -41,6 +43,8 @@ pub struct ServiceOptions {
     pub max_requests_per_client: usize,
     pub uploads: UploadPolicy,
     pub auth: Auth,
+    /// The time scenes expire by (tests set a manual one).
+    pub clock: Clock,
 }
 
 impl Default for ServiceOptions {
@@ -52,6 +56,7 @@ impl Default for ServiceOptions {
             max_requests_per_client: 32,
             uploads: UploadPolicy::default(),
             auth: Auth::disabled(),
+            clock: Clock::System,
         }
     }
 }
@@ -75,6 +80,7 @@ impl AppState {
             auth: Arc::new(options.auth),
             in_flight: Arc::new(Slots::new(options.max_concurrent_requests, options.max_requests_per_client)),
             uploads: options.uploads,
+            clock: options.clock,
         }
     }
 
