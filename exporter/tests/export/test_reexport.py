@@ -24,9 +24,15 @@ def sha256(path):
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
-def test_reexport_reproduces_the_renderer_and_keeps_the_other_graphs(tmp_path):
-    out = tmp_path / "again"
-    manifest = reexport_bundle(FIXTURE_BUNDLE, out)
+@pytest.fixture(scope="module")
+def reexported(tmp_path_factory):
+    """The fixture bundle re-exported once for the module: its folder and manifest."""
+    out = tmp_path_factory.mktemp("reexported") / "again"
+    return out, reexport_bundle(FIXTURE_BUNDLE, out)
+
+
+def test_reexport_reproduces_the_renderer_and_keeps_the_other_graphs(reexported):
+    out, manifest = reexported
     source = Manifest.load(FIXTURE_BUNDLE)
     assert manifest.provenance.reexport["source_model_id"] == source.model_id
     assert manifest.provenance.reexport["renderer_max_abs_difference"] <= 1e-4
@@ -66,9 +72,9 @@ def test_reexport_refuses_bundles_of_other_exporter_versions(tmp_path):
         reexport_bundle(CURRENT_BUNDLE, tmp_path / "out")
 
 
-def test_the_same_weights_export_to_the_same_bytes(tmp_path):
+def test_the_same_weights_export_to_the_same_bytes(reexported, tmp_path):
     """No addresses or stack traces in the graphs: the model id of a re-export is reproducible."""
-    first = reexport_bundle(FIXTURE_BUNDLE, tmp_path / "a")
+    first_dir, first = reexported
     second = reexport_bundle(FIXTURE_BUNDLE, tmp_path / "b")
     assert first.model_id == second.model_id
-    assert (tmp_path / "a" / "renderer.onnx").read_bytes() == (tmp_path / "b" / "renderer.onnx").read_bytes()
+    assert (first_dir / "renderer.onnx").read_bytes() == (tmp_path / "b" / "renderer.onnx").read_bytes()
