@@ -12,6 +12,20 @@ use crate::pipeline::Pipeline;
 /// Renders a tiny synthetic view through all three graphs: checks that the bundle really runs
 /// before /readyz says so, and lets ONNX Runtime allocate its kernels.
 pub async fn warm_up(pipeline: &Pipeline) -> Result<Duration, String> {
+    warm_up_within(pipeline, Duration::from_secs(3600)).await
+}
+
+/// [`warm_up`] that fails once `within` has passed: a graph crafted to run for minutes (a long
+/// `Loop`) is not served. The runs it queued are dropped with it; one in progress ends on its
+/// own, then the executor takes the next request's.
+pub async fn warm_up_within(pipeline: &Pipeline, within: Duration) -> Result<Duration, String> {
+    match tokio::time::timeout(within, render(pipeline, Instant::now() + within)).await {
+        Ok(done) => done,
+        Err(_) => Err(format!("it did not finish within {} s (--warmup-timeout-secs)", within.as_secs_f64())),
+    }
+}
+
+async fn render(pipeline: &Pipeline, deadline: Instant) -> Result<Duration, String> {
     let start = Instant::now();
     let config = pipeline.config();
     let size = config.image_multiple;
@@ -21,10 +35,12 @@ pub async fn warm_up(pipeline: &Pipeline) -> Result<Duration, String> {
     let mut target = cameras[0].clone();
     target.width = 4;
     target.height = 4;
-    // Warm-up runs before readiness, alone on the executor; the deadline only bounds a hang.
+    // Admitted as a request is, with its memory estimate: it waits its turn, is refused when the
+    // budget lacks room, and its graphs' runs stop at the deadline.
     let samplings = pipeline.samplings();
     let work = samplings.iter().fold(pipeline.scene_work(&cameras), |w, &s| w.plus(pipeline.view_work(&target, s)));
-    let ticket = pipeline.admit(Instant::now() + Duration::from_secs(3600), work, 0).map_err(|e| e.to_string())?;
+    let memory = samplings.iter().map(|&s| pipeline.memory_estimate(Some(&cameras), false, true, Some((&target, s))));
+    let ticket = pipeline.admit(deadline, work, memory.max().unwrap_or(0)).map_err(|e| e.to_string())?;
     let scene = pipeline
         .build_scene(&ticket, &cameras, images.into_shared(), 2.0, 6.0, &mut timings)
         .await
