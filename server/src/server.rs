@@ -14,7 +14,8 @@ use crate::config::Config;
 use crate::http::serve::{ensure_file_limit, serve};
 use crate::http::{router, AppState};
 use crate::models::{
-    duplicate_name, model_name, report, same_folder, Loader, MakeRunner, Model, Models, Refusals, Search, Skipped,
+    duplicate_name, model_name, one_line, report, same_folder, Loader, MakeRunner, Model, Models, Refusals, Search,
+    Skipped,
 };
 pub use crate::models::{warm_up, warm_up_within};
 use crate::sysmem;
@@ -105,7 +106,8 @@ async fn load_models(config: &Config) -> Result<Models, String> {
     let (mut executor, mut models): (Option<BackendHandle>, Vec<Model>) = (None, Vec::new());
     for (bundle, required) in bundles {
         let dir = bundle.dir.clone();
-        tracing::info!(model_id = ?bundle.manifest.model_id, dir = ?dir, "bundle verified");
+        let (model_id, shown) = (one_line(&bundle.manifest.model_id), one_line(&dir.display().to_string()));
+        tracing::info!(%model_id, dir = %shown, "bundle verified");
         let (make, for_runner) = (make_runner.clone(), bundle.clone());
         let runner = tokio::task::spawn_blocking(move || make(&for_runner)).await.map_err(|e| e.to_string())?;
         let runner = match runner {

@@ -10,7 +10,7 @@ use std::time::Duration;
 use serde::Serialize;
 
 use super::find::{room_for, Search};
-use super::skips::{report, Refusals, Skipped};
+use super::skips::{one_line, report, Refusals, Skipped};
 use super::{warm::warm_up_within, Model, ModelInfo};
 use crate::backend::{BackendHandle, GraphRunner};
 use crate::bundle::Bundle;
@@ -110,7 +110,7 @@ impl Loader {
             let dir = bundle.dir.clone();
             match self.load(bundle, &mut renderer).await {
                 Ok(model) => {
-                    tracing::info!(model = ?model.name, path = ?dir, "model loaded");
+                    tracing::info!(model = %one_line(&model.name), path = %one_line(&dir.display().to_string()), "model loaded");
                     out.models.push(model);
                 }
                 Err(reason) => skipped.push(Skipped::new(&dir, &reason)),

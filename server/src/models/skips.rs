@@ -44,12 +44,18 @@ pub fn report(mut skipped: Vec<Skipped>) -> (Vec<Skipped>, usize) {
     let more = skipped.len().saturating_sub(MAX_LISTED);
     skipped.truncate(MAX_LISTED);
     for s in &skipped {
-        tracing::warn!(path = ?s.path, reason = ?s.reason, "bundle skipped");
+        tracing::warn!(path = %one_line(&s.path), reason = %one_line(&s.reason), "bundle skipped");
     }
     if more > 0 {
         tracing::warn!(more, "more bundle folders skipped (not listed)");
     }
     (skipped, more)
+}
+
+/// `text` with its control characters escaped (`\n`): a folder's name or a manifest's text
+/// cannot start a line of the text log.
+pub fn one_line(text: &str) -> String {
+    text.chars().map(|c| if c.is_control() { c.escape_default().to_string() } else { c.to_string() }).collect()
 }
 
 /// Refusals for what a bundle folder holds (its manifest, a graph's hash, its graphs' sessions,
@@ -94,6 +100,12 @@ fn identities(dir: &Path) -> Vec<(PathBuf, Option<FileId>)> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_log_field_stays_on_one_line() {
+        assert_eq!(one_line("lego\nINFO fake line\r\u{1b}[31m"), "lego\\nINFO fake line\\r\\u{1b}[31m");
+        assert_eq!(one_line("café \"quoted\""), "café \"quoted\"");
+    }
 
     #[test]
     fn a_refusal_stands_until_a_file_it_read_changes() {
