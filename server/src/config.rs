@@ -58,7 +58,7 @@ pub struct Config {
     pub models_timeout_secs: u64,
 
     /// Deadline of each model's warm-up render: a model that misses it is not served.
-    #[arg(long, env = "SCNERF_WARMUP_TIMEOUT_SECS", default_value_t = 120)]
+    #[arg(long, env = "SCNERF_WARMUP_TIMEOUT_SECS", default_value_t = 30)]
     pub warmup_timeout_secs: u64,
 
     /// The model of requests that name none (a model's name). Default: the first --bundle, else

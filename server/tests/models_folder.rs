@@ -188,6 +188,8 @@ async fn a_warm_up_past_its_deadline_is_not_served_and_readyz_sees_the_stuck_exe
         }
         tokio::time::sleep(Duration::from_millis(200)).await;
     }
+    let again = reload(&app).await;
+    assert!(reason_of(&again, "slow").ends_with("(unchanged since it was refused: not read again)"), "{again}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
 

@@ -11,7 +11,8 @@ use serde::Serialize;
 
 use super::find::{room_for, Search};
 use super::skips::{one_line, report, Refusals, Skipped};
-use super::{warm::warm_up_within, Model, ModelInfo};
+use super::warm::{try_warm_up, WarmUpError};
+use super::{Model, ModelInfo};
 use crate::backend::{BackendHandle, GraphRunner};
 use crate::bundle::Bundle;
 use crate::error::clip_quoted;
@@ -71,7 +72,7 @@ pub struct Deadlines {
 
 impl Default for Deadlines {
     fn default() -> Deadlines {
-        Deadlines { search: Duration::from_secs(120), warm_up: Duration::from_secs(120) }
+        Deadlines { search: Duration::from_secs(120), warm_up: Duration::from_secs(30) }
     }
 }
 
@@ -141,8 +142,11 @@ impl Loader {
         let slot = Slot { backend: self.executor.add_runner(runner.map_err(refused)?), kept: false };
         let model = Model::new(self.settings.pipeline(slot.backend.clone(), bundle));
         if self.warm_up {
-            let warmed = warm_up_within(&model.pipeline, self.deadlines.warm_up).await;
-            warmed.map_err(|e| refused(format!("warm-up render failed: {e}")))?;
+            match try_warm_up(&model.pipeline, self.deadlines.warm_up).await {
+                Ok(_) => {}
+                Err(busy @ WarmUpError::Busy(_)) => return Err(format!("warm-up render: {busy}")),
+                Err(failed) => return Err(refused(format!("warm-up render failed: {failed}"))),
+            }
         }
         self.settle(&model, before, renderer)?;
         slot.keep();
