@@ -236,3 +236,16 @@ async fn a_new_model_waits_for_room_in_the_budget_like_a_request() {
     drop(held);
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// A loaded model's free text from its manifest (`provenance.source_kind`) is echoed clipped.
+#[tokio::test]
+async fn a_loaded_models_manifest_text_is_echoed_clipped() {
+    let dir = scratch("echo");
+    write_bundle(&dir.join("lego"), 1.0).unwrap();
+    edit_manifest(&dir.join("lego"), |m| m["provenance"]["source_kind"] = "z".repeat(100_000).into());
+    let app = router(reload_state(&dir, Deadlines::default()));
+    let answer = reload(&app).await;
+    let source = answer["loaded"][0]["source"].as_str().unwrap();
+    assert!(source.starts_with("zzz") && source.chars().count() <= 1001, "{} characters", source.len());
+    std::fs::remove_dir_all(&dir).unwrap();
+}

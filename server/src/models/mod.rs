@@ -29,7 +29,7 @@ pub use skips::{one_line, report, Refusals, Skipped};
 pub use warm::{warm_up, warm_up_within};
 
 use crate::bundle::Bundle;
-use crate::error::ApiError;
+use crate::error::{clip_quoted, ApiError};
 use crate::pipeline::Pipeline;
 use crate::request::Sampling;
 
@@ -203,7 +203,8 @@ impl ModelInfo {
     fn of(model: &Model, default: bool) -> ModelInfo {
         let bundle = model.bundle();
         let provenance = &bundle.manifest.provenance;
-        let text = |v: &serde_json::Value| v.as_str().map(str::to_string);
+        // Free text of the manifest, echoed: clipped as any text the server repeats is.
+        let text = |v: &serde_json::Value| v.as_str().map(clip_quoted);
         let source = text(&provenance["source_kind"])
             .or_else(|| text(&provenance["derived_from"]["source_kind"]))
             .or_else(|| text(&provenance["source_checkpoint"]));
