@@ -111,7 +111,8 @@ impl Loader {
             let dir = bundle.dir.clone();
             match self.load(bundle, &mut renderer).await {
                 Ok(model) => {
-                    tracing::info!(model = %one_line(&model.name), path = %one_line(&dir.display().to_string()), "model loaded");
+                    let (name, path) = (one_line(&model.name), one_line(&dir.display().to_string()));
+                    tracing::info!(model = %name, path = %path, "model loaded");
                     out.models.push(model);
                 }
                 Err(reason) => skipped.push(Skipped::new(&dir, &reason)),
