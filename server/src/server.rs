@@ -15,7 +15,7 @@ use crate::http::serve::{ensure_file_limit, serve};
 use crate::http::{router, AppState};
 use crate::models::{
     duplicate_name, model_name, one_line, report, same_folder, Loader, MakeRunner, Model, Models, Refusals, Search,
-    Skipped,
+    Skipped, Snapshot,
 };
 pub use crate::models::{warm_up, warm_up_within};
 use crate::sysmem;
@@ -108,13 +108,13 @@ async fn load_models(config: &Config) -> Result<Models, String> {
         let dir = bundle.dir.clone();
         let (model_id, shown) = (one_line(&bundle.manifest.model_id), one_line(&dir.display().to_string()));
         tracing::info!(%model_id, dir = %shown, "bundle verified");
-        let (make, for_runner) = (make_runner.clone(), bundle.clone());
+        let (make, for_runner, before) = (make_runner.clone(), bundle.clone(), Snapshot::of(&dir));
         let runner = tokio::task::spawn_blocking(move || make(&for_runner)).await.map_err(|e| e.to_string())?;
         let runner = match runner {
             Ok(runner) => runner,
             Err(e) if required => return Err(format!("bundle {}: {e}", dir.display())),
             Err(reason) => {
-                refusals.remember(&dir, &reason);
+                refusals.remember(before, &reason);
                 report(vec![Skipped::new(&dir, &reason)]);
                 continue;
             }

@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use super::skips::{Refusals, Skipped};
+use super::skips::{Refusals, Skipped, Snapshot};
 use super::{duplicate_name, model_name, same_folder, scan};
 use crate::backend::MemoryBudget;
 use crate::blocking::{self, Cancel};
@@ -86,8 +86,9 @@ impl Search {
         if let Some(reason) = self.refusals.recall(dir) {
             return Err(reason);
         }
+        let before = Snapshot::of(dir);
         let refused = |reason: String| {
-            self.refusals.remember(dir, &reason);
+            self.refusals.remember(before.clone(), &reason);
             reason
         };
         let bundle = Bundle::read(dir).map_err(|e| refused(e.message))?;

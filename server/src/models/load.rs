@@ -10,7 +10,7 @@ use std::time::Duration;
 use serde::Serialize;
 
 use super::find::{room_for, Search};
-use super::skips::{one_line, report, Refusals, Skipped};
+use super::skips::{one_line, report, Refusals, Skipped, Snapshot};
 use super::warm::{try_warm_up, WarmUpError};
 use super::{Model, ModelInfo};
 use crate::backend::{BackendHandle, GraphRunner};
@@ -132,8 +132,9 @@ impl Loader {
         // Its sessions hold at least its graphs: held against the budget as a request's memory
         // is, until what the model added at rest is set aside (`settle`).
         let _loading = self.executor.lease(graphs).map_err(|e| format!("not enough memory now to load it: {e}"))?;
+        let before = Snapshot::of(&dir);
         let refused = |reason: String| {
-            self.refusals.remember(&dir, &reason);
+            self.refusals.remember(before.clone(), &reason);
             reason
         };
         let before = resident();

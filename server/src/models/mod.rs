@@ -25,7 +25,7 @@ use serde::Serialize;
 
 pub use find::{Candidates, Search};
 pub use load::{Deadlines, Loader, MakeRunner, ModelSettings, Reloaded};
-pub use skips::{one_line, report, Refusals, Skipped};
+pub use skips::{one_line, report, Refusals, Skipped, Snapshot};
 pub use warm::{warm_up, warm_up_within};
 
 use crate::bundle::Bundle;

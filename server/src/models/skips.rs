@@ -78,10 +78,12 @@ impl Refusals {
         unchanged.then(|| format!("{} (unchanged since it was refused: not read again)", refused.reason))
     }
 
-    pub fn remember(&self, dir: &Path, reason: &str) {
-        let files = identities(dir);
-        let refused = Refused { files, reason: clip_quoted(reason) };
-        self.0.lock().unwrap_or_else(|p| p.into_inner()).insert(dir.to_path_buf(), refused);
+    /// Remembers `reason` for the folder of `read`, the identities of its files taken before
+    /// they were read: a file that changed while it was read (a copy still under way) has
+    /// another identity now, and is read again on the next reload.
+    pub fn remember(&self, read: Snapshot, reason: &str) {
+        let refused = Refused { files: read.files, reason: clip_quoted(reason) };
+        self.0.lock().unwrap_or_else(|p| p.into_inner()).insert(read.dir, refused);
     }
 
     /// Forgets the folders that a scan no longer finds.
@@ -90,11 +92,19 @@ impl Refusals {
     }
 }
 
-/// The identity of the folder, its manifest and the graph files it names: a rename into the
-/// folder, a rewritten manifest or graph each change one.
-fn identities(dir: &Path) -> Vec<(PathBuf, Option<FileId>)> {
-    let files = std::iter::once(dir.to_path_buf()).chain(Bundle::files_named(dir));
-    files.map(|path| (path.clone(), FileId::of(&path))).collect()
+/// The identity of a bundle folder, its manifest and the graph files it names, as they stand:
+/// a rename into the folder, a rewritten manifest or graph each change one.
+#[derive(Debug, Clone)]
+pub struct Snapshot {
+    dir: PathBuf,
+    files: Vec<(PathBuf, Option<FileId>)>,
+}
+
+impl Snapshot {
+    pub fn of(dir: &Path) -> Snapshot {
+        let files = std::iter::once(dir.to_path_buf()).chain(Bundle::files_named(dir));
+        Snapshot { dir: dir.to_path_buf(), files: files.map(|path| (path.clone(), FileId::of(&path))).collect() }
+    }
 }
 
 #[cfg(test)]
@@ -115,16 +125,20 @@ mod tests {
         std::fs::write(dir.join("manifest.json"), r#"{"graphs": {"encoder": {"file": "encoder.onnx"}}}"#).unwrap();
         std::fs::write(dir.join("encoder.onnx"), b"one").unwrap();
         let refusals = Refusals::default();
-        refusals.remember(&dir, "graphs.encoder: sha256 of encoder.onnx is 00, manifest says 11");
+        refusals.remember(Snapshot::of(&dir), "graphs.encoder: sha256 of encoder.onnx is 00, manifest says 11");
         assert!(refusals.recall(&dir).unwrap().contains("not read again"));
         std::fs::write(dir.join("unrelated.txt"), b"x").unwrap();
         let stands = refusals.recall(&dir).is_some();
         // A new file changes the folder's mtime: read again (a rename into place looks the same).
         assert!(!stands);
-        refusals.remember(&dir, "again");
+        refusals.remember(Snapshot::of(&dir), "again");
         std::fs::write(dir.join("encoder.onnx"), b"two, longer").unwrap();
         assert!(refusals.recall(&dir).is_none(), "a rewritten graph is read again");
-        refusals.remember(&dir, "again");
+        let before = Snapshot::of(&dir);
+        std::fs::write(dir.join("encoder.onnx"), b"the rest of a copy").unwrap();
+        refusals.remember(before, "read while it was being written");
+        assert!(refusals.recall(&dir).is_none(), "a graph that changed while it was read is read again");
+        refusals.remember(Snapshot::of(&dir), "again");
         refusals.keep_only(&[]);
         assert!(refusals.recall(&dir).is_none());
         std::fs::remove_dir_all(&dir).unwrap();
