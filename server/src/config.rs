@@ -17,7 +17,7 @@ use crate::cache::{CacheConfig, Clock};
 use crate::http::body::UploadPolicy;
 use crate::http::serve::ServeOptions;
 use crate::http::ServiceOptions;
-use crate::models::ModelSettings;
+use crate::models::{Deadlines, ModelSettings};
 use crate::pipeline::band::BandFill;
 use crate::pipeline::chunks::ChunkPolicy;
 use crate::pipeline::volume::SlabPolicy;
@@ -51,6 +51,15 @@ pub struct Config {
     /// skipped with a warning; an invalid --bundle fails the start.
     #[arg(long, env = "SCNERF_MODELS")]
     pub models: Option<PathBuf>,
+
+    /// Deadline of a search of --models (the scan, and reading and hashing the new bundles), at
+    /// start and on each reload: the folders not verified by then are skipped.
+    #[arg(long, env = "SCNERF_MODELS_TIMEOUT_SECS", default_value_t = 120)]
+    pub models_timeout_secs: u64,
+
+    /// Deadline of each model's warm-up render: a model that misses it is not served.
+    #[arg(long, env = "SCNERF_WARMUP_TIMEOUT_SECS", default_value_t = 30)]
+    pub warmup_timeout_secs: u64,
 
     /// The model of requests that name none (a model's name). Default: the first --bundle, else
     /// the first bundle folder of --models by path.
@@ -333,6 +342,11 @@ impl Config {
             sampling: self.sampling,
             band: self.band,
         }
+    }
+
+    pub fn model_deadlines(&self) -> Deadlines {
+        let secs = |s: u64| Duration::from_secs(s.max(1));
+        Deadlines { search: secs(self.models_timeout_secs), warm_up: secs(self.warmup_timeout_secs) }
     }
 
     pub fn intra_threads(&self) -> usize {

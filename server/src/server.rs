@@ -14,8 +14,11 @@ use crate::config::Config;
 use crate::http::connections::ensure_file_limit;
 use crate::http::serve::serve;
 use crate::http::{router, AppState};
-pub use crate::models::warm_up;
-use crate::models::{duplicate_name, model_name, same_folder, scan, Loader, MakeRunner, Model, Models};
+use crate::models::{
+    duplicate_name, model_name, one_line, report, same_folder, Loader, MakeRunner, Model, Models, Refusals, Search,
+    Skipped, Snapshot,
+};
+pub use crate::models::{warm_up, warm_up_within};
 use crate::sysmem;
 
 pub async fn run(config: Config) -> Result<(), String> {
@@ -45,9 +48,9 @@ pub async fn run(config: Config) -> Result<(), String> {
         reserve_memory(&state)?;
         state.set_ready();
     } else {
-        let state = state.clone();
+        let (state, within) = (state.clone(), config.model_deadlines().warm_up);
         tokio::spawn(async move {
-            let warmed = warm_up_all(state.models()).await;
+            let warmed = warm_up_all(state.models(), within).await;
             match warmed.and_then(|elapsed| Ok((elapsed, reserve_memory(&state)?))) {
                 Ok((elapsed, memory)) => {
                     tracing::info!(
@@ -97,20 +100,23 @@ pub async fn run(config: Config) -> Result<(), String> {
 /// The bundles of `--bundle` (any that fails fails the start) and below `--models` (one that
 /// fails is skipped with a warning), each model's runner in a slot of the one executor.
 async fn load_models(config: &Config) -> Result<Models, String> {
-    let bundles = find_bundles(config)?;
+    let refusals = Arc::new(Refusals::default());
+    let bundles = find_bundles(config, &refusals).await?;
     let make_runner = ort_runners(config);
     let settings = config.model_settings();
     let (mut executor, mut models): (Option<BackendHandle>, Vec<Model>) = (None, Vec::new());
     for (bundle, required) in bundles {
         let dir = bundle.dir.clone();
-        tracing::info!(model_id = %bundle.manifest.model_id, dir = %dir.display(), "bundle verified");
-        let (make, for_runner) = (make_runner.clone(), bundle.clone());
+        let (model_id, shown) = (one_line(&bundle.manifest.model_id), one_line(&dir.display().to_string()));
+        tracing::info!(%model_id, dir = %shown, "bundle verified");
+        let (make, for_runner, before) = (make_runner.clone(), bundle.clone(), Snapshot::of(&dir));
         let runner = tokio::task::spawn_blocking(move || make(&for_runner)).await.map_err(|e| e.to_string())?;
         let runner = match runner {
             Ok(runner) => runner,
             Err(e) if required => return Err(format!("bundle {}: {e}", dir.display())),
             Err(reason) => {
-                tracing::warn!(path = %dir.display(), %reason, "bundle skipped");
+                refusals.remember(before, &reason);
+                report(vec![Skipped::new(&dir, &reason)]);
                 continue;
             }
         };
@@ -127,39 +133,45 @@ async fn load_models(config: &Config) -> Result<Models, String> {
         models.push(model);
     }
     let executor = executor.ok_or("no model to serve: every bundle below --models was skipped")?;
-    let loader =
-        config.models.clone().map(|dir| Loader { dir, make_runner, settings, executor, warm_up: !config.skip_warmup });
+    let loader = config.models.clone().map(|dir| Loader {
+        dir,
+        make_runner,
+        settings,
+        executor,
+        warm_up: !config.skip_warmup,
+        deadlines: config.model_deadlines(),
+        refusals,
+    });
     Models::new(models, config.default_model.as_deref(), loader)
 }
 
 /// The verified bundles to serve, each with whether it must load (`--bundle`) or may be skipped
-/// (found below `--models`); two of one name fail the start, naming both folders.
-fn find_bundles(config: &Config) -> Result<Vec<(Bundle, bool)>, String> {
+/// (found below `--models`, by the rules of a reload: `models::Search`); two of one name fail
+/// the start, naming both folders.
+async fn find_bundles(config: &Config, refusals: &Arc<Refusals>) -> Result<Vec<(Bundle, bool)>, String> {
     let mut bundles = Vec::new();
     for dir in config.bundle_dirs() {
         bundles.push((Bundle::load(&dir).map_err(|e| e.to_string())?, true));
-    }
-    let (found, unreadable) = config.models.as_deref().map(scan::bundle_dirs).unwrap_or_default();
-    for (path, reason) in unreadable {
-        tracing::warn!(path = %path.display(), %reason, "folder skipped");
-    }
-    for dir in found {
-        match Bundle::load(&dir) {
-            Ok(bundle) => bundles.push((bundle, false)),
-            Err(e) => tracing::warn!(path = %dir.display(), reason = %e.message, "bundle skipped"),
-        }
     }
     let mut names: Vec<(String, std::path::PathBuf)> = Vec::new();
     let mut unique = Vec::new();
     for (bundle, required) in bundles {
         let name = model_name(&bundle.dir);
         match names.iter().find(|(n, _)| *n == name) {
-            // The same folder twice (a --bundle inside --models): one model.
+            // The same folder twice: one model.
             Some((_, first)) if same_folder(first, &bundle.dir) => continue,
             Some((_, first)) => return Err(duplicate_name(&name, first, &bundle.dir)),
             None => names.push((name, bundle.dir.clone())),
         }
         unique.push((bundle, required));
+    }
+    if let Some(dir) = &config.models {
+        // A --bundle inside --models is passed over there (one model); another of its name skipped.
+        let served = names.iter().map(|(n, d)| (Arc::from(n.as_str()), d.clone())).collect();
+        let timeout = config.model_deadlines().search;
+        let found = Search { dir: dir.clone(), served, memory: None, refusals: refusals.clone(), timeout }.run().await;
+        report(found.skipped);
+        unique.extend(found.bundles.into_iter().map(|bundle| (bundle, false)));
     }
     Ok(unique)
 }
@@ -172,12 +184,13 @@ fn ort_runners(config: &Config) -> MakeRunner {
     })
 }
 
-/// Every model's warm-up render, in turn.
-async fn warm_up_all(models: &Models) -> Result<Duration, String> {
+/// Every model's warm-up render, in turn, each within its deadline.
+async fn warm_up_all(models: &Models, within: Duration) -> Result<Duration, String> {
     let mut elapsed = Duration::ZERO;
     for model in models.all() {
-        let took =
-            warm_up(&model.pipeline).await.map_err(|e| format!("model {}: warm-up render failed: {e}", model.name))?;
+        let took = warm_up_within(&model.pipeline, within)
+            .await
+            .map_err(|e| format!("model {}: warm-up render failed: {e}", model.name))?;
         elapsed += took;
     }
     Ok(elapsed)

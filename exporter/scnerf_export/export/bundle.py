@@ -21,6 +21,7 @@ from ..model.network import SCNeRF
 from ..model.renderer import nearest_heads
 from ..rigs import synthetic_rig
 from ..runtime.volume_slabs import slab_volume_error, volume_from_tail
+from .external_data import check_holds_its_weights
 from .manifest import FORMAT_VERSION, GraphEntry, GuidedPolicy, Manifest, Provenance, model_id, tensor_specs
 from .ray_groups import attention_cores_in_ray_groups
 from .subpixel_interleave import interleaves_as_depth_to_space
@@ -466,6 +467,7 @@ def _traced_outputs(graph: str, signature: dict) -> list[str]:
 def graph_entry(path: Path, signature: dict[str, dict[str, list]]) -> GraphEntry:
     """The manifest's entry of the graph written at ``path`` (in the bundle's folder) with
     ``signature`` (one of ``graph_signatures``)."""
+    check_holds_its_weights(path)
     return GraphEntry(
         path.name, sha256_file(path), tensor_specs(signature["inputs"]), tensor_specs(signature["outputs"])
     )

@@ -40,6 +40,7 @@ from onnx import helper, numpy_helper
 from ..model.checkpoint import sha256_file
 from ..runtime.onnx_pipeline import OnnxBundle
 from . import onnx_graph
+from .external_data import check_holds_its_weights
 from .manifest import FLOAT32, Manifest
 
 PRECISIONS = ("fp32", "int8", "fp16")
@@ -246,6 +247,7 @@ def quantize_bundle(
                 details[name] = convert_graph_fp16(source_file, target_file, min_inner, exclude)
         else:
             shutil.copyfile(source_file, target_file)
+        check_holds_its_weights(target_file)
         entry.sha256 = sha256_file(target_file)
     source_model_id = manifest.model_id
     manifest.model_id = manifest.renderer_model_id()

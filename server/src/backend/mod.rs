@@ -59,6 +59,7 @@ mod runner;
 mod runners;
 mod shared;
 mod slots;
+mod stuck;
 #[cfg(test)]
 mod testkit;
 mod ticket;
@@ -70,4 +71,5 @@ pub use executor::{BackendHandle, ExecutorOptions, QueueStats};
 pub use lease::MemoryLease;
 pub use rates::Work;
 pub use runner::{GraphRunner, NamedTensors, Outputs, Tensor};
+pub use stuck::STUCK_AFTER;
 pub use ticket::Ticket;

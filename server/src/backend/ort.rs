@@ -153,8 +153,10 @@ impl OrtRunner {
             if arena {
                 builder = builder.with_env_allocators().map_err(|e| format!("cannot load {}: {e}", path.display()))?;
             }
+            // From the verified bytes, not the file: nothing of the bundle stays mapped.
+            let graph = bundle.read_graph(kind)?;
             let session =
-                builder.commit_from_file(&path).map_err(|e| format!("cannot load {}: {e}", path.display()))?;
+                builder.commit_from_memory(&graph).map_err(|e| format!("cannot load {}: {e}", path.display()))?;
             let entry = bundle.graph(kind);
             check_signature(kind, "input", &entry.inputs, &describe(session.inputs()))?;
             check_signature(kind, "output", &entry.outputs, &describe(session.outputs()))?;

@@ -1,12 +1,14 @@
-//! Loading a bundle from its folder: the manifest, then every graph file's sha256.
+//! Loading a bundle from its folder: the manifest, then every graph file's sha256 (`files`:
+//! which files are read, and how).
 
-use std::io::Read;
 use std::path::{Path, PathBuf};
 
 use sha2::{Digest, Sha256};
 
+use super::files::{open_in, BundleFile, Stop, MAX_GRAPH_BYTES, MAX_MANIFEST_BYTES};
 use super::graphs::{GraphKind, VolumeBuild, VolumeTail, GUIDED_GRAPHS};
 use super::manifest::{BandRule, DepthNorm, GraphEntry, GuidedPolicy, Manifest, ModelConfig};
+use super::onnx_data::refuse_external_data;
 use super::validate::validate_manifest;
 
 #[derive(Debug, thiserror::Error)]
@@ -27,18 +29,69 @@ pub struct Bundle {
 impl Bundle {
     /// Loads `dir/manifest.json` and verifies the bundle (hashes included).
     pub fn load(dir: &Path) -> Result<Bundle, BundleError> {
+        Self::load_within(dir, &|| Ok(()))
+    }
+
+    /// [`Bundle::load`], reading no further once `stop` says so.
+    pub fn load_within(dir: &Path, stop: Stop) -> Result<Bundle, BundleError> {
+        let bundle = Self::read(dir)?;
+        bundle.verify(stop).map_err(|message| BundleError { dir: dir.to_path_buf(), message })?;
+        Ok(bundle)
+    }
+
+    /// Reads `dir/manifest.json` (at most [`MAX_MANIFEST_BYTES`]) and checks it, and that every
+    /// graph it names is a regular file inside the bundle of at most [`MAX_GRAPH_BYTES`]; no
+    /// graph is read (see [`Bundle::verify`]).
+    pub fn read(dir: &Path) -> Result<Bundle, BundleError> {
         let err = |message: String| BundleError { dir: dir.to_path_buf(), message };
-        let manifest_path = dir.join("manifest.json");
-        let text = std::fs::read_to_string(&manifest_path)
-            .map_err(|e| err(format!("cannot read {}: {e}", manifest_path.display())))?;
-        let manifest: Manifest =
-            serde_json::from_str(&text).map_err(|e| err(format!("manifest.json is not a valid manifest: {e}")))?;
+        let manifest = open_in(dir, "manifest.json", MAX_MANIFEST_BYTES, "the manifest")
+            .and_then(|file| file.read_all(&|| Ok(())))
+            .map_err(err)?;
+        let manifest: Manifest = serde_json::from_slice(&manifest)
+            .map_err(|e| err(format!("manifest.json is not a valid manifest: {e}")))?;
         let config = validate_manifest(&manifest).map_err(err)?;
         let bundle = Bundle { dir: dir.to_path_buf(), manifest, config };
         for kind in bundle.graphs() {
-            verify_file(dir, kind, bundle.graph(kind)).map_err(err)?;
+            bundle.open_graph(kind).map_err(err)?;
         }
         Ok(bundle)
+    }
+
+    /// Hashes every graph file and compares with the manifest.
+    pub fn verify(&self, stop: Stop) -> Result<(), String> {
+        self.graphs().into_iter().try_for_each(|kind| verify_file(&self.dir, kind, self.graph(kind), stop))
+    }
+
+    /// The graph files' sizes together: what their sessions hold at least.
+    pub fn graph_bytes(&self) -> u64 {
+        self.graphs().into_iter().filter_map(|kind| self.open_graph(kind).ok()).map(|f| f.len).sum()
+    }
+
+    /// A graph file's bytes, read once: checked against the manifest's sha256 and holding its
+    /// weights (no external data), what ONNX Runtime then loads, so that the session runs the
+    /// bytes that were verified and maps no file.
+    pub fn read_graph(&self, kind: GraphKind) -> Result<Vec<u8>, String> {
+        let entry = self.graph(kind);
+        let bytes = self.open_graph(kind)?.read_all(&|| Ok(()))?;
+        let actual = hex::encode(Sha256::digest(&bytes));
+        same_digest(kind, entry, &actual)?;
+        refuse_external_data(&bytes).map_err(|e| format!("graphs.{kind}: {e}"))?;
+        Ok(bytes)
+    }
+
+    fn open_graph(&self, kind: GraphKind) -> Result<BundleFile, String> {
+        open_in(&self.dir, &self.graph(kind).file, MAX_GRAPH_BYTES, &format!("graphs.{kind}.file"))
+    }
+
+    /// The files a load of `dir` reads: its manifest, and the graph files the manifest names as
+    /// far as it can be read.
+    pub fn files_named(dir: &Path) -> Vec<PathBuf> {
+        let text = open_in(dir, "manifest.json", MAX_MANIFEST_BYTES, "manifest.json")
+            .and_then(|file| file.read_all(&|| Ok(())))
+            .unwrap_or_default();
+        let manifest: serde_json::Value = serde_json::from_slice(&text).unwrap_or_default();
+        let graphs = manifest["graphs"].as_object().into_iter().flatten().filter_map(|(_, g)| g["file"].as_str());
+        std::iter::once(dir.join("manifest.json")).chain(graphs.map(|file| dir.join(file))).collect()
     }
 
     /// How the volume is built (validate_manifest checked that the graphs are one of the ways).
@@ -93,30 +146,22 @@ impl Bundle {
     }
 }
 
-/// Hashes the graph file and compares with the manifest.
-pub(super) fn verify_file(dir: &Path, kind: GraphKind, entry: &GraphEntry) -> Result<(), String> {
-    let rel = Path::new(&entry.file);
-    if rel.is_absolute() || rel.components().any(|c| matches!(c, std::path::Component::ParentDir)) {
-        return Err(format!("graphs.{kind}.file \"{}\" must be a path inside the bundle", entry.file));
-    }
-    let path = dir.join(rel);
-    let actual = sha256_file(&path).map_err(|e| format!("graphs.{kind}: cannot read {}: {e}", path.display()))?;
-    if !actual.eq_ignore_ascii_case(&entry.sha256) {
-        return Err(format!("graphs.{kind}: sha256 of {} is {actual}, manifest says {}", entry.file, entry.sha256));
-    }
-    Ok(())
+/// Hashes the graph file and compares with the manifest. The digest is quoted only for a file
+/// inside the bundle (`open_in` refuses any other before reading it).
+pub(super) fn verify_file(dir: &Path, kind: GraphKind, entry: &GraphEntry, stop: Stop) -> Result<(), String> {
+    let file = open_in(dir, &entry.file, MAX_GRAPH_BYTES, &format!("graphs.{kind}.file"))?;
+    let actual = file.sha256(stop).map_err(|e| format!("graphs.{kind}: {e}"))?;
+    same_digest(kind, entry, &actual)
 }
 
-pub fn sha256_file(path: &Path) -> std::io::Result<String> {
-    let mut file = std::fs::File::open(path)?;
-    let mut hasher = Sha256::new();
-    let mut buf = vec![0u8; 1 << 20];
-    loop {
-        let n = file.read(&mut buf)?;
-        if n == 0 {
-            break;
-        }
-        hasher.update(&buf[..n]);
+fn same_digest(kind: GraphKind, entry: &GraphEntry, actual: &str) -> Result<(), String> {
+    match actual.eq_ignore_ascii_case(&entry.sha256) {
+        true => Ok(()),
+        false => Err(format!("graphs.{kind}: sha256 of {} is {actual}, manifest says {}", entry.file, entry.sha256)),
     }
-    Ok(hex::encode(hasher.finalize()))
+}
+
+/// A file's sha256 (tests write bundles with it).
+pub fn sha256_file(path: &Path) -> std::io::Result<String> {
+    Ok(hex::encode(Sha256::digest(std::fs::read(path)?)))
 }

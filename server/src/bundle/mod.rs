@@ -7,14 +7,17 @@
 //! names the mismatch.
 
 mod contract;
+mod files;
 mod graphs;
 mod load;
 mod manifest;
+mod onnx_data;
 #[cfg(test)]
 mod tests;
 mod validate;
 
 pub use contract::{check_signature, ActualTensor};
+pub use files::{FileId, Stop, MAX_GRAPH_BYTES, MAX_MANIFEST_BYTES};
 pub use graphs::{GraphKind, VolumeBuild, VolumeTail, GUIDED_GRAPHS};
 pub use load::{sha256_file, Bundle, BundleError};
 pub use manifest::{

@@ -1,5 +1,6 @@
 use super::load::verify_file;
 use super::*;
+use std::path::Path;
 
 pub(crate) fn sample_manifest() -> Manifest {
     let renderer_sha = "ab".repeat(32);
@@ -233,11 +234,11 @@ fn file_hash_mismatch_names_the_file() {
     std::fs::create_dir_all(&dir).unwrap();
     std::fs::write(dir.join("encoder.onnx"), b"not a graph").unwrap();
     let entry = sample_manifest().graphs["encoder"].clone();
-    let e = verify_file(&dir, GraphKind::Encoder, &entry).unwrap_err();
+    let e = verify_file(&dir, GraphKind::Encoder, &entry, &|| Ok(())).unwrap_err();
     assert!(e.contains("sha256 of encoder.onnx is"), "{e}");
     let mut escaping = entry;
     escaping.file = "../x.onnx".into();
-    assert!(verify_file(&dir, GraphKind::Encoder, &escaping).unwrap_err().contains("inside the bundle"));
+    assert!(verify_file(&dir, GraphKind::Encoder, &escaping, &|| Ok(())).unwrap_err().contains("inside the bundle"));
     std::fs::remove_dir_all(&dir).ok();
 }
 
@@ -322,4 +323,38 @@ fn contract_is_the_fixtures() {
             assert_eq!(got.get(graph), want.get(graph), "{}: {graph}", case["name"]);
         }
     }
+}
+
+/// A copy of the parity bundle whose renderer also declares a tensor kept in `weights.bin`
+/// (protobuf merges a model appended to another): its hash matches the manifest, yet the
+/// server will not hand it to ONNX Runtime (which would map `weights.bin`).
+#[test]
+fn a_graph_with_external_data_is_refused_before_onnx_runtime_sees_it() {
+    let fixture = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../tests/fixtures/parity/bundle"));
+    let dir = std::env::temp_dir().join(format!("scnerf-external-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    for entry in std::fs::read_dir(fixture).unwrap() {
+        let path = entry.unwrap().path();
+        std::fs::copy(&path, dir.join(path.file_name().unwrap())).unwrap();
+    }
+    let mut graph = std::fs::read(dir.join("renderer.onnx")).unwrap();
+    graph.extend(super::onnx_data::tests::model_with_external_tensor("extra"));
+    std::fs::write(dir.join("renderer.onnx"), &graph).unwrap();
+    std::fs::write(dir.join("weights.bin"), [0u8; 64]).unwrap();
+    let mut manifest: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.join("manifest.json")).unwrap()).unwrap();
+    let sha = sha256_file(&dir.join("renderer.onnx")).unwrap();
+    manifest["graphs"]["renderer"]["sha256"] = sha.clone().into();
+    manifest["model_id"] = format!("scnerf-{}-{}", manifest["variant"].as_str().unwrap(), &sha[..12]).into();
+    std::fs::write(dir.join("manifest.json"), serde_json::to_vec(&manifest).unwrap()).unwrap();
+
+    let bundle = Bundle::load(&dir).unwrap();
+    assert!(bundle.read_graph(GraphKind::Encoder).is_ok());
+    let e = bundle.read_graph(GraphKind::Renderer).unwrap_err();
+    assert!(
+        e.starts_with("graphs.renderer: tensor \"extra\" keeps its data in an external file (\"weights.bin\")"),
+        "{e}"
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
 }

@@ -9,6 +9,7 @@ use serde::Serialize;
 
 use super::openapi::refusals::TokenRefusals;
 use super::state::AppState;
+use crate::error::ApiError;
 use crate::models::{ModelInfo, Reloaded};
 
 /// `GET /v1/models` body.
@@ -32,11 +33,15 @@ pub async fn list(State(state): State<AppState>) -> Json<ModelList> {
 
 /// Rescans `--models DIR` and loads every bundle folder not served yet (each verified, its
 /// graphs loaded and warmed up); a folder that cannot serve is skipped with the reason, and
-/// nothing already served changes. Without `--models`, nothing is rescanned.
+/// nothing already served changes. Without `--models`, nothing is rescanned. The reload runs
+/// as a task of its own: a client that leaves does not cut a model's load short (whose slot
+/// would otherwise have to be emptied), and the model is served once loaded.
 #[utoipa::path(post, path = "/v1/models/reload", tag = "render", operation_id = "reload_models", responses(
     (status = 200, description = "What the rescan loaded and skipped", body = Reloaded),
     TokenRefusals,
 ), security((), ("bearer" = [])))]
-pub async fn reload(State(state): State<AppState>) -> Json<Reloaded> {
-    Json(state.models.reload().await)
+pub async fn reload(State(state): State<AppState>) -> Result<Json<Reloaded>, ApiError> {
+    let models = state.models.clone();
+    let reloaded = tokio::spawn(async move { models.reload().await }).await;
+    reloaded.map(Json).map_err(|e| ApiError::Internal(format!("the reload failed: {e}")))
 }

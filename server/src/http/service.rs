@@ -22,7 +22,8 @@ pub async fn healthz() -> Json<serde_json::Value> {
 /// The readiness probe's path. Its 503 while warming up is the expected answer, not a failure.
 pub(super) const READINESS_PATH: &str = "/readyz";
 
-/// Readiness: bundle loaded and warm-up render done (503 while warming up or shutting down).
+/// Readiness: bundle loaded and warm-up render done (503 while warming up or shutting down, and
+/// while the executor is stuck on a graph run long past its request's deadline).
 /// Public for orchestrators, so it names no model: `/v1/model` does, behind the token.
 #[utoipa::path(get, path = "/readyz", tag = "service", operation_id = "readyz", responses(
     (status = 200, description = "Ready"),
@@ -30,6 +31,8 @@ pub(super) const READINESS_PATH: &str = "/readyz";
 ))]
 pub async fn readyz(State(state): State<AppState>) -> Result<Json<serde_json::Value>, ApiError> {
     state.check_ready()?;
+    let stuck = state.pipeline().executor().check_not_stuck();
+    stuck.map_err(|message| ApiError::Unavailable { message, retry_after_secs: 5 })?;
     Ok(Json(json!({"status": "ready"})))
 }
 

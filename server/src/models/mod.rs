@@ -6,12 +6,16 @@
 //! once) in a slot of the one executor (`backend::runners`): models share the inference thread,
 //! its queue, the memory budget and the scene cache, whose scenes each belong to one model.
 //!
-//! `scan.rs` finds the bundle folders of `--models DIR`; `load.rs` loads a bundle into a model
-//! (runner, pipeline, warm-up, the memory it holds at rest) and rescans DIR on a reload;
-//! `warm.rs` is the warm-up render every model gets before it serves.
+//! `scan.rs` finds the bundle folders of `--models DIR`; `find.rs` reads and verifies the new
+//! ones off the async workers before a deadline, `skips.rs` says which it skipped and remembers
+//! refusals; `load.rs` loads a verified bundle into a model (runner, pipeline, warm-up, the
+//! memory it holds at rest) on a reload; `warm.rs` is the warm-up render every model gets
+//! before it serves, within its deadline.
 
+mod find;
 mod load;
 pub mod scan;
+mod skips;
 mod warm;
 
 use std::path::{Path, PathBuf};
@@ -19,11 +23,13 @@ use std::sync::{Arc, RwLock};
 
 use serde::Serialize;
 
-pub use load::{Loader, MakeRunner, ModelSettings, Reloaded, Skipped};
-pub use warm::warm_up;
+pub use find::{Candidates, Search};
+pub use load::{Deadlines, Loader, MakeRunner, ModelSettings, Reloaded};
+pub use skips::{one_line, report, Refusals, Skipped, Snapshot};
+pub use warm::{warm_up, warm_up_within};
 
 use crate::bundle::Bundle;
-use crate::error::ApiError;
+use crate::error::{clip_quoted, ApiError};
 use crate::pipeline::Pipeline;
 use crate::request::Sampling;
 
@@ -197,7 +203,8 @@ impl ModelInfo {
     fn of(model: &Model, default: bool) -> ModelInfo {
         let bundle = model.bundle();
         let provenance = &bundle.manifest.provenance;
-        let text = |v: &serde_json::Value| v.as_str().map(str::to_string);
+        // Free text of the manifest, echoed: clipped as any text the server repeats is.
+        let text = |v: &serde_json::Value| v.as_str().map(clip_quoted);
         let source = text(&provenance["source_kind"])
             .or_else(|| text(&provenance["derived_from"]["source_kind"]))
             .or_else(|| text(&provenance["source_checkpoint"]));

@@ -12,6 +12,39 @@ use crate::pipeline::Pipeline;
 /// Renders a tiny synthetic view through all three graphs: checks that the bundle really runs
 /// before /readyz says so, and lets ONNX Runtime allocate its kernels.
 pub async fn warm_up(pipeline: &Pipeline) -> Result<Duration, String> {
+    warm_up_within(pipeline, Duration::from_secs(3600)).await
+}
+
+/// [`warm_up`] that fails once `within` has passed: a graph crafted to run for minutes (a long
+/// `Loop`) is not served. The runs it queued are dropped with it; one in progress ends on its
+/// own, then the executor takes the next request's.
+pub async fn warm_up_within(pipeline: &Pipeline, within: Duration) -> Result<Duration, String> {
+    try_warm_up(pipeline, within).await.map_err(|e| e.to_string())
+}
+
+/// Why a warm-up did not pass: the model's fault, or the server's load at the time.
+#[derive(Debug, thiserror::Error)]
+pub enum WarmUpError {
+    /// Not admitted (the budget or the queue has no room now): may pass later, unchanged.
+    #[error("not admitted now: {0}")]
+    Busy(String),
+    /// It failed, or it was admitted and missed its deadline.
+    #[error("{0}")]
+    Failed(String),
+}
+
+/// [`warm_up_within`], saying whose fault a failure is.
+pub async fn try_warm_up(pipeline: &Pipeline, within: Duration) -> Result<Duration, WarmUpError> {
+    match tokio::time::timeout(within, render(pipeline, Instant::now() + within)).await {
+        Ok(done) => done,
+        Err(_) => Err(WarmUpError::Failed(format!(
+            "it did not finish within {} s (--warmup-timeout-secs)",
+            within.as_secs_f64()
+        ))),
+    }
+}
+
+async fn render(pipeline: &Pipeline, deadline: Instant) -> Result<Duration, WarmUpError> {
     let start = Instant::now();
     let config = pipeline.config();
     let size = config.image_multiple;
@@ -21,22 +54,27 @@ pub async fn warm_up(pipeline: &Pipeline) -> Result<Duration, String> {
     let mut target = cameras[0].clone();
     target.width = 4;
     target.height = 4;
-    // Warm-up runs before readiness, alone on the executor; the deadline only bounds a hang.
+    // Admitted as a request is, with its memory estimate: it waits its turn, is refused when the
+    // budget lacks room, and its graphs' runs stop at the deadline.
     let samplings = pipeline.samplings();
     let work = samplings.iter().fold(pipeline.scene_work(&cameras), |w, &s| w.plus(pipeline.view_work(&target, s)));
-    let ticket = pipeline.admit(Instant::now() + Duration::from_secs(3600), work, 0).map_err(|e| e.to_string())?;
+    let memory = samplings.iter().map(|&s| pipeline.memory_estimate(Some(&cameras), false, true, Some((&target, s))));
+    let ticket =
+        pipeline.admit(deadline, work, memory.max().unwrap_or(0)).map_err(|e| WarmUpError::Busy(e.message()))?;
     let scene = pipeline
         .build_scene(&ticket, &cameras, images.into_shared(), 2.0, 6.0, &mut timings)
         .await
-        .map_err(|e| e.to_string())?;
+        .map_err(|e| WarmUpError::Failed(e.to_string()))?;
     // Every way of sampling the bundle has, so that each of its graphs has run once.
     for sampling in samplings {
         let view = pipeline
             .render_view(&ticket, &scene, &target, [0.0; 3], sampling, None, &mut timings)
             .await
-            .map_err(|e| e.to_string())?;
+            .map_err(|e| WarmUpError::Failed(e.to_string()))?;
         if view.rgb.iter().chain(&view.depth).chain(&view.opacity).any(|v| !v.is_finite()) {
-            return Err(format!("the warm-up render ({sampling} sampling) produced non-finite values"));
+            return Err(WarmUpError::Failed(format!(
+                "the warm-up render ({sampling} sampling) produced non-finite values"
+            )));
         }
     }
     pipeline.executor().forget_rates();

@@ -52,7 +52,7 @@ impl Pipeline {
     /// The most memory a request over `sources` adds to the process (see [`estimate::estimate`]):
     /// it decodes them when `decodes`, builds a volume from the model's view count of them when
     /// `builds`, renders `target` with its sampling.
-    pub(super) fn memory_estimate(
+    pub fn memory_estimate(
         &self,
         sources: Option<&[CanonicalCamera]>,
         decodes: bool,

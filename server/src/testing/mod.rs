@@ -5,7 +5,7 @@
 
 mod models;
 
-pub use models::{models_state, models_state_with, named_bundle, write_bundle, FakeModel};
+pub use models::{models_state, models_state_with, named_bundle, reload_state, write_bundle, FakeModel};
 
 use std::path::Path;
 use std::sync::atomic::{AtomicUsize, Ordering};

@@ -3,12 +3,13 @@
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
+use std::time::Duration;
 
 use super::{bundle, FakeRunner};
 use crate::backend::{BackendHandle, ExecutorOptions, GraphRunner};
 use crate::bundle::{sha256_file, Bundle, Manifest};
 use crate::http::{AppState, ServiceOptions};
-use crate::models::{Loader, Model, ModelSettings, Models};
+use crate::models::{Deadlines, Loader, Model, ModelSettings, Models};
 use crate::pipeline::band::BandFill;
 use crate::pipeline::chunks::ChunkPolicy;
 use crate::pipeline::volume::SlabPolicy;
@@ -39,7 +40,8 @@ pub fn named_bundle(name: &str) -> Bundle {
 
 /// A ready server of `models` (the first the default unless `default` names one), one executor
 /// for all. With `reload_dir`, `POST /v1/models/reload` loads the bundle folders found there
-/// over fake runners whose tint is their manifest's `provenance.tint` (see [`write_bundle`]).
+/// over fake runners whose tint is their manifest's `provenance.tint` (see [`write_bundle`]) and
+/// whose every graph run takes `provenance.delay_ms` (none when absent).
 pub fn models_state(
     models: Vec<FakeModel>,
     default: Option<&str>,
@@ -56,6 +58,24 @@ pub fn models_state_with(
     reload_dir: Option<&Path>,
     options: ServiceOptions,
     executor_options: ExecutorOptions,
+) -> Result<AppState, String> {
+    build(models, default, reload_dir, options, executor_options, Deadlines::default())
+}
+
+/// A ready server of one model (`first`) whose reloads load the bundle folders of `dir` within
+/// `deadlines`.
+pub fn reload_state(dir: &Path, deadlines: Deadlines) -> AppState {
+    let models = vec![FakeModel::new("first", 1.0)];
+    build(models, None, Some(dir), Default::default(), ExecutorOptions::with_capacity(8), deadlines).expect("state")
+}
+
+fn build(
+    models: Vec<FakeModel>,
+    default: Option<&str>,
+    reload_dir: Option<&Path>,
+    options: ServiceOptions,
+    executor_options: ExecutorOptions,
+    deadlines: Deadlines,
 ) -> Result<AppState, String> {
     let settings = ModelSettings {
         chunking: ChunkPolicy { max_rays: 100, memory_budget_bytes: usize::MAX },
@@ -79,11 +99,14 @@ pub fn models_state_with(
         dir: dir.to_path_buf(),
         make_runner: Arc::new(|bundle: &Bundle| {
             let tint = bundle.manifest.provenance["tint"].as_f64().unwrap_or(1.0) as f32;
-            Ok(Box::new(FakeRunner { tint, ..FakeRunner::new(bundle) }) as Box<dyn GraphRunner>)
+            let delay = Duration::from_millis(bundle.manifest.provenance["delay_ms"].as_u64().unwrap_or(0));
+            Ok(Box::new(FakeRunner { tint, delay, ..FakeRunner::new(bundle) }) as Box<dyn GraphRunner>)
         }),
         settings,
         executor,
         warm_up: true,
+        deadlines,
+        refusals: Default::default(),
     });
     let models = Models::new(served, default, loader)?;
     let state = AppState::with_models(models, options);
