@@ -2,9 +2,10 @@
 # The project's tests, in two tiers.
 #
 #   scripts/test.sh          the fast tier, which CI runs: the lint gate (module rules, ruff,
-#                            clippy, rustfmt), the Rust workspace (unit, HTTP, parity against the
-#                            committed fixtures, end-to-end on small bundles, the default bundle on
-#                            the committed example), scenes across two replicas behind Debian's nginx
+#                            rustfmt, and clippy on every target as the tests are built), the Rust
+#                            workspace (unit, HTTP, parity against the committed fixtures,
+#                            end-to-end on small bundles, the default bundle on the committed
+#                            example), scenes across two replicas behind Debian's nginx
 #                            (scripts/proxy-test.sh), the hostile clients' short form
 #                            (loadtest/attacks.sh), the exporter's pytest suite less its `slow`
 #                            tests, the benchmark's, the Python client installed into its own venv
@@ -77,11 +78,16 @@ wait_for_python_setup() {
   tail -n 1 "${python_setup_log}"
 }
 
+# Clippy lints the workspace's crates as they are compiled for the tests (clippy-driver is rustc
+# with clippy's lints): one build instead of a test build and a second, clippy's own. Every cargo
+# command below, the scripts' included, builds with it, so none rebuilds what another built.
+RUSTC_WORKSPACE_WRAPPER=$(rustup which clippy-driver) || { echo "scripts/test.sh: clippy is missing (rustup component add clippy)" >&2; exit 1; }
+export RUSTC_WORKSPACE_WRAPPER CLIPPY_ARGS="-D__CLIPPY_HACKERY__warnings__CLIPPY_HACKERY__"
+
 stage "ONNX Runtime" scripts/fetch-onnxruntime.sh
 start_python_setup
 stage "rustfmt" cargo fmt --all --check
-stage "rust workspace: build and test" cargo test -j2 --workspace --locked
-stage "clippy" cargo clippy -j2 --workspace --all-targets --locked -- -D warnings
+stage "rust workspace: build (clippy -D warnings) and test" cargo test -j2 --workspace --locked
 stage "python environment (installed during the Rust stages)" wait_for_python_setup
 stage "module rules, ruff" python_lint
 stage "replicas behind nginx" scripts/proxy-test.sh
