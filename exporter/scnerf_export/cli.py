@@ -44,7 +44,7 @@ def cmd_export(args) -> None:
 def cmd_fixtures(args) -> None:
     from .export.fixtures import write_fixtures
 
-    print(f"wrote {write_fixtures(args.out, variant=args.variant, seed=args.seed)}")
+    print(f"wrote {', '.join(map(str, write_fixtures(args.out, variant=args.variant, seed=args.seed)))}")
 
 
 def cmd_eval(args) -> None:
@@ -268,7 +268,9 @@ def parser() -> argparse.ArgumentParser:
     e.add_argument("--volume", **VOLUME_OPTION)
     e.set_defaults(func=cmd_export)
 
-    f = sub.add_parser("fixtures", help="parity fixtures for the Rust tests (random small model)")
+    f = sub.add_parser(
+        "fixtures", help="parity fixtures (random small model) in --out and its -slabs and -sweep siblings"
+    )
     f.add_argument("--out", required=True, type=Path)
     f.add_argument("--variant", default="scnerf")
     f.add_argument("--seed", type=int, default=7)

@@ -14,7 +14,7 @@ use scnerf_server::request::Limits;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn slab_built_volume_matches_pytorch_whatever_the_slab_size() {
-    let p = split_volume::split_pipeline("parity-slabs", &["cost_slab.onnx", "volume_net.onnx"]);
+    let p = split_volume::split_pipeline("parity-slabs");
     assert_eq!(p.bundle().volume_build(), VolumeBuild::Slabs);
     // The same graphs and executor, `planes` depth planes per cost slab run.
     let with_slabs = |planes: usize| {

@@ -1,6 +1,6 @@
 //! Parity of the volume built from the server's plane sweep: the parity fixture bundle with its
-//! `volume.onnx` split into `cost_conv.onnx` and `volume_net.onnx` (`scnerf-export split-volume
-//! --volume sweep`, tests/fixtures/parity-sweep) renders every parity case within the PyTorch
+//! `volume.onnx` split into `cost_conv.onnx` and `volume_net.onnx` (written by `scnerf-export
+//! fixtures` into tests/fixtures/parity-sweep) renders every parity case within the PyTorch
 //! tolerances, and its volume does not depend on how many threads sweep the planes. A test binary
 //! of its own: ONNX Runtime's environment is process-wide, one bundle per process.
 
@@ -14,7 +14,7 @@ use scnerf_server::request::Limits;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn swept_volume_matches_pytorch_whatever_the_threads() {
-    let p = split_volume::split_pipeline("parity-sweep", &["cost_conv.onnx", "volume_net.onnx"]);
+    let p = split_volume::split_pipeline("parity-sweep");
     assert_eq!(p.bundle().volume_build(), VolumeBuild::Sweep);
     // The same graphs and executor, the sweep on `threads` threads; a pipeline of its own reads
     // the first convolution's kernel from cost_conv.onnx again.

@@ -535,10 +535,13 @@ def validate_slab_volume(
     return error
 
 
-def export_bundle(model: SCNeRF, out_dir: str | Path, provenance: dict, volume: str = "whole") -> Manifest:
+def export_bundle(
+    model: SCNeRF, out_dir: str | Path, provenance: dict, volume: str = "whole", created: str | None = None
+) -> Manifest:
     """Write the graphs (``volume``: the way they build the volume, a key of VOLUME_GRAPHS) and
     manifest.json into out_dir and validate them. ``provenance``: what the checkpoint loader says
-    of the weights (source, training, licence)."""
+    of the weights (source, training, licence); ``created``: the manifest's time of creation, now
+    unless given (the committed test fixtures fix it, so that they can be written again unchanged)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     model = model.eval()
@@ -551,7 +554,7 @@ def export_bundle(model: SCNeRF, out_dir: str | Path, provenance: dict, volume: 
         "exporter_version": __version__,
         "torch_version": torch.__version__,
         "opset": OPSET,
-        "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "created": created or _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
         "export_validation_max_abs_error": errors,
         "metrics": None,
         "source_checkpoint": None,

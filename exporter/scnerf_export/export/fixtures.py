@@ -1,5 +1,6 @@
 """Parity fixtures for the Rust tests: a random-weight small bundle, requests and the PyTorch
-reference outputs (docs/bundle.md "Parity fixtures")."""
+reference outputs, and beside them the same bundle's volume graphs for the slab-by-slab and the
+plane-sweep builds (docs/bundle.md "Parity fixtures")."""
 
 from __future__ import annotations
 
@@ -18,6 +19,12 @@ from ..rigs import random_model, rig_cameras, smooth_pattern
 from ..runtime.band import Sources, fill_from_sources, sightings, surface_points
 from ..runtime.reference import encode_scene, render_target, render_view
 from .bundle import export_bundle
+from .split_volume import split_volume_bundle
+
+# The manifests' time of creation: fixed, so that the generator writes the committed files again
+# byte for byte.
+CREATED = "2026-12-07T00:00:00+00:00"
+SPLIT_BUILDS = ("slabs", "sweep")
 
 
 def _write_f32(path: Path, array) -> None:
@@ -150,7 +157,26 @@ def write_band_case(out: Path, seed: int) -> None:
     (out / "band.json").write_text(json.dumps(case) + "\n")
 
 
-def write_fixtures(out_dir: str | Path, variant: str = "scnerf", seed: int = 7) -> Path:
+def split_siblings(out_dir: str | Path) -> dict[str, Path]:
+    """The folders beside ``out_dir`` that hold its bundle's volume graphs for each split build
+    (``parity`` -> ``parity-slabs``, ``parity-sweep``)."""
+    out = Path(out_dir)
+    return {build: out.with_name(f"{out.name}-{build}") for build in SPLIT_BUILDS}
+
+
+def write_split(bundle: Path, model: SCNeRF, build: str, out: Path) -> None:
+    """``bundle``'s volume graphs for ``build``, written from ``model`` (the bundle's network) with
+    their manifest into ``out``; the graphs that ``bundle`` holds unchanged are left out (the tests
+    take them from the bundle)."""
+    manifest = split_volume_bundle(bundle, out, build, model=model)
+    for entry in manifest.graphs.values():
+        if (bundle / entry.file).is_file():
+            (out / entry.file).unlink()
+
+
+def write_fixtures(out_dir: str | Path, variant: str = "scnerf", seed: int = 7) -> list[Path]:
+    """Writes the parity fixtures into ``out_dir`` and the split volume graphs into its siblings
+    (``split_siblings``); the folders written."""
     out = Path(out_dir)
     model = random_model(small_config(variant), seed)
     export_bundle(
@@ -161,10 +187,14 @@ def write_fixtures(out_dir: str | Path, variant: str = "scnerf", seed: int = 7) 
             "source_kind": "random-weights",
             "training": f"random weights, torch seed {seed} (test fixture only)",
         },
+        created=CREATED,
     )
+    siblings = split_siblings(out)
+    for build, sibling in siblings.items():
+        write_split(out / "bundle", model, build, sibling)
     cases = out / "cases"
     write_case(cases, model, "opencv_64x96", 64, 96, 1.0, "opencv_w2c", (0.0, 0.0, 0.0), seed + 1)
     write_case(cases, model, "opengl_96x64_white", 96, 64, 0.75, "opengl_c2w", (1.0, 1.0, 1.0), seed + 2)
     write_band_case(out, seed + 3)
     (out / "READY").write_text("fixtures complete\n")
-    return out
+    return [out, *siblings.values()]

@@ -136,7 +136,12 @@ def check_inputs(encoder: Path, cfg: ModelConfig) -> dict[str, np.ndarray]:
     return {"features": features, **{k: rig[k] for k in ("images", "projections", "depth_planes")}}
 
 
-def split_volume_bundle(bundle_dir: str | Path, out_dir: str | Path, volume: str = "sweep") -> Manifest:
+def split_volume_bundle(
+    bundle_dir: str | Path, out_dir: str | Path, volume: str = "sweep", model: SCNeRF | None = None
+) -> Manifest:
+    """The bundle ``bundle_dir`` with its volume graphs written again as ``volume`` into ``out_dir``.
+    G2 is ``model``'s (the network the bundle was exported from, its config the manifest's) or,
+    without it, read back from the bundle's volume graphs."""
     src, out = Path(bundle_dir), Path(out_dir)
     if src.resolve() == out.resolve():
         raise SplitVolumeError("--out must differ from --bundle")
@@ -149,9 +154,14 @@ def split_volume_bundle(bundle_dir: str | Path, out_dir: str | Path, volume: str
     cfg = manifest.config
     if cfg.norm_statistics != "batch":
         raise SplitVolumeError(f"{src}: norm_statistics {cfg.norm_statistics!r}; re-export it from its checkpoint")
-    model = SCNeRF(cfg).eval()
-    old_graphs = [manifest.graph_path(src, name) for name in VOLUME_GRAPHS[old_build]]
-    model.volume_net.load_state_dict(volume_state_from_graphs(old_graphs, model))
+    read_back = model is None
+    if read_back:
+        model = SCNeRF(cfg).eval()
+        old_graphs = [manifest.graph_path(src, name) for name in VOLUME_GRAPHS[old_build]]
+        model.volume_net.load_state_dict(volume_state_from_graphs(old_graphs, model))
+    elif model.cfg != cfg:
+        raise SplitVolumeError(f"{src}: the model's config is not the bundle's")
+    model = model.eval()
     # The encoder's weights are not read back: the volume graphs' inputs come from the bundle's own
     # encoder graph, the example features only need plausible values.
     out.mkdir(parents=True, exist_ok=True)
@@ -176,7 +186,8 @@ def split_volume_bundle(bundle_dir: str | Path, out_dir: str | Path, volume: str
         "volume_max_abs_difference": agreement,
         "export_validation_max_abs_error": errors,
         "what": f"{' and '.join(f'{g}.onnx' for g in VOLUME_GRAPHS[old_build])} written again as "
-        f"{' and '.join(f'{g}.onnx' for g in VOLUME_GRAPHS[volume])} from the weights in the source volume graphs "
+        f"{' and '.join(f'{g}.onnx' for g in VOLUME_GRAPHS[volume])} from "
+        f"{'the weights in the source volume graphs' if read_back else 'the model the bundle was exported from'} "
         f"(the volume built as {volume!r}); {' and '.join(f'{k}.onnx' for k in kept)} unchanged",
     }
     manifest.save(out)

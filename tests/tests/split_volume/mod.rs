@@ -1,7 +1,7 @@
 //! Shared by the parity tests of the bundles whose volume is built slab by slab (parity_slabs.rs)
 //! or from the server's plane sweep (parity_sweep.rs): the parity fixture bundle with its
-//! `volume.onnx` split by `scnerf-export split-volume` (committed under tests/fixtures: the new
-//! volume graphs and the manifest; the encoder and renderer are the parity bundle's own, checked
+//! `volume.onnx` split (`scnerf-export fixtures` writes them beside it, under tests/fixtures: the
+//! new volume graphs and the manifest; the other graphs are the parity bundle's own, checked
 //! against the manifest's hashes when the bundle loads), and the check that every parity case's
 //! volume and view are PyTorch's however the pipeline is configured.
 
@@ -18,16 +18,20 @@ fn fixtures() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures")
 }
 
-/// The split bundle of `fixtures/<split>` (its `graphs`) assembled in a temporary folder with the
-/// parity bundle's encoder and renderer, loaded (one per test process: ONNX Runtime's environment
-/// is process-wide).
-pub fn split_pipeline(split: &str, graphs: &[&str]) -> Pipeline {
+/// The split bundle of `fixtures/<split>` assembled in a temporary folder: its manifest, and each
+/// graph the manifest names from `<split>` or else from the parity bundle; loaded (one per test
+/// process: ONNX Runtime's environment is process-wide).
+pub fn split_pipeline(split: &str) -> Pipeline {
     let dir = std::env::temp_dir().join(format!("scnerf-{split}-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
-    let copied = [("parity/bundle", "encoder.onnx"), ("parity/bundle", "renderer.onnx"), (split, "manifest.json")];
-    let split_graphs = graphs.iter().map(|g| (split, *g));
-    for (from, file) in copied.into_iter().chain(split_graphs) {
-        std::fs::copy(fixtures().join(from).join(file), dir.join(file)).unwrap();
+    let manifest = fixtures().join(split).join("manifest.json");
+    std::fs::copy(&manifest, dir.join("manifest.json")).unwrap();
+    let manifest: serde_json::Value = serde_json::from_slice(&std::fs::read(&manifest).unwrap()).unwrap();
+    for graph in manifest["graphs"].as_object().unwrap().values() {
+        let file = graph["file"].as_str().unwrap();
+        let own = fixtures().join(split).join(file);
+        let from = if own.is_file() { own } else { fixtures().join("parity/bundle").join(file) };
+        std::fs::copy(from, dir.join(file)).unwrap();
     }
     let p = ort_pipeline(&dir, Limits::default(), 16);
     let _ = std::fs::remove_dir_all(&dir); // the sessions hold what they need
