@@ -61,7 +61,10 @@ def io_signature(path):
     return sig(model.graph.input), sig(model.graph.output)
 
 
-@pytest.mark.parametrize("precision,min_psnr,max_abs", [("int8", 30.0, 0.1), ("fp16", 45.0, 0.01)])
+# Bounds a few dB below what this case measured on the 2-core development machine (int8: 38.4 dB,
+# the largest difference 0.054 in colour and 0.082 in opacity; fp16: 84.8 dB, 2.7e-4): int8's
+# integer products may round differently on processors without VNNI.
+@pytest.mark.parametrize("precision,min_psnr,max_abs", [("int8", 35.0, 0.1), ("fp16", 75.0, 1e-3)])
 def test_converted_bundle_keeps_contract_and_renders_close(
     tmp_path, fp32_bundle, case, fp32_render, precision, min_psnr, max_abs
 ):
@@ -139,8 +142,8 @@ def test_refuses_bad_requests(tmp_path, fp32_bundle):
         quantize_bundle(fp32_bundle, tmp_path / "x", "bf16")
     with pytest.raises(ValueError, match="unknown graphs"):
         quantize_bundle(fp32_bundle, tmp_path / "x", "int8", graphs=("decoder",))
-    with pytest.raises(ValueError, match="no MatMul"):  # the volume net is all convolutions
-        quantize_bundle(fp32_bundle, tmp_path / "v", "int8", graphs=("volume",))
+    with pytest.raises(ValueError, match="no MatMul"):  # the encoder is all convolutions
+        quantize_bundle(fp32_bundle, tmp_path / "v", "int8", graphs=("encoder",))
     quantize_bundle(fp32_bundle, tmp_path / "q", "int8")
     with pytest.raises(ValueError, match="already int8"):
         quantize_bundle(tmp_path / "q", tmp_path / "qq", "fp16")

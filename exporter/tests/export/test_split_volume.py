@@ -9,12 +9,14 @@ earlier exporters wrote (norms as chains of operators), which split-volume reads
 
 import hashlib
 import shutil
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from scnerf_export.cli import main
 from scnerf_export.config import small_config
+from scnerf_export.export import bundle as bundle_module
 from scnerf_export.export.bundle import GUIDED_GRAPHS
 from scnerf_export.export.manifest import Manifest
 from scnerf_export.export.split_volume import SplitVolumeError, check_inputs, split_volume_bundle, volumes_agree
@@ -144,6 +146,24 @@ def test_split_volume_refuses_to_overwrite_its_source_in_one_line(capsys):
     assert err.startswith("scnerf-export split-volume: error:") and "\n" not in err
 
 
+def test_export_builds_the_volume_by_the_sweep_unless_asked_for_another_build(tmp_path, monkeypatch):
+    """The command's choice of build; what each build writes is the slow test below's."""
+    save_checkpoint(tmp_path / "c.pt", random_model(small_config("scnerf"), seed=0), {})
+    asked = []
+
+    def record(model, out, provenance, volume):
+        asked.append(volume)
+        return SimpleNamespace(model_id="recorded")
+
+    monkeypatch.setattr(bundle_module, "export_bundle", record)
+    checkpoint = str(tmp_path / "c.pt")
+    assert main(["export", "--checkpoint", checkpoint, "--out", str(tmp_path / "sweep")]) == 0
+    for build in ("slabs", "whole"):
+        assert main(["export", "--checkpoint", checkpoint, "--out", str(tmp_path / build), "--volume", build]) == 0
+    assert asked == ["sweep", "slabs", "whole"]
+
+
+@pytest.mark.slow
 def test_export_writes_the_sweep_graphs_unless_asked_for_another_build(tmp_path):
     save_checkpoint(tmp_path / "c.pt", random_model(small_config("scnerf"), seed=0), {})
     checkpoint = str(tmp_path / "c.pt")
