@@ -157,6 +157,13 @@ fn check_depth_range(near: f64, far: f64) -> Result<(), ApiError> {
     if near >= far {
         return Err(ApiError::invalid("far", format!("near ({near}) must be smaller than far ({far})")));
     }
+    // The renderer samples depths in f32: a range that is empty there renders NaN.
+    if near as f32 >= far as f32 {
+        return Err(ApiError::invalid(
+            "far",
+            format!("near ({near}) and far ({far}) are equal in 32-bit floating point, the precision depths are rendered in"),
+        ));
+    }
     Ok(())
 }
 
