@@ -96,7 +96,9 @@ pub fn resolve(
     if near as f32 >= far as f32 {
         return Err(Error::dataset(
             source,
-            format!("invalid near/far {near}/{far}: equal in 32-bit floating point, the precision depths are rendered in"),
+            format!(
+                "invalid near/far {near}/{far}: equal in 32-bit floating point, the precision depths are rendered in"
+            ),
         ));
     }
     Ok((near, far, from))

@@ -168,9 +168,11 @@ pub struct Config {
     pub max_capture_metadata_bytes: usize,
 
     /// Memory for cached scenes (POST /v1/scenes), in MiB; least recently used scenes are evicted
-    /// beyond it. A paper-size scene of 640x512 sources takes ~150 MiB.
-    #[arg(long, env = "SCNERF_SCENE_CACHE_MB", default_value_t = CacheConfig::default().max_bytes >> 20)]
-    pub scene_cache_mb: usize,
+    /// beyond it. A paper-size scene of 640x512 sources takes ~150 MiB. What the cache holds
+    /// counts against --memory-budget-mb as it holds it, and idle scenes are evicted to admit a
+    /// request. Default: a third of the memory budget (2048 MiB without one).
+    #[arg(long, env = "SCNERF_SCENE_CACHE_MB")]
+    pub scene_cache_mb: Option<usize>,
 
     /// Each token's share of the scene cache, in MiB. A token over its share makes room from
     /// its own scenes first, and never evicts another token's scenes while that token holds no
@@ -205,8 +207,8 @@ pub struct Config {
     pub queue_capacity: usize,
 
     /// Memory the whole process may use, in MiB: what it holds at rest (measured after the
-    /// warm-up), the scene cache (--scene-cache-mb) and the estimated peaks of the requests in
-    /// progress. A request that would exceed it waits for none: 503 + Retry-After; one that could
+    /// warm-up), what the scene cache holds (its idle scenes evicted to admit a request) and the
+    /// estimated peaks of the requests in progress. A request that would exceed it waits for none: 503 + Retry-After; one that could
     /// never fit: 422. Default: 3/4 of the cgroup's memory limit, or of physical memory.
     #[arg(long, env = "SCNERF_MEMORY_BUDGET_MB")]
     pub memory_budget_mb: Option<u64>,
@@ -370,7 +372,7 @@ impl Config {
         Ok(ServiceOptions {
             request_timeout: Duration::from_secs(self.request_timeout_secs),
             cache: CacheConfig {
-                max_bytes: self.scene_cache_mb.saturating_mul(1024 * 1024),
+                max_bytes: self.scene_cache_bytes(),
                 ttl: Duration::from_secs(self.scene_ttl_secs),
                 per_owner_bytes: self.scene_cache_mb_per_token.map(|mb| mb.saturating_mul(1024 * 1024)),
             },
@@ -393,6 +395,16 @@ impl Config {
             // hyper needs room for at least a request line and a few headers.
             max_header_bytes: self.max_header_bytes.max(1024),
             shutdown_grace: Duration::from_secs(self.shutdown_grace_secs),
+        }
+    }
+
+    /// `--scene-cache-mb` in bytes, or a third of the memory budget, or without a budget the
+    /// cache's own default.
+    pub fn scene_cache_bytes(&self) -> usize {
+        match (self.scene_cache_mb, self.memory_budget().0) {
+            (Some(mb), _) => mb.saturating_mul(1 << 20),
+            (None, u64::MAX) => CacheConfig::default().max_bytes,
+            (None, budget) => usize::try_from(budget / 3).unwrap_or(usize::MAX),
         }
     }
 

@@ -183,13 +183,13 @@ async fn warm_up_all(models: &Models) -> Result<Duration, String> {
 }
 
 /// Sets aside the memory held apart from requests: the process at rest after the warm-up (every
-/// model's sessions, their weights), one renderer run (runs take turns on the executor; the
-/// renderers' shared arena may keep it between requests) and the scene cache at its limit.
+/// model's sessions, their weights) and one renderer run (runs take turns on the executor; the
+/// renderers' shared arena may keep it between requests). The scene cache is not set aside: it
+/// counts as it fills, and its idle scenes are evicted to admit a request (`backend/reclaim.rs`).
 fn reserve_memory(state: &AppState) -> Result<MemoryBudget, String> {
     let at_rest = sysmem::resident().map_or(0, |r| r.now);
-    let cache = state.scenes().config().max_bytes as u64;
     let renderer = state.models().largest_renderer_run();
-    state.pipeline().executor().reserve(at_rest + cache + renderer)
+    state.pipeline().executor().reserve(at_rest + renderer)
 }
 
 /// Expired scenes are also dropped on every cache access; this frees their memory when the

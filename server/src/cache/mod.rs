@@ -25,6 +25,7 @@
 //! Time is passed in (`now`) rather than read here, so tests can drive expiry without sleeping.
 
 mod ids;
+mod reclaim;
 pub mod shares;
 
 use std::collections::{BTreeMap, HashMap};

@@ -65,6 +65,7 @@ impl AppState {
     /// A server of `models`. Not ready until `set_ready` (after the warm-up renders).
     pub fn with_models(models: Models, options: ServiceOptions) -> AppState {
         let scenes = Arc::new(SceneCache::new(options.cache, options.auth.token_count()));
+        models.default_model().pipeline.executor().set_reclaim(scenes.clone());
         let metrics = Arc::new(Metrics::new(models.default_model().pipeline.executor().clone(), scenes.clone()));
         AppState {
             models: Arc::new(models),
