@@ -77,6 +77,22 @@ async fn a_capture_is_admitted_by_its_decoded_size_before_anything_is_decoded() 
     assert_error(&got, 400, "malformed_request", Some("train/r_0.png"));
 }
 
+/// 32 photos of 4096x4096 (sent as headers alone) are fitted to 1024x1024, which takes decoding
+/// and resizing each: the scene is refused for the cache share from the headers' sizes first.
+#[tokio::test]
+async fn a_capture_too_large_for_the_cache_is_refused_from_its_headers_before_any_decode() {
+    let files = big_capture(32, 4096);
+    let (cached, _) = app(4096, Limits::default(), CacheConfig { max_bytes: 64 << 20, ..Default::default() });
+    let got = post_capture(&cached, &files, &[]).await;
+    assert_error(&got, 422, "invalid_request", Some("sources"));
+    assert!(message(&got).contains("a client may hold at most"), "{}", message(&got));
+    // Too large for the memory budget: refused the same way, naming the fitted sizes.
+    let (small, _) = app(256, Limits::default(), CacheConfig::default());
+    let got = post_capture(&small, &files, &[]).await;
+    assert_error(&got, 422, "invalid_request", Some("sources"));
+    assert!(message(&got).contains("32 source views of 1024x1024 need an estimated"), "{}", message(&got));
+}
+
 #[tokio::test]
 async fn a_scene_upload_is_admitted_the_same_way_and_refused_first_when_the_cache_cannot_hold_it() {
     let sources: Vec<Value> = (0..64).map(|i| json!({"camera": camera_json(1024, 1024, 0.01 * i as f64)})).collect();

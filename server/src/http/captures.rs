@@ -28,6 +28,7 @@ use scnerf_capture::wire::WireCamera;
 use serde::{Deserialize, Serialize};
 
 use super::body::multipart_error;
+use super::capture_limits::CaptureLimits;
 use super::deadline::Deadline;
 use super::negotiate::{request_format, RequestFormat};
 use super::openapi::refusals::CaptureRefusals;
@@ -145,8 +146,9 @@ async fn create_within(
             other => other.into(),
         })?;
     let (config, limits) = (model.pipeline.config().clone(), model.pipeline.limits().clone());
+    let sizes = CaptureLimits::new(&model, &state.scenes);
     let parsed = blocking::run(move |cancel| {
-        let read = read_capture(files, &options, &limits, &mut parsing, cancel)?;
+        let read = read_capture(files, &options, (&limits, &sizes), &mut parsing, cancel)?;
         let names = read.names.clone();
         let valid = read.request.validate(&config, &limits).map_err(|e| name_the_file(e, &names))?;
         Ok((valid, read.cameras, read.names, read.format, read.image_set, read.warnings))
@@ -245,7 +247,7 @@ struct ReadCapture {
 fn read_capture(
     mut files: MemoryFiles,
     options: &CaptureOptions,
-    limits: &Limits,
+    (limits, sizes): (&Limits, &CaptureLimits),
     parsing: &mut MemoryLease,
     cancel: &Cancel,
 ) -> Result<ReadCapture, ApiError> {
@@ -275,6 +277,7 @@ fn read_capture(
             kept.len()
         ));
     }
+    sizes.check(kept.iter().map(|&v| &views[v]))?;
     let (mut sources, mut cameras, mut names) =
         (Vec::with_capacity(kept.len()), Vec::with_capacity(kept.len()), Vec::with_capacity(kept.len()));
     for (i, view) in kept.into_iter().map(|v| &views[v]).enumerate() {

@@ -4,6 +4,7 @@
 //! `openapi`.
 
 pub mod body;
+mod capture_limits;
 mod capture_plan;
 mod captures;
 mod deadline;
