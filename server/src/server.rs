@@ -14,7 +14,7 @@ use crate::config::Config;
 use crate::http::serve::{ensure_file_limit, serve};
 use crate::http::{router, AppState};
 pub use crate::models::warm_up;
-use crate::models::{duplicate_name, model_name, same_folder, scan, Loader, MakeRunner, Model, Models};
+use crate::models::{duplicate_name, model_name, names, same_folder, scan, Loader, MakeRunner, Model, Models};
 use crate::sysmem;
 
 pub async fn run(config: Config) -> Result<(), String> {
@@ -136,6 +136,7 @@ async fn load_models(config: &Config) -> Result<Models, String> {
 fn find_bundles(config: &Config) -> Result<Vec<(Bundle, bool)>, String> {
     let mut bundles = Vec::new();
     for dir in config.bundle_dirs() {
+        names::check_folder(&dir).map_err(|e| format!("--bundle {dir:?}: {e}"))?;
         bundles.push((Bundle::load(&dir).map_err(|e| e.to_string())?, true));
     }
     let (found, unreadable) = config.models.as_deref().map(scan::bundle_dirs).unwrap_or_default();

@@ -257,3 +257,34 @@ async fn a_reload_without_a_models_folder_loads_nothing() {
     let answer = reload(&two_models()).await;
     assert_eq!(answer, json!({"dir": null, "loaded": [], "skipped": []}));
 }
+
+/// Model names are NFC: `café` composed and decomposed are one model (the second folder is
+/// skipped as a duplicate), and a request may name it either way; a folder whose name holds a
+/// control character is skipped, saying so, and a request naming one is refused naming `model`.
+#[tokio::test]
+async fn model_names_are_nfc_without_control_characters() {
+    let dir = scratch("names");
+    let (composed, decomposed) = ("caf\u{e9}", "cafe\u{301}");
+    write_bundle(&dir.join(composed), 1.0).unwrap();
+    write_bundle(&dir.join(decomposed), 0.5).unwrap();
+    write_bundle(&dir.join("lego\n2026-01-01T00:00:00Z  INFO forged"), 1.0).unwrap();
+    let app = router(models_state(vec![FakeModel::new("first", 1.0)], None, Some(&dir), Default::default()).unwrap());
+    let answer = reload(&app).await;
+    assert_eq!(names(&answer["loaded"]), [composed], "{answer}");
+    let skipped = answer["skipped"].as_array().unwrap();
+    assert_eq!(skipped.len(), 2, "{answer}");
+    let reason = |name: &str| {
+        let entry = skipped.iter().find(|s| s["name"].as_str().unwrap().starts_with(name)).unwrap();
+        entry["reason"].as_str().unwrap().to_string()
+    };
+    assert!(reason(composed).contains("caf"), "a second folder of the name: {answer}");
+    assert!(reason("lego").contains("control character \\n"), "{answer}");
+    for spelling in [composed, decomposed] {
+        let got = render(&app, &with_model(request_json(32), spelling)).await;
+        assert_eq!(got.0, 200, "{spelling:?}: {}", String::from_utf8_lossy(&got.2));
+        assert_eq!(got.1["x-scnerf-model"].as_bytes(), composed.as_bytes());
+    }
+    let refused = render(&app, &with_model(request_json(32), "lego\n2026-01-01T00:00:00Z  INFO forged")).await;
+    assert_error(&refused, 422, "invalid_request", Some("model"));
+    std::fs::remove_dir_all(&dir).unwrap();
+}

@@ -18,7 +18,10 @@ pub fn bundle_dirs(dir: &Path) -> (Vec<PathBuf>, Vec<(PathBuf, String)>) {
 
 fn search(dir: &Path, depth: usize, found: &mut Vec<PathBuf>, unreadable: &mut Vec<(PathBuf, String)>) {
     if dir.join(MANIFEST).is_file() {
-        found.push(dir.to_path_buf());
+        match super::names::check_folder(dir) {
+            Ok(()) => found.push(dir.to_path_buf()),
+            Err(reason) => unreadable.push((dir.to_path_buf(), reason)),
+        }
         return;
     }
     if depth >= MAX_DEPTH {
