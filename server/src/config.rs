@@ -281,6 +281,11 @@ pub struct Config {
     #[arg(long, env = "SCNERF_AUTH_TOKEN_FILE")]
     pub auth_token_file: Option<PathBuf>,
 
+    /// Origins (`https://studio.example.com`, repeatable) besides the server's own whose browser
+    /// pages may POST, PUT, DELETE; other sites' pages get 403 (non-browsers send no `Origin`).
+    #[arg(long = "allowed-origin", env = "SCNERF_ALLOWED_ORIGINS", value_delimiter = ',')]
+    pub allowed_origins: Vec<String>,
+
     /// Log format on stderr: `text` (human) or `json` (one object per line, with the request's
     /// span fields, for log pipelines). Levels: RUST_LOG (default info,ort=warn).
     #[arg(long, env = "SCNERF_LOG_FORMAT", value_enum, default_value = "text")]
@@ -384,6 +389,7 @@ impl Config {
                 stall: Duration::from_secs(self.body_stall_secs.max(1)),
             },
             auth: Auth::from_config(&self.auth_tokens, self.auth_token_file.as_deref())?,
+            allowed_origins: self.allowed_origins.clone(),
         })
     }
 
@@ -398,8 +404,7 @@ impl Config {
         }
     }
 
-    /// `--scene-cache-mb` in bytes, or a third of the memory budget, or without a budget the
-    /// cache's own default.
+    /// `--scene-cache-mb` in bytes, or a third of the memory budget (without one, 2 GiB).
     pub fn scene_cache_bytes(&self) -> usize {
         match (self.scene_cache_mb, self.memory_budget().0) {
             (Some(mb), _) => mb.saturating_mul(1 << 20),

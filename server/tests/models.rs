@@ -288,3 +288,28 @@ async fn model_names_are_nfc_without_control_characters() {
     assert_error(&refused, 422, "invalid_request", Some("model"));
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// A server without tokens refuses a reload from another site's page (its browser sends
+/// `Origin`, or `Sec-Fetch-Site`), and takes one from its own origin, a listed origin, or a
+/// client that is not a browser.
+#[tokio::test]
+async fn a_reload_from_another_sites_page_is_refused() {
+    let options = ServiceOptions { allowed_origins: vec!["https://studio.example.com".into()], ..Default::default() };
+    let app = router(models_state(vec![FakeModel::new("first", 1.0)], None, None, options).unwrap());
+    let post = |headers: &[(&str, &str)]| {
+        let request = raw_to("POST", "/v1/models/reload", "application/json", vec![], headers);
+        send(app.clone(), request)
+    };
+    let host = ("host", "scnerf.internal:8080");
+    let refused = post(&[host, ("origin", "https://evil.example")]).await;
+    assert_error(&refused, 403, "forbidden", Some("origin"));
+    assert_error(&post(&[host, ("origin", "null")]).await, 403, "forbidden", Some("origin"));
+    let no_origin = post(&[host, ("sec-fetch-site", "cross-site")]).await;
+    assert_error(&no_origin, 403, "forbidden", Some("sec-fetch-site"));
+    assert_eq!(post(&[host, ("origin", "http://scnerf.internal:8080")]).await.0, 200, "its own origin");
+    assert_eq!(post(&[host, ("origin", "https://studio.example.com")]).await.0, 200, "a listed origin");
+    assert_eq!(post(&[host]).await.0, 200, "not a browser");
+    // Reading is not concerned.
+    let listed = send(app.clone(), get("/v1/models", &[host, ("origin", "https://evil.example")])).await;
+    assert_eq!(listed.0, 200);
+}

@@ -5,6 +5,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use super::body::UploadPolicy;
+use super::origin::OriginPolicy;
 use super::slots::Slots;
 use crate::auth::Auth;
 use crate::cache::{CacheConfig, SceneCache};
@@ -24,6 +25,8 @@ pub struct AppState {
     pub(super) scenes: Arc<SceneCache>,
     pub(super) metrics: Arc<Metrics>,
     pub(super) auth: Arc<Auth>,
+    /// Which sites may change state (`origin.rs`).
+    pub(super) origins: Arc<OriginPolicy>,
     /// Slots for POST requests being handled at once (bodies in memory included).
     pub(super) in_flight: Arc<Slots>,
     /// How slowly a request body may arrive.
@@ -41,6 +44,9 @@ pub struct ServiceOptions {
     pub max_requests_per_client: usize,
     pub uploads: UploadPolicy,
     pub auth: Auth,
+    /// Origins besides the server's own whose browser requests may change state
+    /// (`--allowed-origins`).
+    pub allowed_origins: Vec<String>,
 }
 
 impl Default for ServiceOptions {
@@ -52,6 +58,7 @@ impl Default for ServiceOptions {
             max_requests_per_client: 32,
             uploads: UploadPolicy::default(),
             auth: Auth::disabled(),
+            allowed_origins: Vec::new(),
         }
     }
 }
@@ -74,6 +81,7 @@ impl AppState {
             scenes,
             metrics,
             auth: Arc::new(options.auth),
+            origins: Arc::new(OriginPolicy::new(&options.allowed_origins)),
             in_flight: Arc::new(Slots::new(options.max_concurrent_requests, options.max_requests_per_client)),
             uploads: options.uploads,
         }
