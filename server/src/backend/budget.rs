@@ -24,7 +24,7 @@ pub struct MemoryRefusals {
 pub struct MemoryBudget {
     /// What the process may use in all (`--memory-budget-mb`).
     pub total: u64,
-    /// Held apart from requests: the process at rest and the scene cache. Set once the server
+    /// Held apart from requests: the process at rest and one renderer run. Set once the server
     /// has warmed up (`BackendHandle::reserve`).
     pub reserved: u64,
 }

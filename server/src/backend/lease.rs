@@ -104,7 +104,7 @@ mod tests {
     }
 
     /// Retry-After of a request refused for memory: the measured seconds of the admitted
-    /// requests that must finish first (earliest deadline first) to free what it needs.
+    /// requests that must finish first (earliest turn first) to free what it needs.
     #[tokio::test]
     async fn a_memory_refusal_says_how_long_until_enough_is_freed() {
         let (backend, open) = budgeted(1000, 0);

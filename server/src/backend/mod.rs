@@ -37,12 +37,14 @@
 //! (`TooLarge`, 422). Summing peaks over-counts (graph runs take turns on the one executor
 //! thread, so only one run's working memory exists at a time) but cannot under-count. Memory a
 //! request holds outside its estimate, its body as it arrives and a capture's files while they
-//! are parsed, is held against the same budget by a `MemoryLease`.
+//! are parsed, is held against the same budget by a `MemoryLease`. The scene cache counts too,
+//! as it fills rather than its limit up front, and gives up idle scenes to admit a request
+//! (`reclaim.rs`).
 //!
 //! Where each part lives: `executor.rs` (the thread, `BackendHandle`), `queue.rs` (the admitted
 //! requests and their jobs, earliest turn first), `fair.rs` (the turns), `admission.rs`
-//! (admission by time),
-//! `memory.rs` (the memory budget and its leases), `rates.rs` (`Work` and the measured rates),
+//! (admission by time), `budget.rs` and `lease.rs` (the memory budget and its leases),
+//! `reclaim.rs` (the scene cache in it), `rates.rs` (`Work` and the measured rates),
 //! `ticket.rs` (`Ticket` and the `Outputs` of a run), `runner.rs` (the `GraphRunner` the
 //! executor drives), `runners.rs` and `slots.rs` (several models' runners on the one executor,
 //! each in a slot that a `BackendHandle` names), `ort.rs` (ONNX Runtime's), `error.rs`
