@@ -31,12 +31,16 @@ fn app(budget_mib: u64, limits: Limits, cache: CacheConfig) -> (Router, BackendH
 }
 
 async fn post_capture(app: &Router, files: &[(String, Vec<u8>)], headers: &[(&str, &str)]) -> Got {
+    post_capture_to(app, "/v1/captures", files, headers).await
+}
+
+async fn post_capture_to(app: &Router, path: &str, files: &[(String, Vec<u8>)], headers: &[(&str, &str)]) -> Got {
     let parts: Vec<(&str, Option<&str>, &str, &[u8])> = files
         .iter()
         .map(|(name, data)| ("file", Some(name.as_str()), "application/octet-stream", data.as_slice()))
         .collect();
     let (ctype, body) = scnerf_e2e::multipart(&parts);
-    send(app.clone(), raw_to("POST", "/v1/captures", &ctype, body, headers)).await
+    send(app.clone(), raw_to("POST", path, &ctype, body, headers)).await
 }
 
 /// A Blender capture of `views` flat-looking `size` x `size` PNGs that only claim their size
@@ -91,6 +95,10 @@ async fn a_capture_too_large_for_the_cache_is_refused_from_its_headers_before_an
     let got = post_capture(&small, &files, &[]).await;
     assert_error(&got, 422, "invalid_request", Some("sources"));
     assert!(message(&got).contains("32 source views of 1024x1024 need an estimated"), "{}", message(&got));
+    // A depth range that validation refuses: refused before decoding too, naming the field.
+    let (roomy, _) = app(4096, Limits::default(), CacheConfig::default());
+    let got = post_capture_to(&roomy, "/v1/captures?near=1e-12&far=6", &files, &[]).await;
+    assert_error(&got, 422, "invalid_request", Some("near"));
 }
 
 #[tokio::test]

@@ -277,7 +277,7 @@ fn read_capture(
             kept.len()
         ));
     }
-    sizes.check(kept.iter().map(|&v| &views[v]))?;
+    sizes.check(kept.iter().map(|&v| &views[v]), (near, far))?;
     let (mut sources, mut cameras, mut names) =
         (Vec::with_capacity(kept.len()), Vec::with_capacity(kept.len()), Vec::with_capacity(kept.len()));
     for (i, view) in kept.into_iter().map(|v| &views[v]).enumerate() {

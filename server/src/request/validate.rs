@@ -141,7 +141,9 @@ fn output_set(kinds: Option<&[OutputKind]>) -> Result<OutputSet, ApiError> {
     Ok(set)
 }
 
-fn check_depth_range(near: f64, far: f64) -> Result<(), ApiError> {
+/// A scene's `near` and `far` (422 naming the field): finite, within the world's extent, and
+/// ordered in f32 as well, the precision they are rendered in.
+pub fn check_depth_range(near: f64, far: f64) -> Result<(), ApiError> {
     if !near.is_finite() || near <= 0.0 {
         return Err(ApiError::invalid("near", "near must be a finite number > 0"));
     }
