@@ -95,5 +95,28 @@ pub fn resolve(
     if !(near.is_finite() && far.is_finite() && 0.0 <= near && near < far) {
         return Err(Error::dataset(source, format!("invalid near/far {near}/{far}: need 0 <= near < far")));
     }
+    // Depths are rendered in f32: a range empty there renders NaN.
+    if near as f32 >= far as f32 {
+        return Err(Error::dataset(
+            source,
+            format!(
+                "invalid near/far {near}/{far}: equal in 32-bit floating point, the precision depths are rendered in"
+            ),
+        ));
+    }
     Ok((near, far, from))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_range_empty_in_f32_is_refused_though_not_in_f64() {
+        let none = (None, None, DepthSource::Dataset);
+        let err = resolve((Some(2.0), Some(2.000_000_1)), none, &[], Path::new("transforms.json")).unwrap_err();
+        assert!(err.to_string().contains("32-bit"), "{err}");
+        let (near, far, from) = resolve((Some(2.0), Some(2.000_001)), none, &[], Path::new("x")).unwrap();
+        assert_eq!((near, far, from), (2.0, 2.000_001, DepthSource::Flags));
+    }
 }

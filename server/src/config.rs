@@ -177,9 +177,11 @@ pub struct Config {
     pub max_capture_metadata_bytes: usize,
 
     /// Memory for cached scenes (POST /v1/scenes), in MiB; least recently used scenes are evicted
-    /// beyond it. A paper-size scene of 640x512 sources takes ~150 MiB.
-    #[arg(long, env = "SCNERF_SCENE_CACHE_MB", default_value_t = CacheConfig::default().max_bytes >> 20)]
-    pub scene_cache_mb: usize,
+    /// beyond it. A paper-size scene of 640x512 sources takes ~150 MiB. What the cache holds
+    /// counts against --memory-budget-mb as it holds it, and idle scenes are evicted to admit a
+    /// request. Default: a third of the memory budget (2048 MiB without one).
+    #[arg(long, env = "SCNERF_SCENE_CACHE_MB")]
+    pub scene_cache_mb: Option<usize>,
 
     /// Each token's share of the scene cache, in MiB. A token over its share makes room from
     /// its own scenes first, and never evicts another token's scenes while that token holds no
@@ -214,8 +216,8 @@ pub struct Config {
     pub queue_capacity: usize,
 
     /// Memory the whole process may use, in MiB: what it holds at rest (measured after the
-    /// warm-up), the scene cache (--scene-cache-mb) and the estimated peaks of the requests in
-    /// progress. A request that would exceed it waits for none: 503 + Retry-After; one that could
+    /// warm-up), what the scene cache holds (its idle scenes evicted to admit a request) and the
+    /// estimated peaks of the requests in progress. A request that would exceed it waits for none: 503 + Retry-After; one that could
     /// never fit: 422. Default: 3/4 of the cgroup's memory limit, or of physical memory.
     #[arg(long, env = "SCNERF_MEMORY_BUDGET_MB")]
     pub memory_budget_mb: Option<u64>,
@@ -287,6 +289,11 @@ pub struct Config {
     /// File of accepted bearer tokens, one per line (`#` comments).
     #[arg(long, env = "SCNERF_AUTH_TOKEN_FILE")]
     pub auth_token_file: Option<PathBuf>,
+
+    /// Origins (`https://studio.example.com`, repeatable) besides the server's own whose browser
+    /// pages may POST, PUT, DELETE; other sites' pages get 403 (non-browsers send no `Origin`).
+    #[arg(long = "allowed-origin", env = "SCNERF_ALLOWED_ORIGINS", value_delimiter = ',')]
+    pub allowed_origins: Vec<String>,
 
     /// Log format on stderr: `text` (human) or `json` (one object per line, with the request's
     /// span fields, for log pipelines). Levels: RUST_LOG (default info,ort=warn).
@@ -384,7 +391,7 @@ impl Config {
         Ok(ServiceOptions {
             request_timeout: Duration::from_secs(self.request_timeout_secs),
             cache: CacheConfig {
-                max_bytes: self.scene_cache_mb.saturating_mul(1024 * 1024),
+                max_bytes: self.scene_cache_bytes(),
                 ttl: Duration::from_secs(self.scene_ttl_secs),
                 per_owner_bytes: self.scene_cache_mb_per_token.map(|mb| mb.saturating_mul(1024 * 1024)),
             },
@@ -397,6 +404,7 @@ impl Config {
             },
             auth: Auth::from_config(&self.auth_tokens, self.auth_token_file.as_deref())?,
             clock: Clock::System,
+            allowed_origins: self.allowed_origins.clone(),
         })
     }
 
@@ -408,6 +416,15 @@ impl Config {
             // hyper needs room for at least a request line and a few headers.
             max_header_bytes: self.max_header_bytes.max(1024),
             shutdown_grace: Duration::from_secs(self.shutdown_grace_secs),
+        }
+    }
+
+    /// `--scene-cache-mb` in bytes, or a third of the memory budget (without one, 2 GiB).
+    pub fn scene_cache_bytes(&self) -> usize {
+        match (self.scene_cache_mb, self.memory_budget().0) {
+            (Some(mb), _) => mb.saturating_mul(1 << 20),
+            (None, u64::MAX) => CacheConfig::default().max_bytes,
+            (None, budget) => usize::try_from(budget / 3).unwrap_or(usize::MAX),
         }
     }
 

@@ -34,6 +34,11 @@ pub enum ApiError {
     #[error("{message}")]
     Unauthorized { message: String },
 
+    /// A state-changing request from a site the server does not let change its state
+    /// (`http::origin`).
+    #[error("{message}")]
+    Forbidden { field: String, message: String },
+
     #[error("not found: {path}")]
     NotFound { path: String },
 
@@ -92,6 +97,7 @@ impl ApiError {
             Self::NotAcceptable { .. } => StatusCode::NOT_ACCEPTABLE,
             Self::Invalid { .. } => StatusCode::UNPROCESSABLE_ENTITY,
             Self::Unauthorized { .. } => StatusCode::UNAUTHORIZED,
+            Self::Forbidden { .. } => StatusCode::FORBIDDEN,
             Self::NotFound { .. } | Self::SceneNotFound { .. } | Self::ModelNotFound { .. } => StatusCode::NOT_FOUND,
             Self::ModelMismatch { .. } => StatusCode::CONFLICT,
             Self::MethodNotAllowed => StatusCode::METHOD_NOT_ALLOWED,
@@ -112,6 +118,7 @@ impl ApiError {
             Self::NotAcceptable { .. } => "not_acceptable",
             Self::Invalid { .. } => "invalid_request",
             Self::Unauthorized { .. } => "unauthorized",
+            Self::Forbidden { .. } => "forbidden",
             Self::NotFound { .. } => "not_found",
             Self::SceneNotFound { .. } => "scene_not_found",
             Self::ModelNotFound { .. } => "model_not_found",
@@ -130,7 +137,7 @@ impl ApiError {
             Self::Malformed { field, .. } | Self::TooLarge { field, .. } | Self::UnsupportedMediaType { field, .. } => {
                 field.as_deref()
             }
-            Self::Invalid { field, .. } => Some(field),
+            Self::Invalid { field, .. } | Self::Forbidden { field, .. } => Some(field),
             Self::SceneNotFound { .. } => Some("scene_id"),
             Self::ModelNotFound { .. } | Self::ModelMismatch { .. } => Some("model"),
             Self::BodyTimeout { .. } => Some("body"),

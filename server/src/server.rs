@@ -15,7 +15,7 @@ use crate::http::connections::ensure_file_limit;
 use crate::http::serve::serve;
 use crate::http::{router, AppState};
 use crate::models::{
-    duplicate_name, model_name, one_line, report, same_folder, Loader, MakeRunner, Model, Models, Refusals, Search,
+    duplicate_name, model_name, names, one_line, report, same_folder, Loader, MakeRunner, Model, Models, Refusals, Search,
     Skipped, Snapshot,
 };
 pub use crate::models::{warm_up, warm_up_within};
@@ -151,6 +151,7 @@ async fn load_models(config: &Config) -> Result<Models, String> {
 async fn find_bundles(config: &Config, refusals: &Arc<Refusals>) -> Result<Vec<(Bundle, bool)>, String> {
     let mut bundles = Vec::new();
     for dir in config.bundle_dirs() {
+        names::check_folder(&dir).map_err(|e| format!("--bundle {dir:?}: {e}"))?;
         bundles.push((Bundle::load(&dir).map_err(|e| e.to_string())?, true));
     }
     let mut names: Vec<(String, std::path::PathBuf)> = Vec::new();
@@ -197,13 +198,13 @@ async fn warm_up_all(models: &Models, within: Duration) -> Result<Duration, Stri
 }
 
 /// Sets aside the memory held apart from requests: the process at rest after the warm-up (every
-/// model's sessions, their weights), one renderer run (runs take turns on the executor; the
-/// renderers' shared arena may keep it between requests) and the scene cache at its limit.
+/// model's sessions, their weights) and one renderer run (runs take turns on the executor; the
+/// renderers' shared arena may keep it between requests). The scene cache is not set aside: it
+/// counts as it fills, and its idle scenes are evicted to admit a request (`backend/reclaim.rs`).
 fn reserve_memory(state: &AppState) -> Result<MemoryBudget, String> {
     let at_rest = sysmem::resident().map_or(0, |r| r.now);
-    let cache = state.scenes().config().max_bytes as u64;
     let renderer = state.models().largest_renderer_run();
-    state.pipeline().executor().reserve(at_rest + cache + renderer)
+    state.pipeline().executor().reserve(at_rest + renderer)
 }
 
 /// Expired scenes are also dropped on every cache access; this frees their memory when the

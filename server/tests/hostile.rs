@@ -609,6 +609,16 @@ fn cases() -> Vec<Case> {
             "far",
         ),
         case(
+            "near below far in f64, equal in f32 (a NaN render before)",
+            m.multipart(&m.edited(|v| {
+                v["near"] = json!(2.0);
+                v["far"] = json!(2.0000001);
+            })),
+            422,
+            INVALID,
+            "far",
+        ),
+        case(
             "near beyond far",
             m.multipart(&m.edited(|v| {
                 v["near"] = json!(5.0);

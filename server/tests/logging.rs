@@ -152,3 +152,23 @@ async fn a_skipped_bundle_is_logged_with_its_reason() {
     assert_eq!(send(app, multipart_with("/v1/render", &request_json(32), 32, &[])).await.0, 200);
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// The binary's text subscriber escapes control characters in fields and messages: a folder's
+/// name or a manifest's text with a newline cannot end its line and forge another module's.
+#[test]
+fn text_logs_escape_what_could_forge_a_line() {
+    let captured = Captured::default();
+    let writer = captured.clone();
+    let filter = tracing_subscriber::EnvFilter::new("trace");
+    let subscriber = scnerf_server::logging::subscriber(LogFormat::Text, filter, move || writer.clone(), false);
+    let forged = "lego\n2026-01-01T00:00:00.000000Z  INFO scnerf_server::auth: token accepted\r\u{1b}[2K";
+    tracing::subscriber::with_default(subscriber, || {
+        let span = tracing::info_span!("request", path = %forged);
+        let _entered = span.enter();
+        tracing::warn!(path = %forged, reason = forged, "bundle skipped: {forged}");
+    });
+    let text = captured.text();
+    assert_eq!(text.lines().count(), 1, "{text}");
+    assert!(!text.contains('\r') && !text.contains('\u{1b}'), "{text:?}");
+    assert_eq!(text.matches("lego\\n2026").count(), 4, "span, field, quoted field, message: {text}");
+}

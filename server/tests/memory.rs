@@ -97,3 +97,62 @@ async fn a_request_that_can_never_fit_gets_422_naming_its_sources_before_decodin
     // A request that fits is still served.
     assert_eq!(send(app, multipart_with("/v1/render", &request_json(32), 32, &[])).await.0, 200);
 }
+
+/// A scene cache full of idle scenes, for [`a_3000_mib_budget_admits_a_1024_view`].
+struct IdleCache(std::sync::atomic::AtomicU64);
+
+impl scnerf_server::backend::Reclaim for IdleCache {
+    fn held(&self) -> u64 {
+        self.0.load(Ordering::SeqCst)
+    }
+
+    fn reclaim(&self, bytes: u64) -> u64 {
+        let held = self.held();
+        let freed = bytes.min(held);
+        self.0.store(held - freed, Ordering::SeqCst);
+        freed
+    }
+}
+
+/// With `--memory-budget-mb 3000` and no other flag, the scene cache takes a third of the budget,
+/// and it is not set aside up front: a 1024x1024 view from 1024x1024 sources of the default
+/// bundle is admitted with what the process holds at rest (its sessions loaded) and one renderer
+/// run set aside, even while the cache is full, its idle scenes evicted to make room.
+#[test]
+fn a_3000_mib_budget_admits_a_1024_view() {
+    use clap::Parser;
+    use scnerf_server::backend::Work;
+    use scnerf_server::config::Config;
+    let config = Config::try_parse_from(["scnerf-server", "--memory-budget-mb", "3000"]).unwrap();
+    assert_eq!(config.scene_cache_bytes(), 1000 << 20);
+    let executor = config.executor_options();
+    assert_eq!(executor.memory.total, 3000 << 20);
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../bundles/default");
+    let limits = Limits { max_source_pixels: 1024 * 1024, ..Limits::default() };
+    let pipeline = scnerf_server::testing::ort_pipeline_with(&dir, limits, executor);
+    let at_rest = scnerf_server::sysmem::resident().map_or(0, |r| r.now);
+    let reserved = pipeline.executor().reserve(at_rest + pipeline.renderer_run_bytes()).unwrap();
+    let cache = std::sync::Arc::new(IdleCache((config.scene_cache_bytes() as u64).into()));
+    pipeline.executor().set_reclaim(cache.clone());
+
+    let bundle = scnerf_server::bundle::Bundle::load(&dir).unwrap();
+    let plan = MemoryPlan { build: bundle.volume_build(), slabs: config.slabs(), chunking: config.chunking() };
+    let view = estimate(&bundle.config, &plan, &RequestSizes::render(&bundle.config, (1024, 1024), 1024 * 1024));
+    println!(
+        "at rest {} MiB, reserved {} MiB, a 1024x1024 view {} MiB",
+        at_rest >> 20,
+        reserved.reserved >> 20,
+        view >> 20
+    );
+    let due = Instant::now() + Duration::from_secs(60);
+    let ticket = pipeline.admit(due, Work::default(), view).expect("a 1024x1024 view within a 3000 MiB budget");
+    drop(ticket);
+    // The cache's old default (2048 MiB) set aside up front left too little.
+    assert!(view > (3000 << 20) - reserved.reserved - (2048 << 20));
+    // A second view while the first renders: the cache's idle scenes make the room.
+    let first = pipeline.admit(due, Work::default(), view).unwrap();
+    let second = pipeline.admit(due, Work::default(), reserved.for_requests() - view);
+    assert!(second.is_ok(), "{:?}", second.err());
+    assert_eq!(cache.0.load(Ordering::SeqCst), 0, "the whole idle cache went for it");
+    drop((first, second));
+}

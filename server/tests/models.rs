@@ -257,3 +257,59 @@ async fn a_reload_without_a_models_folder_loads_nothing() {
     let answer = reload(&two_models()).await;
     assert_eq!(answer, json!({"dir": null, "loaded": [], "skipped": [], "skipped_more": 0}));
 }
+
+/// Model names are NFC: `café` composed and decomposed are one model (the second folder is
+/// skipped as a duplicate), and a request may name it either way; a folder whose name holds a
+/// control character is skipped, saying so, and a request naming one is refused naming `model`.
+#[tokio::test]
+async fn model_names_are_nfc_without_control_characters() {
+    let dir = scratch("names");
+    let (composed, decomposed) = ("caf\u{e9}", "cafe\u{301}");
+    write_bundle(&dir.join(composed), 1.0).unwrap();
+    write_bundle(&dir.join(decomposed), 0.5).unwrap();
+    write_bundle(&dir.join("lego\n2026-01-01T00:00:00Z  INFO forged"), 1.0).unwrap();
+    let app = router(models_state(vec![FakeModel::new("first", 1.0)], None, Some(&dir), Default::default()).unwrap());
+    let answer = reload(&app).await;
+    assert_eq!(names(&answer["loaded"]), [composed], "{answer}");
+    let skipped = answer["skipped"].as_array().unwrap();
+    assert_eq!(skipped.len(), 2, "{answer}");
+    let reason = |name: &str| {
+        let entry = skipped.iter().find(|s| s["name"].as_str().unwrap().starts_with(name)).unwrap();
+        entry["reason"].as_str().unwrap().to_string()
+    };
+    assert!(reason(composed).contains("caf"), "a second folder of the name: {answer}");
+    assert!(reason("lego").contains("control character \\n"), "{answer}");
+    for spelling in [composed, decomposed] {
+        let got = render(&app, &with_model(request_json(32), spelling)).await;
+        assert_eq!(got.0, 200, "{spelling:?}: {}", String::from_utf8_lossy(&got.2));
+        assert_eq!(got.1["x-scnerf-model"].as_bytes(), composed.as_bytes());
+    }
+    let refused = render(&app, &with_model(request_json(32), "lego\n2026-01-01T00:00:00Z  INFO forged")).await;
+    assert_error(&refused, 422, "invalid_request", Some("model"));
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// A server without tokens refuses a reload from another site's page (its browser sends
+/// `Origin`, or `Sec-Fetch-Site`), and takes one from its own origin, a listed origin, or a
+/// client that is not a browser.
+#[tokio::test]
+async fn a_reload_from_another_sites_page_is_refused() {
+    let options = ServiceOptions { allowed_origins: vec!["https://studio.example.com".into()], ..Default::default() };
+    let app = router(models_state(vec![FakeModel::new("first", 1.0)], None, None, options).unwrap());
+    let post = |headers: &[(&str, &str)]| {
+        let request = raw_to("POST", "/v1/models/reload", "application/json", vec![], headers);
+        send(app.clone(), request)
+    };
+    let host = ("host", "scnerf.internal:8080");
+    let refused = post(&[host, ("origin", "https://evil.example")]).await;
+    assert_error(&refused, 403, "forbidden", Some("origin"));
+    assert_error(&post(&[host, ("origin", "null")]).await, 403, "forbidden", Some("origin"));
+    let no_origin = post(&[host, ("sec-fetch-site", "cross-site")]).await;
+    assert_error(&no_origin, 403, "forbidden", Some("sec-fetch-site"));
+    assert_eq!(post(&[host, ("origin", "http://scnerf.internal:8080")]).await.0, 200, "its own origin");
+    assert_eq!(post(&[host, ("origin", "https://studio.example.com")]).await.0, 200, "a listed origin");
+    assert_eq!(post(&[host]).await.0, 200, "not a browser");
+    // Reading is not concerned.
+    let listed = send(app.clone(), get("/v1/models", &[host, ("origin", "https://evil.example")])).await;
+    assert_eq!(listed.0, 200);
+}

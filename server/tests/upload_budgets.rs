@@ -31,12 +31,16 @@ fn app(budget_mib: u64, limits: Limits, cache: CacheConfig) -> (Router, BackendH
 }
 
 async fn post_capture(app: &Router, files: &[(String, Vec<u8>)], headers: &[(&str, &str)]) -> Got {
+    post_capture_to(app, "/v1/captures", files, headers).await
+}
+
+async fn post_capture_to(app: &Router, path: &str, files: &[(String, Vec<u8>)], headers: &[(&str, &str)]) -> Got {
     let parts: Vec<(&str, Option<&str>, &str, &[u8])> = files
         .iter()
         .map(|(name, data)| ("file", Some(name.as_str()), "application/octet-stream", data.as_slice()))
         .collect();
     let (ctype, body) = scnerf_e2e::multipart(&parts);
-    send(app.clone(), raw_to("POST", "/v1/captures", &ctype, body, headers)).await
+    send(app.clone(), raw_to("POST", path, &ctype, body, headers)).await
 }
 
 /// A Blender capture of `views` flat-looking `size` x `size` PNGs that only claim their size
@@ -75,6 +79,26 @@ async fn a_capture_is_admitted_by_its_decoded_size_before_anything_is_decoded() 
     // With the budget free it is decoded, and the images, which only claim their size, fail.
     let got = post_capture(&roomy, &files, &[]).await;
     assert_error(&got, 400, "malformed_request", Some("train/r_0.png"));
+}
+
+/// 32 photos of 4096x4096 (sent as headers alone) are fitted to 1024x1024, which takes decoding
+/// and resizing each: the scene is refused for the cache share from the headers' sizes first.
+#[tokio::test]
+async fn a_capture_too_large_for_the_cache_is_refused_from_its_headers_before_any_decode() {
+    let files = big_capture(32, 4096);
+    let (cached, _) = app(4096, Limits::default(), CacheConfig { max_bytes: 64 << 20, ..Default::default() });
+    let got = post_capture(&cached, &files, &[]).await;
+    assert_error(&got, 422, "invalid_request", Some("sources"));
+    assert!(message(&got).contains("a client may hold at most"), "{}", message(&got));
+    // Too large for the memory budget: refused the same way, naming the fitted sizes.
+    let (small, _) = app(256, Limits::default(), CacheConfig::default());
+    let got = post_capture(&small, &files, &[]).await;
+    assert_error(&got, 422, "invalid_request", Some("sources"));
+    assert!(message(&got).contains("32 source views of 1024x1024 need an estimated"), "{}", message(&got));
+    // A depth range that validation refuses: refused before decoding too, naming the field.
+    let (roomy, _) = app(4096, Limits::default(), CacheConfig::default());
+    let got = post_capture_to(&roomy, "/v1/captures?near=1e-12&far=6", &files, &[]).await;
+    assert_error(&got, 422, "invalid_request", Some("near"));
 }
 
 #[tokio::test]

@@ -1,14 +1,15 @@
 //! Admission by time: a request is admitted only if its work, turned into seconds at the
 //! measured rates, finishes by its deadline without making an admitted request miss its own,
 //! and, when its client chose no deadline, if the work ahead of it is within the server's
-//! longest queue wait.
+//! longest queue wait. Work ahead is the work of the requests whose turn comes first (`fair.rs`),
+//! each at its own model's rates.
 
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
 use super::executor::BackendHandle;
-use super::queue::{Admitted, Queue};
-use super::rates::{Rates, Work};
+use super::queue::{Admitted, Client, Queue};
+use super::rates::Work;
 use super::ticket::Ticket;
 use super::BackendError;
 
@@ -17,63 +18,71 @@ use super::BackendError;
 /// expected wait stays within the longest queue wait (`ExecutorOptions::max_queue_wait`), or
 /// its own expected service time when that is longer: a client is told at once to come back
 /// (429 + Retry-After) rather than queued for minutes.
+///
+/// `client` is whom the request is for (the digest of its token): clients share the executor
+/// fairly (`fair.rs`).
 #[derive(Debug, Clone, Copy)]
 pub struct Due {
     pub at: Instant,
     pub chosen: bool,
+    pub client: Client,
 }
 
 /// A deadline as such, chosen by the client.
 impl From<Instant> for Due {
     fn from(at: Instant) -> Due {
-        Due { at, chosen: true }
+        Due { at, chosen: true, client: None }
     }
 }
 
+/// A request asking to be admitted: when it is due, its turn, its work's seconds.
+struct Candidate {
+    deadline: Instant,
+    turn: Instant,
+    secs: f64,
+}
+
 impl Queue {
-    /// `Some(seconds of work ahead)` when a request due at `deadline` with `work` would miss
-    /// its deadline, or make an admitted request miss one that it would meet now.
-    fn would_miss(&self, now: Instant, deadline: Instant, work: Work) -> Option<f64> {
-        // Alone, a request competes with nobody: planned at the mean rate. (Were the margin
-        // kept, one slow run could refuse every request, and no run would come to correct it.)
-        let alone = self.requests.is_empty() && self.running.is_none();
-        let cost = work.secs_with(&self.rates, !alone);
-        let queue = self.by_deadline();
-        let ahead = self.ahead(now, deadline);
+    /// `Some(seconds of work ahead)` when `new` would miss its deadline, or make an admitted
+    /// request miss one that it would meet now.
+    fn would_miss(&self, now: Instant, new: &Candidate) -> Option<f64> {
+        let queue = self.by_turn();
+        let ahead = self.ahead(now, new.turn);
         let misses = |finish: f64, due: Instant| {
             let finish = Duration::try_from_secs_f64(finish).unwrap_or(Duration::MAX);
             now.checked_add(finish).is_none_or(|at| at > due)
         };
-        if misses(ahead + cost, deadline) {
+        if misses(ahead + new.secs, new.deadline) {
             return Some(ahead);
         }
         let mut finish = ahead;
-        for &(due, secs) in queue.iter().filter(|(due, _)| *due > deadline) {
+        for &(_, due, secs) in queue.iter().filter(|(turn, _, _)| *turn > new.turn) {
             finish += secs;
-            if misses(finish + cost, due) && !misses(finish, due) {
+            if misses(finish + new.secs, due) && !misses(finish, due) {
                 return Some(finish);
             }
         }
         None
     }
 
-    /// The admitted requests' deadlines and seconds of remaining work, earliest due first.
-    fn by_deadline(&self) -> Vec<(Instant, f64)> {
-        let mut queue: Vec<(Instant, f64)> =
-            self.requests.values().map(|r| (r.deadline, r.remaining.secs(&self.rates))).collect();
-        queue.sort_by_key(|&(due, _)| due);
+    /// The admitted requests' turns, deadlines and seconds of remaining work, earliest turn first.
+    fn by_turn(&self) -> Vec<(Instant, Instant, f64)> {
+        let mut queue: Vec<(Instant, Instant, f64)> =
+            self.requests.values().map(|r| (r.turn, r.deadline, self.remaining_secs(r))).collect();
+        queue.sort_by_key(|&(turn, _, _)| turn);
         queue
     }
 
-    /// Seconds of admitted work that run before a request due at `deadline`: that of the
-    /// requests due no later and, as a graph run cannot be interrupted, the rest of the run in
-    /// progress of one due later. (A run of a request due sooner is in its remaining work.)
-    fn ahead(&self, now: Instant, deadline: Instant) -> f64 {
+    /// Seconds of admitted work that run before a request whose turn is `turn`: that of the
+    /// requests whose turn comes no later and, as a graph run cannot be interrupted, the rest of
+    /// the run in progress of one whose turn is later. (A run of a request whose turn is sooner
+    /// is in its remaining work.)
+    fn ahead(&self, now: Instant, turn: Instant) -> f64 {
         let blocking = self
             .running
-            .filter(|r| r.deadline > deadline)
+            .filter(|r| r.turn > turn)
             .map_or(0.0, |r| (r.secs - now.saturating_duration_since(r.started).as_secs_f64()).max(0.0));
-        self.by_deadline().iter().take_while(|(due, _)| *due <= deadline).fold(blocking, |sum, (_, secs)| sum + secs)
+        self.by_turn().iter().take_while(|(t, _, _)| *t <= turn).fold(blocking, |sum, (_, _, secs)| sum + secs)
     }
 }
 
@@ -86,8 +95,10 @@ impl BackendHandle {
     /// when its client chose no deadline and the work ahead of it exceeds both the longest queue
     /// wait and its own work. The request leaves when the ticket is dropped.
     pub fn admit(&self, due: impl Into<Due>, work: Work, memory: u64) -> Result<Ticket, BackendError> {
-        let Due { at: deadline, chosen } = due.into();
+        let Due { at: deadline, chosen, client } = due.into();
         let budget = self.shared.memory().for_requests();
+        self.shared.make_room(budget, memory);
+        let outside = self.shared.held_outside();
         let mut q = self.shared.lock();
         if q.stopped {
             return Err(BackendError::Stopped);
@@ -99,30 +110,40 @@ impl BackendHandle {
             return Err(BackendError::QueueFull);
         }
         let now = Instant::now();
-        if let Some(ahead_secs) = q.would_miss(now, deadline, work) {
-            return Err(BackendError::WouldMissDeadline { work_secs: work.secs(&q.rates), ahead_secs });
+        let rates = q.rates.of(self.model);
+        let planned = work.secs(&rates);
+        // Alone, a request competes with nobody: planned at the mean rate. (Were the margin
+        // kept, one slow run could refuse every request, and no run would come to correct it.)
+        let alone = q.requests.is_empty() && q.running.is_none();
+        let turn = if chosen { deadline } else { q.fair_turn(client, deadline, planned) };
+        let new = Candidate { deadline, turn, secs: work.secs_with(&rates, !alone) };
+        if let Some(ahead_secs) = q.would_miss(now, &new) {
+            return Err(BackendError::WouldMissDeadline { work_secs: planned, ahead_secs });
         }
         if let Some(max) = self.shared.max_queue_wait.filter(|_| !chosen) {
             // A request may always wait as long as it will itself take: on a slow machine, or
             // for a large view, two requests may be in progress at once, whatever the bound.
-            let max_secs = max.as_secs_f64().max(work.secs(&q.rates));
-            let ahead_secs = q.ahead(now, deadline);
+            let max_secs = max.as_secs_f64().max(planned);
+            let ahead_secs = q.ahead(now, turn);
             if ahead_secs > max_secs {
                 return Err(BackendError::QueueWaitTooLong { ahead_secs, max_secs });
             }
         }
-        q.hold(budget, 0, memory)?;
+        q.hold(budget, 0, memory, outside)?;
         q.next_ticket += 1;
         let id = q.next_ticket;
-        q.requests.insert(id, Admitted { deadline, remaining: work, memory, jobs: VecDeque::new() });
+        let model = self.model;
+        q.requests
+            .insert(id, Admitted { deadline, turn, model, client, remaining: work, memory, jobs: VecDeque::new() });
         Ok(Ticket { id, model: self.model, deadline, shared: self.shared.clone() })
     }
 
-    /// Forgets the measured rates: the graphs count as unmeasured (admitted without an estimate)
-    /// until they run again. The warm-up calls it: its tiny runs are mostly fixed cost, and their
-    /// seconds per unit, extrapolated to a real request, would refuse it on an idle server.
+    /// Forgets this handle's model's measured rates: its graphs count as unmeasured (admitted
+    /// without an estimate) until they run again. The warm-up calls it: its tiny runs are mostly
+    /// fixed cost, and their seconds per unit, extrapolated to a real request, would refuse it on
+    /// an idle server. Other models' rates stay.
     pub fn forget_rates(&self) {
-        self.shared.lock().rates = Rates::default();
+        self.shared.lock().rates.forget(self.model);
     }
 }
 
@@ -173,7 +194,7 @@ mod tests {
             BackendHandle::spawn(Box::new(Recorder { order: Default::default(), gate: None }), options).unwrap();
         plan_with(&backend, GraphKind::Renderer, 1e-3);
         let rays = |n: f64| Work::of(GraphKind::Renderer, n);
-        let unchosen = || Due { at: far(), chosen: false };
+        let unchosen = || Due { at: far(), chosen: false, client: None };
         let first = backend.admit(far(), rays(500.0), 0).unwrap();
         match backend.admit(unchosen(), rays(100.0), 0) {
             Err(e @ BackendError::QueueWaitTooLong { ahead_secs, max_secs }) => {
@@ -190,6 +211,31 @@ mod tests {
         drop((first, large));
         let admitted = backend.admit(unchosen(), rays(100.0), 0).expect("100 ms ahead: within the wait");
         drop((chosen, admitted));
+    }
+
+    /// Rates are learnt per model: a slow model's runs, and forgetting its rates, leave another
+    /// model's admission as it was.
+    #[tokio::test]
+    async fn a_slow_model_leaves_another_models_admission_unchanged() {
+        use crate::backend::testkit::Recorder;
+        let (default, _order, open) = recorder();
+        open.send(()).unwrap();
+        let slow = default.add_runner(Box::new(Recorder { order: Default::default(), gate: None }));
+        plan_with(&default, GraphKind::Renderer, 1e-3);
+        let soon = || Instant::now() + Duration::from_millis(200);
+        let rays = Work::of(GraphKind::Renderer, 100.0);
+        drop(default.admit(soon(), rays, 0).expect("100 ms of work due in 200 ms"));
+        // One renderer run of 1 unit in 50 ms: 100 rays of the slow model plan at 5 s.
+        let probe = slow.admit(far(), NONE, 0).unwrap();
+        probe.run(GraphKind::Renderer, 1.0, tagged(50)).await.unwrap();
+        drop(probe);
+        assert!(matches!(slow.admit(soon(), rays, 0), Err(BackendError::WouldMissDeadline { .. })));
+        drop(default.admit(soon(), rays, 0).expect("the default model's admission is unchanged"));
+        let default_rate = || default.shared.lock().rates.of(default.model).per_unit(GraphKind::Renderer, false);
+        assert_eq!(default_rate(), 1e-3);
+        slow.forget_rates();
+        assert_eq!(default_rate(), 1e-3);
+        assert!(slow.admit(soon(), rays, 0).is_ok(), "the slow model's rates are forgotten");
     }
 
     #[tokio::test]
@@ -249,7 +295,7 @@ mod tests {
     async fn competing_requests_are_planned_on_the_slow_side_of_scattered_runs() {
         let (backend, _order, open) = recorder();
         open.send(()).unwrap();
-        backend.shared.lock().rates = scattered_rates();
+        backend.shared.lock().rates.set(backend.model, scattered_rates());
         let _other = backend.admit(far(), NONE, 0).unwrap();
         // At the mean (~1 ms a unit) 300 units take ~300 ms: within 500 ms, but not on the slow side.
         let due = Instant::now() + Duration::from_millis(500);

@@ -1,6 +1,15 @@
 //! The memory budget the admitted requests' estimates and the leases add up to within, and the
 //! refusals it makes.
 
+/// What holds memory beside the requests, counted against the budget as it holds it, and can
+/// give some of it back to admit one (the scene cache, see `reclaim.rs`).
+pub trait Reclaim: Send + Sync {
+    /// Bytes held now.
+    fn held(&self) -> u64;
+    /// Frees about `bytes` (more or less) from what no request uses; the bytes freed.
+    fn reclaim(&self, bytes: u64) -> u64;
+}
+
 /// Requests refused for memory since the start (for /metrics).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct MemoryRefusals {
@@ -15,7 +24,7 @@ pub struct MemoryRefusals {
 pub struct MemoryBudget {
     /// What the process may use in all (`--memory-budget-mb`).
     pub total: u64,
-    /// Held apart from requests: the process at rest and the scene cache. Set once the server
+    /// Held apart from requests: the process at rest and one renderer run. Set once the server
     /// has warmed up (`BackendHandle::reserve`).
     pub reserved: u64,
 }

@@ -20,7 +20,7 @@ pub enum BackendError {
     QueueWaitTooLong { ahead_secs: f64, max_secs: f64 },
     #[error("the request's deadline passed before its graph runs finished")]
     DeadlineExceeded,
-    #[error("not enough memory: the requests in progress hold {in_use_mib} of {budget_mib} MiB")]
+    #[error("not enough memory: the requests in progress and the cached scenes in use hold {in_use_mib} of {budget_mib} MiB")]
     MemoryBusy { in_use_mib: u64, budget_mib: u64, ahead_secs: f64 },
     #[error("an estimated {needed_mib} MiB, more than the {budget_mib} MiB a request may have")]
     TooLarge { needed_mib: u64, budget_mib: u64 },

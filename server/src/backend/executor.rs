@@ -76,6 +76,7 @@ impl BackendHandle {
             memory: Mutex::new(options.memory),
             probe: options.probe,
             max_queue_wait: options.max_queue_wait,
+            reclaim: Mutex::new(None),
         });
         shared.lock().next_slot = 1;
         let worker_shared = shared.clone();
@@ -104,16 +105,16 @@ impl BackendHandle {
     }
 }
 
-/// Waits for the next job and says whether it is the last of its request's runs of its graph
+/// Waits for the next job, with its request's turn, and says whether it is the last of its request's runs of its graph
 /// with no other job waiting (then the runner releases what it keeps); `None` once the queue is
 /// closed and empty.
-fn next_job(shared: &Shared, runners: &mut Runners) -> Option<(Job, bool)> {
+fn next_job(shared: &Shared, runners: &mut Runners) -> Option<(Job, Instant, bool)> {
     let mut q = shared.lock();
     loop {
         runners.apply(std::mem::take(&mut q.runner_changes));
-        if let Some(job) = q.pop() {
+        if let Some((job, turn)) = q.pop() {
             let release = job.last && q.queued_jobs == 0;
-            return Some((job, release));
+            return Some((job, turn, release));
         }
         if q.closed {
             q.stopped = true;
@@ -124,7 +125,7 @@ fn next_job(shared: &Shared, runners: &mut Runners) -> Option<(Job, bool)> {
 }
 
 fn worker(mut runners: Runners, shared: Arc<Shared>) {
-    while let Some((mut job, release)) = next_job(&shared, &mut runners) {
+    while let Some((mut job, turn, release)) = next_job(&shared, &mut runners) {
         // The request went away (client disconnected, deadline passed): skip its work.
         if job.reply.is_closed() {
             continue;
@@ -138,8 +139,8 @@ fn worker(mut runners: Runners, shared: Arc<Shared>) {
         let started = Instant::now();
         {
             let mut q = shared.lock();
-            let secs = job.units * q.rates.per_unit(job.graph, true);
-            q.running = Some(Running { deadline: job.deadline, secs, started });
+            let secs = job.units * q.rates.of(job.model).per_unit(job.graph, true);
+            q.running = Some(Running { turn, secs, started });
         }
         let inputs = std::mem::replace(&mut job.inputs, Inputs::Ready(Vec::new()));
         let result = match runners.get(job.model) {

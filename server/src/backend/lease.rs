@@ -19,13 +19,13 @@ impl BackendHandle {
     }
 
     /// Sets aside `bytes` of the memory budget for what is held apart from requests (the
-    /// process at rest, the scene cache); fails when that leaves nothing for requests.
+    /// process at rest); fails when that leaves nothing for requests. (The scene cache counts
+    /// as it fills, see `reclaim.rs`.)
     pub fn reserve(&self, bytes: u64) -> Result<MemoryBudget, String> {
         let mut memory = self.shared.memory.lock().unwrap_or_else(|p| p.into_inner());
         if bytes >= memory.total {
             return Err(format!(
-                "the memory budget ({} MiB) leaves nothing for requests: the server holds {} MiB at rest \
-                 with the scene cache",
+                "the memory budget ({} MiB) leaves nothing for requests: the server holds {} MiB at rest",
                 memory.total >> 20,
                 bytes >> 20
             ));
@@ -50,8 +50,10 @@ impl MemoryLease {
     /// Holds `more` bytes more, or fails as [`BackendHandle::lease`] does (and holds as before).
     pub fn grow(&mut self, more: u64) -> Result<(), BackendError> {
         let budget = self.shared.memory().for_requests();
+        self.shared.make_room(budget, more);
+        let outside = self.shared.held_outside();
         let mut q = self.shared.lock();
-        q.hold(budget, self.bytes, more)?;
+        q.hold(budget, self.bytes, more, outside)?;
         q.memory_leased += more;
         self.bytes += more;
         Ok(())
@@ -102,7 +104,7 @@ mod tests {
     }
 
     /// Retry-After of a request refused for memory: the measured seconds of the admitted
-    /// requests that must finish first (earliest deadline first) to free what it needs.
+    /// requests that must finish first (earliest turn first) to free what it needs.
     #[tokio::test]
     async fn a_memory_refusal_says_how_long_until_enough_is_freed() {
         let (backend, open) = budgeted(1000, 0);

@@ -13,14 +13,15 @@
 //! deadline and an estimate of its work (`Work`: pixels for the encoder and the volume net, rays
 //! for the renderer). One job is one graph run (the encoder, the volume net, or one renderer
 //! chunk); each admitted request has its own job queue, and the executor always runs a job of
-//! the request with the earliest deadline. Round robin, the policy before, finished concurrent
+//! the request with the earliest turn: its deadline when its client chose one, else its fair
+//! turn among the clients (`fair.rs`). Round robin, the policy before, finished concurrent
 //! requests together: under overload all of them late. Earliest deadline first finishes as many
-//! as the executor's speed allows.
+//! as the executor's speed allows; the fair turns keep a client's flood behind itself.
 //!
 //! Admission refuses (503 + Retry-After, at once rather than a 504 later) a request that cannot
 //! finish by its deadline given the work admitted before it, or whose work would make an
 //! admitted request miss its deadline. Work is turned into time with the executor's measured
-//! seconds per unit (`Rates`), on the slow side when requests compete: the rate plus twice its
+//! seconds per unit (`Rates`, each model's own), on the slow side when requests compete: the rate plus twice its
 //! deviation (as TCP estimates a retransmission timeout from round trips), so that the noise of
 //! a shared machine does not turn admitted requests into 504s. Before the first run of a graph
 //! there is no estimate: admitted. A graph run cannot be interrupted, so the rest of the run in
@@ -36,11 +37,14 @@
 //! (`TooLarge`, 422). Summing peaks over-counts (graph runs take turns on the one executor
 //! thread, so only one run's working memory exists at a time) but cannot under-count. Memory a
 //! request holds outside its estimate, its body as it arrives and a capture's files while they
-//! are parsed, is held against the same budget by a `MemoryLease`.
+//! are parsed, is held against the same budget by a `MemoryLease`. The scene cache counts too,
+//! as it fills rather than its limit up front, and gives up idle scenes to admit a request
+//! (`reclaim.rs`).
 //!
 //! Where each part lives: `executor.rs` (the thread, `BackendHandle`), `queue.rs` (the admitted
-//! requests and their jobs, earliest deadline first), `admission.rs` (admission by time),
-//! `memory.rs` (the memory budget and its leases), `rates.rs` (`Work` and the measured rates),
+//! requests and their jobs, earliest turn first), `fair.rs` (the turns), `admission.rs`
+//! (admission by time), `budget.rs` and `lease.rs` (the memory budget and its leases),
+//! `reclaim.rs` (the scene cache in it), `rates.rs` (`Work` and the measured rates),
 //! `ticket.rs` (`Ticket` and the `Outputs` of a run), `runner.rs` (the `GraphRunner` the
 //! executor drives), `runners.rs` and `slots.rs` (several models' runners on the one executor,
 //! each in a slot that a `BackendHandle` names), `ort.rs` (ONNX Runtime's), `error.rs`
@@ -51,10 +55,12 @@ mod budget;
 pub mod device;
 mod error;
 mod executor;
+mod fair;
 mod lease;
 pub mod ort;
 mod queue;
 mod rates;
+mod reclaim;
 mod runner;
 mod runners;
 mod shared;
@@ -65,10 +71,11 @@ mod testkit;
 mod ticket;
 
 pub use admission::Due;
-pub use budget::{MemoryBudget, MemoryRefusals};
+pub use budget::{MemoryBudget, MemoryRefusals, Reclaim};
 pub use error::BackendError;
 pub use executor::{BackendHandle, ExecutorOptions, QueueStats};
 pub use lease::MemoryLease;
+pub use queue::Client;
 pub use rates::Work;
 pub use runner::{GraphRunner, NamedTensors, Outputs, Tensor};
 pub use stuck::STUCK_AFTER;

@@ -1,5 +1,6 @@
 //! The executor's queue: the admitted requests, each with its own jobs, and the order they run
-//! in (the job of the request with the earliest deadline first).
+//! in (the job of the request with the earliest turn first: its deadline when its client chose
+//! one, else its fair turn among the clients, see `fair.rs`).
 
 use std::collections::{HashMap, VecDeque};
 use std::time::Instant;
@@ -8,7 +9,7 @@ use tokio::sync::oneshot;
 use tracing::Span;
 
 use super::budget::MemoryRefusals;
-use super::rates::{Rates, Work};
+use super::rates::{ModelRates, Work};
 use super::runner::Outputs;
 use super::runners::RunnerChange;
 use super::{BackendError, NamedTensors};
@@ -54,18 +55,27 @@ pub(super) struct Job {
     pub(super) last: bool,
 }
 
-/// The graph run in progress: its request's deadline, its planned seconds, when it started.
+/// The graph run in progress: its request's turn, its planned seconds, when it started.
 #[derive(Debug, Clone, Copy)]
 pub(super) struct Running {
-    pub(super) deadline: Instant,
+    pub(super) turn: Instant,
     pub(super) secs: f64,
     pub(super) started: Instant,
 }
 
-/// An admitted request: its deadline, the work it has not finished, the memory it may use at
-/// most, its waiting jobs.
+/// Whom a request is for: the digest of its token (`auth::Principal::owner`), `None` without
+/// authentication.
+pub type Client = Option<[u8; 32]>;
+
+/// An admitted request: its deadline, its turn, its model and client, the work it has not
+/// finished, the memory it may use at most, its waiting jobs.
 pub(super) struct Admitted {
     pub(super) deadline: Instant,
+    /// Where it runs in the executor's order (earliest first): see `fair.rs`.
+    pub(super) turn: Instant,
+    /// The slot of the model whose runner runs it: its work is planned at that model's rates.
+    pub(super) model: usize,
+    pub(super) client: Client,
     pub(super) remaining: Work,
     pub(super) memory: u64,
     pub(super) jobs: VecDeque<Job>,
@@ -78,7 +88,7 @@ pub(super) struct Queue {
     pub(super) requests: HashMap<u64, Admitted>,
     pub(super) queued_jobs: usize,
     pub(super) next_ticket: u64,
-    pub(super) rates: Rates,
+    pub(super) rates: ModelRates,
     /// Sum of the admitted requests' memory estimates and of the leases, bytes.
     pub(super) memory_in_use: u64,
     /// The leases' part of it.
@@ -104,20 +114,23 @@ impl Queue {
         }
     }
 
-    /// The next job of the request with the earliest deadline (the earlier admitted on a tie).
-    pub(super) fn pop(&mut self) -> Option<Job> {
-        let (_, request) = self
-            .requests
-            .iter_mut()
-            .filter(|(_, r)| !r.jobs.is_empty())
-            .min_by_key(|(&ticket, r)| (r.deadline, ticket))?;
+    /// The next job of the request with the earliest turn (the earlier admitted on a tie), and
+    /// that request's turn.
+    pub(super) fn pop(&mut self) -> Option<(Job, Instant)> {
+        let (_, request) =
+            self.requests.iter_mut().filter(|(_, r)| !r.jobs.is_empty()).min_by_key(|(&ticket, r)| (r.turn, ticket))?;
         self.queued_jobs -= 1;
-        request.jobs.pop_front()
+        Some((request.jobs.pop_front()?, request.turn))
     }
 
-    /// A job finished: its request has that much less to do, and the rates learn its time.
+    /// Seconds of `request`'s remaining work, at its model's rates.
+    pub(super) fn remaining_secs(&self, request: &Admitted) -> f64 {
+        request.remaining.secs(&self.rates.of(request.model))
+    }
+
+    /// A job finished: its request has that much less to do, and its model's rates learn its time.
     pub(super) fn done(&mut self, job: &Job, took: f64) {
-        self.rates.record(job.graph, job.units, took);
+        self.rates.record(job.model, job.graph, job.units, took);
         if let Some(request) = self.requests.get_mut(&job.ticket) {
             let left = &mut request.remaining.0[job.graph.index()];
             *left = (*left - job.units).max(0.0);
@@ -135,11 +148,11 @@ impl Queue {
 
 /// Admission by memory.
 impl Queue {
-    /// Seconds of admitted work, in the order the executor runs it (earliest deadline first),
+    /// Seconds of admitted work, in the order the executor runs it (earliest turn first),
     /// until requests holding `needed` bytes of estimates have finished.
     fn secs_until_freed(&self, needed: u64) -> f64 {
         let mut queue: Vec<(Instant, f64, u64)> =
-            self.requests.values().map(|r| (r.deadline, r.remaining.secs(&self.rates), r.memory)).collect();
+            self.requests.values().map(|r| (r.turn, self.remaining_secs(r), r.memory)).collect();
         queue.sort_by_key(|&(due, _, _)| due);
         let (mut secs, mut freed) = (0.0, 0u64);
         for (_, took, memory) in queue {
@@ -160,17 +173,17 @@ impl Queue {
 
     /// Holds `more` bytes of the budget for requests (`budget`) for something that holds
     /// `held` already: `TooLarge` when `held + more` exceeds it, `MemoryBusy` when what is held
-    /// now leaves too little.
-    pub(super) fn hold(&mut self, budget: u64, held: u64, more: u64) -> Result<(), BackendError> {
+    /// now, by requests and leases and `outside` them (the scene cache), leaves too little.
+    pub(super) fn hold(&mut self, budget: u64, held: u64, more: u64, outside: u64) -> Result<(), BackendError> {
         if held.saturating_add(more) > budget {
             return Err(self.too_large(held.saturating_add(more), budget));
         }
-        if self.memory_in_use + more > budget {
+        if (self.memory_in_use + outside).saturating_add(more) > budget {
             self.refusals.busy += 1;
             return Err(BackendError::MemoryBusy {
-                in_use_mib: self.memory_in_use >> 20,
+                in_use_mib: (self.memory_in_use + outside) >> 20,
                 budget_mib: budget >> 20,
-                ahead_secs: self.secs_until_freed(self.memory_in_use + more - budget),
+                ahead_secs: self.secs_until_freed((self.memory_in_use + outside).saturating_add(more) - budget),
             });
         }
         self.memory_in_use += more;

@@ -1,5 +1,8 @@
-//! Work of graph runs, and the executor's measured seconds per unit of it: what admission turns
-//! a request's work into time with.
+//! Work of graph runs, and the executor's measured seconds per unit of it, per model and graph:
+//! what admission turns a request's work into time with. Each model's rates are its own, so a
+//! slow model never changes what another model's requests are planned to take.
+
+use std::collections::HashMap;
 
 use crate::bundle::GraphKind;
 
@@ -80,6 +83,31 @@ impl Rates {
     /// rate.
     pub(super) fn per_unit(&self, graph: GraphKind, margin: bool) -> f64 {
         self.0[graph.index()].map_or(0.0, |r| if margin { r.planned() } else { r.mean() })
+    }
+}
+
+/// Each model's [`Rates`], by its slot on the executor (`BackendHandle::add_runner`).
+#[derive(Debug, Clone, Default)]
+pub(super) struct ModelRates(HashMap<usize, Rates>);
+
+impl ModelRates {
+    /// The rates of `model`'s graphs (unmeasured ones count 0).
+    pub(super) fn of(&self, model: usize) -> Rates {
+        self.0.get(&model).copied().unwrap_or_default()
+    }
+
+    pub(super) fn record(&mut self, model: usize, graph: GraphKind, units: f64, took: f64) {
+        self.0.entry(model).or_default().record(graph, units, took);
+    }
+
+    /// `model`'s graphs count as unmeasured again.
+    pub(super) fn forget(&mut self, model: usize) {
+        self.0.remove(&model);
+    }
+
+    #[cfg(test)]
+    pub(super) fn set(&mut self, model: usize, rates: Rates) {
+        self.0.insert(model, rates);
     }
 }
 

@@ -1,8 +1,9 @@
 //! Several models on the one executor. Each model's graphs have their own runner (its ONNX
 //! Runtime sessions), in a slot of the executor's; a `BackendHandle` names a slot, and the jobs of
-//! the requests it admits run on that slot's runner. The queue, the deadlines, the memory budget
-//! and the measured rates stay shared: one thread runs every model's graphs, one at a time, so
-//! models never oversubscribe the CPU and admission sees all the work ahead.
+//! the requests it admits run on that slot's runner. The queue, the deadlines and the memory
+//! budget stay shared: one thread runs every model's graphs, one at a time, so models never
+//! oversubscribe the CPU and admission sees all the work ahead. The measured rates are each
+//! model's own (`rates.rs`): one slow model never changes another's admission.
 //!
 //! Runners are added (a model loaded by a reload) and removed (one that did not fit) while the
 //! executor runs (`BackendHandle::add_runner`, in `slots.rs`): the change waits in the queue

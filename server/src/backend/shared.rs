@@ -3,7 +3,7 @@
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::time::Duration;
 
-use super::budget::MemoryBudget;
+use super::budget::{MemoryBudget, Reclaim};
 use super::queue::Queue;
 use crate::sysmem::MemoryProbe;
 
@@ -14,6 +14,8 @@ pub(super) struct Shared {
     pub(super) memory: Mutex<MemoryBudget>,
     pub(super) probe: Option<Arc<MemoryProbe>>,
     pub(super) max_queue_wait: Option<Duration>,
+    /// The scene cache, whose bytes count against the budget (`reclaim.rs`).
+    pub(super) reclaim: Mutex<Option<Arc<dyn Reclaim>>>,
 }
 
 impl Shared {

@@ -21,9 +21,13 @@ impl BackendHandle {
         BackendHandle { shared: self.shared.clone(), model: slot, closer: Arc::clone(&self.closer) }
     }
 
-    /// Drops this handle's runner (its sessions' memory goes back); its requests' jobs fail.
+    /// Drops this handle's runner (its sessions' memory goes back, its rates are forgotten); its
+    /// requests' jobs fail.
     pub fn remove_runner(&self) {
-        self.shared.lock().runner_changes.push((self.model, None));
+        let mut q = self.shared.lock();
+        q.rates.forget(self.model);
+        q.runner_changes.push((self.model, None));
+        drop(q);
         self.shared.wake.notify_one();
     }
 }

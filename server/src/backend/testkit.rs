@@ -38,11 +38,16 @@ pub fn tag_of(inputs: &NamedTensors) -> u32 {
 }
 
 pub fn recorder() -> (BackendHandle, Arc<Mutex<Vec<u32>>>, mpsc::Sender<()>) {
+    recorder_with(4)
+}
+
+/// [`recorder`] admitting `capacity` requests at once.
+pub fn recorder_with(capacity: usize) -> (BackendHandle, Arc<Mutex<Vec<u32>>>, mpsc::Sender<()>) {
     let order = Arc::new(Mutex::new(Vec::new()));
     let (open, gate) = mpsc::channel();
     let backend = BackendHandle::spawn(
         Box::new(Recorder { order: order.clone(), gate: Some(gate) }),
-        ExecutorOptions::with_capacity(4),
+        ExecutorOptions::with_capacity(capacity),
     )
     .unwrap();
     (backend, order, open)
@@ -69,7 +74,10 @@ pub const NONE: Work = Work([0.0; GraphKind::ALL.len()]);
 /// Sets the rates admission plans with, as if measured without any scatter: admission's
 /// arithmetic checked apart from the timing of the machine that runs the test.
 pub fn plan_with(backend: &BackendHandle, graph: GraphKind, secs_per_unit: f64) {
-    backend.shared.lock().rates.0[graph.index()] = Some(Rate { secs: secs_per_unit, units: 1.0, deviation: 0.0 });
+    let mut q = backend.shared.lock();
+    let mut rates = q.rates.of(backend.model);
+    rates.0[graph.index()] = Some(Rate { secs: secs_per_unit, units: 1.0, deviation: 0.0 });
+    q.rates.set(backend.model, rates);
 }
 
 /// Rates of renderer runs of 20 units whose times scatter: 0.25 or 1.75 ms a unit.

@@ -27,6 +27,7 @@
 
 mod clock;
 mod ids;
+mod reclaim;
 pub mod shares;
 
 use std::collections::{BTreeMap, HashMap};

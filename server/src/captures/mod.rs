@@ -15,9 +15,12 @@
 //! `refusals.rs` what the readers and validation refuse, as the client knows the files.
 
 mod files;
+mod limits;
 mod options;
 mod read;
 mod refusals;
+
+pub use limits::CaptureLimits;
 
 pub use options::CaptureOptions;
 
@@ -52,19 +55,21 @@ pub struct CaptureScene {
     pub warnings: Vec<String>,
 }
 
-/// `files` read as `options` say and validated for `pipeline`'s model; the memory parsing takes
-/// is leased from `executor`'s budget.
+/// `files` read as `options` say and validated for `pipeline`'s model, its size checked against
+/// `sizes` before any photo is decoded; the memory parsing takes is leased from `executor`'s
+/// budget.
 pub async fn read_scene(
     files: CaptureFiles,
     options: CaptureOptions,
     executor: &BackendHandle,
     pipeline: &Pipeline,
+    sizes: CaptureLimits,
 ) -> Result<CaptureScene, ApiError> {
     let CaptureFiles { files, metadata_bytes } = files;
     let mut parsing = lease_for_parsing(executor, metadata_bytes)?;
     let (config, limits) = (pipeline.config().clone(), pipeline.limits().clone());
     blocking::run(move |cancel| {
-        let read = read::read_capture(files, &options, &limits, &mut parsing, cancel)?;
+        let read = read::read_capture(files, &options, (&limits, &sizes), &mut parsing, cancel)?;
         let scene = read.request.validate(&config, &limits).map_err(|e| name_the_file(e, &read.names))?;
         Ok(CaptureScene {
             scene,

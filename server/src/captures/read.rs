@@ -11,6 +11,7 @@ use scnerf_capture::upload::{fit_to_limit, image_bytes, resample_bytes};
 use scnerf_capture::wire::WireCamera;
 
 use super::files::Interruptible;
+use super::limits::CaptureLimits;
 use super::options::CaptureOptions;
 use super::refusals::capture_error;
 use crate::backend::MemoryLease;
@@ -33,7 +34,7 @@ pub(super) struct ReadCapture {
 pub(super) fn read_capture(
     mut files: MemoryFiles,
     options: &CaptureOptions,
-    limits: &Limits,
+    (limits, sizes): (&Limits, &CaptureLimits),
     parsing: &mut MemoryLease,
     cancel: &Cancel,
 ) -> Result<ReadCapture, ApiError> {
@@ -53,6 +54,7 @@ pub(super) fn read_capture(
             kept.len()
         ));
     }
+    sizes.check(kept.iter().map(|&v| &views[v]), (near, far))?;
     let (mut sources, mut cameras, mut names) =
         (Vec::with_capacity(kept.len()), Vec::with_capacity(kept.len()), Vec::with_capacity(kept.len()));
     for (i, view) in kept.into_iter().map(|v| &views[v]).enumerate() {

@@ -20,7 +20,7 @@ use super::openapi::refusals::CaptureRefusals;
 use super::respond::rfc3339;
 use super::scenes::{owner_of, proxy_scene_id, scene_response, store_scene, SceneIdHeader};
 use super::state::AppState;
-use crate::captures::{self, CaptureOptions};
+use crate::captures::{self, CaptureLimits, CaptureOptions};
 use crate::error::ApiError;
 use crate::pipeline::scene::Timings;
 
@@ -92,7 +92,8 @@ async fn create_within(
     // Before the upload is read: a wrong name costs the client no upload.
     let model = state.models.get(options.model())?;
     let files = read_capture_files(req, state.pipeline().limits()).await?;
-    let read = captures::read_scene(files, options, state.pipeline().executor(), &model.pipeline).await?;
+    let sizes = CaptureLimits::new(&model, &state.scenes);
+    let read = captures::read_scene(files, options, state.pipeline().executor(), &model.pipeline, sizes).await?;
     let (near, far) = (read.scene.near, read.scene.far);
     let mut timings = Timings::default();
     let stored = store_scene(&state, &model, read.scene, id, owner, &deadline, &mut timings).await?;

@@ -13,18 +13,21 @@ use utoipa::openapi::schema::{KnownFormat, ObjectBuilder, SchemaFormat, Type};
 use utoipa::openapi::Required;
 
 use super::state::AppState;
-use crate::backend::Due;
+use crate::auth::Principal;
+use crate::backend::{Client, Due};
 use crate::error::ApiError;
 
 /// Header with which a client shortens its request's deadline (milliseconds).
 pub const DEADLINE_HEADER: &str = "x-scnerf-deadline-ms";
 
-/// When a request started, how long it may take, and whether its client chose that.
+/// When a request started, how long it may take, whether its client chose that, and whose it is
+/// (the executor shares its time fairly between clients).
 #[derive(Debug, Clone, Copy)]
 pub struct Deadline {
     started: Instant,
     budget: Duration,
     chosen: bool,
+    client: Client,
 }
 
 impl FromRequestParts<AppState> for Deadline {
@@ -35,7 +38,8 @@ impl FromRequestParts<AppState> for Deadline {
         state.check_ready()?;
         let chosen = client_budget(&parts.headers)?;
         let budget = chosen.map_or(state.request_timeout, |b| b.min(state.request_timeout));
-        Ok(Deadline { started, budget, chosen: chosen.is_some() })
+        let client = parts.extensions.get::<Principal>().and_then(Principal::owner);
+        Ok(Deadline { started, budget, chosen: chosen.is_some(), client })
     }
 }
 
@@ -61,7 +65,7 @@ impl Deadline {
 
     /// When the request is due, for admission to the executor.
     pub fn due(&self) -> Due {
-        Due { at: self.started + self.budget, chosen: self.chosen }
+        Due { at: self.started + self.budget, chosen: self.chosen, client: self.client }
     }
 
     /// Runs a request's handling within its budget. On timeout the work is dropped, and with it

@@ -12,6 +12,7 @@ pub mod middleware;
 mod models;
 pub mod negotiate;
 pub mod openapi;
+mod origin;
 mod render;
 mod respond;
 mod scenes;
@@ -33,8 +34,8 @@ pub use state::{AppState, ServiceOptions};
 
 /// The API with its layers. Outermost first, a request passes: request-id sanitising, request id
 /// (set or kept, echoed in the response), tracing span, the response's log line (at a level
-/// by status: `middleware::response_level`), panic catcher, metrics, auth, the in-flight limit,
-/// the body limit, the handler.
+/// by status: `middleware::response_level`), panic catcher, metrics, the origin policy (which
+/// sites may change state: `origin`), auth, the in-flight limit, the body limit, the handler.
 pub fn router(state: AppState) -> Router {
     let body_limit = state.pipeline().limits().max_body_bytes;
     let capture_limit = state.pipeline().limits().max_capture_bytes;
@@ -60,6 +61,7 @@ pub fn router(state: AppState) -> Router {
         .layer(DefaultBodyLimit::max(body_limit))
         .layer(axum::middleware::from_fn_with_state(state.clone(), middleware::limit_in_flight))
         .layer(axum::middleware::from_fn_with_state(state.auth.clone(), crate::auth::require_token))
+        .layer(axum::middleware::from_fn_with_state(state.origins.clone(), origin::check_origin))
         .layer(axum::middleware::from_fn_with_state(state.clone(), middleware::record_metrics))
         .layer(CatchPanicLayer::custom(middleware::panic_response))
         .layer(axum::middleware::from_fn(middleware::log_response))

@@ -7,7 +7,7 @@ use axum::extract::State;
 use axum::Json;
 use serde::Serialize;
 
-use super::openapi::refusals::TokenRefusals;
+use super::openapi::refusals::{ReloadRefusals, TokenRefusals};
 use super::state::AppState;
 use crate::error::ApiError;
 use crate::models::{ModelInfo, Reloaded};
@@ -38,7 +38,7 @@ pub async fn list(State(state): State<AppState>) -> Json<ModelList> {
 /// would otherwise have to be emptied), and the model is served once loaded.
 #[utoipa::path(post, path = "/v1/models/reload", tag = "render", operation_id = "reload_models", responses(
     (status = 200, description = "What the rescan loaded and skipped", body = Reloaded),
-    TokenRefusals,
+    ReloadRefusals,
 ), security((), ("bearer" = [])))]
 pub async fn reload(State(state): State<AppState>) -> Result<Json<Reloaded>, ApiError> {
     let models = state.models.clone();

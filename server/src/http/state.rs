@@ -5,6 +5,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use super::body::UploadPolicy;
+use super::origin::OriginPolicy;
 use super::slots::Slots;
 use crate::auth::Auth;
 use crate::cache::{CacheConfig, Clock, SceneCache};
@@ -24,6 +25,8 @@ pub struct AppState {
     pub(super) scenes: Arc<SceneCache>,
     pub(super) metrics: Arc<Metrics>,
     pub(super) auth: Arc<Auth>,
+    /// Which sites may change state (`origin.rs`).
+    pub(super) origins: Arc<OriginPolicy>,
     /// Slots for POST requests being handled at once (bodies in memory included).
     pub(super) in_flight: Arc<Slots>,
     /// How slowly a request body may arrive.
@@ -45,6 +48,9 @@ pub struct ServiceOptions {
     pub auth: Auth,
     /// The time scenes expire by (tests set a manual one).
     pub clock: Clock,
+    /// Origins besides the server's own whose browser requests may change state
+    /// (`--allowed-origins`).
+    pub allowed_origins: Vec<String>,
 }
 
 impl Default for ServiceOptions {
@@ -57,6 +63,7 @@ impl Default for ServiceOptions {
             uploads: UploadPolicy::default(),
             auth: Auth::disabled(),
             clock: Clock::System,
+            allowed_origins: Vec::new(),
         }
     }
 }
@@ -70,6 +77,7 @@ impl AppState {
     /// A server of `models`. Not ready until `set_ready` (after the warm-up renders).
     pub fn with_models(models: Models, options: ServiceOptions) -> AppState {
         let scenes = Arc::new(SceneCache::new(options.cache, options.auth.token_count()));
+        models.default_model().pipeline.executor().set_reclaim(scenes.clone());
         let metrics = Arc::new(Metrics::new(models.default_model().pipeline.executor().clone(), scenes.clone()));
         AppState {
             models: Arc::new(models),
@@ -78,6 +86,7 @@ impl AppState {
             scenes,
             metrics,
             auth: Arc::new(options.auth),
+            origins: Arc::new(OriginPolicy::new(&options.allowed_origins)),
             in_flight: Arc::new(Slots::new(options.max_concurrent_requests, options.max_requests_per_client)),
             uploads: options.uploads,
             clock: options.clock,

@@ -113,7 +113,12 @@ async fn example_file(State(dir): State<Arc<PathBuf>>, Path(name): Path<String>)
     let bytes = match read {
         Ok(bytes) => bytes,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Err(not_found()),
-        Err(e) => return Err(ApiError::Internal(format!("cannot read the example {}: {e}", dir.display()))),
+        // A broken example folder (not a folder, unreadable): the operator's log says where and
+        // why; the client learns that the file is not served, not the server's paths.
+        Err(e) => {
+            tracing::warn!(dir = %dir.display(), file = %shown, error = %e, "the viewer's example cannot be read");
+            return Err(not_found());
+        }
     };
     // nosniff: the example folder is the operator's; a file served as an image stays an image.
     let headers = [
@@ -175,6 +180,18 @@ mod tests {
         assert_eq!(status, StatusCode::METHOD_NOT_ALLOWED);
         let missing = routes(PathBuf::from("/nonexistent/example"));
         assert_eq!(get(&missing, "GET", "/viewer/example/request.json").await.0, StatusCode::NOT_FOUND);
+        // A file where the folder should be, and a folder where a file should be: 404 without
+        // the server's paths, not a 500 that shows them.
+        let scratch = std::env::temp_dir().join(format!("scnerf-viewer-{}", std::process::id()));
+        std::fs::create_dir_all(scratch.join("folder/request.json")).unwrap();
+        std::fs::write(scratch.join("file"), b"not a folder").unwrap();
+        for broken in [scratch.join("file"), scratch.join("folder")] {
+            let (status, _, body) = get(&routes(broken.clone()), "GET", "/viewer/example/request.json").await;
+            let body = String::from_utf8(body).unwrap();
+            assert_eq!(status, StatusCode::NOT_FOUND, "{broken:?}: {body}");
+            assert!(!body.contains(scratch.to_str().unwrap()), "{body}");
+        }
+        std::fs::remove_dir_all(&scratch).unwrap();
     }
 
     #[tokio::test]

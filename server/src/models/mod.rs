@@ -14,6 +14,7 @@
 
 mod find;
 mod load;
+pub mod names;
 pub mod scan;
 mod skips;
 mod warm;
@@ -50,7 +51,8 @@ impl Model {
     }
 }
 
-/// A bundle folder's name: its model's name (`/srv/models/lego-refined` serves `lego-refined`).
+/// A bundle folder's name, in NFC (`names.rs`): its model's name (`/srv/models/lego-refined`
+/// serves `lego-refined`).
 /// The name as given, a link's own (a link in `--models DIR` names its model); resolved only
 /// for a path without one (`.`, `..`).
 pub fn model_name(dir: &Path) -> String {
@@ -62,7 +64,8 @@ pub fn model_name(dir: &Path) -> String {
             &resolved
         }
     };
-    named.file_name().map_or_else(|| named.display().to_string(), |n| n.to_string_lossy().into_owned())
+    let name = named.file_name().map_or_else(|| named.display().to_string(), |n| n.to_string_lossy().into_owned());
+    names::normalized(&name)
 }
 
 /// The registry: the models in the order they were loaded, the default's name, and how to
@@ -101,11 +104,12 @@ impl Models {
         Ok(Models { list: RwLock::new(list), default, loader, reloading: Default::default() })
     }
 
-    /// The model a request names, or the default when it names none; 404 `model_not_found`
-    /// naming it otherwise.
+    /// The model a request names (in NFC), or the default when it names none; 404
+    /// `model_not_found` naming it otherwise, 422 for a name with a control character.
     pub fn get(&self, name: Option<&str>) -> Result<Arc<Model>, ApiError> {
         let Some(name) = name else { return Ok(self.default.clone()) };
-        let found = self.all().into_iter().find(|m| &*m.name == name);
+        let name = names::requested(name)?;
+        let found = self.all().into_iter().find(|m| *m.name == name);
         found.ok_or_else(|| ApiError::ModelNotFound { name: name.to_string() })
     }
 

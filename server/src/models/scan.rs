@@ -51,7 +51,10 @@ impl Scan<'_> {
         }
         // Only a regular file makes a bundle folder (a FIFO named manifest.json is not read).
         if std::fs::symlink_metadata(dir.join(MANIFEST)).is_ok_and(|m| m.is_file()) {
-            self.found.bundles.push(dir.to_path_buf());
+            match super::names::check_folder(dir) {
+                Ok(()) => self.found.bundles.push(dir.to_path_buf()),
+                Err(reason) => self.skip(dir, reason),
+            }
             return Ok(());
         }
         if depth >= MAX_DEPTH {

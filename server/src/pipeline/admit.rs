@@ -71,6 +71,24 @@ impl Pipeline {
         estimate::estimate(&self.bundle.config, &plan, &sizes)
     }
 
+    /// Refuses a scene of `views` views of `width` x `height` whose memory estimate exceeds what
+    /// requests may have at all (422 naming the sizes, as its admission would), from the sizes
+    /// alone; else what the scene will hold in the scene cache. A capture calls it before its
+    /// photos are decoded and resized.
+    pub fn check_scene_size(&self, width: u32, height: u32, views: usize) -> Result<u64, ApiError> {
+        let camera = CanonicalCamera { width, height, k: Default::default(), w2c: Default::default() };
+        let cameras = vec![camera; views];
+        let builds = self.builds_on_upload(views);
+        let memory = self.memory_estimate(Some(&cameras), true, builds, None);
+        let budget = self.backend.stats().memory.for_requests();
+        if memory > budget {
+            let e = BackendError::TooLarge { needed_mib: memory.div_ceil(1 << 20), budget_mib: budget >> 20 };
+            return Err(too_large(Some(&cameras), None, &e));
+        }
+        let size = self.padded_source_size(&cameras).unwrap_or_default();
+        Ok(estimate::scene_bytes(&self.bundle.config, size, views, builds))
+    }
+
     /// One renderer run's working memory (see [`estimate::renderer_run_bytes`]).
     pub fn renderer_run_bytes(&self) -> u64 {
         estimate::renderer_run_bytes(&self.bundle.config, &self.chunking)

@@ -16,6 +16,7 @@ pub use domain::{
     HasSources, OutputKind, OutputSet, RenderRequest, Sampling, SceneRequest, SourceSpec, TargetRequest, ValidRequest,
     ValidScene, ValidSource, ValidTarget,
 };
+pub use validate::check_depth_range;
 pub use wire::{check_json_size, ImageMode};
 
 /// Request limits (configurable, see config.rs).

@@ -141,7 +141,9 @@ fn output_set(kinds: Option<&[OutputKind]>) -> Result<OutputSet, ApiError> {
     Ok(set)
 }
 
-fn check_depth_range(near: f64, far: f64) -> Result<(), ApiError> {
+/// A scene's `near` and `far` (422 naming the field): finite, within the world's extent, and
+/// ordered in f32 as well, the precision they are rendered in.
+pub fn check_depth_range(near: f64, far: f64) -> Result<(), ApiError> {
     if !near.is_finite() || near <= 0.0 {
         return Err(ApiError::invalid("near", "near must be a finite number > 0"));
     }
@@ -156,6 +158,13 @@ fn check_depth_range(near: f64, far: f64) -> Result<(), ApiError> {
     }
     if near >= far {
         return Err(ApiError::invalid("far", format!("near ({near}) must be smaller than far ({far})")));
+    }
+    // The renderer samples depths in f32: a range that is empty there renders NaN.
+    if near as f32 >= far as f32 {
+        return Err(ApiError::invalid(
+            "far",
+            format!("near ({near}) and far ({far}) are equal in 32-bit floating point, the precision depths are rendered in"),
+        ));
     }
     Ok(())
 }

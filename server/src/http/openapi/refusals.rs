@@ -17,6 +17,11 @@ use crate::error::{ApiError, ErrorBody};
 type Documented = (ApiError, &'static str);
 
 const UNAUTHORIZED: Documented = (ApiError::Unauthorized { message: String::new() }, "Missing or wrong bearer token");
+const FORBIDDEN: Documented = (
+    ApiError::Forbidden { field: String::new(), message: String::new() },
+    "A browser page of another site than the server's own and --allowed-origin's (`field`: `origin` or \
+     `sec-fetch-site`)",
+);
 const NOT_ACCEPTABLE: Documented = (ApiError::NotAcceptable { message: String::new() }, "Accept cannot be satisfied");
 const BODY_TIMEOUT: Documented = (ApiError::BodyTimeout { message: String::new() }, "The body arrived too slowly");
 const TOO_MANY_REQUESTS: Documented = (
@@ -95,6 +100,15 @@ impl IntoResponses for TokenRefusals {
     }
 }
 
+/// Error responses of `POST /v1/models/reload`.
+pub struct ReloadRefusals;
+
+impl IntoResponses for ReloadRefusals {
+    fn responses() -> BTreeMap<String, RefOr<Response>> {
+        responses(&[UNAUTHORIZED, FORBIDDEN])
+    }
+}
+
 /// Error responses of `GET /readyz` (public: orchestrators probe it without a token).
 pub struct ReadinessRefusals;
 
@@ -112,6 +126,7 @@ impl IntoResponses for RenderRefusals {
         responses(&[
             malformed("Malformed request"),
             UNAUTHORIZED,
+            FORBIDDEN,
             NOT_ACCEPTABLE,
             BODY_TIMEOUT,
             too_large("Body or JSON document too large"),
@@ -134,6 +149,7 @@ impl IntoResponses for SceneUploadRefusals {
         responses(&[
             malformed("Malformed request or scene id"),
             UNAUTHORIZED,
+            FORBIDDEN,
             BODY_TIMEOUT,
             too_large("Body or JSON document too large"),
             unsupported("Unsupported content type or image format"),
@@ -155,6 +171,7 @@ impl IntoResponses for SceneRenderRefusals {
         responses(&[
             malformed("Malformed request or scene id"),
             UNAUTHORIZED,
+            FORBIDDEN,
             SCENE_NOT_FOUND,
             NOT_ACCEPTABLE,
             BODY_TIMEOUT,
@@ -176,7 +193,7 @@ pub struct SceneDeleteRefusals;
 
 impl IntoResponses for SceneDeleteRefusals {
     fn responses() -> BTreeMap<String, RefOr<Response>> {
-        responses(&[malformed("Malformed scene id"), UNAUTHORIZED, SCENE_NOT_FOUND])
+        responses(&[malformed("Malformed scene id"), UNAUTHORIZED, FORBIDDEN, SCENE_NOT_FOUND])
     }
 }
 
@@ -191,6 +208,7 @@ impl IntoResponses for CaptureRefusals {
                  scene id",
             ),
             UNAUTHORIZED,
+            FORBIDDEN,
             BODY_TIMEOUT,
             too_large(
                 "Body over --max-capture-bytes, or files other than images over --max-capture-metadata-bytes \
@@ -218,6 +236,7 @@ impl IntoResponses for CapturePlanRefusals {
         responses(&[
             malformed("Malformed JSON or an unknown field (`field` names it), or a malformed deadline header"),
             UNAUTHORIZED,
+            FORBIDDEN,
             BODY_TIMEOUT,
             too_large("The listing is larger than --max-json-bytes"),
             unsupported("Not application/json"),
@@ -296,6 +315,7 @@ mod tests {
             ApiError::NotAcceptable { message: message() },
             ApiError::Invalid { field: message(), message: message() },
             ApiError::Unauthorized { message: message() },
+            ApiError::Forbidden { field: message(), message: message() },
             ApiError::NotFound { path: message() },
             ApiError::SceneNotFound { id: message() },
             ApiError::ModelNotFound { name: message() },
@@ -314,6 +334,8 @@ mod tests {
     fn answering(error: &ApiError) -> Vec<&'static str> {
         match error {
             ApiError::Unauthorized { .. } => AUTHENTICATED.to_vec(),
+            // From a browser page of another site: everything but reading.
+            ApiError::Forbidden { .. } => [WITH_BODY, &["delete_scene", "reload_models"]].concat(),
             // A bad body, deadline header or scene id (in the path or the proxy's header).
             ApiError::Malformed { .. } => [WITH_BODY, &["delete_scene"]].concat(),
             // Internal: a failure of the executor, a graph or a blocking thread, which the body's work runs.
