@@ -139,8 +139,8 @@ def test_refuses_bad_requests(tmp_path, fp32_bundle):
         quantize_bundle(fp32_bundle, tmp_path / "x", "bf16")
     with pytest.raises(ValueError, match="unknown graphs"):
         quantize_bundle(fp32_bundle, tmp_path / "x", "int8", graphs=("decoder",))
-    with pytest.raises(ValueError, match="no MatMul"):  # the volume net is all convolutions
-        quantize_bundle(fp32_bundle, tmp_path / "v", "int8", graphs=("volume",))
+    with pytest.raises(ValueError, match="no MatMul"):  # the encoder is all convolutions
+        quantize_bundle(fp32_bundle, tmp_path / "v", "int8", graphs=("encoder",))
     quantize_bundle(fp32_bundle, tmp_path / "q", "int8")
     with pytest.raises(ValueError, match="already int8"):
         quantize_bundle(tmp_path / "q", tmp_path / "qq", "fp16")
