@@ -1,8 +1,8 @@
 """Reduced-precision bundles: `scnerf-export quantize --bundle IN --out OUT --precision int8|fp16`.
 
 A float32 bundle in, a new bundle out whose renderer computes its matrix products in lower
-precision (the volume net is all 3-D convolutions, which these conversions leave alone: it is
-refused with ``graphs=("volume",)``); every graph keeps float32 inputs and outputs, so the server
+precision (convolutions are left alone: a graph with no matrix product of a constant weight, such
+as the encoder, is refused); every graph keeps float32 inputs and outputs, so the server
 feeds it exactly as before (docs/bundle.md). The manifest gets a top-level ``"precision"``
 (``"int8"``, ``"fp16"``; absent means ``"fp32"``), the new graph hashes and model id, and
 ``provenance.quantization`` (the source bundle and what was converted).
