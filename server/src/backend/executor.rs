@@ -140,7 +140,7 @@ fn worker(mut runners: Runners, shared: Arc<Shared>) {
         {
             let mut q = shared.lock();
             let secs = job.units * q.rates.of(job.model).per_unit(job.graph, true);
-            q.running = Some(Running { turn, secs, started });
+            q.running = Some(Running { turn, deadline: job.deadline, secs, started });
         }
         let inputs = std::mem::replace(&mut job.inputs, Inputs::Ready(Vec::new()));
         let result = match runners.get(job.model) {

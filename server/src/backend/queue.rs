@@ -59,6 +59,8 @@ pub(super) struct Job {
 #[derive(Debug, Clone, Copy)]
 pub(super) struct Running {
     pub(super) turn: Instant,
+    /// Its request's deadline (how late a run is: `stuck.rs`).
+    pub(super) deadline: Instant,
     pub(super) secs: f64,
     pub(super) started: Instant,
 }
