@@ -43,6 +43,7 @@ suite_started=${SECONDS}
 stage() {
   local name=$1 started=${SECONDS}
   shift
+  current_stage=${name}
   echo "==> ${name}"
   "$@"
   timings+=("$(printf '%5d s  %s' $((SECONDS - started)) "${name}")")
@@ -53,7 +54,8 @@ report() {
   [[ -n ${python_setup_pid:-} ]] && kill "${python_setup_pid}" 2> /dev/null
   echo "== scripts/test.sh (${tier} tier): stage times"
   printf '%s\n' "${timings[@]}"
-  printf '%5d s  in all%s\n' $((SECONDS - suite_started)) "$([[ ${status} -eq 0 ]] || echo ", failed with status ${status}")"
+  printf '%5d s  in all%s\n' $((SECONDS - suite_started)) \
+    "$([[ ${status} -eq 0 ]] || echo ", failed with status ${status} in: ${current_stage:-setup}")"
 }
 trap report EXIT
 

@@ -15,8 +15,8 @@ use crate::http::connections::ensure_file_limit;
 use crate::http::serve::serve;
 use crate::http::{router, AppState};
 use crate::models::{
-    duplicate_name, model_name, names, one_line, report, same_folder, Loader, MakeRunner, Model, Models, Refusals, Search,
-    Skipped, Snapshot,
+    duplicate_name, model_name, names, one_line, report, same_folder, Loader, MakeRunner, Model, Models, Refusals,
+    Search, Skipped, Snapshot,
 };
 pub use crate::models::{warm_up, warm_up_within};
 use crate::sysmem;
