@@ -51,7 +51,7 @@ stage() {
 }
 report() {
   local status=$?
-  [[ -n ${python_setup_pid:-} ]] && kill "${python_setup_pid}" 2> /dev/null
+  if [[ -n ${python_setup_pid:-} ]]; then kill "${python_setup_pid}" 2> /dev/null || true; fi
   echo "== scripts/test.sh (${tier} tier): stage times"
   printf '%s\n' "${timings[@]}"
   printf '%5d s  in all%s\n' $((SECONDS - suite_started)) \
