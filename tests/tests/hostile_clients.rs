@@ -148,12 +148,7 @@ fn abandoned_uploads_give_their_memory_back() {
     let held = baseline + (uploads * sent_mib / 2) as u64;
     let holding = poll_until(rss_mib, |rss| *rss > held, Duration::from_secs(30));
     drop(streams);
-    let start = Instant::now();
-    let mut after = rss_mib();
-    while after > baseline + 64 && start.elapsed() < Duration::from_secs(5) {
-        std::thread::sleep(Duration::from_millis(100));
-        after = rss_mib();
-    }
+    let after = poll_until(rss_mib, |rss| *rss <= baseline + 64, Duration::from_secs(5));
     eprintln!("RSS MiB: {baseline} before, {holding} holding {uploads} x {sent_mib} MiB, {after} after they left");
     assert!(holding > held, "the uploads were not held: {holding} MiB");
     assert!(after <= baseline + 64, "RSS stayed at {after} MiB after the uploads were abandoned ({baseline} before)");
@@ -356,12 +351,8 @@ fn bodies_in_flight_are_held_against_the_memory_budget() {
         .map(|_| std::thread::spawn(move || stalled_post("127.0.0.2", addr, "/v1/captures", "", 250 << 20, upload)))
         .collect();
     let stalled: Vec<TcpStream> = uploads.into_iter().map(|u| u.join().unwrap()).collect();
-    let start = Instant::now();
-    let mut leased = 0.0;
-    while leased < (2 * upload) as f64 && start.elapsed() < Duration::from_secs(60) {
-        std::thread::sleep(Duration::from_millis(100));
-        leased = metric(server.addr, "scnerf_memory_leased_bytes");
-    }
+    let leased_bytes = || metric(server.addr, "scnerf_memory_leased_bytes");
+    let leased = poll_until(leased_bytes, |b| *b >= (2 * upload) as f64, Duration::from_secs(60));
     assert!(leased >= (2 * upload) as f64, "{leased} bytes leased for {} sent", 2 * upload);
     // A third is refused as its bytes come (503, at once), and so is a render.
     let mut third = stalled_post("127.0.0.3", server.addr, "/v1/captures", "", 250 << 20, 32 << 20);
@@ -378,9 +369,6 @@ fn bodies_in_flight_are_held_against_the_memory_budget() {
     assert!(String::from_utf8_lossy(&busy.body).contains("MiB"));
     // The uploads' clients leave: their bytes, and their hold on the budget, go with them.
     drop(stalled);
-    let start = Instant::now();
-    while metric(server.addr, "scnerf_memory_leased_bytes") > 0.0 && start.elapsed() < Duration::from_secs(5) {
-        std::thread::sleep(Duration::from_millis(50));
-    }
+    poll_until(leased_bytes, |b| *b == 0.0, Duration::from_secs(5));
     assert_eq!(render(Duration::from_secs(120)).status, 200);
 }
