@@ -72,6 +72,20 @@ def scene_upload(client, scene: datasets.SceneData, target: str) -> tuple[object
     return uploaded, names
 
 
+def encoded_target(bundle, name: str, width: int, height: int) -> tuple[datasets.SceneData, dict, Camera]:
+    """Scene ``name`` of ``SCENES``, its target's 3 nearest sources encoded by ``bundle`` (an
+    ``OnnxBundle``) and the target camera scaled and cropped to ``width`` x ``height``."""
+    folder, fmt, scale, target = SCENES[name]
+    scene = datasets.load_scene(SHARED / folder, fmt, scale=scale)
+    names = datasets.nearest_sources(scene, target, source_pool(scene, scene.default_targets))
+    views = datasets.get_views(scene, names)
+    images = np.stack([v.image for v in views]).astype(np.float32)
+    encoded = bundle.encode_scene(images, [v.camera for v in views], scene.near, scene.far, scene.background)
+    view = datasets.get_views(scene, [target])[0]
+    camera, _ = cropped_target(view.camera, view.image, width, height)
+    return scene, encoded, camera
+
+
 def measure(client, uploaded, camera: Camera, truth: np.ndarray, mask, rounds: int) -> dict:
     """Each mode's fastest renderer time over ``rounds`` interleaved rounds, its samples per pixel
     and PSNR (full image, and object-masked where the scene has masks)."""

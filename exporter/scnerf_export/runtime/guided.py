@@ -226,6 +226,8 @@ class GuidedView:
     interpolated: int  # pixels that took their neighbours' mean
     on_edge: int  # pixels that ran at more samples than their level's, on an edge
     rendered_again: int  # pixels rendered again at all S samples
+    # Network samples by stage: "level 0", "grid N" (a level of spacing N), "rendered again".
+    samples_by_stage: dict[str, int]
 
 
 def render_guided(
@@ -251,7 +253,8 @@ def render_guided(
     if guidance is not None:
         guidance[rows] = out["weights"]
     grid_h, grid_w = (height - 1) // policy.step + 1, (width - 1) // policy.step + 1
-    run_samples, interpolated, on_edge, rendered_again = len(rows) * samples, 0, 0, 0
+    by_stage = {"level 0": len(rows) * samples}
+    interpolated, on_edge, rendered_again = 0, 0, 0
 
     def run_fine(at: np.ndarray, selected: tuple, keeps_guidance: bool) -> int:
         """Pixels ``at`` (N,2) at their ``selected`` samples; returns the samples run."""
@@ -295,15 +298,20 @@ def render_guided(
         for k in np.unique(counts):
             ray = counts == k
             selected = select_samples(score[ray], int(k), policy.support_threshold)
-            run_samples += run_fine(pixels[running[ray]], selected, keeps_guidance)
+            by_stage[f"grid {spacing}"] = by_stage.get(f"grid {spacing}", 0) + run_fine(
+                pixels[running[ray]], selected, keeps_guidance
+            )
         rows = here[run]
         outputs = np.concatenate([rgb + (1.0 - opacity)[:, None] * background, opacity[:, None]], axis=1)
         again = disagreeing(policy, disagreement(outputs[rows], outputs[near_rows[run]], valid[run]))
         if again.any():
             spread = spread_samples(score[again], policy.rerun_samples(samples), policy.support_threshold)
-            run_samples += run_fine(pixels[running[again]], spread, keeps_guidance)
+            by_stage["rendered again"] = by_stage.get("rendered again", 0) + run_fine(
+                pixels[running[again]], spread, keeps_guidance
+            )
         rendered_again += int(again.sum())
-    return GuidedView(rgb, depth, opacity, run_samples, interpolated, on_edge, rendered_again)
+    network_samples = sum(by_stage.values())
+    return GuidedView(rgb, depth, opacity, network_samples, interpolated, on_edge, rendered_again, by_stage)
 
 
 def _range(colours: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -344,5 +352,10 @@ def guided_rendering(
     samples_per_ray = view.network_samples / (target.width * target.height)
     paths = {"interpolated": view.interpolated, "on_edge": view.on_edge, "rendered_again": view.rendered_again}
     return Rendering(
-        rgb.reshape(*shape, 3), view.depth.reshape(shape), view.opacity.reshape(shape), samples_per_ray, paths
+        rgb.reshape(*shape, 3),
+        view.depth.reshape(shape),
+        view.opacity.reshape(shape),
+        samples_per_ray,
+        paths,
+        view.samples_by_stage,
     )

@@ -14,7 +14,7 @@ from ..cameras import Camera
 from ..export.manifest import Manifest
 from .band import FILLS, fill_rendering
 from .chunks import fine_rays_per_run, rays_per_run
-from .guided import guided_rendering
+from .guided import FineRun, GuideRun, guided_rendering
 from .plane_sweep import sweep
 from .view import Rendering, pad_images, render_in_passes
 from .volume_slabs import Sweep, build_volume
@@ -44,6 +44,7 @@ class OnnxBundle:
         self.renderer_inputs = [i.name for i in self.sessions["renderer"].get_inputs()]
         self.policy = self.manifest.guided
         self.timings: dict[str, float] = {}
+        self.graph_seconds: dict[str, float] = {}  # per graph, summed over every run
 
     @property
     def model_id(self) -> str:
@@ -55,7 +56,9 @@ class OnnxBundle:
     def _timed(self, stage: str, graph: str, feeds: dict) -> list[np.ndarray]:
         start = time.perf_counter()
         out = self.sessions[graph].run(None, feeds)
-        self.timings[stage] = self.timings.get(stage, 0.0) + time.perf_counter() - start
+        seconds = time.perf_counter() - start
+        self.timings[stage] = self.timings.get(stage, 0.0) + seconds
+        self.graph_seconds[graph] = self.graph_seconds.get(graph, 0.0) + seconds
         return out
 
     def encode_scene(
@@ -167,6 +170,12 @@ class OnnxBundle:
         """A view by guided sampling, run as the server runs it."""
         if self.policy is None:
             raise ValueError(f"{self.path}: the bundle has no guided-sampling graphs (scnerf-export add-guided)")
+        guide, fine = self.guided_runs(scene, near, far)
+        return guided_rendering(self.policy, self.cfg, target, background, guide, fine)
+
+    def guided_runs(self, scene: dict, near: float, far: float) -> tuple[GuideRun, FineRun]:
+        """Guided sampling's two graphs over an encoded scene, in the server's chunks: a guide run
+        keeps its rays' rectifier heads, which the fine runs after it read."""
         depth_range = (near, far)
         guide_inputs = [i.name for i in self.sessions["renderer_guide"].get_inputs()]
         fine_inputs = [i.name for i in self.sessions["renderer_fine"].get_inputs()]
@@ -199,4 +208,4 @@ class OnnxBundle:
             names = ("rgb", "depth", "opacity", "weights")
             return {name: np.concatenate([o[i] for o in outs]) for i, name in enumerate(names)}
 
-        return guided_rendering(self.policy, self.cfg, target, background, guide, fine)
+        return guide, fine

@@ -27,6 +27,8 @@ class Rendering:
     samples_per_ray: float | None = None  # network samples per pixel (None: the model's S)
     # Guided sampling: how many pixels took each of its paths (runtime/guided.py), else None.
     paths: dict[str, int] | None = None
+    # Guided sampling: network samples by stage (``GuidedView.samples_by_stage``), else None.
+    samples_by_stage: dict[str, int] | None = None
 
 
 def pad_images(images: np.ndarray, multiple: int, background) -> np.ndarray:

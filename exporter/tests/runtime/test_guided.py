@@ -200,6 +200,7 @@ def test_pixels_on_an_edge_run_at_more_samples():
     beside = [(0, 1), (0, 3), (1, 1), (1, 2), (1, 3)]
     assert finest == [(2, [p for p in map(tuple, level_pixels(5, 5, 1).tolist()) if p not in beside]), (4, beside)]
     assert view.network_samples == 4 * 8 + 5 * 2 + 11 * 2 + 5 * 4
+    assert view.samples_by_stage == {"level 0": 4 * 8, "grid 2": 5 * 2, "grid 1": 11 * 2 + 5 * 4}
 
 
 def test_policy_fits_the_model():
