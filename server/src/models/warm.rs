@@ -16,8 +16,8 @@ pub async fn warm_up(pipeline: &Pipeline) -> Result<Duration, String> {
 }
 
 /// [`warm_up`] that fails once `within` has passed: a graph crafted to run for minutes (a long
-/// `Loop`) is not served. The runs it queued are dropped with it; one in progress ends on its
-/// own, then the executor takes the next request's.
+/// `Loop`) is not served. The runs it queued are dropped with it; the one in progress is ended
+/// at the deadline (`backend/watchdog.rs`), then the executor takes the next request's.
 pub async fn warm_up_within(pipeline: &Pipeline, within: Duration) -> Result<Duration, String> {
     try_warm_up(pipeline, within).await.map_err(|e| e.to_string())
 }
