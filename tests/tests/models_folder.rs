@@ -10,6 +10,7 @@ use std::time::Duration;
 
 use prost::Message;
 use scnerf_e2e::{http_request, repo_root, server_binary, Case, ServerProcess};
+use scnerf_server::bundle::Manifest;
 use serde_json::Value;
 
 /// A model whose graph has one initializer, `extra`, kept in `weights.bin` (ONNX's protobuf by
@@ -42,9 +43,8 @@ fn with_external_weights(dir: &Path) {
     let path = dir.join("manifest.json");
     let mut manifest: Value = serde_json::from_slice(&std::fs::read(&path).unwrap()).unwrap();
     let sha = scnerf_server::bundle::sha256_file(&renderer).unwrap();
-    manifest["model_id"] = format!("scnerf-{}-{}", manifest["variant"].as_str().unwrap(), &sha[..12]).into();
     manifest["graphs"]["renderer"]["sha256"] = sha.into();
-    std::fs::write(&path, serde_json::to_vec(&manifest).unwrap()).unwrap();
+    write_manifest(&path, manifest);
 }
 
 fn mkfifo(path: &Path) {
@@ -274,7 +274,14 @@ fn with_endless_encoder(dir: &Path) {
     let path = dir.join("manifest.json");
     let mut manifest: Value = serde_json::from_slice(&std::fs::read(&path).unwrap()).unwrap();
     manifest["graphs"]["encoder"]["sha256"] = scnerf_server::bundle::sha256_file(&encoder).unwrap().into();
-    std::fs::write(&path, serde_json::to_vec(&manifest).unwrap()).unwrap();
+    write_manifest(&path, manifest);
+}
+
+/// Writes `manifest` to `path` with the model id its graphs give.
+fn write_manifest(path: &Path, manifest: Value) {
+    let mut manifest: Manifest = serde_json::from_value(manifest).unwrap();
+    manifest.model_id = manifest.expected_model_id();
+    std::fs::write(path, serde_json::to_vec(&manifest).unwrap()).unwrap();
 }
 
 /// A model whose encoder never returns is refused at its warm-up's deadline, its run ended there

@@ -51,7 +51,7 @@ pub fn manifest(variant: &str, depth_norm: &str) -> Manifest {
     }
     let json = serde_json::json!({
         "format_version": 1,
-        "model_id": format!("scnerf-{variant}-{}", &sha[..12]),
+        "model_id": "set below",
         "variant": variant,
         "config": {"views": v, "feature_channels": c, "volume_channels": cv, "depth_planes": d,
                    "samples": 16, "pad": 2, "image_multiple": 32, "depth_norm": depth_norm,
@@ -74,7 +74,9 @@ pub fn manifest(variant: &str, depth_norm: &str) -> Manifest {
         "provenance": {"source_checkpoint": "fake", "source_sha256": "00", "exporter_version": "0.0.0",
                        "training": null, "metrics": null, "created": "2026-01-01T00:00:00Z"}
     });
-    serde_json::from_value(json).expect("test manifest")
+    let mut manifest: Manifest = serde_json::from_value(json).expect("test manifest");
+    manifest.model_id = manifest.expected_model_id();
+    manifest
 }
 
 pub fn bundle(variant: &str, depth_norm: &str) -> Bundle {
