@@ -114,6 +114,7 @@ pub fn guided_manifest(variant: &str) -> Manifest {
     value["guided"] = serde_json::json!({"step": 4, "samples": [8, 4], "support_threshold": 0.001,
                                          "smooth_tolerance": 0.03, "smooth_max_step": 1});
     m = serde_json::from_value(value).expect("guided test manifest");
+    m.model_id = m.expected_model_id();
     m
 }
 
