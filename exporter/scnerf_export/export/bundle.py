@@ -562,7 +562,7 @@ def export_bundle(
     }
     manifest = Manifest(
         format_version=FORMAT_VERSION,
-        model_id=model_id(model.cfg.variant, graphs["renderer"].sha256),
+        model_id=model_id(model.cfg.variant, {name: entry.sha256 for name, entry in graphs.items()}),
         variant=model.cfg.variant,
         config=model.cfg,
         graphs=graphs,

@@ -90,6 +90,7 @@ def add_guided(
             (out / entry.file).unlink()
         raise ReexportError(f"{src}: the guide graph differs from the bundle's renderer by {agreement:.3g}")
     manifest.graphs.update(graphs)
+    manifest.model_id = manifest.expected_model_id()
     manifest.guided = GuidedPolicy.for_model(cfg)
     manifest.provenance.guided_graphs = {
         "exporter_version": __version__,

@@ -23,6 +23,7 @@ order this module writes (every committed one).
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import math
 from dataclasses import dataclass, field
@@ -43,10 +44,12 @@ class ManifestError(ValueError):
     """A manifest.json that does not describe a bundle; the message names the key at fault."""
 
 
-def model_id(variant: str, renderer_sha256: str) -> str:
-    """A bundle's id: its variant and the start of its renderer graph's sha256 (docs/bundle.md), so a
-    changed renderer is a new model."""
-    return f"scnerf-{variant}-{renderer_sha256[:12]}"
+def model_id(variant: str, graph_sha256: dict[str, str]) -> str:
+    """A bundle's id: its variant and the start of a sha256 over every graph's name and sha256, in
+    the names' order, one ``name=sha256`` line each (docs/bundle.md): a bundle any of whose graphs
+    changed is a new model. The server derives it the same way (``server/src/bundle/validate.rs``)."""
+    listing = "".join(f"{name}={sha}\n" for name, sha in sorted(graph_sha256.items()))
+    return f"scnerf-{variant}-{hashlib.sha256(listing.encode()).hexdigest()[:12]}"
 
 
 # ------------------------------------------------------------------------------------------ reading
@@ -388,9 +391,9 @@ class Manifest:
         """The file of graph ``name`` in the bundle at ``bundle_dir``."""
         return Path(bundle_dir) / self.graphs[name].file
 
-    def renderer_model_id(self) -> str:
-        """The id this manifest's variant and renderer graph give (what ``model_id`` must say)."""
-        return model_id(self.variant, self.graphs["renderer"].sha256)
+    def expected_model_id(self) -> str:
+        """The id this manifest's variant and graphs give (what ``model_id`` must say)."""
+        return model_id(self.variant, {name: entry.sha256 for name, entry in self.graphs.items()})
 
 
 def band_rule(data: Any, where: str = "band") -> str:

@@ -250,7 +250,7 @@ def quantize_bundle(
         check_holds_its_weights(target_file)
         entry.sha256 = sha256_file(target_file)
     source_model_id = manifest.model_id
-    manifest.model_id = manifest.renderer_model_id()
+    manifest.model_id = manifest.expected_model_id()
     manifest.precision = precision
     manifest.provenance.quantization = {
         "precision": precision,
@@ -267,7 +267,7 @@ def verify_bundle_hashes(bundle_dir: str | Path) -> None:
     for name, entry in manifest.graphs.items():
         if sha256_file(Path(bundle_dir) / entry.file) != entry.sha256:
             raise ValueError(f"{bundle_dir}: graphs.{name} sha256 mismatch")
-    expected = manifest.renderer_model_id()
+    expected = manifest.expected_model_id()
     if manifest.model_id != expected:
         raise ValueError(f"{bundle_dir}: model_id {manifest.model_id} != {expected}")
 

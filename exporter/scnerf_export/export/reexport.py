@@ -282,7 +282,7 @@ def reexport_bundle(bundle_dir: str | Path, out_dir: str | Path) -> Manifest:
 
     manifest.graphs["renderer"] = graph_entry(renderer_path, graph_signatures(model)["renderer"])
     previous_id = manifest.model_id
-    manifest.model_id = manifest.renderer_model_id()
+    manifest.model_id = manifest.expected_model_id()
     manifest.provenance.reexport = {
         "exporter_version": __version__,
         "source_model_id": previous_id,

@@ -181,6 +181,7 @@ def split_volume_bundle(
         if extra.name.startswith("LICENSE"):
             shutil.copyfile(extra, out / extra.name)
     manifest.graphs = {k: kept.get(k) or graphs[k] for k in GRAPHS[volume] if k in kept or k in graphs}
+    manifest.model_id = manifest.expected_model_id()
     manifest.provenance.volume_split = {
         "exporter_version": __version__,
         "volume_max_abs_difference": agreement,
@@ -221,6 +222,7 @@ def leave_volume_tail_to_server(bundle_dir: str | Path) -> float:
         raise SplitVolumeError(f"{bundle}: the rewritten volume_net's volume differs by {difference:.3g}")
     rewritten.replace(path)
     manifest.graphs["volume_net"] = graph_entry(path, graph_signatures(model)["volume_net"])
+    manifest.model_id = manifest.expected_model_id()
     manifest.provenance.extra["volume_tail"] = {
         "exporter_version": __version__,
         "volume_max_abs_difference": difference,

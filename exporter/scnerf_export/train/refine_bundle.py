@@ -139,7 +139,7 @@ def write_bundle(
     _copy_unchanged(base, manifest, out, [g for g in manifest.graphs if g not in renderers])
     for name in renderers:
         os.replace(refined.graph_path(staging, name), refined.graph_path(out, name))
-    refined.model_id = refined.renderer_model_id()
+    refined.model_id = refined.expected_model_id()
     refined.provenance.created = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
     refined.provenance.refinement = record
     refined.band = band

@@ -36,7 +36,7 @@ def test_a_committed_manifest_loads_and_writes_back_the_same_bytes(path, tmp_pat
 def test_the_typed_fields_hold_the_files_values():
     manifest = Manifest.load(PARITY_BUNDLE)
     data = json.loads((PARITY_BUNDLE / "manifest.json").read_text())
-    assert manifest.model_id == data["model_id"] == manifest.renderer_model_id()
+    assert manifest.model_id == data["model_id"] == manifest.expected_model_id()
     assert manifest.config.samples == data["config"]["samples"]
     assert manifest.config.encoder_channels == tuple(data["config"]["encoder_channels"])
     renderer = manifest.graphs["renderer"]

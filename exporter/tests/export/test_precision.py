@@ -13,7 +13,7 @@ import pytest
 from scnerf_export.cli import main
 from scnerf_export.evaluate.metrics import psnr
 from scnerf_export.export import onnx_graph
-from scnerf_export.export.manifest import Manifest
+from scnerf_export.export.manifest import Manifest, model_id
 from scnerf_export.export.precision import (
     compare_bundles,
     gemm_to_matmul,
@@ -75,8 +75,8 @@ def test_converted_bundle_keeps_contract_and_renders_close(
     assert manifest.precision == precision
     assert manifest == Manifest.load(out)
     verify_bundle_hashes(out)  # every graph's sha256 and the model id (= what the server checks)
-    renderer_sha = sha256_file(out / "renderer.onnx")
-    assert manifest.model_id == f"scnerf-{source.variant}-{renderer_sha[:12]}" != source.model_id
+    files = {name: sha256_file(out / entry.file) for name, entry in manifest.graphs.items()}
+    assert manifest.model_id == model_id(source.variant, files) != source.model_id
     for name in ("encoder", "volume"):  # untouched graphs are byte-identical
         assert manifest.graphs[name].sha256 == source.graphs[name].sha256
     assert manifest.graphs["renderer"].inputs == source.graphs["renderer"].inputs

@@ -11,7 +11,7 @@ import pytest
 
 from scnerf_export import __version__
 from scnerf_export.cli import main
-from scnerf_export.export.manifest import Manifest
+from scnerf_export.export.manifest import Manifest, model_id
 from scnerf_export.export.reexport import ReexportError, reexport_bundle
 
 from conftest import REPO
@@ -36,7 +36,8 @@ def test_reexport_reproduces_the_renderer_and_keeps_the_other_graphs(reexported)
     source = Manifest.load(FIXTURE_BUNDLE)
     assert manifest.provenance.reexport["source_model_id"] == source.model_id
     assert manifest.provenance.reexport["renderer_max_abs_difference"] <= 1e-4
-    assert manifest.model_id == f"scnerf-{source.variant}-{sha256(out / 'renderer.onnx')[:12]}"
+    files = {name: sha256(out / entry.file) for name, entry in manifest.graphs.items()}
+    assert manifest.model_id == model_id(source.variant, files)
     assert manifest.graphs["renderer"].sha256 == sha256(out / "renderer.onnx")
     for name in ("encoder", "volume"):
         assert sha256(out / f"{name}.onnx") == sha256(FIXTURE_BUNDLE / f"{name}.onnx")

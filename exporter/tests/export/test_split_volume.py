@@ -91,10 +91,11 @@ def test_a_split_bundle_renders_what_the_whole_one_renders(tmp_path, build):
 
 
 @pytest.mark.parametrize("build", ["slabs", "sweep"])
-def test_the_manifest_keeps_the_model_and_names_the_split(build):
+def test_the_manifest_keeps_the_config_and_names_the_split(build):
     fixture, slab_graph = SPLIT[build]
     whole, split = Manifest.load(WHOLE), Manifest.load(fixture)
-    assert split.model_id == whole.model_id and split.config == whole.config
+    assert split.config == whole.config
+    assert split.model_id == split.expected_model_id() != whole.model_id  # other graphs, another model
     assert list(split.graphs) == ["encoder", slab_graph, "volume_net", "renderer", *GUIDED_GRAPHS]
     for name in ("encoder", "renderer", *GUIDED_GRAPHS):
         assert split.graphs[name] == whole.graphs[name]
@@ -128,7 +129,7 @@ def test_split_volume_reads_g2_back_from_a_slab_bundle(tmp_path):
     swept = split_volume_bundle(slabs, tmp_path / "slabs-sweep")
     assert list(swept.graphs) == ["encoder", "cost_conv", "volume_net", "renderer"]
     assert swept.provenance.volume_split["volume_max_abs_difference"] <= 1e-4
-    assert swept.model_id == Manifest.load(READBACK).model_id
+    assert swept.model_id == swept.expected_model_id() != Manifest.load(READBACK).model_id
 
 
 def test_split_volume_takes_g2_from_a_model_of_the_bundles_config_only(tmp_path):
@@ -174,4 +175,5 @@ def test_export_writes_the_sweep_graphs_unless_asked_for_another_build(tmp_path)
     assert set(manifests["sweep"].graphs) == {"encoder", "cost_conv", "volume_net", "renderer", *GUIDED_GRAPHS}
     assert set(manifests["slabs"].graphs) == {"encoder", "cost_slab", "volume_net", "renderer", *GUIDED_GRAPHS}
     assert set(manifests["whole"].graphs) == {"encoder", "volume", "renderer", *GUIDED_GRAPHS}
-    assert len({m.model_id for m in manifests.values()}) == 1
+    assert all(m.model_id == m.expected_model_id() for m in manifests.values())
+    assert len({m.model_id for m in manifests.values()}) == 3

@@ -350,7 +350,7 @@ def test_interrupted_then_resumed_into_an_ordinary_bundle(capture_dir, base, tmp
     assert record["minutes"] >= first.record["minutes"]
     assert not (out / ".refine" / "banks").exists()  # removed once the budget is spent
     manifest = Manifest.load(out)
-    assert manifest.model_id == second.model_id == manifest.renderer_model_id()
+    assert manifest.model_id == second.model_id == manifest.expected_model_id()
     refinement = manifest.provenance.refinement
     assert refinement["base_model_id"] == Manifest.load(base[0]).model_id
     assert refinement["capture"]["folder"] == capture_dir.name and len(refinement["capture"]["sha256"]) == 64

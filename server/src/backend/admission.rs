@@ -80,6 +80,7 @@ impl Queue {
     fn ahead(&self, now: Instant, turn: Instant) -> f64 {
         let blocking = self
             .running
+            .as_ref()
             .filter(|r| r.turn > turn)
             .map_or(0.0, |r| (r.secs - now.saturating_duration_since(r.started).as_secs_f64()).max(0.0));
         self.by_turn().iter().take_while(|(t, _, _)| *t <= turn).fold(blocking, |sum, (_, _, secs)| sum + secs)

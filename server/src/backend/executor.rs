@@ -9,6 +9,7 @@ use super::queue::{Finish, Inputs, Job, Running};
 use super::runner::Outputs;
 use super::runners::Runners;
 use super::shared::Shared;
+use super::watchdog;
 use super::{BackendError, GraphRunner, NamedTensors};
 use crate::bundle::GraphKind;
 use crate::sysmem::MemoryProbe;
@@ -72,6 +73,7 @@ impl BackendHandle {
         let shared = Arc::new(Shared {
             queue: Mutex::default(),
             wake: Condvar::new(),
+            watch: Condvar::new(),
             capacity: options.capacity.max(1),
             memory: Mutex::new(options.memory),
             probe: options.probe,
@@ -81,6 +83,7 @@ impl BackendHandle {
         shared.lock().next_slot = 1;
         let worker_shared = shared.clone();
         let runners = Runners::new(runner);
+        watchdog::spawn(shared.clone())?;
         std::thread::Builder::new().name("scnerf-inference".into()).spawn(move || worker(runners, worker_shared))?;
         Ok(BackendHandle { closer: Arc::new(Closer(shared.clone())), model: 0, shared })
     }
@@ -118,6 +121,7 @@ fn next_job(shared: &Shared, runners: &mut Runners) -> Option<(Job, Instant, boo
         }
         if q.closed {
             q.stopped = true;
+            shared.watch.notify_all();
             return None;
         }
         q = shared.wake.wait(q).unwrap_or_else(|p| p.into_inner());
@@ -137,11 +141,16 @@ fn worker(mut runners: Runners, shared: Arc<Shared>) {
         let _entered = job.span.enter();
         let probe = shared.probe.as_deref().map(MemoryProbe::start);
         let started = Instant::now();
+        let interrupt = runners.get(job.model).and_then(|runner| runner.interrupter());
+        if let Some(interrupt) = &interrupt {
+            interrupt.clear();
+        }
         {
             let mut q = shared.lock();
             let secs = job.units * q.rates.of(job.model).per_unit(job.graph, true);
-            q.running = Some(Running { turn, deadline: job.deadline, secs, started });
+            q.running = Some(Running { turn, deadline: job.deadline, secs, started, interrupt, interrupted: false });
         }
+        shared.watch.notify_all();
         let inputs = std::mem::replace(&mut job.inputs, Inputs::Ready(Vec::new()));
         let result = match runners.get(job.model) {
             Some(runner) => run_guarded(runner, job.graph, inputs, job.finish.take(), release),
@@ -152,12 +161,15 @@ fn worker(mut runners: Runners, shared: Arc<Shared>) {
             probe.finish(job.graph.name());
         }
         tracing::debug!(graph = %job.graph, ms = took * 1e3, "graph run");
-        {
+        let interrupted = {
             let mut q = shared.lock();
-            q.running = None;
             q.done(&job, took);
-        }
-        let _ = job.reply.send(result);
+            q.running.take().is_some_and(|run| run.interrupted)
+        };
+        let _ = job.reply.send(match result {
+            Err(_) if interrupted => Err(BackendError::DeadlineExceeded),
+            result => result,
+        });
     }
 }
 

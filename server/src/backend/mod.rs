@@ -24,8 +24,9 @@
 //! seconds per unit (`Rates`, each model's own), on the slow side when requests compete: the rate plus twice its
 //! deviation (as TCP estimates a retransmission timeout from round trips), so that the noise of
 //! a shared machine does not turn admitted requests into 504s. Before the first run of a graph
-//! there is no estimate: admitted. A graph run cannot be interrupted, so the rest of the run in
-//! progress counts ahead of a request due sooner than its own. At most `capacity` requests
+//! there is no estimate: admitted. A graph run is not preempted, so the rest of the run in
+//! progress counts ahead of a request due sooner than its own; a run still going at its own
+//! request's deadline is ended there (`watchdog.rs`). At most `capacity` requests
 //! are admitted at once (`QueueFull`). Jobs whose request is gone (client disconnected: the
 //! handler future and its `Ticket` were dropped) or past its deadline are dropped unrun.
 //!
@@ -47,7 +48,8 @@
 //! `reclaim.rs` (the scene cache in it), `rates.rs` (`Work` and the measured rates),
 //! `ticket.rs` (`Ticket` and the `Outputs` of a run), `runner.rs` (the `GraphRunner` the
 //! executor drives), `runners.rs` and `slots.rs` (several models' runners on the one executor,
-//! each in a slot that a `BackendHandle` names), `ort.rs` (ONNX Runtime's), `error.rs`
+//! each in a slot that a `BackendHandle` names), `watchdog.rs` and `stuck.rs` (a run past its
+//! deadline: ended; one that does not end), `ort.rs` (ONNX Runtime's), `error.rs`
 //! (`BackendError`).
 
 mod admission;
@@ -69,6 +71,7 @@ mod stuck;
 #[cfg(test)]
 mod testkit;
 mod ticket;
+mod watchdog;
 
 pub use admission::Due;
 pub use budget::{MemoryBudget, MemoryRefusals, Reclaim};
@@ -77,6 +80,6 @@ pub use executor::{BackendHandle, ExecutorOptions, QueueStats};
 pub use lease::MemoryLease;
 pub use queue::Client;
 pub use rates::Work;
-pub use runner::{GraphRunner, NamedTensors, Outputs, Tensor};
+pub use runner::{GraphRunner, Interrupt, NamedTensors, Outputs, Tensor};
 pub use stuck::STUCK_AFTER;
 pub use ticket::Ticket;

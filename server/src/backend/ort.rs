@@ -2,6 +2,7 @@
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 use ort::environment::{Environment, GlobalThreadPoolOptions};
 use ort::ep;
@@ -12,7 +13,7 @@ use ort::value::{TensorElementType, TensorRef, ValueType};
 use ort::AsPointer;
 
 use super::device::{Device, GraphOptLevel};
-use super::{BackendError, GraphRunner, NamedTensors};
+use super::{BackendError, GraphRunner, Interrupt, NamedTensors};
 use crate::bundle::{check_signature, ActualTensor, Bundle, GraphKind};
 
 pub const ORT_VERSION: &str = "1.31.1";
@@ -110,9 +111,35 @@ pub struct OrtRunner {
     sessions: HashMap<GraphKind, Session>,
     /// The graphs whose session keeps the CPU arena (`uses_arena`).
     arenas: Vec<GraphKind>,
-    /// Run options that shrink the CPU arena once the run is done (`run_and_release`).
-    shrink: RunOptions,
+    /// The options of every run, which the executor's watchdog can end (`Terminate`).
+    options: Arc<Terminate>,
     _env: Environment,
+}
+
+/// The two kinds of run options; ending a run sets their terminate flag, which ONNX Runtime
+/// reads between operators (and between a `Loop`'s iterations): the run returns an error.
+struct Terminate {
+    plain: RunOptions,
+    /// Shrinks the CPU arena once the run is done (`run_and_release`).
+    shrink: RunOptions,
+}
+
+impl Interrupt for Terminate {
+    fn interrupt(&self) {
+        for options in [&self.plain, &self.shrink] {
+            if let Err(e) = options.terminate() {
+                tracing::warn!(error = %e, "cannot end the graph run in progress");
+            }
+        }
+    }
+
+    fn clear(&self) {
+        for options in [&self.plain, &self.shrink] {
+            if let Err(e) = options.unterminate() {
+                tracing::warn!(error = %e, "cannot clear the graph runs' terminate flag");
+            }
+        }
+    }
 }
 
 impl OrtRunner {
@@ -139,10 +166,12 @@ impl OrtRunner {
         }
         // ONNX Runtime frees the arena's unused chunks at the end of a run with this option;
         // "cpu:0" names the CPU arena (the option must not name an arena that is off).
-        let mut shrink = RunOptions::new().map_err(|e| format!("ONNX Runtime run options: {e}"))?;
+        let run_options = || RunOptions::new().map_err(|e| format!("ONNX Runtime run options: {e}"));
+        let mut shrink = run_options()?;
         shrink
             .set("memory.enable_memory_arena_shrinkage", "cpu:0")
             .map_err(|e| format!("ONNX Runtime run options: {e}"))?;
+        let options = Arc::new(Terminate { plain: run_options()?, shrink });
         for kind in bundle.graphs() {
             let path = bundle.graph_path(kind);
             let builder = Session::builder(&env)
@@ -162,7 +191,7 @@ impl OrtRunner {
             check_signature(kind, "output", &entry.outputs, &describe(session.outputs()))?;
             sessions.insert(kind, session);
         }
-        Ok(OrtRunner { sessions, arenas, shrink, _env: env })
+        Ok(OrtRunner { sessions, arenas, options, _env: env })
     }
 }
 
@@ -284,6 +313,10 @@ impl GraphRunner for OrtRunner {
         let shrink = self.arenas.contains(&graph);
         self.run_with(graph, inputs, shrink)
     }
+
+    fn interrupter(&self) -> Option<Arc<dyn Interrupt>> {
+        Some(self.options.clone())
+    }
 }
 
 impl OrtRunner {
@@ -302,10 +335,8 @@ impl OrtRunner {
             values.push((std::borrow::Cow::from(name.as_str()), ort::session::SessionInputValue::from(view)));
         }
         let output_names: Vec<String> = session.outputs().iter().map(|o| o.name().to_string()).collect();
-        let outputs = match shrink {
-            true => session.run_with_options(values, &self.shrink),
-            false => session.run(values),
-        };
+        let options = if shrink { &self.options.shrink } else { &self.options.plain };
+        let outputs = session.run_with_options(values, options);
         let outputs = outputs.map_err(|e| err(e.to_string()))?;
         output_names
             .into_iter()

@@ -3,6 +3,7 @@
 //! one, else its fair turn among the clients, see `fair.rs`).
 
 use std::collections::{HashMap, VecDeque};
+use std::sync::Arc;
 use std::time::Instant;
 
 use tokio::sync::oneshot;
@@ -10,7 +11,7 @@ use tracing::Span;
 
 use super::budget::MemoryRefusals;
 use super::rates::{ModelRates, Work};
-use super::runner::Outputs;
+use super::runner::{Interrupt, Outputs};
 use super::runners::RunnerChange;
 use super::{BackendError, NamedTensors};
 use crate::bundle::GraphKind;
@@ -56,13 +57,18 @@ pub(super) struct Job {
 }
 
 /// The graph run in progress: its request's turn, its planned seconds, when it started.
-#[derive(Debug, Clone, Copy)]
+#[derive(Clone)]
 pub(super) struct Running {
     pub(super) turn: Instant,
-    /// Its request's deadline (how late a run is: `stuck.rs`).
+    /// Its request's deadline: the watchdog ends the run there (`watchdog.rs`); how late a run
+    /// that cannot be ended is (`stuck.rs`).
     pub(super) deadline: Instant,
     pub(super) secs: f64,
     pub(super) started: Instant,
+    /// What ends it (its runner's), when something can.
+    pub(super) interrupt: Option<Arc<dyn Interrupt>>,
+    /// The watchdog asked it to end.
+    pub(super) interrupted: bool,
 }
 
 /// Whom a request is for: the digest of its token (`auth::Principal::owner`), `None` without

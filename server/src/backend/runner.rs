@@ -1,5 +1,7 @@
 //! What the executor runs: a graph, given named tensors, through a [`GraphRunner`].
 
+use std::sync::Arc;
+
 use ndarray::{ArcArray, ArcArrayD, Dimension};
 
 use super::BackendError;
@@ -24,6 +26,21 @@ pub trait GraphRunner: Send + 'static {
     fn run_and_release(&mut self, graph: GraphKind, inputs: &NamedTensors) -> Result<NamedTensors, BackendError> {
         self.run(graph, inputs)
     }
+
+    /// What ends this runner's run in progress from another thread, if anything can: the
+    /// executor's watchdog uses it on a run past its request's deadline (`watchdog.rs`).
+    fn interrupter(&self) -> Option<Arc<dyn Interrupt>> {
+        None
+    }
+}
+
+/// Ends a runner's graph run in progress from another thread: the run returns an error soon
+/// after, instead of holding the one executor thread (a crafted graph's endless `Loop`).
+pub trait Interrupt: Send + Sync {
+    /// Asks the run in progress to end as soon as it can.
+    fn interrupt(&self);
+    /// Withdraws the request, before the runner's next run.
+    fn clear(&self);
 }
 
 /// The outputs of one graph run, looked up by name.

@@ -9,7 +9,10 @@ use crate::sysmem::MemoryProbe;
 
 pub(super) struct Shared {
     pub(super) queue: Mutex<Queue>,
+    /// The executor waits on it for jobs.
     pub(super) wake: Condvar,
+    /// The watchdog waits on it for the run in progress to change (`watchdog.rs`).
+    pub(super) watch: Condvar,
     pub(super) capacity: usize,
     pub(super) memory: Mutex<MemoryBudget>,
     pub(super) probe: Option<Arc<MemoryProbe>>,

@@ -1,6 +1,7 @@
-//! Whether the executor is stuck: one graph run going on long past its request's deadline (a
-//! crafted graph's endless `Loop`, a model whose warm-up missed its deadline). Nothing queued
-//! behind it can be answered in time, so `/readyz` says not ready until the run ends.
+//! Whether the executor is stuck: one graph run going on long past its request's deadline. The
+//! watchdog ends a run at its deadline (`watchdog.rs`); this is the run that did not end then
+//! (a runner that cannot be interrupted, one operator that does not read ONNX Runtime's flag).
+//! Nothing queued behind it can be answered in time, so `/readyz` says not ready until it ends.
 
 use std::time::{Duration, Instant};
 
@@ -14,7 +15,7 @@ impl BackendHandle {
     /// How long the graph run in progress has gone on past its request's deadline; `None` when
     /// none runs or it is within its deadline.
     pub fn overrun(&self) -> Option<Duration> {
-        let deadline = self.shared.lock().running?.deadline;
+        let deadline = self.shared.lock().running.as_ref()?.deadline;
         Instant::now().checked_duration_since(deadline)
     }
 

@@ -24,4 +24,4 @@ pub use manifest::{
     BandPolicy, BandRule, DepthNorm, Dim, GraphEntry, GuidedPolicy, Manifest, ModelConfig, TensorSpec, FORMAT_VERSION,
     VARIANTS,
 };
-pub use validate::validate_manifest;
+pub use validate::{model_id, validate_manifest};

@@ -1,12 +1,13 @@
 use super::load::verify_file;
 use super::*;
+use sha2::Digest;
 use std::path::Path;
 
 pub(crate) fn sample_manifest() -> Manifest {
     let renderer_sha = "ab".repeat(32);
     let json = serde_json::json!({
         "format_version": 1,
-        "model_id": format!("scnerf-scnerf-{}", &renderer_sha[..12]),
+        "model_id": "set below",
         "variant": "scnerf",
         "config": {"views": 3, "feature_channels": 32, "volume_channels": 8, "depth_planes": 128,
                    "samples": 128, "pad": 24, "image_multiple": 32, "depth_norm": "near_far"},
@@ -37,7 +38,9 @@ pub(crate) fn sample_manifest() -> Manifest {
         "provenance": {"source_checkpoint": "x", "source_sha256": "y", "exporter_version": "0.1.0",
                        "training": null, "metrics": null, "created": "2026-01-01T00:00:00Z"}
     });
-    serde_json::from_value(json).unwrap()
+    let mut manifest: Manifest = serde_json::from_value(json).unwrap();
+    manifest.model_id = manifest.expected_model_id();
+    manifest
 }
 
 #[test]
@@ -121,6 +124,22 @@ fn refuses_wrong_model_id() {
     assert!(validate_manifest(&m).unwrap_err().contains("model_id"));
 }
 
+/// The id covers every graph: a bundle whose encoder alone changed, with the id its renderer
+/// gave, is refused; the ids of two bundles that differ in one graph differ.
+#[test]
+fn the_model_id_covers_every_graph() {
+    let m = sample_manifest();
+    let mut other = m.clone();
+    other.graphs.get_mut("encoder").unwrap().sha256 = "11".into();
+    let e = validate_manifest(&other).unwrap_err();
+    assert!(e.contains(&format!("expected \"{}\"", other.expected_model_id())), "{e}");
+    assert_ne!(other.expected_model_id(), m.model_id);
+    // One line `name=sha256` per graph, in the names' order (docs/bundle.md).
+    let listing: String = m.graphs.iter().map(|(name, g)| format!("{name}={}\n", g.sha256)).collect();
+    let digest = hex::encode(sha2::Sha256::digest(listing));
+    assert_eq!(m.model_id, format!("scnerf-scnerf-{}", &digest[..12]));
+}
+
 /// The manifest of a bundle that builds its volume slab by slab (`scnerf-export split-volume`).
 fn slab_manifest() -> Manifest {
     let mut m = sample_manifest();
@@ -136,6 +155,7 @@ fn slab_manifest() -> Manifest {
     let graph = |file: &str, inputs, outputs| GraphEntry { file: file.into(), sha256: "00".into(), inputs, outputs };
     m.graphs.insert("cost_slab".into(), graph("cost_slab.onnx", inputs, vec![conv0(serde_json::json!("Ds"))]));
     m.graphs.insert("volume_net".into(), graph("volume_net.onnx", vec![conv0(serde_json::json!(128))], volume.outputs));
+    m.model_id = m.expected_model_id();
     m
 }
 
@@ -147,6 +167,7 @@ fn sweep_manifest() -> Manifest {
     let cost = serde_json::json!({"name": "cost", "shape": [1, 41, "Dh", "Hp", "Wp"], "dtype": "float32"});
     let inputs = vec![serde_json::from_value(cost).unwrap()];
     m.graphs.insert("cost_conv".into(), GraphEntry { file: "cost_conv.onnx".into(), inputs, ..slab });
+    m.model_id = m.expected_model_id();
     m
 }
 
@@ -346,7 +367,8 @@ fn a_graph_with_external_data_is_refused_before_onnx_runtime_sees_it() {
         serde_json::from_slice(&std::fs::read(dir.join("manifest.json")).unwrap()).unwrap();
     let sha = sha256_file(&dir.join("renderer.onnx")).unwrap();
     manifest["graphs"]["renderer"]["sha256"] = sha.clone().into();
-    manifest["model_id"] = format!("scnerf-{}-{}", manifest["variant"].as_str().unwrap(), &sha[..12]).into();
+    let mut manifest: Manifest = serde_json::from_value(manifest).unwrap();
+    manifest.model_id = manifest.expected_model_id();
     std::fs::write(dir.join("manifest.json"), serde_json::to_vec(&manifest).unwrap()).unwrap();
 
     let bundle = Bundle::load(&dir).unwrap();

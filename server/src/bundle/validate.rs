@@ -1,9 +1,32 @@
 //! The checks of a manifest that need no graph file: format, variant, hyper-parameters, and each
 //! graph's declared inputs and outputs against the contract.
 
+use sha2::{Digest, Sha256};
+
 use super::contract::check_declared_io;
 use super::graphs::{GraphKind, VolumeBuild, VolumeTail, GUIDED_GRAPHS};
 use super::manifest::{Manifest, ModelConfig, FORMAT_VERSION, VARIANTS};
+
+/// A bundle's id: its variant and the start of a sha256 over every graph's name and sha256, in
+/// the names' order, one `name=sha256` line each: a bundle any of whose graphs changed is a new
+/// model (its graphs hold their weights: `onnx_data.rs`). The exporter derives it the same way
+/// (`scnerf_export.export.manifest.model_id`); the committed manifests hold both to it.
+pub fn model_id<'a>(variant: &str, graphs: impl IntoIterator<Item = (&'a str, &'a str)>) -> String {
+    let mut graphs: Vec<(&str, &str)> = graphs.into_iter().collect();
+    graphs.sort_unstable();
+    let mut hasher = Sha256::new();
+    for (name, sha256) in graphs {
+        hasher.update(format!("{name}={sha256}\n"));
+    }
+    format!("scnerf-{variant}-{}", hex::encode(&hasher.finalize()[..6]))
+}
+
+impl Manifest {
+    /// The id this manifest's variant and graphs give (what `model_id` must say).
+    pub fn expected_model_id(&self) -> String {
+        model_id(&self.variant, self.graphs.iter().map(|(name, g)| (name.as_str(), g.sha256.as_str())))
+    }
+}
 
 /// Checks everything in the manifest that does not need the graph files.
 pub fn validate_manifest(m: &Manifest) -> Result<ModelConfig, String> {
@@ -37,8 +60,7 @@ pub fn validate_manifest(m: &Manifest) -> Result<ModelConfig, String> {
         }
     }
     validate_guided(m, &config)?;
-    let renderer_sha = &m.graphs["renderer"].sha256;
-    let expected_id = format!("scnerf-{}-{}", m.variant, &renderer_sha.get(..12).unwrap_or(renderer_sha));
+    let expected_id = m.expected_model_id();
     if m.model_id != expected_id {
         return Err(format!("model_id is \"{}\", expected \"{expected_id}\"", m.model_id));
     }

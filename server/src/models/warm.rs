@@ -5,6 +5,7 @@ use std::time::{Duration, Instant};
 use nalgebra::{Isometry3, Matrix3, Vector3};
 use ndarray::Array4;
 
+use crate::backend::BackendError;
 use crate::camera::CanonicalCamera;
 use crate::pipeline::scene::Timings;
 use crate::pipeline::Pipeline;
@@ -16,8 +17,8 @@ pub async fn warm_up(pipeline: &Pipeline) -> Result<Duration, String> {
 }
 
 /// [`warm_up`] that fails once `within` has passed: a graph crafted to run for minutes (a long
-/// `Loop`) is not served. The runs it queued are dropped with it; one in progress ends on its
-/// own, then the executor takes the next request's.
+/// `Loop`) is not served. The runs it queued are dropped with it; the one in progress is ended
+/// at the deadline (`backend/watchdog.rs`), then the executor takes the next request's.
 pub async fn warm_up_within(pipeline: &Pipeline, within: Duration) -> Result<Duration, String> {
     try_warm_up(pipeline, within).await.map_err(|e| e.to_string())
 }
@@ -35,17 +36,26 @@ pub enum WarmUpError {
 
 /// [`warm_up_within`], saying whose fault a failure is.
 pub async fn try_warm_up(pipeline: &Pipeline, within: Duration) -> Result<Duration, WarmUpError> {
-    match tokio::time::timeout(within, render(pipeline, Instant::now() + within)).await {
+    match tokio::time::timeout(within, render(pipeline, within)).await {
         Ok(done) => done,
-        Err(_) => Err(WarmUpError::Failed(format!(
-            "it did not finish within {} s (--warmup-timeout-secs)",
-            within.as_secs_f64()
-        ))),
+        Err(_) => Err(missed(within)),
     }
 }
 
-async fn render(pipeline: &Pipeline, deadline: Instant) -> Result<Duration, WarmUpError> {
-    let start = Instant::now();
+fn missed(within: Duration) -> WarmUpError {
+    WarmUpError::Failed(format!("it did not finish within {} s (--warmup-timeout-secs)", within.as_secs_f64()))
+}
+
+/// A graph run's failure; one ended at the deadline (`backend/watchdog.rs`) is the deadline missed.
+fn failed(error: BackendError, within: Duration) -> WarmUpError {
+    match error {
+        BackendError::DeadlineExceeded => missed(within),
+        error => WarmUpError::Failed(error.to_string()),
+    }
+}
+
+async fn render(pipeline: &Pipeline, within: Duration) -> Result<Duration, WarmUpError> {
+    let (start, deadline) = (Instant::now(), Instant::now() + within);
     let config = pipeline.config();
     let size = config.image_multiple;
     let cameras = warmup_cameras(config.views, size as u32);
@@ -64,13 +74,13 @@ async fn render(pipeline: &Pipeline, deadline: Instant) -> Result<Duration, Warm
     let scene = pipeline
         .build_scene(&ticket, &cameras, images.into_shared(), 2.0, 6.0, &mut timings)
         .await
-        .map_err(|e| WarmUpError::Failed(e.to_string()))?;
+        .map_err(|e| failed(e, within))?;
     // Every way of sampling the bundle has, so that each of its graphs has run once.
     for sampling in samplings {
         let view = pipeline
             .render_view(&ticket, &scene, &target, [0.0; 3], sampling, None, &mut timings)
             .await
-            .map_err(|e| WarmUpError::Failed(e.to_string()))?;
+            .map_err(|e| failed(e, within))?;
         if view.rgb.iter().chain(&view.depth).chain(&view.opacity).any(|v| !v.is_finite()) {
             return Err(WarmUpError::Failed(format!(
                 "the warm-up render ({sampling} sampling) produced non-finite values"

@@ -1,10 +1,13 @@
 //! Test support (not part of the API, and compiled only for tests: the unit tests, or the `testing`
 //! feature the test crates turn on): a fake graph runner with the bundle contract's shapes, a
 //! manifest for it, and request builders. Lets the HTTP layer be tested without ONNX Runtime.
-//! `models.rs`: servers of several models over fakes, and bundle folders on disk.
+//! `models.rs`: servers of several models over fakes, and bundle folders on disk; `interrupt.rs`:
+//! the fake runner's terminate flag.
 
+mod interrupt;
 mod models;
 
+pub use interrupt::FakeInterrupt;
 pub use models::{models_state, models_state_with, named_bundle, reload_state, write_bundle, FakeModel};
 
 use std::path::Path;
@@ -18,7 +21,7 @@ use scnerf_capture::camera::{Axes, Intrinsics, PoseKind};
 use scnerf_capture::wire::{WireCamera, WireIntrinsics, WirePose};
 
 use crate::backend::device::GraphOptLevel;
-use crate::backend::{BackendError, BackendHandle, ExecutorOptions, GraphRunner, NamedTensors, Tensor};
+use crate::backend::{BackendError, BackendHandle, ExecutorOptions, GraphRunner, Interrupt, NamedTensors, Tensor};
 use crate::bundle::GuidedPolicy;
 use crate::bundle::{validate_manifest, Bundle, GraphKind, Manifest};
 use crate::http::{AppState, ServiceOptions};
@@ -48,7 +51,7 @@ pub fn manifest(variant: &str, depth_norm: &str) -> Manifest {
     }
     let json = serde_json::json!({
         "format_version": 1,
-        "model_id": format!("scnerf-{variant}-{}", &sha[..12]),
+        "model_id": "set below",
         "variant": variant,
         "config": {"views": v, "feature_channels": c, "volume_channels": cv, "depth_planes": d,
                    "samples": 16, "pad": 2, "image_multiple": 32, "depth_norm": depth_norm,
@@ -71,7 +74,9 @@ pub fn manifest(variant: &str, depth_norm: &str) -> Manifest {
         "provenance": {"source_checkpoint": "fake", "source_sha256": "00", "exporter_version": "0.0.0",
                        "training": null, "metrics": null, "created": "2026-01-01T00:00:00Z"}
     });
-    serde_json::from_value(json).expect("test manifest")
+    let mut manifest: Manifest = serde_json::from_value(json).expect("test manifest");
+    manifest.model_id = manifest.expected_model_id();
+    manifest
 }
 
 pub fn bundle(variant: &str, depth_norm: &str) -> Bundle {
@@ -109,6 +114,7 @@ pub fn guided_manifest(variant: &str) -> Manifest {
     value["guided"] = serde_json::json!({"step": 4, "samples": [8, 4], "support_threshold": 0.001,
                                          "smooth_tolerance": 0.03, "smooth_max_step": 1});
     m = serde_json::from_value(value).expect("guided test manifest");
+    m.model_id = m.expected_model_id();
     m
 }
 
@@ -136,8 +142,10 @@ pub struct FakeRunner {
     pub config: crate::bundle::ModelConfig,
     /// Every call fails with this message (to test error paths).
     pub fail_with: Option<String>,
-    /// Sleep per call (to test deadlines and scheduling).
+    /// Sleep per call (to test deadlines and scheduling); the watchdog's interrupt ends it, as
+    /// ONNX Runtime's terminate flag ends a run.
     pub delay: Duration,
+    pub interrupt: Arc<FakeInterrupt>,
     /// Graph runs so far, by kind (`GraphKind::index`), to see which work was dropped.
     pub calls: Arc<[AtomicUsize; GraphKind::ALL.len()]>,
     /// The cameras each renderer run was fed, in order: to check them against a request's.
@@ -166,6 +174,7 @@ impl FakeRunner {
             config: bundle.config.clone(),
             fail_with: None,
             delay: Duration::ZERO,
+            interrupt: Arc::default(),
             calls: Arc::default(),
             renderer_cameras: Arc::default(),
             tint: 1.0,
@@ -178,9 +187,18 @@ fn input<'a>(inputs: &'a NamedTensors, name: &str) -> &'a Tensor {
 }
 
 impl GraphRunner for FakeRunner {
+    fn interrupter(&self) -> Option<Arc<dyn Interrupt>> {
+        Some(self.interrupt.clone())
+    }
+
     fn run(&mut self, graph: GraphKind, inputs: &NamedTensors) -> Result<NamedTensors, BackendError> {
         self.calls[graph.index()].fetch_add(1, Ordering::SeqCst);
-        std::thread::sleep(self.delay);
+        if self.interrupt.sleep(self.delay) {
+            return Err(BackendError::Run {
+                graph,
+                message: "Exiting due to terminate flag being set to true.".into(),
+            });
+        }
         if let Some(message) = &self.fail_with {
             return Err(BackendError::Run { graph, message: message.clone() });
         }

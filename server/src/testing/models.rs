@@ -125,7 +125,6 @@ pub fn write_bundle(dir: &Path, tint: f32) -> std::io::Result<()> {
         entry.sha256 = sha256_file(&path)?;
     }
     manifest.provenance["tint"] = tint.into();
-    // The model id is the renderer's hash (`validate_manifest`).
-    manifest.model_id = format!("scnerf-{}-{}", manifest.variant, &manifest.graphs["renderer"].sha256[..12]);
+    manifest.model_id = manifest.expected_model_id();
     std::fs::write(dir.join("manifest.json"), serde_json::to_vec_pretty(&manifest).map_err(std::io::Error::other)?)
 }
