@@ -286,10 +286,10 @@ class Refinement:
     def device(self) -> torch.device:
         return next(self.renderer.parameters()).device
 
-    def validate(self) -> dict:
+    def validate(self, go_back: bool = True) -> dict:
         """Scores the validation views as the server renders them: the base by its bundle's band
         rule, a step by the rule that scores it best. Keeps the weights when they beat every scored
-        step before; goes back to the best ones (``back_off``) when they do not."""
+        step before; when they do not and ``go_back``, goes back to the best ones (``back_off``)."""
         start = self.elapsed()
         by_rule = self.validation.scores(self.renderer)
         self.score_seconds = self.elapsed() - start
@@ -301,7 +301,7 @@ class Refinement:
             p.initial = p.best = result
         elif result["psnr"] > p.best["psnr"]:
             p.best, p.best_step, self.best_params = result, p.step, snapshot(self.params)
-        else:
+        elif go_back:
             self.back_off()
         self.since_score = 0.0
         return result
@@ -411,9 +411,10 @@ def train_to(run: Refinement, deadline: float, bar: tqdm, log) -> None:
 
 
 def finish(run: Refinement, bar: tqdm) -> None:
-    """The last validation, if a step came after the one before."""
+    """The last validation, if a step came after the one before. No step follows it, so it does not
+    back off: a rerun with more minutes (``keep_state``) goes on as a longer run would have."""
     if run.progress.history and run.progress.history[-1]["step"] != run.progress.step:
-        tqdm.write(report(run, run.validate()))
+        tqdm.write(report(run, run.validate(go_back=False)))
     bar.n = min(int(run.elapsed()), bar.total)
     bar.set_postfix_str(status(run))
 

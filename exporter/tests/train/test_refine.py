@@ -345,6 +345,20 @@ def test_a_scoring_below_the_best_goes_back_to_the_best_at_a_smaller_learning_ra
         assert torch.equal(p, run.best_params[name]), name
 
 
+def test_the_last_scoring_of_a_budget_does_not_back_off(loaded, tmp_path):
+    """No step follows it: a rerun with more minutes goes on from the last step at the same rate."""
+    run = banked(fresh_run(loaded, tmp_path))
+    run.validate()
+    with torch.no_grad():
+        for p in run.params.values():
+            p.add_(torch.randn(p.shape, generator=torch.Generator().manual_seed(0)))
+    run.step()
+    last = snapshot(run.params)
+    assert run.validate(go_back=False)["psnr"] < run.progress.best["psnr"]
+    assert run.learning_rate() == QUICK.lr and run.progress.best_step == 0
+    assert all(torch.equal(p, last[k]) for k, p in run.params.items())
+
+
 def test_a_resumed_run_continues_as_the_uninterrupted_one(loaded, tmp_path):
     whole = banked(fresh_run(loaded, tmp_path / "whole"))
     whole.validate()
