@@ -35,7 +35,6 @@ once per banked view.
 
 from __future__ import annotations
 
-import copy
 import ctypes
 import hashlib
 import json
@@ -657,6 +656,6 @@ def write(run: Refinement, manifest, base: Path, out: Path, about: dict, identit
     model = None
     if p.best_step > 0:
         restore(run.params, run.best_params)
-        model = copy.deepcopy(run.model).cpu()
+        model = run.model.cpu()  # the graphs are exported and checked on the CPU; nothing trains after
     written = write_bundle(base, manifest, model, out, record, run.work / "staging", p.best["band"])
     return Result(out, written.model_id, record, interrupted)
