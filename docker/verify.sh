@@ -399,9 +399,12 @@ run_refine() {
 import json, sys
 m = json.load(open(sys.argv[1]))
 r = m["provenance"]["refinement"]
-h = r["held_out_psnr"]
-print(f"  {r['base_model_id']} -> {m['model_id']}: held-out PSNR {h['before']:.2f} -> {h['after']:.2f} dB, step {r['steps']}")
-assert r["capture"]["folder"] == "c" and r["held_out"] and h["after"] >= h["before"]
+h, v = r["held_out_psnr"], r["validation_psnr"]
+print(f"  {r['base_model_id']} -> {m['model_id']}: held-out PSNR {h['before']:.2f} -> {h['after']:.2f} dB, "
+      f"step {r['steps']} kept on validation PSNR {v['before']:.2f} -> {v['after']:.2f} dB")
+# The kept step is the validation views' best, the base included; the held-out views only report.
+assert r["capture"]["folder"] == "c" and r["held_out"] and r["validation"] and v["after"] >= v["before"]
+assert not set(r["held_out"]) & set(r["validation"]) and not set(r["training"]) & set(r["held_out"] + r["validation"])
 PY
 }
 

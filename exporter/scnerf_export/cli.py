@@ -154,19 +154,24 @@ def cmd_refine(args) -> None:
             max_pixels=args.max_source_pixels,
             holdout=args.holdout,
             targets=split_list(args.targets),
+            validation=split_list(args.validation),
             threads=args.threads,
-            keep_banks=args.keep_banks,
+            keep_state=args.keep_state,
             near=args.near,
             far=args.far,
             ignore_distortion=args.ignore_distortion,
+            device=args.device,
         )
     except KeyboardInterrupt:
         print("scnerf-export refine: interrupted before the base was scored: nothing written", file=sys.stderr)
         raise SystemExit(130) from None
-    held = result.record["held_out_psnr"]
-    steps = f"step {result.record['steps']} of {result.record['steps_run']}, {result.record['minutes']:.1f} min"
+    record = result.record
+    held, checks = record["held_out_psnr"], record["validation_psnr"]
+    steps = f"step {record['steps']} of {record['steps_run']}, {record['minutes']:.1f} min"
     print(
-        f"wrote {result.out} ({result.model_id}; {steps}): held-out PSNR {held['before']:.2f} -> {held['after']:.2f} dB"
+        f"wrote {result.out} ({result.model_id}; {steps}): "
+        f"held-out PSNR {held['before']:.2f} -> {held['after']:.2f} dB "
+        f"(kept on validation PSNR {checks['before']:.2f} -> {checks['after']:.2f} dB)"
     )
     if result.interrupted:
         raise SystemExit(130)
@@ -419,20 +424,24 @@ def parser() -> argparse.ArgumentParser:
 
 
 def add_refine_parser(sub) -> None:
+    from .train.refine import DEVICES
     from .train.refine import Recipe as RefineRecipe
     from .train.refine_capture import MAX_SOURCE_PIXELS
 
     defaults = RefineRecipe()
     r = sub.add_parser(
         "refine",
-        help="fine-tune a bundle's network on one capture's views, scored on held-out views -> bundle",
+        help="fine-tune a bundle's network on one capture's views, chosen on validation views -> bundle",
         description="Fine-tune a bundle's renderer (trunk M1 and heads; the encoder and volume graphs stay) on "
-        "a capture's own views, each rendered from its 3 nearest training views as the server renders it; "
-        "held-out views are scored, never trained on, and the best-scoring step is written as a bundle. "
-        "Ctrl-C writes the best so far; the same command again resumes. docs/refine.md.",
+        "a capture's own views, each rendered from its 3 nearest training views as the server renders it. "
+        "Validation views (taken from the training views) are scored as training goes and choose the step "
+        "written as a bundle; held-out views are scored before and after, for the record. Neither is ever "
+        "trained on nor a source. Ctrl-C writes the best so far; the same command again resumes. docs/refine.md.",
     )
     r.add_argument("data", type=Path, help="capture folder (COLMAP, nerfstudio, Blender, LLFF, DTU) or transforms file")
-    r.add_argument("--out", required=True, type=Path, help="bundle folder to write (its .refine/ holds the state)")
+    r.add_argument(
+        "--out", required=True, type=Path, help="bundle folder to write (its .refine/ holds the state until the end)"
+    )
     r.add_argument("--minutes", type=float, default=defaults.minutes, help="time budget, writing included")
     held = r.add_mutually_exclusive_group()
     held.add_argument(
@@ -442,7 +451,13 @@ def add_refine_parser(sub) -> None:
         help="hold out every K-th view (default: the capture's "
         "own targets, e.g. Blender's val or DTU's test views, else every 8th)",
     )
-    held.add_argument("--targets", help="comma-separated names of the views to hold out")
+    held.add_argument("--targets", metavar="NAMES", help="comma-separated names of the views to hold out")
+    r.add_argument(
+        "--validation",
+        metavar="NAMES",
+        help="comma-separated names of the training views that choose the kept step, not held out "
+        "(default: 1 in 8 of the views left after the hold-out, at least one)",
+    )
     r.add_argument(
         "--from", dest="base", type=Path, help="bundle to refine (default $SCNERF_BUNDLE, else bundles/default)"
     )
@@ -472,7 +487,17 @@ def add_refine_parser(sub) -> None:
     r.add_argument("--rays", type=int, default=defaults.rays, help="rays per step")
     r.add_argument("--seed", type=int, default=defaults.seed)
     r.add_argument("--threads", type=int)
-    r.add_argument("--keep-banks", action="store_true", help="keep the ray banks (OUT/.refine/banks) at the end")
+    r.add_argument(
+        "--device",
+        choices=DEVICES,
+        default="auto",
+        help="where steps run: auto (default) is cuda when PyTorch sees a GPU, else cpu",
+    )
+    r.add_argument(
+        "--keep-state",
+        action="store_true",
+        help="keep OUT/.refine (state and ray banks) at the end, so that a rerun with more --minutes goes on",
+    )
     r.set_defaults(func=cmd_refine)
 
 

@@ -10,19 +10,27 @@ from the 3 training views nearest to it (``cameras.rank_sources``), at the S uni
 the capture's [near, far]. Which of those train is the recipe's ``train`` (docs/results.md,
 "Refining a capture", says what the recipe's choices gave).
 
-Held-out views are never sources and never drawn for a step; a fixed sample of their pixels is
-scored as the server renders them (the band stage by each of its rules) before training, every
-``score_every_s`` seconds of training and at the end, and the scored step with the best mean PSNR,
-with its band rule, is what the bundle keeps (the base itself if no step beats it). A scoring below
-the best sends training back to the best weights at a smaller learning rate (``back_off``).
+Validation views (by default 1 in 8 of the views left after the hold-out, ``split_views``) and
+held-out views are never sources and never drawn for a step. A fixed sample of the validation
+views' pixels is scored as the server renders them (the band stage by each of its rules) before
+training, every ``score_every_s`` seconds of training and at the end: the scored step with the best
+mean PSNR, with its band rule, is what the bundle keeps (the base itself if no step beats it), and
+a scoring below the best sends training back to the best weights at a smaller learning rate
+(``back_off``). The held-out views are scored twice, for the record only: the base before
+training, the kept step by its band rule when the bundle is written.
 
 The run keeps to a time budget (``minutes``: banking, training, scoring and writing the bundle),
 and to a budget of ``steps`` where the recipe sets one.
 Views are banked in an order that spreads over the capture (``spread_order``), between stretches
 of training as long as the banking took, so a short budget trains on views from all around. The
 work folder (``OUT/.refine``) holds the state (weights, optimiser, best step, time spent) and the
-banks: Ctrl-C (or SIGTERM) stops, writes the best bundle so far and keeps the state, and the same
-command run again resumes until the budget is spent.
+banks: Ctrl-C (or SIGTERM) stops, writes the bundle of the best step so far and keeps the state,
+and the same command run again resumes until the budget is spent. A run that spends its budget
+removes the work folder (``keep_state`` keeps it: a rerun with more minutes then goes on).
+
+Steps run on ``device`` (CUDA where PyTorch sees a GPU, by default): the renderer and each step's
+rays there, the banks in host memory. The encoder and volume graphs run in ONNX Runtime on the CPU,
+once per banked view.
 """
 
 from __future__ import annotations
@@ -43,6 +51,7 @@ import torch
 from tqdm import tqdm
 
 from .. import __version__
+from ..export.manifest import BAND_RULES
 from ..runtime.band import Sources
 from ..runtime.onnx_pipeline import OnnxBundle
 from .from_scratch import hardware
@@ -67,8 +76,8 @@ class Recipe:
     rays: int = 256  # per step
     rays_per_view: int = 4096  # banked per training view, at most
     bank_rays: int = 1 << 17  # banked over all training views, at most (~16 KB each)
-    held_out_rays: int = 8192  # scored over all held-out views
-    min_held_out_rays: int = 512  # scored per held-out view, at least
+    scored_rays: int = 8192  # scored over all validation views, and as many over all held-out views
+    min_scored_rays: int = 512  # scored per validation or held-out view, at least
     score_every_s: float = 90.0  # seconds of training between scorings
     # A budget of steps besides the minutes, and scorings every so many steps instead of seconds:
     # a run that does the same work on any machine (tests, comparisons of recipes).
@@ -133,16 +142,33 @@ class Progress:
     step: int = 0
     seconds: float = 0.0  # banking, training and scoring, over every run
     best_step: int = 0
-    initial: dict | None = None  # the base's held-out scores
+    initial: dict | None = None  # the base's validation scores
     best: dict | None = None  # the kept step's
-    history: list = field(default_factory=list)  # every scoring: step, seconds, scores
+    held_out_before: dict | None = None  # the base's held-out scores, for the record only
+    history: list = field(default_factory=list)  # every validation scoring: step, seconds, scores
+
+
+@dataclass
+class ScoredViews:
+    """Views scored as the server renders them (validation or held-out): a fixed sample of their
+    pixels, banked, and each view's three sources for the band stage."""
+
+    names: list[str]
+    bank: PointBank
+    sources: list[Sources]
+
+    def scores(self, renderer, rules: tuple[str, ...] = BAND_RULES) -> dict[str, dict]:
+        """By each band rule of ``rules``: ``refine_bank.score``."""
+        return score(renderer, self.bank, self.names, self.sources, rules)
 
 
 class Refinement:
     """One capture's refinement: the banks, the optimiser, the schedule and the best step so far."""
 
-    def __init__(self, model, capture: Capture, split: Split, onnx: OnnxBundle, recipe: Recipe, work: Path):
-        self.model = model.eval()
+    def __init__(
+        self, model, capture: Capture, split: Split, onnx: OnnxBundle, recipe: Recipe, work: Path, device="cpu"
+    ):
+        self.model = model.to(device).eval()
         self.renderer = model.renderer
         self.capture, self.split, self.onnx, self.recipe, self.work = capture, split, onnx, recipe, work
         self.params = trainable(self.renderer, recipe.train)
@@ -153,10 +179,10 @@ class Refinement:
         self.pending = spread_order(capture.scene, split.training)
         self.banked: list[str] = []
         self.train_bank: PointBank | None = None
-        self.held_bank: PointBank | None = None
-        self.held_sources: list[Sources] = []
+        self.validation: ScoredViews | None = None
+        self.held_out: ScoredViews | None = None
         self.clock = time.perf_counter()
-        self.since_bank = self.since_score = self.bank_seconds = self.score_seconds = 0.0
+        self.since_bank = self.since_score = self.bank_seconds = self.score_seconds = self.held_seconds = 0.0
         self.loss = float("nan")
         self.identity: dict = {}
 
@@ -198,16 +224,19 @@ class Refinement:
         path.with_suffix(".tmp").replace(path)
         return bank
 
-    def bank_held_out(self) -> None:
-        held = self.split.held_out
-        count = max(self.recipe.min_held_out_rays, self.recipe.held_out_rays // len(held))
-        self.held_bank = PointBank.concat([self._bank(name, i, count) for i, name in enumerate(held)])
-        views = self.capture.scene.views
-        for name in held:
-            sources = [views[s] for s in self.split.sources[name]]
-            self.held_sources.append(
-                Sources.of_views(np.stack([v.image for v in sources]), [v.camera for v in sources])
-            )
+    def _bank_scored(self, names: list[str]) -> ScoredViews:
+        count = max(self.recipe.min_scored_rays, self.recipe.scored_rays // len(names))
+        bank = PointBank.concat([self._bank(name, i, count) for i, name in enumerate(names)])
+        views, sources = self.capture.scene.views, []
+        for name in names:
+            triple = [views[s] for s in self.split.sources[name]]
+            sources.append(Sources.of_views(np.stack([v.image for v in triple]), [v.camera for v in triple]))
+        return ScoredViews(names, bank, sources)
+
+    def bank_scored_views(self) -> None:
+        """Banks the validation and the held-out views' scored pixels (never the rays steps draw from)."""
+        self.validation = self._bank_scored(self.split.validation)
+        self.held_out = self._bank_scored(self.split.held_out)
 
     def bank_next(self) -> None:
         """Banks the next training view and adds it to the rays steps draw from."""
@@ -240,7 +269,8 @@ class Refinement:
         """One optimiser step on random banked rays of the training views; the loss before it."""
         start = self.elapsed()
         idx = torch.randint(len(self.train_bank), (self.recipe.rays,), generator=self.generator)
-        loss = torch.mean((shade(self.renderer, self.train_bank, idx) - self.train_bank.truth[idx]) ** 2)
+        truth = self.train_bank.truth[idx].to(self.device)
+        loss = torch.mean((shade(self.renderer, self.train_bank, idx) - truth) ** 2)
         self.optimiser.zero_grad(set_to_none=True)
         loss.backward()
         self.optimiser.step()
@@ -251,12 +281,16 @@ class Refinement:
         self.loss = float(loss.detach())
         return self.loss
 
-    def score(self) -> dict:
-        """Scores the held-out views as the server renders them: the base by its bundle's band rule,
-        a step by the rule that scores it best. Keeps the weights when they beat every scored step
-        before."""
+    @property
+    def device(self) -> torch.device:
+        return next(self.renderer.parameters()).device
+
+    def validate(self, go_back: bool = True) -> dict:
+        """Scores the validation views as the server renders them: the base by its bundle's band
+        rule, a step by the rule that scores it best. Keeps the weights when they beat every scored
+        step before; when they do not and ``go_back``, goes back to the best ones (``back_off``)."""
         start = self.elapsed()
-        by_rule = score(self.renderer, self.held_bank, self.split.held_out, self.held_sources)
+        by_rule = self.validation.scores(self.renderer)
         self.score_seconds = self.elapsed() - start
         p = self.progress
         rule = self.onnx.manifest.band if p.initial is None else max(by_rule, key=lambda r: by_rule[r]["psnr"])
@@ -266,17 +300,37 @@ class Refinement:
             p.initial = p.best = result
         elif result["psnr"] > p.best["psnr"]:
             p.best, p.best_step, self.best_params = result, p.step, snapshot(self.params)
-        else:
+        elif go_back:
             self.back_off()
         self.since_score = 0.0
         return result
+
+    def score_held_out(self, rule: str) -> dict:
+        """The held-out views' scores by the band rule ``rule``: for the record, never for a choice."""
+        start = self.elapsed()
+        result = {**self.held_out.scores(self.renderer, (rule,))[rule], "band": rule}
+        self.held_seconds = self.elapsed() - start
+        return result
+
+    def score_base(self) -> tuple[dict, dict]:
+        """The base's validation and held-out scores, by its bundle's band rule, once per run."""
+        self.progress.held_out_before = self.score_held_out(self.onnx.manifest.band)
+        return self.validate(), self.progress.held_out_before
+
+    def held_out_after(self) -> dict:
+        """The kept step's held-out scores, by its band rule: the kept weights are restored."""
+        p = self.progress
+        if p.best_step == 0:
+            return p.held_out_before
+        restore(self.params, self.best_params)
+        return self.score_held_out(p.best["band"])
 
     def learning_rate(self) -> float:
         return self.optimiser.param_groups[0]["lr"]
 
     def back_off(self) -> None:
         """The best step's weights again, a smaller learning rate and fresh moments: the steps since
-        the best went the wrong way for the held-out views. A capture the base already fits (DTU's,
+        the best went the wrong way for the validation views. A capture the base already fits (DTU's,
         which MVSNeRF trained on) needs a far smaller rate than one it does not (LLFF's)."""
         restore(self.params, self.best_params)
         lr = self.learning_rate() / self.recipe.backoff
@@ -305,7 +359,7 @@ class Refinement:
     def load(self, state: dict) -> None:
         self.progress = Progress(**state["progress"])
         restore(self.params, state["params"])
-        self.best_params = state["best_params"]
+        self.best_params = {k: v.to(self.device) for k, v in state["best_params"].items()}
         self.optimiser.load_state_dict(state["optimiser"])
         self.generator.set_state(state["generator"])
 
@@ -315,23 +369,28 @@ class Refinement:
 
 def status(run: Refinement) -> str:
     p = run.progress
-    held = "" if p.best is None else f", held-out {p.history[-1]['psnr']:.2f} dB (best {p.best['psnr']:.2f})"
+    scored = "" if p.best is None else f", validation {p.history[-1]['psnr']:.2f} dB (best {p.best['psnr']:.2f})"
     views = f"views {len(run.banked)}/{len(run.split.training)}"
-    return f"step {p.step}, loss {run.loss:.4f}{held}, {views}"
+    return f"step {p.step}, loss {run.loss:.4f}{scored}, {views}"
+
+
+def gain_line(what: str, before: dict, after: dict) -> str:
+    """``what``'s PSNR ``after`` and its gain over ``before``, and on object masks where there are some."""
+    line = f"{what} PSNR {after['psnr']:.2f} dB ({after['psnr'] - before['psnr']:+.2f})"
+    if "psnr_masked" in after:
+        line += f", masked {after['psnr_masked']:.2f} dB ({after['psnr_masked'] - before['psnr_masked']:+.2f})"
+    return line
 
 
 def report(run: Refinement, result: dict) -> str:
     p = run.progress
-    gain = result["psnr"] - p.initial["psnr"]
-    line = f"step {p.step} ({run.elapsed() / 60:.1f} min): held-out PSNR {result['psnr']:.2f} dB ({gain:+.2f})"
-    if "psnr_masked" in result:
-        line += f", masked {result['psnr_masked']:.2f} dB ({result['psnr_masked'] - p.initial['psnr_masked']:+.2f})"
+    line = f"step {p.step} ({run.elapsed() / 60:.1f} min): " + gain_line("validation", p.initial, result)
     return line + f", band filled {result['band'].replace('_', ' ')}; best step {p.best_step}"
 
 
 def train_to(run: Refinement, deadline: float, bar: tqdm, log) -> None:
     """Banks views and trains until ``deadline`` (seconds of the run's clock) or the recipe's steps,
-    scoring as it goes."""
+    validating as it goes."""
     while run.elapsed() < deadline and not run.steps_spent():
         if run.wants_bank():
             bar.set_description(f"refine (banking {run.pending[0]})")
@@ -343,7 +402,7 @@ def train_to(run: Refinement, deadline: float, bar: tqdm, log) -> None:
             loss = run.step()
             log.write(json.dumps({"step": run.progress.step, "loss": loss, "seconds": run.elapsed()}) + "\n")
             if run.wants_score():
-                tqdm.write(report(run, run.score()))
+                tqdm.write(report(run, run.validate()))
                 run.save()  # a run killed outright resumes from here
         bar.n = min(int(run.elapsed()), bar.total)
         bar.set_postfix_str(status(run), refresh=False)
@@ -351,9 +410,10 @@ def train_to(run: Refinement, deadline: float, bar: tqdm, log) -> None:
 
 
 def finish(run: Refinement, bar: tqdm) -> None:
-    """The last scoring, if a step came after the one before."""
+    """The last validation, if a step came after the one before. No step follows it, so it does not
+    back off: a rerun with more minutes (``keep_state``) goes on as a longer run would have."""
     if run.progress.history and run.progress.history[-1]["step"] != run.progress.step:
-        tqdm.write(report(run, run.score()))
+        tqdm.write(report(run, run.validate(go_back=False)))
     bar.n = min(int(run.elapsed()), bar.total)
     bar.set_postfix_str(status(run))
 
@@ -378,6 +438,19 @@ def sigterm_as_interrupt():
 
 # ------------------------------------------------------------------------------------------ the command
 
+DEVICES = ("auto", "cuda", "cpu")
+
+
+def resolve_device(name: str) -> torch.device:
+    """``cuda``, ``cpu``, or ``auto``: CUDA where PyTorch sees a GPU, else the CPU."""
+    if name not in DEVICES:
+        raise RefineError(f"--device {name}: choose {', '.join(DEVICES)}")
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    elif name == "cuda" and not torch.cuda.is_available():
+        raise RefineError("--device cuda: PyTorch sees no CUDA GPU (a CPU-only torch, or no driver); pass --device cpu")
+    return torch.device(name)
+
 
 @dataclass
 class Result:
@@ -393,6 +466,7 @@ def identity_of(about: dict, capture: Capture, split: Split, recipe: Recipe) -> 
         "base_model_id": about["base_model_id"],
         "capture_sha256": capture.sha256,
         "held_out": split.held_out,
+        "validation": split.validation,
         "training": split.training,
         "train": list(recipe.train),
     }
@@ -406,9 +480,10 @@ def check_out(out: Path, base: Path, identity: dict) -> dict | None:
     path = out / ".refine" / "state.pt"
     if not path.is_file():
         if (out / "manifest.json").is_file():
-            raise RefineError(f"{out} holds a bundle that refine did not write: pass another --out")
+            what = "a finished refinement" if refined_bundle(out) else "a bundle that refine did not write"
+            raise RefineError(f"{out} holds {what}: pass another --out, or remove {out}")
         return None
-    state = torch.load(path, weights_only=False)
+    state = torch.load(path, weights_only=False, map_location="cpu")
     differ = [k for k in identity if state["identity"].get(k) != identity[k]]
     if differ:
         raise RefineError(
@@ -417,20 +492,34 @@ def check_out(out: Path, base: Path, identity: dict) -> dict | None:
     return state
 
 
-def refinement_record(run: Refinement, about: dict, interrupted: bool) -> dict:
+def refined_bundle(folder: Path) -> bool:
+    """Whether ``folder``'s manifest says refine wrote it."""
+    try:
+        return "refinement" in json.loads((folder / "manifest.json").read_text()).get("provenance", {})
+    except (OSError, ValueError, AttributeError):
+        return False
+
+
+def before_after(before: dict, after: dict, names: list[str], pixels: int) -> dict:
+    """PSNR ``before`` and ``after`` (means, masked means, per view) of the views ``names``."""
+    record = {"before": before["psnr"], "after": after["psnr"]}
+    if "psnr_masked" in before:
+        record.update(masked_before=before["psnr_masked"], masked_after=after["psnr_masked"])
+    record["views"] = {n: [before["views"][n], after["views"][n]] for n in names}
+    record["pixels"] = pixels
+    return record
+
+
+def refinement_record(run: Refinement, about: dict, held_out_after: dict, interrupted: bool) -> dict:
     """``provenance.refinement`` of the bundle written."""
-    p, recipe = run.progress, run.recipe
-    held = {"before": p.initial["psnr"], "after": p.best["psnr"]}
-    if "psnr_masked" in p.initial:
-        held.update(masked_before=p.initial["psnr_masked"], masked_after=p.best["psnr_masked"])
-    held["views"] = {n: [p.initial["views"][n], p.best["views"][n]] for n in run.split.held_out}
-    held["pixels"] = len(run.held_bank)
+    p, recipe, split = run.progress, run.recipe, run.split
     return {
         "exporter_version": __version__,
         **about,
         "capture": run.capture.describe(),
-        "held_out": run.split.held_out,
-        "training": run.split.training,
+        "held_out": split.held_out,
+        "validation": split.validation,
+        "training": split.training,
         "trained": sorted(m for g in recipe.train for m in MODULES[g] if getattr(run.renderer, m, None) is not None),
         "recipe": {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(recipe).items()},
         "sampling": f"{run.renderer.cfg.samples} uniform samples per ray on the capture's [near, far]",
@@ -438,10 +527,14 @@ def refinement_record(run: Refinement, about: dict, interrupted: bool) -> dict:
         "steps": p.best_step,
         "steps_run": p.step,
         "minutes": round(run.elapsed() / 60.0, 2),
-        "held_out_psnr": held,
-        "selection": "the scored step with the best mean held-out PSNR, the base included, with the band rule "
-        "that scores it best (held-out views are never sources and never in a step)",
+        "validation_psnr": before_after(p.initial, p.best, split.validation, len(run.validation.bank)),
+        "held_out_psnr": before_after(p.held_out_before, held_out_after, split.held_out, len(run.held_out.bank)),
+        "scorings": [[h["step"], round(h["psnr"], 4)] for h in p.history],
+        "selection": "the validation scoring with the best mean PSNR, the base included, with the band rule that "
+        "scores it best; held-out views scored for the record only, the base and the kept step (neither "
+        "validation nor held-out views are ever sources or in a step)",
         "hardware": hardware(),
+        "device": str(run.device),
         "interrupted": interrupted,
     }
 
@@ -472,26 +565,30 @@ def refine(
     max_pixels: int = MAX_SOURCE_PIXELS,
     holdout: int | None = None,
     targets: list[str] | None = None,
+    validation: list[str] | None = None,
     threads: int | None = None,
-    keep_banks: bool = False,
+    keep_state: bool = False,
     near: float | None = None,
     far: float | None = None,
     ignore_distortion: bool = False,
+    device: str = "auto",
 ) -> Result:
     """Refine ``base`` (default :func:`default_bundle`) on the capture ``data``; write the bundle to
-    ``out``. The banks are removed once the budget is spent, unless ``keep_banks``. ``near``/``far``
-    override the capture's depth range (its files', else its poses'); ``ignore_distortion`` uses
-    distorted photos as pinhole (:func:`.refine_capture.read_capture`)."""
+    ``out``. The work folder (``out/.refine``: state and banks) is removed once the budget is spent,
+    unless ``keep_state``. ``near``/``far`` override the capture's depth range (its files', else its
+    poses'); ``ignore_distortion`` uses distorted photos as pinhole (:func:`.refine_capture.read_capture`);
+    ``device``: :func:`resolve_device`."""
     if threads:
         torch.set_num_threads(threads)
     out, base = Path(out), Path(base) if base else default_bundle()
+    where = resolve_device(device)
     capture = read_capture(data, fmt, downscale, max_pixels, near, far, ignore_distortion)
-    split = split_views(capture.scene, holdout, targets)
+    split = split_views(capture.scene, holdout, targets, validation)
     model, manifest, about = base_model(base, checkpoint)
     identity = identity_of(about, capture, split, recipe)
     state = check_out(out, base, identity)
     onnx = OnnxBundle(base, threads=threads, plane_sweep=sweep_in_torch)
-    run = Refinement(model, capture, split, onnx, recipe, out / ".refine")
+    run = Refinement(model, capture, split, onnx, recipe, out / ".refine", where)
     run.identity = identity
     if state is not None:
         run.load(state)
@@ -501,16 +598,16 @@ def refine(
             run_budget(run, about)
     except KeyboardInterrupt:
         interrupted = True
-        tqdm.write("interrupted: writing the best bundle so far; run the same command again to resume")
+        tqdm.write("interrupted: writing the bundle of the best step so far; run the same command again to resume")
     result = write(run, manifest, base, out, about, identity, interrupted)
-    if not (interrupted or keep_banks):
-        shutil.rmtree(run.work / "banks", ignore_errors=True)
+    if not (interrupted or keep_state):
+        shutil.rmtree(run.work, ignore_errors=True)
     return result
 
 
 def run_budget(run: Refinement, about: dict) -> None:
-    """The held-out views banked and the base scored, then banking and training to the end of the
-    budget, less what the last scoring and the bundle's writing take."""
+    """The validation and held-out views banked and the base scored, then banking and training to
+    the end of the budget, less what the last scorings and the bundle's writing take."""
     recipe = run.recipe
     budget = recipe.minutes * 60.0
     run.start_clock()
@@ -520,34 +617,45 @@ def run_budget(run: Refinement, about: dict) -> None:
         total=int(budget),
         initial=int(run.elapsed()),
         unit="s",
-        desc="refine (banking held-out views)",
+        desc="refine (banking validation and held-out views)",
         bar_format="{desc}{percentage:3.0f}%|{bar}| {elapsed}<{remaining}{postfix}",
         dynamic_ncols=True,
     )
     run.work.mkdir(parents=True, exist_ok=True)
     with open(run.work / "log.jsonl", "a") as log:
         try:
-            run.bank_held_out()
+            run.bank_scored_views()
             if run.progress.initial is None:
-                tqdm.write(f"base {about['base_model_id']}: " + report(run, run.score()))
+                validation, held_out = run.score_base()
+                tqdm.write(
+                    f"base {about['base_model_id']}: validation PSNR {validation['psnr']:.2f} dB, "
+                    f"held-out PSNR {held_out['psnr']:.2f} dB (the record's before)"
+                )
             bar.set_description("refine")
-            train_to(run, budget - recipe.write_reserve_s - run.score_seconds, bar, log)
+            last_scorings = run.score_seconds + run.held_seconds
+            train_to(run, budget - recipe.write_reserve_s - last_scorings, bar, log)
             finish(run, bar)
         finally:
             bar.close()
 
 
 def write(run: Refinement, manifest, base: Path, out: Path, about: dict, identity: dict, interrupted: bool) -> Result:
-    """Saves the run's state and writes the bundle of its best step (the base's renderer if none beat it)."""
+    """Saves the run's state, scores the kept step's held-out views and writes its bundle (the
+    base's renderer if no step beat it)."""
     run.save(identity)
-    if run.progress.initial is None:
+    p = run.progress
+    if p.initial is None:
         if interrupted:
             raise KeyboardInterrupt
-        raise RefineError(f"the budget of {run.recipe.minutes:g} minutes ended before the held-out views were scored")
-    record = refinement_record(run, about, interrupted)
+        raise RefineError(f"the budget of {run.recipe.minutes:g} minutes ended before the base was scored")
+    if run.held_out is None:  # resumed with its budget spent: nothing banked in this run
+        run.bank_scored_views()
+    held_out = run.held_out_after()
+    tqdm.write(f"kept step {p.best_step}: " + gain_line("held-out", p.held_out_before, held_out))
+    record = refinement_record(run, about, held_out, interrupted)
     model = None
-    if run.progress.best_step > 0:
+    if p.best_step > 0:
         restore(run.params, run.best_params)
-        model = run.model
-    written = write_bundle(base, manifest, model, out, record, run.work / "staging", run.progress.best["band"])
+        model = run.model.cpu()  # the graphs are exported and checked on the CPU; nothing trains after
+    written = write_bundle(base, manifest, model, out, record, run.work / "staging", p.best["band"])
     return Result(out, written.model_id, record, interrupted)

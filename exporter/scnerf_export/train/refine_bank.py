@@ -10,8 +10,8 @@ the reference frame. A step then runs M1 and the heads on banked rays, never G1 
 Each view is encoded as the server encodes it: its 3 sources through the bundle's own encoder and
 volume graphs in ONNX Runtime (``OnnxBundle.encode_scene``: padding, the plane sweep by
 ``sweep_in_torch``), the S uniform samples of [near, far] on rays through pixel centres,
-``depth_range = [near, far]``. Held-out views are scored as the server renders them, the band
-stage included (``score``: each of its rules).
+``depth_range = [near, far]``. Validation and held-out views are scored as the server renders
+them, the band stage included (``score``: by each of its rules).
 """
 
 from __future__ import annotations
@@ -176,24 +176,35 @@ def bank_view(
     ).storable()
 
 
+def device_of(renderer: RayRenderer) -> torch.device:
+    return next(renderer.parameters()).device
+
+
 def radiance_points(renderer: RayRenderer, bank: PointBank, idx: torch.Tensor) -> RadiancePoints:
-    """The rays ``idx`` through M1 (with gradients when enabled): what the heads read."""
-    rays = idx.shape[0]
+    """The rays ``idx`` through M1 (with gradients when enabled): what the heads read. The bank
+    stays where it is (host memory); the rays drawn go to the renderer's device."""
+    rays, device = idx.shape[0], device_of(renderer)
+
+    def drawn(x: torch.Tensor) -> torch.Tensor:
+        return x[idx].to(device, non_blocking=True)
 
     def channels_first(x: torch.Tensor) -> torch.Tensor:  # (R,K,S) -> (K, R*S)
-        return x[idx].float().transpose(0, 1).reshape(x.shape[1], -1)
+        return drawn(x).float().transpose(0, 1).reshape(x.shape[1], -1)
 
     f = channels_first(bank.point_features)
-    encoding = frequency_encoding(bank.frustum[idx].reshape(-1, 3), renderer.cfg.position_freqs)
+    encoding = frequency_encoding(drawn(bank.frustum).reshape(-1, 3), renderer.cfg.position_freqs)
     appearance = channels_first(bank.appearance) if renderer.appearance is not None else None
     radiance = renderer.m1(encoding, f.transpose(0, 1))
-    return RadiancePoints(bank.z, radiance.view(rays * bank.z.shape[0], -1), f, appearance, bank.ref_dir[idx])
+    z = bank.z.to(device)
+    return RadiancePoints(z, radiance.view(rays * z.shape[0], -1), f, appearance, drawn(bank.ref_dir))
 
 
 def shade(renderer: RayRenderer, bank: PointBank, idx: torch.Tensor) -> torch.Tensor:
-    """Composited colour of the rays ``idx``, as the server composites it on the background."""
-    rgb, _, opacity = renderer.shade(radiance_points(renderer, bank, idx), bank.depth_range)
-    return rgb + (1.0 - opacity[:, None]) * bank.background
+    """Composited colour of the rays ``idx``, as the server composites it on the background (on
+    the renderer's device)."""
+    device = device_of(renderer)
+    rgb, _, opacity = renderer.shade(radiance_points(renderer, bank, idx), bank.depth_range.to(device))
+    return rgb + (1.0 - opacity[:, None]) * bank.background.to(device)
 
 
 @torch.no_grad()
@@ -203,9 +214,10 @@ def render_raw(renderer: RayRenderer, bank: PointBank, chunk: int = 1024) -> tup
     parts = []
     for start in range(0, len(bank), chunk):
         rgb, depth, opacity = renderer.shade(
-            radiance_points(renderer, bank, torch.arange(start, min(start + chunk, len(bank)))), bank.depth_range
+            radiance_points(renderer, bank, torch.arange(start, min(start + chunk, len(bank)))),
+            bank.depth_range.to(device_of(renderer)),
         )
-        parts.append((rgb, depth, opacity))
+        parts.append((rgb.cpu(), depth.cpu(), opacity.cpu()))
     return tuple(torch.cat([p[k] for p in parts]).double().numpy() for k in range(3))
 
 
@@ -244,11 +256,17 @@ def score_colours(bank: PointBank, colours: np.ndarray, names: list[str]) -> dic
     return out
 
 
-def score(renderer: RayRenderer, bank: PointBank, names: list[str], sources: list[Sources]) -> dict[str, dict]:
-    """The held-out scores (``score_colours``) of the bank's views as the server renders them, by
-    each rule of the band stage (``BAND_RULES``)."""
+def score(
+    renderer: RayRenderer,
+    bank: PointBank,
+    names: list[str],
+    sources: list[Sources],
+    rules: tuple[str, ...] = BAND_RULES,
+) -> dict[str, dict]:
+    """The scores (``score_colours``) of the bank's views as the server renders them, by each of
+    the band stage's ``rules``."""
     raw = render_raw(renderer, bank)
     return {
         rule: score_colours(bank, composite(bank, band_filled(bank, raw, sources, rule), raw[2]), names)
-        for rule in BAND_RULES
+        for rule in rules
     }

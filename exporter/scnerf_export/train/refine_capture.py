@@ -28,9 +28,12 @@ from ..data.scene import SceneData, image_size, list_images, resize_view
 MAX_SOURCE_PIXELS = 1024 * 1024
 # Views held out when neither the command nor the capture names them: LLFF's every 8th.
 DEFAULT_HOLDOUT = 8
-# A training view is rendered from 3 other training views; one view at least is held out.
+# Training views set aside for validation when the command names none: 1 in 8, at least one.
+DEFAULT_VALIDATION = 8
+# A training view is rendered from 3 other training views; one view at least is held out and one
+# is a validation view.
 SOURCES = 3
-MIN_VIEWS = SOURCES + 2
+MIN_VIEWS = SOURCES + 3
 
 
 class CaptureError(ValueError):
@@ -215,9 +218,11 @@ def read_capture(
 
 @dataclass(frozen=True)
 class Split:
-    """Which views train and which are held out; each view's sources, all training views."""
+    """Which views train, which choose the kept step (validation) and which are held out for the
+    record; each view's sources, all training views."""
 
     training: list[str]
+    validation: list[str]
     held_out: list[str]
     sources: dict[str, list[str]]
 
@@ -227,15 +232,33 @@ def held_out_names(scene: SceneData, holdout: int | None, targets: list[str] | N
     DTU's test views, LLFF's every 8th); else every 8th view."""
     names = list(scene.views)
     if targets:
-        unknown = [t for t in targets if t not in scene.views]
-        if unknown:
-            raise CaptureError(f"--targets: {', '.join(unknown)} not in the capture (views: {', '.join(names)})")
-        return list(dict.fromkeys(targets))
+        return named_views(scene, targets, "--targets")
     if holdout is not None:
         if holdout < 2:
             raise CaptureError(f"--holdout {holdout}: hold out every K-th view with K >= 2")
         return names[::holdout]
     return list(scene.default_targets or names[::DEFAULT_HOLDOUT])
+
+
+def named_views(scene: SceneData, names: list[str], flag: str) -> list[str]:
+    """``names`` (the views a flag names), each once; an error naming the flag for any the capture lacks."""
+    unknown = [n for n in names if n not in scene.views]
+    if unknown:
+        raise CaptureError(f"{flag}: {', '.join(unknown)} not in the capture (views: {', '.join(scene.views)})")
+    return list(dict.fromkeys(names))
+
+
+def validation_names(scene: SceneData, pool: list[str], held: list[str], chosen: list[str] | None) -> list[str]:
+    """``chosen``, none of them held out; else 1 in ``DEFAULT_VALIDATION`` of the views ``pool``
+    left after the hold-out, at least one, spaced evenly through it."""
+    if chosen:
+        names = named_views(scene, chosen, "--validation")
+        both = [n for n in names if n in held]
+        if both:
+            raise CaptureError(f"--validation: {', '.join(both)} held out; a validation view must be a training view")
+        return names
+    count = max(1, len(pool) // DEFAULT_VALIDATION)
+    return [pool[(2 * i + 1) * len(pool) // (2 * count)] for i in range(count)]
 
 
 def _nearest(scene: SceneData, name: str, pool: list[str]) -> list[str] | None:
@@ -245,24 +268,37 @@ def _nearest(scene: SceneData, name: str, pool: list[str]) -> list[str] | None:
         return None
 
 
-def split_views(scene: SceneData, holdout: int | None = None, targets: list[str] | None = None) -> Split:
-    """The capture's training and held-out views. Held-out views are never sources: every view,
-    held out or not, is rendered from the 3 training views nearest to it."""
+def _too_few_to_train(count: int, held: list[str], validation: list[str], left: int) -> str:
+    return (
+        f"no views left to train on: holding out {len(held)} and validating on {len(validation)} of {count} "
+        f"views leaves {left}; each training view is rendered from {SOURCES} other training views, "
+        f"so refine needs {SOURCES + 1}"
+    )
+
+
+def split_views(
+    scene: SceneData,
+    holdout: int | None = None,
+    targets: list[str] | None = None,
+    validation: list[str] | None = None,
+) -> Split:
+    """The capture's training, validation and held-out views, disjoint. Only training views are
+    sources: every view is rendered from the 3 training views nearest to it, so neither a
+    validation view nor a held-out one reaches a training ray."""
     count = len(scene.views)
     if count < MIN_VIEWS:
         raise CaptureError(
-            f"the capture has {count} views; refine needs at least {MIN_VIEWS} "
-            f"(each training view is rendered from {SOURCES} others, and one view at least is held out)"
+            f"the capture has {count} views; refine needs at least {MIN_VIEWS} (each training view is "
+            f"rendered from {SOURCES} others, one view at least is held out and one validates)"
         )
     held = held_out_names(scene, holdout, targets)
-    pool = [n for n in scene.views if n not in held]
     if not held:
-        raise CaptureError("no view is held out: refine keeps the model that scores best on held-out views")
+        raise CaptureError("no view is held out: refine reports the kept model's PSNR on held-out views")
+    rest = [n for n in scene.views if n not in held]
+    checks = validation_names(scene, rest, held, validation)
+    pool = [n for n in rest if n not in checks]
     if len(pool) < SOURCES + 1:
-        raise CaptureError(
-            f"no views left to train on: holding out {len(held)} of {count} views leaves {len(pool)}; "
-            f"each training view is rendered from {SOURCES} other training views, so refine needs {SOURCES + 1}"
-        )
+        raise CaptureError(_too_few_to_train(count, held, checks, len(pool)))
     sources = {name: _nearest(scene, name, pool) for name in scene.views}
     missing = [n for n, s in sources.items() if s is None]
     if missing:
@@ -270,12 +306,14 @@ def split_views(scene: SceneData, holdout: int | None = None, targets: list[str]
             f"left out, fewer than {SOURCES} training views face their way: {', '.join(missing)}", stacklevel=2
         )
     training = [n for n in pool if sources[n] is not None]
+    checks = [n for n in checks if sources[n] is not None]
     held = [n for n in held if sources[n] is not None]
     if not training:
         raise CaptureError(f"no views left to train on: no training view has {SOURCES} others facing its way")
-    if not held:
-        raise CaptureError(f"no held-out view has {SOURCES} training views facing its way")
-    return Split(training, held, {n: s for n, s in sources.items() if s is not None})
+    for kind, names in (("validation", checks), ("held-out", held)):
+        if not names:
+            raise CaptureError(f"no {kind} view has {SOURCES} training views facing its way")
+    return Split(training, checks, held, {n: s for n, s in sources.items() if s is not None})
 
 
 def spread_order(scene: SceneData, names: list[str]) -> list[str]:
