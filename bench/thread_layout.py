@@ -22,7 +22,7 @@ import onnxruntime as ort
 
 from scnerf_export import cameras as cams
 from scnerf_export.runtime import guided
-from scnerf_export.runtime.chunks import fine_rays_per_run, rays_per_run
+from scnerf_export.runtime.chunks import fine_rays_per_run
 from scnerf_export.runtime.onnx_pipeline import OnnxBundle, session_options
 
 from .sampling import encoded_target, write_results
@@ -36,14 +36,9 @@ def fine_feeds(bundle: OnnxBundle, name: str, size: tuple[int, int], k: int, run
     near, far = scene.near, scene.far
     first = guided.first_level_pixels(camera.width, camera.height, bundle.policy.step)
     level0 = first[:, 0] * camera.width + first[:, 1]
-    session = bundle.sessions["renderer_guide"]
-    inputs, outputs = [i.name for i in session.get_inputs()], [o.name for o in session.get_outputs()]
-    parts = []
-    for start in range(0, len(level0), rays_per_run(bundle.cfg.samples)):
-        rows = level0[start : start + rays_per_run(bundle.cfg.samples)]
-        feeds = bundle.renderer_feeds(encoded, origins[rows], directions[rows], near, far, (near, far))
-        parts.append(session.run(None, {n: feeds[n] for n in inputs}))
-    heads = {n: np.concatenate([p[i] for p in parts]) for i, n in enumerate(outputs) if n.endswith("_heads")}
+    guide, _ = bundle.guided_runs(encoded, near, far)
+    level0_outputs = guide(origins[level0], directions[level0])
+    heads = {n: v for n, v in level0_outputs.items() if n.endswith("_heads")}
     fine_inputs = [i.name for i in bundle.sessions["renderer_fine"].get_inputs()]
     chunk = fine_rays_per_run(k, bundle.cfg.samples)
     rng = np.random.default_rng(0)
